@@ -1,0 +1,274 @@
+"""Shared helpers for the experiments: run, time, summarise, plot.
+
+An experiment script builds, for every method (and every sweep entry), a jitted
+``step(carry, i) -> (carry, aux)`` and hands it to :func:`run_method`, which
+
+* runs it for ``iterations`` steps under a tqdm bar,
+* times each step on the wall clock (``jax.block_until_ready`` on the carry),
+  keeping compilation (the first call) and evaluation out of the timing,
+* calls ``evaluate(carry)`` every ``record_every`` steps (untimed) for metrics
+  such as the parameter error, and records ``aux`` (e.g. the noisy training loss),
+
+and returns a :class:`Trace`. The writers turn a dict of traces into
+``summary.json``, a Markdown table and loss / error curve PNGs against iteration
+and against wall-clock time.
+
+Typical use::
+
+    args = parse_args("texture recovery", default_out="results/texture")
+    trace = run_method("adam", step, carry0, iterations=200,
+                       evaluate=lambda c: {"param_error": err(c)},
+                       hyperparameters={"learning_rate": 0.01})
+    write_summary(args.out, {"adam": summary_entry(trace)})
+    plot_curves({"adam": trace}, "param_error", args.out / "param_error.png")
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import pathlib
+import time
+from typing import Any, Callable, Mapping, Sequence
+
+import jax
+import numpy as np
+
+QUICK_ENV = "OPTAX_BILATERAL_QUICK"
+
+
+def quick_from_env() -> bool:
+    """True when ``OPTAX_BILATERAL_QUICK`` is set to a non-empty value other than ``0`` (tests set it)."""
+    return os.environ.get(QUICK_ENV, "") not in ("", "0")
+
+
+def parse_args(description: str, default_out: str, argv: Sequence[str] | None = None,
+               extra: Callable[[argparse.ArgumentParser], None] | None = None) -> argparse.Namespace:
+    """Common command line: ``--quick`` (also implied by ``OPTAX_BILATERAL_QUICK=1``) and ``--out DIR``.
+
+    ``extra(parser)`` may add experiment-specific options. ``args.out`` is a ``pathlib.Path``.
+    """
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true",
+                        help=f"small, fast setting (also set by {QUICK_ENV}=1); used by the tests")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path(default_out),
+                        help=f"output directory (default: {default_out})")
+    if extra is not None:
+        extra(parser)
+    args = parser.parse_args(argv)
+    args.quick = bool(args.quick or quick_from_env())
+    return args
+
+
+@dataclasses.dataclass
+class Trace:
+    """Everything one optimisation run produced.
+
+    Attributes:
+      name: method name (e.g. ``"cross-bilateral"``).
+      hyperparameters: JSON-able dict describing the run.
+      iterations: ``(R,)`` 1-based iteration index of each record.
+      wall_time: ``(R,)`` cumulative timed seconds (steps only) at each record.
+      metrics: name -> ``(R,)`` array; ``aux`` values of the recorded step and
+        ``evaluate`` values after it.
+      step_seconds: ``(N,)`` wall time of every step; step 1 includes compilation.
+      final: the final carry (e.g. the parameters), as returned by the last step.
+    """
+
+    name: str
+    hyperparameters: dict
+    iterations: np.ndarray
+    wall_time: np.ndarray
+    metrics: dict[str, np.ndarray]
+    step_seconds: np.ndarray
+    final: Any = None
+
+    @property
+    def seconds_per_iteration(self) -> float:
+        """Median step time excluding step 1 (compilation); robust to a shared, noisy CPU."""
+        steps = self.step_seconds[1:] if len(self.step_seconds) > 1 else self.step_seconds
+        return float(np.median(steps))
+
+    @property
+    def compile_seconds(self) -> float:
+        """Extra time of the first step over the median step: roughly the jit compile time."""
+        return float(max(self.step_seconds[0] - self.seconds_per_iteration, 0.0))
+
+    def final_metric(self, key: str) -> float:
+        return float(self.metrics[key][-1])
+
+    def metric_at_time(self, key: str, seconds: float) -> float:
+        """Value of ``key`` at the last record whose cumulative step time is <= ``seconds``.
+
+        Times are re-based so that step 1 costs the median step (compilation is not
+        charged to anyone). Returns NaN when no record is that early.
+        """
+        t = self.rebased_wall_time
+        idx = np.searchsorted(t, seconds, side="right") - 1
+        return float(self.metrics[key][idx]) if idx >= 0 else math.nan
+
+    @property
+    def rebased_wall_time(self) -> np.ndarray:
+        """Cumulative step time at each record, with the compile overhead of step 1 removed."""
+        return self.wall_time - self.compile_seconds
+
+
+def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any]]], carry: Any,
+               iterations: int, *, evaluate: Callable[[Any], Mapping[str, Any]] | None = None,
+               record_every: int = 1, hyperparameters: Mapping[str, Any] | None = None,
+               progress: bool = True) -> Trace:
+    """Runs ``carry, aux = step(carry, i)`` for ``i = 0 .. iterations-1`` and records metrics.
+
+    Args:
+      name: method name, used for the progress bar and the trace.
+      step: usually a jitted function; ``i`` is passed as a Python int (wrap it in
+        ``jnp.asarray`` inside if it selects a PRNG key, to avoid recompiles).
+      carry: initial state (params, optimizer state, ...).
+      iterations: number of steps.
+      evaluate: untimed ``carry -> {metric: scalar}`` called after each recorded step.
+      record_every: record every this many steps (the last step is always recorded).
+      hyperparameters: stored in the trace and the summary.
+      progress: show a tqdm bar.
+    """
+    from tqdm.auto import tqdm
+
+    if not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations must be a positive int, got {iterations!r}")
+    if not isinstance(record_every, int) or record_every < 1:
+        raise ValueError(f"record_every must be a positive int, got {record_every!r}")
+    step_seconds = np.zeros(iterations)
+    records: dict[str, list[float]] = {}
+    rec_iter, rec_time = [], []
+    elapsed = 0.0
+    bar = tqdm(range(iterations), desc=name, disable=not progress, leave=False, dynamic_ncols=True)
+    for i in bar:
+        t0 = time.perf_counter()
+        carry, aux = step(carry, i)
+        jax.block_until_ready((carry, aux))
+        dt = time.perf_counter() - t0
+        step_seconds[i] = dt
+        elapsed += dt
+        if (i + 1) % record_every == 0 or i == iterations - 1:
+            values = dict(aux)
+            if evaluate is not None:
+                values.update(evaluate(carry))
+            for k, v in values.items():
+                records.setdefault(k, []).append(float(v))
+            rec_iter.append(i + 1)
+            rec_time.append(elapsed)
+            if "loss" in values:
+                bar.set_postfix(loss=f"{values['loss']:.4g}", refresh=False)
+    return Trace(name=name, hyperparameters=dict(hyperparameters or {}),
+                 iterations=np.asarray(rec_iter), wall_time=np.asarray(rec_time),
+                 metrics={k: np.asarray(v) for k, v in records.items()},
+                 step_seconds=step_seconds, final=carry)
+
+
+def summary_entry(trace: Trace, metric_keys: Mapping[str, str] | None = None) -> dict:
+    """The per-method dict of ``summary.json``.
+
+    ``metric_keys`` maps summary key -> trace metric, default
+    ``{"final_param_error": "param_error", "final_loss": "loss"}`` (keys whose
+    metric the trace lacks are skipped).
+    """
+    if metric_keys is None:
+        metric_keys = {"final_param_error": "param_error", "final_loss": "loss"}
+    entry = {k: trace.final_metric(m) for k, m in metric_keys.items() if m in trace.metrics}
+    entry["seconds_per_iteration"] = trace.seconds_per_iteration
+    entry["iterations"] = int(trace.iterations[-1])
+    entry["hyperparameters"] = _jsonable(trace.hyperparameters)
+    return entry
+
+
+def best_trace(traces: Sequence[Trace], metric: str) -> Trace:
+    """The trace with the smallest final ``metric`` (NaN counts as worst)."""
+    if not traces:
+        raise ValueError("best_trace needs at least one trace")
+    return min(traces, key=lambda t: (math.isnan(t.final_metric(metric)), t.final_metric(metric)))
+
+
+def write_summary(out_dir: str | os.PathLike, methods: Mapping[str, dict], **extra: Any) -> pathlib.Path:
+    """Writes ``{"methods": methods, **extra}`` to ``out_dir/summary.json``; returns the path."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "summary.json"
+    path.write_text(json.dumps(_jsonable({"methods": dict(methods), **extra}), indent=2) + "\n")
+    return path
+
+
+def markdown_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None,
+                   floatfmt: str = ".4g") -> str:
+    """A GitHub Markdown table; ``columns`` defaults to the keys of the first row."""
+    if not rows:
+        return ""
+    columns = list(columns if columns is not None else rows[0].keys())
+
+    def fmt(v: Any) -> str:
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else format(v, floatfmt)
+        return str(v)
+
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    lines += ["| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def plot_curves(traces: Mapping[str, Trace], metric: str, path: str | os.PathLike, *,
+                x: str = "iteration", log_y: bool = True, title: str | None = None,
+                ylabel: str | None = None) -> pathlib.Path:
+    """One line per trace of ``metric`` against ``x`` ("iteration" or "time"); saves a PNG."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if x not in ("iteration", "time"):
+        raise ValueError(f"x must be 'iteration' or 'time', got {x!r}")
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(5.5, 3.8), dpi=120)
+    for label, tr in traces.items():
+        if metric not in tr.metrics:
+            continue
+        xs = tr.iterations if x == "iteration" else tr.rebased_wall_time
+        ax.plot(xs, tr.metrics[metric], label=label, lw=1.4)
+    ax.set_xlabel("iteration" if x == "iteration" else "wall-clock seconds (steps only, no compile)")
+    ax.set_ylabel(ylabel or metric)
+    if log_y:
+        ax.set_yscale("log")
+    ax.set_title(title or f"{metric} vs {x}")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_all_curves(traces: Mapping[str, Trace], out_dir: str | os.PathLike,
+                    metrics: Sequence[str] = ("loss", "param_error")) -> list[pathlib.Path]:
+    """``{metric}_vs_{iteration,time}.png`` for every metric; returns the paths."""
+    out = pathlib.Path(out_dir)
+    return [plot_curves(traces, m, out / f"{m}_vs_{x}.png", x=x)
+            for m in metrics for x in ("iteration", "time")]
+
+
+def _jsonable(obj: Any) -> Any:
+    """Converts numpy / jax scalars and arrays, tuples and inf to plain JSON values."""
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.ndarray, jax.Array)):
+        return _jsonable(np.asarray(obj).tolist())
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        # JSON has no inf/nan; a string keeps sigma_d=inf readable and the file valid.
+        return v if math.isfinite(v) else str(v)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
