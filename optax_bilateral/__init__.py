@@ -1,0 +1,33 @@
+"""optax_bilateral: spatiotemporal bilateral gradient filtering as Optax transforms.
+
+Chang, Yang, Belhe, Ramamoorthi, Li. "Spatiotemporal Bilateral Gradient Filtering
+for Inverse Rendering". SIGGRAPH Asia 2024.
+"""
+
+from optax_bilateral._src.alias import bilateral_adam
+from optax_bilateral._src.atrous import atrous_bilateral
+from optax_bilateral._src.leaves import default_spatial_axes
+from optax_bilateral._src.transforms import (
+    DEFAULT_SIGMA_D,
+    PostfilterState,
+    PrefilterState,
+    ScaleByAdamState,
+    postfilter,
+    prefilter,
+    scale_by_adam,
+)
+
+__version__ = "0.1.0"
+
+__all__ = (
+    "DEFAULT_SIGMA_D",
+    "PostfilterState",
+    "PrefilterState",
+    "ScaleByAdamState",
+    "atrous_bilateral",
+    "bilateral_adam",
+    "default_spatial_axes",
+    "postfilter",
+    "prefilter",
+    "scale_by_adam",
+)

@@ -1,0 +1,167 @@
+"""Per-leaf settings: which axes of each parameter leaf are spatial, its sigma_d, levels, guide.
+
+A setting is given once for all leaves, or as a pytree *prefix* of the parameters
+(one value per subtree), or (for ``spatial_axes``) as a callable ``leaf -> axes``.
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from optax_bilateral._src import atrous
+
+LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
+
+
+def default_spatial_axes(leaf) -> tuple[int, ...]:
+    """The default leaf rule.
+
+    * 0-D and 1-D leaves (scalars, vectors): ``()``, not filtered (plain Adam);
+    * 2-D leaves ``(H, W)``: both axes spatial;
+    * N-D leaves, N >= 3: all but the last axis spatial (channels-last:
+      ``(H, W, C)`` textures, ``(D, H, W, C)`` volumes).
+    """
+    nd = np.ndim(leaf)
+    if nd <= 1:
+        return ()
+    if nd == 2:
+        return (0, 1)
+    return tuple(range(nd - 1))
+
+
+class _Box:
+    """Keeps a per-leaf value atomic while it is broadcast over a subtree."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value):
+        self.value = value
+
+
+def _is_axes_atom(x) -> bool:
+    return (x is None or callable(x) or isinstance(x, numbers.Integral)
+            or (isinstance(x, (tuple, list))
+                and all(isinstance(a, numbers.Integral) and not isinstance(a, bool) for a in x)))
+
+
+def _is_scalar_atom(x) -> bool:
+    return x is None or isinstance(x, (numbers.Number, np.ndarray, jax.Array, np.generic)) \
+        or hasattr(x, "dtype")
+
+
+def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) -> list:
+    """One value of ``prefix`` per leaf of ``tree`` (in ``jax.tree.leaves`` order)."""
+    n = len(jax.tree.leaves(tree))
+    if is_atom(prefix):
+        return [prefix] * n
+    try:
+        boxed = jax.tree.map(
+            lambda p, sub: jax.tree.map(lambda _: _Box(p), sub), prefix, tree, is_leaf=is_atom)
+    except (ValueError, TypeError) as e:
+        raise ValueError(
+            f"{name} must be a single value or a pytree prefix of the parameters "
+            f"(one value per subtree); its structure does not match: {e}") from None
+    values = [b.value for b in jax.tree.leaves(boxed, is_leaf=lambda x: isinstance(x, _Box))]
+    if len(values) != n:
+        raise ValueError(f"{name}: expected one value per parameter leaf ({n}), got {len(values)}")
+    return values
+
+
+class LeafSpec(NamedTuple):
+    """Static per-leaf filter settings plus the (possibly traced) sigma_d."""
+
+    axes: tuple[int, ...]   # () means "not filtered"
+    levels: int
+    sigma_d: Any
+
+
+def leaf_specs(tree, *, spatial_axes, sigma_d, levels) -> list[LeafSpec]:
+    """Resolves spatial axes, levels and sigma_d for every leaf of ``tree``."""
+    leaves = jax.tree.leaves(tree)
+    axes_list = broadcast_prefix(spatial_axes, tree, _is_axes_atom, "spatial_axes")
+    sigma_list = broadcast_prefix(sigma_d, tree, _is_scalar_atom, "sigma_d")
+    levels_list = broadcast_prefix(levels, tree, _is_scalar_atom, "levels")
+    specs = []
+    for i, (leaf, ax, sig, lev) in enumerate(zip(leaves, axes_list, sigma_list, levels_list)):
+        if ax is None:
+            ax = default_spatial_axes(leaf)
+        elif callable(ax):
+            ax = ax(leaf)
+            ax = default_spatial_axes(leaf) if ax is None else ax
+        ax = tuple(ax) if isinstance(ax, (tuple, list)) else (ax,)
+        nd = np.ndim(leaf)
+        if len(ax) > nd:
+            raise ValueError(f"spatial_axes={ax} asks for {len(ax)} spatial axes but parameter "
+                             f"leaf {i} has shape {np.shape(leaf)} ({nd} dimension(s))")
+        ax = atrous.normalize_axes(ax, nd, name=f"spatial_axes (for leaf {i}, shape {np.shape(leaf)})")
+        lev = atrous.check_levels(lev, name=f"levels (for leaf {i})")
+        if sig is None:
+            raise ValueError(f"sigma_d is None for leaf {i}; pass a number (inf for a low-pass)")
+        atrous.check_sigma_d(sig, name=f"sigma_d (for leaf {i})")
+        if ax and lev > 0:
+            dt = jnp.result_type(leaf)
+            if not jnp.issubdtype(dt, jnp.floating):
+                raise TypeError(f"parameter leaf {i} has dtype {dt}; filtered leaves must be "
+                                "floating point (integer parameters have no gradient)")
+        specs.append(LeafSpec(ax if lev > 0 else (), lev, sig))
+    return specs
+
+
+GuideSpec = Any  # "params" | "self" | callable params -> guide pytree (prefix)
+
+
+def check_guide(guide) -> None:
+    if not (guide in ("params", "self") or callable(guide)):
+        raise ValueError(f"guide must be 'params', 'self' or a callable params -> guide pytree, "
+                         f"got {guide!r}")
+
+
+def guide_leaves(guide, params, tree, specs: list[LeafSpec], log_guide: bool, transform: str) -> list:
+    """The guide array for every leaf (None where the leaf is not filtered or guide='self')."""
+    if guide == "self" or not any(s.axes for s in specs):
+        return [None] * len(specs)
+    if params is None:
+        raise ValueError(f"{transform} uses guide={guide!r}, which needs the current parameters: "
+                         f"call update(updates, state, params=params)")
+    if guide == "params":
+        g = jax.tree.leaves(params)
+        if len(g) != len(specs):
+            raise ValueError(f"params has {len(g)} leaves but the updates have {len(specs)}; "
+                             "they must have the same structure")
+    else:
+        g = broadcast_prefix(guide(params), tree, lambda x: x is None or hasattr(x, "shape"),
+                             "the guide callable's result")
+    return [log_transform(x) if (log_guide and x is not None) else x for x in g]
+
+
+def log_transform(x):
+    """log(|x| + 1e-8): the log-domain guide of the paper's texture runs."""
+    x = jnp.asarray(x)
+    x = x.astype(jnp.promote_types(x.dtype, jnp.float32))
+    return jnp.log(jnp.abs(x) + LOG_GUIDE_EPS)
+
+
+def texel_mask(ok, axes: tuple[int, ...]):
+    """Reduces an elementwise boolean to the spatial grid (a texel is ok iff all its channels are).
+
+    Returned in ``axes`` order, the layout ``atrous_bilateral``'s ``mask`` expects.
+    """
+    chan = tuple(a for a in range(ok.ndim) if a not in axes)
+    m = jnp.all(ok, axis=chan) if chan else ok
+    srt = sorted(axes)
+    return jnp.transpose(m, [srt.index(a) for a in axes]) if len(axes) > 1 else m
+
+
+def expand_mask(mask, ndim: int, axes: tuple[int, ...]):
+    """Inverse of :func:`texel_mask`'s layout: broadcastable against the leaf."""
+    srt = sorted(axes)
+    m = jnp.transpose(mask, [axes.index(a) for a in srt]) if len(axes) > 1 else mask
+    shape = [1] * ndim
+    for k, a in enumerate(srt):
+        shape[a] = m.shape[k]
+    return m.reshape(shape)
