@@ -98,7 +98,10 @@ class Trace:
         return float(max(self.step_seconds[0] - self.seconds_per_iteration, 0.0))
 
     def final_metric(self, key: str) -> float:
-        return float(self.metrics[key][-1])
+        """The last recorded (non-NaN) value of ``key``; NaN if there is none."""
+        values = self.metrics[key]
+        seen = np.nonzero(~np.isnan(values))[0]
+        return float(values[seen[-1]]) if len(seen) else math.nan
 
     def metric_at_time(self, key: str, seconds: float) -> float:
         """Value of ``key`` at the last record whose cumulative step time is <= ``seconds``.
@@ -106,9 +109,18 @@ class Trace:
         Times are re-based so that step 1 costs the median step (compilation is not
         charged to anyone). Returns NaN when no record is that early.
         """
-        t = self.rebased_wall_time
+        values = self.metrics[key]
+        keep = ~np.isnan(values)
+        t = self.rebased_wall_time[keep]
         idx = np.searchsorted(t, seconds, side="right") - 1
-        return float(self.metrics[key][idx]) if idx >= 0 else math.nan
+        return float(values[keep][idx]) if idx >= 0 else math.nan
+
+    def metric_at_iteration(self, key: str, iteration: int) -> float:
+        """Value of ``key`` at the last record at or before ``iteration``; NaN if none."""
+        values = self.metrics[key]
+        keep = ~np.isnan(values)
+        idx = np.searchsorted(self.iterations[keep], iteration, side="right") - 1
+        return float(values[keep][idx]) if idx >= 0 else math.nan
 
     @property
     def rebased_wall_time(self) -> np.ndarray:
@@ -118,7 +130,8 @@ class Trace:
 
 def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any]]], carry: Any,
                iterations: int, *, evaluate: Callable[[Any], Mapping[str, Any]] | None = None,
-               record_every: int = 1, hyperparameters: Mapping[str, Any] | None = None,
+               record_every: int = 1, evaluate_every: int | None = None,
+               hyperparameters: Mapping[str, Any] | None = None,
                progress: bool = True) -> Trace:
     """Runs ``carry, aux = step(carry, i)`` for ``i = 0 .. iterations-1`` and records metrics.
 
@@ -128,8 +141,11 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
         ``jnp.asarray`` inside if it selects a PRNG key, to avoid recompiles).
       carry: initial state (params, optimizer state, ...).
       iterations: number of steps.
-      evaluate: untimed ``carry -> {metric: scalar}`` called after each recorded step.
-      record_every: record every this many steps (the last step is always recorded).
+      evaluate: untimed ``carry -> {metric: scalar}``, called after every
+        ``evaluate_every``-th step and after the last one; other records hold NaN
+        for its metrics (plots skip them, :meth:`Trace.final_metric` uses the last).
+      record_every: record ``aux`` every this many steps (the last step is always recorded).
+      evaluate_every: defaults to ``record_every``; must be a multiple of it.
       hyperparameters: stored in the trace and the summary.
       progress: show a tqdm bar.
     """
@@ -139,6 +155,11 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
         raise ValueError(f"iterations must be a positive int, got {iterations!r}")
     if not isinstance(record_every, int) or record_every < 1:
         raise ValueError(f"record_every must be a positive int, got {record_every!r}")
+    evaluate_every = record_every if evaluate_every is None else evaluate_every
+    if (not isinstance(evaluate_every, int) or evaluate_every < 1
+            or evaluate_every % record_every):
+        raise ValueError(f"evaluate_every must be a positive multiple of record_every="
+                         f"{record_every}, got {evaluate_every!r}")
     step_seconds = np.zeros(iterations)
     records: dict[str, list[float]] = {}
     rec_iter, rec_time = [], []
@@ -151,12 +172,14 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
         dt = time.perf_counter() - t0
         step_seconds[i] = dt
         elapsed += dt
-        if (i + 1) % record_every == 0 or i == iterations - 1:
-            values = dict(aux)
-            if evaluate is not None:
-                values.update(evaluate(carry))
-            for k, v in values.items():
-                records.setdefault(k, []).append(float(v))
+        last = i == iterations - 1
+        if (i + 1) % record_every == 0 or last:
+            values = {k: float(v) for k, v in dict(aux).items()}
+            if evaluate is not None and ((i + 1) % evaluate_every == 0 or last):
+                values.update({k: float(v) for k, v in evaluate(carry).items()})
+            for k in set(records) | set(values):
+                # A metric first seen late is NaN-padded at the earlier records.
+                records.setdefault(k, [math.nan] * len(rec_iter)).append(values.get(k, math.nan))
             rec_iter.append(i + 1)
             rec_time.append(elapsed)
             if "loss" in values:
@@ -233,7 +256,9 @@ def plot_curves(traces: Mapping[str, Trace], metric: str, path: str | os.PathLik
         if metric not in tr.metrics:
             continue
         xs = tr.iterations if x == "iteration" else tr.rebased_wall_time
-        ax.plot(xs, tr.metrics[metric], label=label, lw=1.4)
+        ys = tr.metrics[metric]
+        keep = np.isfinite(ys)
+        ax.plot(xs[keep], ys[keep], label=label, lw=1.4, marker="." if keep.sum() < 30 else None)
     ax.set_xlabel("iteration" if x == "iteration" else "wall-clock seconds (steps only, no compile)")
     ax.set_ylabel(ylabel or metric)
     if log_y:
