@@ -26,6 +26,7 @@ Implementation notes (why it looks the way it does):
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import numbers
@@ -135,36 +136,64 @@ def _pad(x: jax.Array, lo: Sequence[int], hi: Sequence[int], first_axis: int) ->
     return lax.pad(x, jnp.zeros((), x.dtype), cfg)
 
 
+def _channel_sq_dist(a: jax.Array, b: jax.Array) -> jax.Array:
+    """sum_c (a[c] - b[c])**2 over the leading axis."""
+    if a.shape[0] <= 16:
+        # Unrolled: XLA's CPU reduce over a short leading axis is ~40x slower than adds.
+        return sum(jnp.square(a[c] - b[c]) for c in range(a.shape[0]))
+    return jnp.sum(jnp.square(a - b), axis=0)
+
+
+def _pair_weights(guide, valid, sigma_d, off, tap):
+    """tap * w(p, p + off), zero-padded by |off| on both sides of every spatial axis.
+
+    Shape ``S + |off|``. With ``E`` this array, ``E[hi + p]`` (``hi = max(off, 0)``) is
+    the weight of p's neighbour ``p + off`` and ``E[lo + p]`` (``lo = max(-off, 0)``) that
+    of ``p - off``: both are plain slices, zero wherever the neighbour is off the grid.
+    """
+    lo = [max(-o, 0) for o in off]
+    hi = [max(o, 0) for o in off]
+    w = tap * _weight(_channel_sq_dist(_crop(guide, lo, hi, 1), _crop(guide, hi, lo, 1)), sigma_d)
+    if valid is not None:
+        # Symmetric in p and q: both ends must be valid.
+        w = w * _crop(valid, lo, hi, 0) * _crop(valid, hi, lo, 0)
+    ext = [abs(o) for o in off]
+    return _pad(w, ext, ext, 0)
+
+
+def _slice_at(x, starts, size, first_axis):
+    start = [0] * x.ndim
+    limit = list(x.shape)
+    for k, (a, n) in enumerate(zip(starts, size)):
+        start[first_axis + k] = a
+        limit[first_axis + k] = a + n
+    return lax.slice(x, start, limit)
+
+
 def _pass(x, guide, valid, sigma_d, offsets_and_taps, h0):
     """One normalised bilateral pass over planar arrays.
 
-    x: (C, *S) fields; guide: (G, *S); valid: (*S) float 0/1 or None;
-    offsets_and_taps: [(offset vector, tap)] for one of each pair +o / -o.
+    x: (C, *S) fields (zero where invalid); guide: (G, *S); valid: (*S) float 0/1 or
+    None; offsets_and_taps: [(offset vector, tap)] for one of each pair +o / -o.
     """
-    n = guide.ndim - 1
-    if valid is None:
-        num = h0 * x
-        den = jnp.full(x.shape[1:], h0, x.dtype)
-    else:
-        num = h0 * x                                   # x is already zero where invalid
-        den = h0 * valid
-    for off, tap in offsets_and_taps:
-        # p ranges over lo_p .. n - hi_p, its neighbour q = p + off over lo_q .. n - hi_q.
-        lo_p = [max(-o, 0) for o in off]
-        hi_p = [max(o, 0) for o in off]
-        g_p = _crop(guide, lo_p, hi_p, 1)
-        g_q = _crop(guide, hi_p, lo_p, 1)
-        w = tap * _weight(jnp.sum(jnp.square(g_p - g_q), axis=0), sigma_d)
-        x_p = _crop(x, lo_p, hi_p, 1)
-        x_q = _crop(x, hi_p, lo_p, 1)
-        if valid is None:
-            w_q = w_p = w
-        else:
-            w_q = w * _crop(valid, hi_p, lo_p, 0)       # p's neighbour q must be valid
-            w_p = w * _crop(valid, lo_p, hi_p, 0)       # and vice versa
-        # Contribution of q to p (placed at p), and of p to q (placed at q).
-        num = num + _pad(w_q * x_q, lo_p, hi_p, 1) + _pad(w_p * x_p, hi_p, lo_p, 1)
-        den = den + _pad(w_q, lo_p, hi_p, 0) + _pad(w_p, hi_p, lo_p, 0)
+    shape = x.shape[1:]
+    weights = [_pair_weights(guide, valid, sigma_d, off, tap) for off, tap in offsets_and_taps]
+    halo = [max(abs(off[k]) for off, _ in offsets_and_taps) for k in range(len(shape))]
+    xpad = _pad(x, halo, halo, 1)
+    # Materialise the weights (one exp per pair, not one per use) and the padded
+    # fields, so the accumulation below reads plain slices only.
+    weights, xpad = lax.optimization_barrier((weights, xpad))
+    num = h0 * x
+    den = h0 if valid is None else h0 * valid
+    for (off, _), e in zip(offsets_and_taps, weights):
+        lo = [max(-o, 0) for o in off]
+        hi = [max(o, 0) for o in off]
+        w_plus = _slice_at(e, hi, shape, 0)
+        w_minus = _slice_at(e, lo, shape, 0)
+        x_plus = _slice_at(xpad, [h + o for h, o in zip(halo, off)], shape, 1)
+        x_minus = _slice_at(xpad, [h - o for h, o in zip(halo, off)], shape, 1)
+        num = num + w_plus * x_plus + w_minus * x_minus
+        den = den + w_plus + w_minus
     if valid is None:
         return num / den
     return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 0.0)
@@ -236,6 +265,21 @@ def atrous_bilateral(fields, guide, *, sigma_d, levels, spatial_axes, separable=
       The filtered fields, with the structure and dtypes of ``fields``. Sums are
       accumulated in at least float32.
     """
+    levels = check_levels(levels)
+    check_sigma_d(sigma_d)
+    if isinstance(spatial_axes, list):
+        spatial_axes = tuple(spatial_axes)
+    if isinstance(guide_axes, list):
+        guide_axes = tuple(guide_axes)
+    if levels == 0 and mask is None:
+        return fields                                   # the identity, without a copy
+    return _atrous_jit(fields, guide, sigma_d, mask, levels=levels, spatial_axes=spatial_axes,
+                       separable=bool(separable), guide_axes=guide_axes)
+
+
+@functools.partial(jax.jit, static_argnames=("levels", "spatial_axes", "separable", "guide_axes"))
+def _atrous_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable, guide_axes):
+    """One compiled program per (shapes, dtypes, static settings); sigma_d stays traced."""
     single = not isinstance(fields, (tuple, list))
     fields = (fields,) if single else tuple(fields)
     if not fields:
