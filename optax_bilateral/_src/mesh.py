@@ -345,9 +345,12 @@ def _check_unit(x, name):
 
 
 def _check_solver(tol, maxiter):
-    if not (isinstance(tol, numbers.Real) and tol > 0):
-        raise ValueError(f"tol (CG relative residual) must be a float > 0, got {tol!r}")
-    if isinstance(maxiter, bool) or not isinstance(maxiter, numbers.Integral) or maxiter < 1:
+    # Concrete values only: optax.inject_hyperparams may pass them as (traced) arrays.
+    t = _concrete_float(tol)
+    if t is not None and not t > 0:
+        raise ValueError(f"tol (CG relative residual) must be > 0, got {tol!r}")
+    m = _concrete_float(maxiter)
+    if isinstance(maxiter, bool) or (m is not None and not (m >= 1 and m == int(m))):
         raise ValueError(f"maxiter (CG iteration cap) must be a positive int, got {maxiter!r}")
 
 

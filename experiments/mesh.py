@@ -1,0 +1,346 @@
+"""Mesh recovery: Large Steps vs the paper's cross-bilateral normal filter (supplement §3-4).
+
+    python -m experiments.mesh [--quick] [--out DIR]          # Fig. 2 grid + Fig. 6 (lambda=999)
+    python -m experiments.mesh --overhead [--quick] [--out DIR]  # Table 2 analogue + solver timings
+
+A sphere (icosphere) is deformed into a cube from noisy multi-view renders
+(``optax_bilateral.toy.mesh``: one jittered sample and one light sample per pixel,
+two random views of 16 per iteration, soft silhouettes). Methods:
+
+* ``large-steps``: ``x <- x - lr M^-1 AdamUniform(M^-1 g)``, ``M = I + lambda L``.
+* ``cross-bilateral``: the same prefilter, and the postfilter ``B`` that diffuses
+  with ``M^-1`` but weights neighbours by a von Mises-Fisher kernel on the normals
+  (``sigma_d``); uniform second moment.
+
+Geometry error: symmetric Hausdorff distance to the cube (dense surface samples).
+Outputs in ``--out`` (default ``results/mesh``): ``summary.json`` (``methods`` at
+the paper's defaults ``lambda=19``, ``sigma_d=0.5``; the full ``sweep``; the
+``extreme`` lambda=999 runs), ``results.md``, ``grid.png`` (Fig. 2), ``extreme.png``
+(Fig. 6), Hausdorff / loss curves. ``--overhead`` writes ``overhead.json`` /
+``overhead.md``: per-iteration time of both methods at about 10k, 35k and 166k
+vertices, measured interleaved in one process, and CG vs SciPy SuperLU solve times.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from experiments import common
+from optax_bilateral._src import mesh as mesh_lib
+from optax_bilateral.toy import mesh as toy
+
+DEFAULT_LAMBDA = 19.0
+DEFAULT_SIGMA_D = 0.5
+EXTREME_LAMBDA = 999.0
+
+
+def config(quick: bool) -> dict:
+    if quick:
+        return dict(frequency=8, resolution=48, iterations=40, lr=0.01, lambdas=[DEFAULT_LAMBDA],
+                    sigmas=[DEFAULT_SIGMA_D], extreme_iterations=30, record_every=10,
+                    samples=4000)
+    return dict(frequency=16, resolution=64, iterations=300, lr=0.01, lambdas=[4.0, 19.0, 99.0],
+                sigmas=[0.25, 0.5, 2.0], extreme_iterations=300, record_every=25, samples=20000)
+
+
+class Problem:
+    """The scene, the renderer and jitted gradient / update functions for one mesh size."""
+
+    def __init__(self, frequency: int, resolution: int, lr: float, seed: int = 0):
+        self.scene = toy.make_scene(resolution=resolution)
+        self.v0, self.faces = toy.icosphere(frequency)
+        self.renderer = toy.MeshRenderer(self.scene, self.faces)
+        self.mesh = mesh_lib.mesh_laplacian(self.faces)
+        self.directions = jnp.asarray(mesh_lib.sphere_directions(mesh_lib.DEFAULT_DIRECTIONS))
+        self.lr = lr
+        self.seed = seed
+        renderer = self.renderer
+        self.grad = jax.jit(jax.value_and_grad(lambda v, fr: renderer.loss(v, fr), has_aux=True))
+        # lambda and sigma_d are traced: one compilation serves the whole sweep.
+        self._update = {"large-steps": jax.jit(self._update_large_steps),
+                        "cross-bilateral": jax.jit(self._update_bilateral)}
+
+    def transform(self, method: str, lam, sigma_d=None):
+        if method == "large-steps":
+            return mesh_lib.large_steps(self.lr, self.mesh, lam)
+        return mesh_lib.bilateral_large_steps(self.lr, self.mesh, lam, sigma_d,
+                                              directions=self.directions)
+
+    def _update_large_steps(self, g, state, params, lam, sigma_d):
+        del sigma_d
+        updates, state = self.transform("large-steps", lam).update(g, state, params)
+        return optax.apply_updates(params, updates), state
+
+    def _update_bilateral(self, g, state, params, lam, sigma_d):
+        updates, state = self.transform("cross-bilateral", lam, sigma_d).update(g, state, params)
+        return optax.apply_updates(params, updates), state
+
+    def step_fn(self, method: str, lam: float, sigma_d: float | None):
+        """``step(carry, i)`` for :func:`experiments.common.run_method`; carry = (params, state, rng)."""
+        update = self._update[method]
+        lam_a = jnp.float32(lam)
+        sig_a = jnp.float32(np.inf if sigma_d is None else sigma_d)
+
+        def step(carry, i):
+            params, state, rng = carry
+            frame = self.renderer.frame(np.asarray(params), rng)
+            (_, loss), g = self.grad(params, frame)
+            params, state = update(g, state, params, lam_a, sig_a)
+            return (params, state, rng), {"loss": loss}
+
+        return step
+
+    def initial_carry(self, method: str):
+        params = jnp.asarray(self.v0)
+        state = self.transform(method, 1.0, 1.0).init(params)
+        return params, state, np.random.default_rng(self.seed)
+
+    def hausdorff(self, params, samples: int) -> float:
+        return toy.hausdorff_to_cube(np.asarray(params), self.faces, self.scene.cube_half, samples)
+
+
+def run_one(problem: Problem, method: str, lam: float, sigma_d: float | None, iterations: int,
+            record_every: int, samples: int) -> common.Trace:
+    name = method if sigma_d is None else f"{method} sd={sigma_d:g}"
+    hp = {"lambda": lam, "learning_rate": problem.lr, "b1": 0.9, "b2": 0.999,
+          "vertices": int(len(problem.v0))}
+    if sigma_d is not None:
+        hp.update(sigma_d=sigma_d, second_moment="uniform", directions=mesh_lib.DEFAULT_DIRECTIONS)
+    return common.run_method(
+        f"{name} lambda={lam:g}", problem.step_fn(method, lam, sigma_d), problem.initial_carry(method),
+        iterations, record_every=record_every, hyperparameters=hp,
+        evaluate=lambda c: {"hausdorff": problem.hausdorff(c[0], samples)})
+
+
+def _entry(trace: common.Trace) -> dict:
+    e = common.summary_entry(trace, {"hausdorff": "hausdorff", "final_loss": "loss"})
+    e["hausdorff_curve"] = {"iterations": trace.iterations, "values": trace.metrics["hausdorff"]}
+    return e
+
+
+def _plot_grid(problem: Problem, traces: dict, lambdas, sigmas, path: pathlib.Path, view: int = 1):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    big = problem.scene._replace(resolution=128)
+    cols = [None] + list(sigmas)
+    fig, axes = plt.subplots(len(lambdas), len(cols) + 1, figsize=(2.2 * (len(cols) + 1), 2.4 * len(lambdas)),
+                             squeeze=False, dpi=110)
+    for r, lam in enumerate(lambdas):
+        for c, sd in enumerate(cols):
+            tr = traces[(lam, sd)]
+            ax = axes[r, c]
+            ax.imshow(np.clip(toy.render(big, tr.final[0], problem.faces, view), 0, 1))
+            label = "Large Steps" if sd is None else f"ours sd={sd:g}"
+            ax.set_title(f"{label}\nlambda={lam:g}  H={tr.final_metric('hausdorff'):.4f}", fontsize=7)
+            ax.axis("off")
+        axes[r, -1].imshow(toy.render_target(big, view))
+        axes[r, -1].set_title("target", fontsize=7)
+        axes[r, -1].axis("off")
+    fig.suptitle("Mesh recovery over lambda and sigma_d (supplement Fig. 2); H = Hausdorff", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _plot_extreme(problem: Problem, traces: dict, path: pathlib.Path, view: int = 1):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    big = problem.scene._replace(resolution=128)
+    fig, axes = plt.subplots(1, 4, figsize=(11, 2.8), dpi=110)
+    for ax, (name, tr) in zip(axes, traces.items()):
+        ax.imshow(np.clip(toy.render(big, tr.final[0], problem.faces, view), 0, 1))
+        ax.set_title(f"{name}\nH={tr.final_metric('hausdorff'):.4f}", fontsize=8)
+        ax.axis("off")
+    axes[2].imshow(toy.render_target(big, view))
+    axes[2].set_title("target", fontsize=8)
+    axes[2].axis("off")
+    for name, tr in traces.items():
+        axes[3].plot(tr.iterations, tr.metrics["hausdorff"], label=name)
+    axes[3].set_xlabel("iteration")
+    axes[3].set_ylabel("Hausdorff")
+    axes[3].legend(fontsize=7)
+    fig.suptitle(f"lambda = {EXTREME_LAMBDA:g} (supplement Fig. 6)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def run_sweep(args) -> dict:
+    cfg = config(args.quick)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    problem = Problem(cfg["frequency"], cfg["resolution"], cfg["lr"])
+    its, rec, ns = cfg["iterations"], cfg["record_every"], cfg["samples"]
+    traces = {}
+    for lam in cfg["lambdas"]:
+        traces[(lam, None)] = run_one(problem, "large-steps", lam, None, its, rec, ns)
+        for sd in cfg["sigmas"]:
+            traces[(lam, sd)] = run_one(problem, "cross-bilateral", lam, sd, its, rec, ns)
+    extreme = {
+        "large-steps": run_one(problem, "large-steps", EXTREME_LAMBDA, None,
+                               cfg["extreme_iterations"], rec, ns),
+        "cross-bilateral": run_one(problem, "cross-bilateral", EXTREME_LAMBDA, DEFAULT_SIGMA_D,
+                                   cfg["extreme_iterations"], rec, ns),
+    }
+    lam0 = DEFAULT_LAMBDA if DEFAULT_LAMBDA in cfg["lambdas"] else cfg["lambdas"][0]
+    sd0 = DEFAULT_SIGMA_D if DEFAULT_SIGMA_D in cfg["sigmas"] else cfg["sigmas"][0]
+    methods = {"large-steps": _entry(traces[(lam0, None)]),
+               "cross-bilateral": _entry(traces[(lam0, sd0)])}
+    initial = problem.hausdorff(jnp.asarray(problem.v0), ns)
+    sweep = [dict(method="large-steps" if sd is None else "cross-bilateral", **_entry(tr))
+             for (lam, sd), tr in traces.items()]
+    rows = [{"method": "large-steps" if sd is None else "cross-bilateral", "lambda": lam,
+             "sigma_d": "inf" if sd is None else sd, "hausdorff": tr.final_metric("hausdorff"),
+             "final loss": tr.final_metric("loss"), "s/iter": tr.seconds_per_iteration}
+            for (lam, sd), tr in traces.items()]
+    rows += [{"method": k, "lambda": EXTREME_LAMBDA,
+              "sigma_d": "inf" if k == "large-steps" else DEFAULT_SIGMA_D,
+              "hausdorff": tr.final_metric("hausdorff"), "final loss": tr.final_metric("loss"),
+              "s/iter": tr.seconds_per_iteration} for k, tr in extreme.items()]
+    common.write_summary(
+        out, methods, setting=dict(cfg, lambda_default=lam0, sigma_d_default=sd0,
+                                   vertices=int(len(problem.v0)), initial_hausdorff=initial,
+                                   quick=args.quick),
+        sweep=sweep, extreme={k: _entry(v) for k, v in extreme.items()})
+    table = common.markdown_table(rows)
+    (out / "results.md").write_text(
+        f"# Mesh recovery ({len(problem.v0)} vertices, {its} iterations; extreme: "
+        f"{cfg['extreme_iterations']})\n\nHausdorff distance to the cube (initial sphere: "
+        f"{initial:.4f}). Headline (summary.json `methods`): lambda={lam0:g}, sigma_d={sd0:g}.\n\n"
+        + table + "\n")
+    _plot_grid(problem, traces, cfg["lambdas"], cfg["sigmas"], out / "grid.png")
+    _plot_extreme(problem, {f"Large Steps lambda={EXTREME_LAMBDA:g}": extreme["large-steps"],
+                            f"ours sd={DEFAULT_SIGMA_D:g}": extreme["cross-bilateral"]},
+                  out / "extreme.png")
+    curves = {("LS" if sd is None else f"ours sd={sd:g}") + f" l={lam:g}": tr
+              for (lam, sd), tr in traces.items()}
+    for metric in ("hausdorff", "loss"):
+        common.plot_curves(curves, metric, out / f"{metric}_vs_iteration.png")
+        common.plot_curves(curves, metric, out / f"{metric}_vs_time.png", x="time")
+    print(table)
+    return json.loads((out / "summary.json").read_text())
+
+
+# ----------------------------------------------------------------------------
+# Overhead (supplement Table 2 analogue)
+
+
+def _solver_timings(problem: Problem, repeats: int) -> list[dict]:
+    """CG (this library) vs SciPy SuperLU on (I + 19 L) with 3 and 128 right-hand sides."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    v = len(problem.v0)
+    nb = np.asarray(problem.mesh.neighbors)
+    rows = np.repeat(np.arange(v), nb.shape[1])
+    keep = nb.ravel() < v
+    adj = sp.csr_matrix((np.ones(keep.sum()), (rows[keep], nb.ravel()[keep])), shape=(v, v))
+    lap = sp.diags(np.asarray(adj.sum(1)).ravel()) - adj
+    m = (sp.identity(v) + DEFAULT_LAMBDA * lap).tocsc()
+    t0 = time.perf_counter()
+    lu = spla.splu(m)
+    factor = time.perf_counter() - t0
+    solve = jax.jit(lambda b: mesh_lib.smoothing_solve(problem.mesh, b, DEFAULT_LAMBDA))
+    out = []
+    rng = np.random.default_rng(0)
+    for c in (3, 128):
+        b = rng.standard_normal((v, c)).astype(np.float32)
+        bj = jnp.asarray(b)
+        solve(bj).block_until_ready()
+        cg_t, lu_t = [], []
+        for _ in range(repeats):  # interleaved
+            t0 = time.perf_counter()
+            solve(bj).block_until_ready()
+            cg_t.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            lu.solve(np.asfortranarray(b, dtype=np.float64))
+            lu_t.append(time.perf_counter() - t0)
+        out.append({"vertices": v, "rhs": c, "cg_ms": 1e3 * float(np.median(cg_t)),
+                    "superlu_solve_ms": 1e3 * float(np.median(lu_t)),
+                    "superlu_factor_ms": 1e3 * factor})
+    return out
+
+
+def run_overhead(args) -> dict:
+    from tqdm.auto import tqdm
+
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    freqs, repeats, res = ([4, 6], 2, 32) if args.quick else ([32, 59, 129], 5, 64)
+    rows, solver_rows = [], []
+    for freq in tqdm(freqs, desc="mesh sizes"):
+        problem = Problem(freq, res, 0.01)
+        methods = {"large-steps": None, "cross-bilateral": DEFAULT_SIGMA_D}
+        carries = {k: problem.initial_carry(k) for k in methods}
+        steps = {k: problem.step_fn(k, DEFAULT_LAMBDA, sd) for k, sd in methods.items()}
+        opt_only = {}
+        for k, sd in methods.items():  # the optimizer update alone, on a fixed gradient
+            params, state, rng = carries[k]
+            frame = problem.renderer.frame(np.asarray(params), rng)
+            (_, _), g = problem.grad(params, frame)
+            upd = problem._update[k]
+            args_ = (g, state, params, jnp.float32(DEFAULT_LAMBDA),
+                     jnp.float32(np.inf if sd is None else sd))
+            opt_only[k] = (upd, args_)
+        times = {k: [] for k in methods}
+        upd_times = {k: [] for k in methods}
+        for k in methods:  # compile
+            carries[k], _ = steps[k](carries[k], 0)
+            jax.block_until_ready(opt_only[k][0](*opt_only[k][1]))
+        for _ in range(repeats):  # interleaved repeats, medians
+            for k in methods:
+                t0 = time.perf_counter()
+                carries[k], aux = steps[k](carries[k], 0)
+                jax.block_until_ready((carries[k], aux))
+                times[k].append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                jax.block_until_ready(opt_only[k][0](*opt_only[k][1]))
+                upd_times[k].append(time.perf_counter() - t0)
+        ls, ours = np.median(times["large-steps"]), np.median(times["cross-bilateral"])
+        uls, uours = np.median(upd_times["large-steps"]), np.median(upd_times["cross-bilateral"])
+        rows.append({"vertices": int(len(problem.v0)), "large_steps_ms": 1e3 * ls, "ours_ms": 1e3 * ours,
+                     "overhead_pct": 100 * (ours / ls - 1), "large_steps_update_ms": 1e3 * uls,
+                     "ours_update_ms": 1e3 * uours, "update_ratio": uours / uls})
+        solver_rows += _solver_timings(problem, repeats)
+    result = {"iteration": rows, "solver": solver_rows,
+              "setting": {"lambda": DEFAULT_LAMBDA, "sigma_d": DEFAULT_SIGMA_D,
+                          "directions": mesh_lib.DEFAULT_DIRECTIONS, "tol": mesh_lib.DEFAULT_TOL,
+                          "resolution": res, "views_per_iteration": 2, "repeats": repeats,
+                          "quick": args.quick, "devices": str(jax.devices())}}
+    (out / "overhead.json").write_text(json.dumps(common._jsonable(result), indent=2) + "\n")
+    md = ("# Per-iteration time, Large Steps vs ours (supplement Table 2 analogue)\n\n"
+          f"Median of {repeats} interleaved repeats; an iteration = render 2 views at {res}^2 "
+          "(NumPy visibility + JAX gradient) + optimizer update. lambda=19, sigma_d=0.5, "
+          f"{mesh_lib.DEFAULT_DIRECTIONS} directions, CG tol {mesh_lib.DEFAULT_TOL:g}.\n\n"
+          + common.markdown_table(rows, floatfmt=".4g")
+          + "\n\n## Linear solver: CG (library) vs SciPy SuperLU, (I + 19 L) X = B\n\n"
+          + common.markdown_table(solver_rows, floatfmt=".4g") + "\n")
+    (out / "overhead.md").write_text(md)
+    print(md)
+    return result
+
+
+def main(argv=None):
+    args = common.parse_args(
+        "Mesh recovery: Large Steps vs cross-bilateral normal filtering", "results/mesh", argv,
+        extra=lambda p: p.add_argument("--overhead", action="store_true",
+                                       help="only measure per-iteration time at ~10k/35k/166k "
+                                            "vertices (Table 2 analogue) and solver timings"))
+    if args.overhead:
+        return run_overhead(args)
+    return run_sweep(args)
+
+
+if __name__ == "__main__":
+    main()

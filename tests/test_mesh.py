@@ -1,0 +1,277 @@
+"""Mesh transforms (Large Steps, bilateral normal filter) and the toy mesh scene."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from optax_bilateral._src import mesh as M
+from optax_bilateral.toy import mesh as toy
+
+LAM = 7.0
+
+
+@pytest.fixture(scope="module")
+def small():
+    """162-vertex icosphere, its Laplacian, the dense reference (I + LAM L)^-1."""
+    v, f = toy.icosphere(4)
+    n = len(v)
+    adj = np.zeros((n, n))
+    for a, b in ((0, 1), (1, 2), (2, 0)):  # independent of mesh_laplacian's edge table
+        adj[f[:, a], f[:, b]] = adj[f[:, b], f[:, a]] = 1
+    lap = np.diag(adj.sum(1)) - adj
+    return dict(v=v, f=f, mesh=M.mesh_laplacian(f), lap=lap,
+                minv=np.linalg.inv(np.eye(n) + LAM * lap))
+
+
+def cubified(v):
+    """The sphere's vertices pushed radially onto a cube: sharp edges, flat faces."""
+    return (v / np.abs(v).max(1, keepdims=True) * 0.5).astype(np.float32)
+
+
+def dense_bilateral(minv, normals, sigma_d, dirs):
+    """Reference: B_ij = Minv_ij K(n_i, n_j) / row sum, K(n_i, n_j) = sum_k w_k(i) w_k(j)."""
+    w = np.exp((normals.astype(np.float64) @ dirs.T.astype(np.float64) - 1.0) / sigma_d)
+    b = minv * (w @ w.T)
+    return b / b.sum(1, keepdims=True)
+
+
+def filter_matrix(small, normals, sigma_d, **kw):
+    n = len(small["v"])
+    (b,) = M.bilateral_normal_filter([jnp.eye(n, dtype=jnp.float32)], normals, small["mesh"],
+                                     lambda_=LAM, sigma_d=sigma_d, tol=1e-7, **kw)
+    return np.asarray(b, np.float64)
+
+
+# --- the mesh and the solve -----------------------------------------------------
+
+
+def test_laplacian_degrees_of_icosphere(small):
+    deg = np.asarray(small["mesh"].degree)
+    # An icosphere keeps the 12 icosahedron vertices at degree 5; all others have 6.
+    assert (deg == 5).sum() == 12 and (deg == 6).sum() == len(deg) - 12
+    np.testing.assert_array_equal(deg, small["lap"].diagonal())
+
+
+@pytest.mark.parametrize("lam", [0.0, 1.0, LAM, 99.0])
+def test_solve_agrees_with_dense_solve(small, lam):
+    n = len(small["v"])
+    b = np.random.default_rng(0).standard_normal((n, 4)).astype(np.float32)
+    b[:, 3] *= 1e-4  # a tiny column must be solved as accurately (columns are normalised)
+    x = np.asarray(M.smoothing_solve(small["mesh"], b, lam, tol=1e-6))
+    ref = np.linalg.solve(np.eye(n) + lam * small["lap"], b.astype(np.float64))
+    # tol=1e-6 relative residual, times cond(M) <= 1 + 12 lam would be loose;
+    # 2e-5 of each column's scale is float32 accuracy with margin.
+    scale = np.abs(ref).max(0)
+    np.testing.assert_allclose(x / scale, ref / scale, atol=2e-5)
+
+
+def test_solve_1d_and_traced_lambda(small):
+    b = np.asarray(small["v"][:, 0])
+    solve = jax.jit(lambda b, lam: M.smoothing_solve(small["mesh"], b, lam, tol=1e-6))
+    np.testing.assert_allclose(solve(b, LAM), small["minv"] @ b, atol=1e-5)
+
+
+def test_vertex_normals_of_sphere_point_outwards(small):
+    n = np.asarray(M.vertex_normals(small["v"], small["f"]))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    # On a unit icosphere the area-weighted normal is the position up to facet error.
+    assert np.min(np.sum(n * small["v"], 1)) > 0.99
+
+
+def test_sphere_directions_unit_and_spread():
+    d = M.sphere_directions(32, seed=0)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_array_equal(d, M.sphere_directions(32, seed=0))
+    # Uniform on the sphere has mean 0; 32 scrambled Sobol points stay within 0.1
+    # (i.i.d. points would scatter about 1/sqrt(3*32) = 0.1 per axis).
+    assert np.linalg.norm(d.mean(0)) < 0.1
+
+
+# --- the bilateral operator -----------------------------------------------------
+
+
+@pytest.mark.parametrize("sigma_d", [0.2, 0.5, 2.0])
+def test_bilateral_operator_row_stochastic_nonnegative_and_matches_dense(small, sigma_d):
+    normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
+    dirs = M.sphere_directions(32)
+    b = filter_matrix(small, normals, sigma_d, directions=dirs)
+    # Rows sum to one up to float32 and the CG tolerance (1e-7 relative per column).
+    np.testing.assert_allclose(b.sum(1), 1.0, atol=1e-5)
+    # M^-1 >= 0 and w >= 0, so B >= 0; CG round-off may dip below by ~1e-7.
+    assert b.min() > -1e-6
+    np.testing.assert_allclose(b, dense_bilateral(small["minv"], normals, sigma_d, dirs), atol=2e-6)
+
+
+def test_bilateral_reduces_to_large_steps_as_sigma_grows(small):
+    normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
+    b_inf = filter_matrix(small, normals, np.inf)
+    np.testing.assert_allclose(b_inf, small["minv"], atol=2e-6)  # exact path: B = M^-1
+    errs = [np.abs(filter_matrix(small, normals, s) - small["minv"]).max() for s in (0.5, 5.0, 1e5)]
+    assert errs[0] > errs[1] > errs[2]
+    assert errs[2] < 2e-6  # at sigma_d = 1e5 every weight is 1 to float32 precision
+
+
+def test_bilateral_weights_less_across_cube_edges(small):
+    """Row mass on neighbours whose normal differs by > 45 degrees shrinks as sigma_d falls."""
+    normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
+    other = (normals @ normals.T) < np.cos(np.pi / 4)
+    mass = [float((filter_matrix(small, normals, s) * other).sum(1).mean()) for s in (np.inf, 1.0, 0.2)]
+    assert mass[0] > mass[1] > mass[2]
+    assert mass[2] < 0.5 * mass[0]
+
+
+def test_filtered_moments_keep_step_bounded(small):
+    """Supplement §1.3: |m| <= sqrt(v) entrywise implies |B m| <= sqrt(B v) (same B)."""
+    rng = np.random.default_rng(1)
+    n = len(small["v"])
+    v = rng.uniform(0.0, 2.0, (n, 3)).astype(np.float32) ** 4
+    m = (np.sqrt(v) * rng.uniform(-1, 1, (n, 3))).astype(np.float32)
+    normals = M.vertex_normals(cubified(small["v"]), small["f"])
+    bm, bv = M.bilateral_normal_filter([m, v], normals, small["mesh"], lambda_=LAM, sigma_d=0.3,
+                                       tol=1e-7)
+    # 1e-5 relative slack: float32 and CG tolerance on a bound that holds exactly.
+    assert np.all(np.abs(bm) <= np.sqrt(np.maximum(bv, 0)) * (1 + 1e-5) + 1e-7)
+
+
+# --- the transforms -------------------------------------------------------------
+
+
+def _grads(v, steps, seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.standard_normal(v.shape).astype(np.float32) * 0.1 for _ in range(steps)]
+
+
+def test_scale_by_uniform_adam_matches_reference(small):
+    b1, b2, eps = 0.8, 0.95, 1e-8
+    tx = M.scale_by_uniform_adam(b1, b2, eps)
+    g = _grads(small["v"], 4)
+    state = tx.init(jnp.asarray(small["v"]))
+    m = v = 0.0
+    for t, gt in enumerate(g, 1):
+        out, state = tx.update(jnp.asarray(gt), state)
+        m = b1 * m + (1 - b1) * gt.astype(np.float64)
+        v = b2 * v + (1 - b2) * gt.astype(np.float64) ** 2
+        ref = (m / (1 - b1 ** t)) / (np.sqrt(np.max(v / (1 - b2 ** t))) + eps)
+        np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_large_steps_is_uniform_adam_on_u(small):
+    """Nicolet et al.: optimise u = (I + lam L) x with AdamUniform, read x = M^-1 u."""
+    lr, b1, b2 = 0.05, 0.9, 0.999
+    x0 = small["v"].astype(np.float64)
+    mm = np.eye(len(x0)) + LAM * small["lap"]
+    tx = M.large_steps(lr, small["f"], LAM, b1, b2, tol=1e-7)
+    x = jnp.asarray(small["v"])
+    state = tx.init(x)
+    u = mm @ x0
+    m = v = 0.0
+    for t, gx in enumerate(_grads(small["v"], 4), 1):
+        upd, state = tx.update(jnp.asarray(gx), state, x)
+        x = optax.apply_updates(x, upd)
+        gu = np.linalg.solve(mm, gx.astype(np.float64))  # df/du = M^-T df/dx
+        m = b1 * m + (1 - b1) * gu
+        v = b2 * v + (1 - b2) * gu ** 2
+        u = u - lr * (m / (1 - b1 ** t)) / (np.sqrt(np.max(v / (1 - b2 ** t))) + 1e-8)
+        # Positions are O(1); float32 and CG tolerance give ~1e-6 differences.
+        np.testing.assert_allclose(x, np.linalg.solve(mm, u), atol=1e-5)
+
+
+@pytest.mark.parametrize("sigma_d", [np.inf, 1e5])
+def test_bilateral_large_steps_reduces_to_large_steps(small, sigma_d):
+    ls = M.large_steps(0.02, small["mesh"], LAM, tol=1e-7)
+    ours = M.bilateral_large_steps(0.02, small["mesh"], LAM, sigma_d, tol=1e-7)
+    xa = xb = jnp.asarray(cubified(small["v"]))
+    sa, sb = ls.init(xa), ours.init(xb)
+    for g in _grads(small["v"], 3):
+        ua, sa = ls.update(jnp.asarray(g), sa, xa)
+        ub, sb = ours.update(jnp.asarray(g), sb, xb)
+        # Same math, different solve order; the step is <= lr = 0.02, compared to 1e-6.
+        np.testing.assert_allclose(ua, ub, atol=1e-6)
+        xa, xb = optax.apply_updates(xa, ua), optax.apply_updates(xb, ub)
+
+
+def test_filtered_second_moment_step_is_bounded(small):
+    tx = M.bilateral_large_steps(1.0, small["mesh"], LAM, 0.3, second_moment="filtered",
+                                 directions=M.sphere_directions(16))
+    x = jnp.asarray(cubified(small["v"]))
+    state = tx.init(x)
+    for g in _grads(small["v"], 3):
+        upd, state = tx.update(jnp.asarray(g), state, x)
+        # Adam's step is bounded by lr (here 1) up to the bias-correction ratio
+        # sqrt(1-b2^t)/(1-b1^t) <= 1 for these b's; B keeps the bound (§1.3).
+        assert np.abs(np.asarray(upd)).max() <= 1.0 + 1e-4
+
+
+def test_inject_hyperparams_jit_and_pytree_params(small):
+    mesh = small["mesh"]
+    tx = optax.inject_hyperparams(M.bilateral_large_steps, static_args=("directions",))(
+        learning_rate=0.01, faces=mesh, lambda_=LAM, sigma_d=0.5, directions=M.sphere_directions(8))
+    params = {"shape": jnp.asarray(cubified(small["v"]))}
+    state = tx.init(params)
+    step = jax.jit(tx.update)
+    g = {"shape": jnp.asarray(_grads(small["v"], 1)[0])}
+    upd, state = step(g, state, params)
+    state.hyperparams["sigma_d"] = jnp.asarray(0.2)
+    state.hyperparams["lambda_"] = jnp.asarray(2.0)
+    upd2, state = step(g, state, params)  # traced lambda_ and sigma_d: no retrace needed
+    assert np.all(np.isfinite(upd["shape"])) and not np.allclose(upd["shape"], upd2["shape"])
+
+
+def test_bad_arguments_raise_clear_errors(small):
+    f, mesh = small["f"], small["mesh"]
+    with pytest.raises(ValueError, match="faces must have shape"):
+        M.mesh_laplacian(f[:, :2])
+    with pytest.raises(TypeError, match="integer"):
+        M.mesh_laplacian(f.astype(float))
+    with pytest.raises(ValueError, match="degenerate"):
+        M.mesh_laplacian(np.array([[0, 1, 1]]))
+    with pytest.raises(ValueError, match="lambda_"):
+        M.large_steps(0.1, mesh, -1.0)
+    with pytest.raises(ValueError, match="sigma_d"):
+        M.bilateral_large_steps(0.1, mesh, 1.0, 0.0)
+    with pytest.raises(ValueError, match="second_moment"):
+        M.mesh_postfilter(mesh, second_moment="max")
+    with pytest.raises(ValueError, match="directions"):
+        M.mesh_postfilter(mesh, directions=np.ones((4, 2)))
+    tx = M.mesh_postfilter(mesh, directions=M.sphere_directions(4))
+    x = jnp.asarray(small["v"])
+    with pytest.raises(ValueError, match="needs params"):
+        tx.update(x, tx.init(x))
+    with pytest.raises(ValueError, match="one row per mesh vertex"):
+        M.laplacian_smoothing(mesh).update(x[:10], optax.EmptyState())
+
+
+# --- the toy scene --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("freq", [1, 3, 8])
+def test_icosphere_is_closed_outward_and_counts(freq):
+    v, f = toy.icosphere(freq)
+    assert len(v) == 10 * freq ** 2 + 2 and len(f) == 20 * freq ** 2
+    edges, _ = toy._edge_faces(f)  # raises unless every edge has two faces
+    assert len(v) - len(edges) + len(f) == 2  # Euler characteristic of a sphere
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    assert np.all(np.sum(n * v[f].mean(1), 1) > 0)
+
+
+def test_hausdorff_to_cube_known_values():
+    v, f = toy.icosphere(8)
+    # Unit sphere vs cube of half 0.55: the sphere's axis points are 0.45 from the faces.
+    assert abs(toy.hausdorff_to_cube(v, f, 0.55) - 0.45) < 1e-3
+    # The same mesh pushed onto the cube: only the facets bridging its edges are off
+    # (by about one facet width at this resolution), far below the sphere's 0.45.
+    assert toy.hausdorff_to_cube(cubified(v) * 1.1, f, 0.55) < 0.15
+
+
+def test_render_target_and_gradient_are_finite():
+    scene = toy.make_scene(num_views=4, resolution=24, views_per_iteration=2)
+    v, f = toy.icosphere(4)
+    r = toy.MeshRenderer(scene, f)
+    frame = r.frame(v, np.random.default_rng(0))
+    (sur, loss), g = jax.value_and_grad(lambda x: r.loss(x, frame), has_aux=True)(jnp.asarray(v))
+    assert np.isfinite(loss) and np.all(np.isfinite(g)) and np.abs(g).max() > 0
+    img = toy.render_target(scene, 0)
+    # The cube covers some pixels but not all; covered pixels have a lit colour.
+    assert 0 < (img.sum(-1) > 0).mean() < 1
