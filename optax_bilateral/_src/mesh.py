@@ -157,7 +157,11 @@ def mesh_laplacian(faces, num_vertices: int | None = None) -> MeshLaplacian:
 def _matvec(mesh: MeshLaplacian, lambda_, x):
     """``(I + lambda L) x`` for ``x`` of shape ``(V, C)``."""
     padded = jnp.concatenate([x, jnp.zeros((1, x.shape[1]), x.dtype)])
-    neighbour_sum = padded[mesh.neighbors].sum(axis=1)
+    # One row gather per neighbour slot, summed: XLA:CPU runs this 5-10x faster
+    # than gathering the (V, D, C) block and reducing it (measured at 10k vertices).
+    neighbour_sum = padded[mesh.neighbors[:, 0]]
+    for j in range(1, mesh.neighbors.shape[1]):
+        neighbour_sum = neighbour_sum + padded[mesh.neighbors[:, j]]
     return x + lambda_ * (mesh.degree.astype(x.dtype)[:, None] * x - neighbour_sum)
 
 
