@@ -319,41 +319,48 @@ def param_errors(params: Params, target: Params) -> dict[str, jax.Array]:
 # ---------------------------------------------------------------- estimator
 
 
-_CORNERS = np.array([[cx, cy, cz] for cx in (0, 1) for cy in (0, 1) for cz in (0, 1)], np.int32)
-
-
-def _corners(shape, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Flat indices (..., 8) and weights (..., 8) of the trilinear stencil, clamp-to-edge."""
+def _stencil(shape, x: jax.Array) -> list[tuple[jax.Array, jax.Array]]:
+    """The 8 (flat index, weight) pairs of the trilinear stencil at x (..., 3), clamp-to-edge."""
     u = x * jnp.asarray(shape, x.dtype) - 0.5                   # voxel centres at integers
     i0 = jnp.floor(u)
     f = u - i0
-    corner = jnp.asarray(_CORNERS)
-    idx = jnp.clip(i0.astype(jnp.int32)[..., None, :] + corner, 0, jnp.asarray(shape, jnp.int32) - 1)
-    w = jnp.prod(jnp.where(corner == 1, f[..., None, :], 1.0 - f[..., None, :]), axis=-1)
-    return (idx[..., 0] * shape[1] + idx[..., 1]) * shape[2] + idx[..., 2], w
+    i0 = i0.astype(jnp.int32)
+    top = jnp.asarray(shape, jnp.int32) - 1
+    lo, hi = jnp.clip(i0, 0, top), jnp.clip(i0 + 1, 0, top)
+    strides = (shape[1] * shape[2], shape[2], 1)
+    per_axis = [((lo[..., a] * strides[a], 1.0 - f[..., a]), (hi[..., a] * strides[a], f[..., a]))
+                for a in range(3)]
+    return [(ix + iy + iz, wx * wy * wz)
+            for ix, wx in per_axis[0] for iy, wy in per_axis[1] for iz, wz in per_axis[2]]
 
 
-@jax.custom_vjp
-def _gather(flat: jax.Array, idx: jax.Array, w: jax.Array) -> jax.Array:
-    """sum_k w[..., k] flat[idx[..., k]]: (N, C), (..., 8), (..., 8) -> (..., C)."""
-    return jnp.sum(w[..., None] * flat.at[idx].get(mode="promise_in_bounds"), axis=-2)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _lookup(shape, flat: jax.Array, x: jax.Array) -> jax.Array:
+    # Eight separate gathers: ~10x faster on CPU than one stacked gather reduced over corners.
+    out = 0.0
+    for idx, w in _stencil(shape, x):
+        out = out + w[..., None] * flat.at[idx].get(mode="promise_in_bounds")
+    return out
 
 
-def _gather_fwd(flat, idx, w):
-    return _gather(flat, idx, w), (flat.shape, idx, w)
+def _lookup_fwd(shape, flat, x):
+    return _lookup(shape, flat, x), (x, flat.shape)
 
 
-def _gather_bwd(res, ct):
-    shape, idx, w = res
+def _lookup_bwd(shape, res, ct):
+    x, flat_shape = res
     # One scatter-add of all corners from a materialised cotangent: left to itself, XLA
     # fuses the cotangent's producers into eight scatters and recomputes them (~3x slower).
     ct = jax.lax.optimization_barrier(ct)
-    upd = (w[..., None] * ct[..., None, :]).reshape(-1, shape[-1])
-    grad = jnp.zeros(shape, ct.dtype).at[idx.reshape(-1)].add(upd, mode="promise_in_bounds")
-    return grad, None, None
+    pairs = _stencil(shape, x)
+    idx = jnp.stack([i for i, _ in pairs], axis=-1)
+    upd = jnp.stack([w for _, w in pairs], axis=-1)[..., None] * ct[..., None, :]
+    grad = jnp.zeros(flat_shape, ct.dtype).at[idx.reshape(-1)].add(
+        upd.reshape(-1, flat_shape[-1]), mode="promise_in_bounds")
+    return grad, jnp.zeros_like(x)    # positions never depend on the parameters
 
 
-_gather.defvjp(_gather_fwd, _gather_bwd)
+_lookup.defvjp(_lookup_fwd, _lookup_bwd)
 
 
 def _trilinear(grid: jax.Array, x: jax.Array) -> jax.Array:
@@ -361,8 +368,7 @@ def _trilinear(grid: jax.Array, x: jax.Array) -> jax.Array:
 
     Differentiable in ``grid`` only (sample positions never depend on the parameters).
     """
-    idx, w = _corners(grid.shape[:3], jax.lax.stop_gradient(x))
-    return _gather(grid.reshape(-1, grid.shape[-1]), idx, w)
+    return _lookup(tuple(grid.shape[:3]), grid.reshape(-1, grid.shape[-1]), jax.lax.stop_gradient(x))
 
 
 def _cube_interval(o: jax.Array, d: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -382,18 +388,19 @@ def _exit_distance(x: jax.Array, d: jax.Array) -> jax.Array:
 
 
 def _prefix_products(f: jax.Array) -> jax.Array:
-    """(..., K) -> (..., K + 1) exclusive prefix products ``[1, f_0, f_0 f_1, ...]``.
+    """(K, ...) -> (K + 1, ...) exclusive prefix products ``[1, f_0, f_0 f_1, ...]`` along axis 0.
 
-    A sequential scan: reverse mode through ``jnp.prod`` of a masked broadcast
-    cost ~10x the forward pass on CPU, and an unrolled loop compiled slowly.
+    A sequential scan over the leading axis (no transposes): reverse mode through
+    ``jnp.prod`` of a masked broadcast cost ~10x the forward pass on CPU, and an
+    unrolled loop compiled slowly.
     """
     def step(acc, fk):
         acc = acc * fk
         return acc, acc
 
-    one = jnp.ones(f.shape[:-1], f.dtype)
-    _, ys = jax.lax.scan(step, one, jnp.moveaxis(f, -1, 0))
-    return jnp.concatenate([one[..., None], jnp.moveaxis(ys, 0, -1)], axis=-1)
+    one = jnp.ones(f.shape[1:], f.dtype)
+    _, ys = jax.lax.scan(step, one, f)
+    return jnp.concatenate([one[None], ys], axis=0)
 
 
 def _background(scene: VolumeScene, d: jax.Array) -> jax.Array:
@@ -404,48 +411,49 @@ def _background(scene: VolumeScene, d: jax.Array) -> jax.Array:
 
 
 def _radiance(params: Params, scene: VolumeScene, key, o: jax.Array, d: jax.Array) -> jax.Array:
-    """Single-sample radiance estimate along rays o + t d, o, d: (R, 3) -> (R, 3)."""
+    """Single-sample radiance estimate along rays o + t d, o, d: (R, 3) -> (R, 3).
+
+    Tracking arrays are point-major, (K, R) and (Ks, M, R), so the prefix products
+    scan over the leading axis.
+    """
     density = params["density"]
     grid4 = jnp.concatenate([density, params["albedo"]], axis=-1)
     mu = scene.majorant
     scale = scene.density_scale
     n_rays = o.shape[0]
-    m = scene.n_scatter
-    k = scene.n_track
+    m, k, ks = scene.n_scatter, scene.n_track, scene.n_shadow
     # One draw for all of a ray's random numbers (fewer RNG kernels to compile):
-    # K camera gaps, M scattering offsets, M x Ks shadow gaps.
-    u = jax.random.uniform(key, (n_rays, k + m * (1 + scene.n_shadow)))
-    gaps = -jnp.log1p(-u[:, :k]) / mu                                        # Exp(mu) gaps
-    u_sc = u[:, k:k + m]
-    u_sh = u[:, k + m:].reshape(n_rays, m, scene.n_shadow)
+    # K camera gaps, M scattering offsets, Ks x M shadow gaps.
+    u = jax.random.uniform(key, (k + m * (1 + ks), n_rays))
+    u_sc = u[k:k + m]                                                         # (M, R)
+    u_sh = u[k + m:].reshape(ks, m, n_rays)
 
     t0, length = _cube_interval(o, d)
     entry = o + t0[:, None] * d
 
-    # Ratio tracking along the camera ray.
-    tc = jnp.cumsum(gaps, axis=-1)                                           # (R, K) sorted
-    inside = tc < length[:, None]
-    sig = scale * _trilinear(density, entry[:, None, :] + tc[..., None] * d[:, None, :])[..., 0]
-    factor = jnp.where(inside, 1.0 - sig / mu, 1.0)
-    prefix = _prefix_products(factor)                                        # (R, K + 1)
-    t_end = prefix[:, -1]
+    # Ratio tracking along the camera ray: points of a rate-mu Poisson process.
+    tc = jnp.cumsum(-jnp.log1p(-u[:k]), axis=0) / mu                        # (K, R) sorted
+    sig = scale * _trilinear(density, entry + tc[..., None] * d)[..., 0]
+    factor = jnp.where(tc < length, 1.0 - sig / mu, 1.0)
+    prefix = _prefix_products(factor)                                        # (K + 1, R)
+    t_end = prefix[-1]
 
     # In-scattering at stratified distances, each with a shadow ray to the sun.
-    ts = (jnp.arange(m) + u_sc) * (length[:, None] / m)                      # (R, M)
+    ts = (jnp.arange(m)[:, None] + u_sc) * (length / m)                       # (M, R)
     # Points are sorted, so T_hat(0, t_m) is the prefix product over the points before t_m
     # (a one-hot sum: its reverse mode is elementwise, unlike take_along_axis' scatter).
-    before = jnp.sum(tc[:, None, :] < ts[..., None], axis=-1)                # (R, M)
-    pick = jnp.arange(k + 1) == before[..., None]
-    t_cam = jnp.sum(jnp.where(pick, prefix[:, None, :], 0.0), axis=-1)
-    xs = jnp.clip(entry[:, None, :] + ts[..., None] * d[:, None, :], 0.0, 1.0)              # (R, M, 3)
+    before = jnp.sum(tc[:, None, :] < ts, axis=0)                            # (M, R)
+    pick = jnp.arange(k + 1)[:, None, None] == before
+    t_cam = jnp.sum(jnp.where(pick, prefix[:, None, :], 0.0), axis=0)         # (M, R)
+    xs = jnp.clip(entry + ts[..., None] * d, 0.0, 1.0)                       # (M, R, 3)
     local = _trilinear(grid4, xs)
-    sig_s = scale * local[..., :1] * local[..., 1:]                                          # (R, M, 3)
+    sig_s = scale * local[..., :1] * local[..., 1:]                           # (M, R, 3)
     sun = jnp.asarray(scene.sun_direction)
-    exit_len = _exit_distance(xs, sun)                                                       # (R, M)
-    tsh = jnp.cumsum(-jnp.log1p(-u_sh), axis=-1) / mu                                       # (R, M, Ks)
-    sig_sh = scale * _trilinear(density, xs[..., None, :] + tsh[..., None] * sun)[..., 0]
-    t_sun = _prefix_products(jnp.where(tsh < exit_len[..., None], 1.0 - sig_sh / mu, 1.0))[..., -1]
-    inscatter = (length[:, None] / m) * jnp.sum((t_cam * t_sun)[..., None] * sig_s, axis=1)
+    exit_len = _exit_distance(xs, sun)                                        # (M, R)
+    tsh = jnp.cumsum(-jnp.log1p(-u_sh), axis=0) / mu                          # (Ks, M, R)
+    sig_sh = scale * _trilinear(density, xs + tsh[..., None] * sun)[..., 0]
+    t_sun = _prefix_products(jnp.where(tsh < exit_len, 1.0 - sig_sh / mu, 1.0))[-1]
+    inscatter = (length / m)[:, None] * jnp.sum((t_cam * t_sun)[..., None] * sig_s, axis=0)
     return t_end[:, None] * _background(scene, d) + inscatter * jnp.asarray(scene.sun_radiance)
 
 
