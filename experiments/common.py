@@ -132,8 +132,9 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
                iterations: int, *, evaluate: Callable[[Any], Mapping[str, Any]] | None = None,
                record_every: int = 1, evaluate_every: int | None = None,
                hyperparameters: Mapping[str, Any] | None = None,
-               progress: bool = True) -> Trace:
-    """Runs ``carry, aux = step(carry, i)`` for ``i = 0 .. iterations-1`` and records metrics.
+               progress: bool = True, first_iteration: int = 0,
+               time_budget: float | None = None) -> Trace:
+    """Runs ``carry, aux = step(carry, i)`` for ``i = first_iteration ..`` and records metrics.
 
     Args:
       name: method name, used for the progress bar and the trace.
@@ -148,6 +149,9 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
       evaluate_every: defaults to ``record_every``; must be a multiple of it.
       hyperparameters: stored in the trace and the summary.
       progress: show a tqdm bar.
+      first_iteration: index of the first step (to continue a run; see :func:`concat_traces`).
+      time_budget: if given, stop as soon as the timed seconds, compilation
+        excluded, reach it (``iterations`` is then a cap): equal-wall-time runs.
     """
     from tqdm.auto import tqdm
 
@@ -167,12 +171,15 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
     bar = tqdm(range(iterations), desc=name, disable=not progress, leave=False, dynamic_ncols=True)
     for i in bar:
         t0 = time.perf_counter()
-        carry, aux = step(carry, i)
+        carry, aux = step(carry, first_iteration + i)
         jax.block_until_ready((carry, aux))
         dt = time.perf_counter() - t0
         step_seconds[i] = dt
         elapsed += dt
         last = i == iterations - 1
+        if time_budget is not None and i >= 1:
+            compile_extra = max(step_seconds[0] - float(np.median(step_seconds[1:i + 1])), 0.0)
+            last = last or elapsed - compile_extra >= time_budget
         if (i + 1) % record_every == 0 or last:
             values = {k: float(v) for k, v in dict(aux).items()}
             if evaluate is not None and ((i + 1) % evaluate_every == 0 or last):
@@ -180,14 +187,35 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
             for k in set(records) | set(values):
                 # A metric first seen late is NaN-padded at the earlier records.
                 records.setdefault(k, [math.nan] * len(rec_iter)).append(values.get(k, math.nan))
-            rec_iter.append(i + 1)
+            rec_iter.append(first_iteration + i + 1)
             rec_time.append(elapsed)
             if "loss" in values:
                 bar.set_postfix(loss=f"{values['loss']:.4g}", refresh=False)
+        if last:
+            break
+    bar.close()
     return Trace(name=name, hyperparameters=dict(hyperparameters or {}),
                  iterations=np.asarray(rec_iter), wall_time=np.asarray(rec_time),
                  metrics={k: np.asarray(v) for k, v in records.items()},
-                 step_seconds=step_seconds, final=carry)
+                 step_seconds=step_seconds[:i + 1], final=carry)
+
+
+def concat_traces(first: Trace, second: Trace, name: str | None = None,
+                  hyperparameters: Mapping[str, Any] | None = None) -> Trace:
+    """``second`` (run with ``first_iteration`` = the end of ``first``) appended to ``first``."""
+    keys = set(first.metrics) | set(second.metrics)
+
+    def get(tr, k):
+        return tr.metrics.get(k, np.full(len(tr.iterations), np.nan))
+
+    return Trace(name=name or first.name,
+                 hyperparameters=dict(hyperparameters if hyperparameters is not None
+                                      else first.hyperparameters),
+                 iterations=np.concatenate([first.iterations, second.iterations]),
+                 wall_time=np.concatenate([first.wall_time, first.wall_time[-1] + second.wall_time]),
+                 metrics={k: np.concatenate([get(first, k), get(second, k)]) for k in keys},
+                 step_seconds=np.concatenate([first.step_seconds, second.step_seconds]),
+                 final=second.final)
 
 
 def summary_entry(trace: Trace, metric_keys: Mapping[str, str] | None = None) -> dict:
