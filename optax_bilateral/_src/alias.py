@@ -52,7 +52,7 @@ def bilateral_adam(learning_rate, b1=0.2, b2=None, eps=1e-8, *,
     common = dict(sigma_d=sigma_d, levels=levels, separable=separable, guide=guide,
                   log_guide=log_guide, spatial_axes=spatial_axes)
     if prefilter:
-        parts.append(transforms.prefilter(**common))
+        parts.append(transforms.prefilter(mask_unobserved=mask_unobserved, **common))
     if postfilter:
         parts.append(transforms.postfilter(b1, b2, eps, mask_unobserved=mask_unobserved,
                                            eps_root=eps_root, mu_dtype=mu_dtype, **common))

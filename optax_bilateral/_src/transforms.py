@@ -30,6 +30,7 @@ from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax import lax
 
@@ -49,7 +50,7 @@ def _check_unit(x, name):
     """Raises for a concrete decay rate outside [0, 1)."""
     if x is None or not atrous._is_concrete(x):
         return
-    v = float(jnp.asarray(x))
+    v = float(np.asarray(x))
     if not 0.0 <= v < 1.0:
         raise ValueError(f"{name} must be in [0, 1), got {v}")
 
@@ -57,7 +58,7 @@ def _check_unit(x, name):
 def _check_nonneg(x, name):
     if x is None or not atrous._is_concrete(x):
         return
-    v = float(jnp.asarray(x))
+    v = float(np.asarray(x))
     if not v >= 0.0:
         raise ValueError(f"{name} must be >= 0, got {v}")
 
@@ -161,14 +162,17 @@ class PrefilterState(NamedTuple):
 
 
 def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="params",
-              log_guide=False, spatial_axes=None) -> optax.GradientTransformationExtraArgs:
+              log_guide=False, spatial_axes=None, mask_unobserved=False
+              ) -> optax.GradientTransformationExtraArgs:
     r"""Spatial prefilter of the gradient, :math:`\tilde g_t = A_t g_t` (supplement eq. 1).
 
     ``A_t`` is the a-trous cross-bilateral filter (:func:`atrous_bilateral`) guided
     by the current parameters. Followed by :func:`scale_by_adam` it gives eq. 13;
     followed by :func:`postfilter`, eq. 11. Leaves that are not filtered (see
     ``spatial_axes``) pass through unchanged. Texels with a non-finite gradient
-    are left out of the sums and get a zero output.
+    (and, with ``mask_unobserved``, all-zero texels) are left out of the sums and
+    passed through unchanged, so that a following :func:`postfilter` still
+    treats them as unobserved (keeps their moments, zero update).
 
     Args:
       sigma_d: data-term scale (>= 0; ``inf`` = low-pass), a number or a pytree
@@ -182,6 +186,8 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
       spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`),
         a tuple for every leaf, a pytree prefix of tuples (``()`` = do not
         filter), or a callable ``leaf -> axes``.
+      mask_unobserved: leave texels whose gradient is 0 in every channel out of
+        the sums (see :func:`postfilter`).
     """
     lv.check_guide(guide)
     _static_checks(sigma_d, levels)
@@ -200,7 +206,7 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
             if not spec.axes:
                 out.append(g)
                 continue
-            observed = _observed(g, spec.axes, False)
+            observed = _observed(g, spec.axes, mask_unobserved)
 
             def fast(ops, spec=spec):
                 g, gd = ops
@@ -210,12 +216,19 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
 
             def masked(ops, spec=spec, observed=observed):
                 g, gd = ops
-                g = jnp.where(lv.expand_mask(observed, g.ndim, spec.axes), g, 0)
+                obs = lv.expand_mask(observed, g.ndim, spec.axes)
+                g0 = jnp.where(obs, g, 0)
                 if guide == "self":
-                    return _filter_self((g,), spec, separable, observed, log_guide)[0]
-                return _filter(g, gd, spec, separable, observed)
+                    out = _filter_self((g0,), spec, separable, observed, log_guide)[0]
+                else:
+                    out = _filter(g0, gd, spec, separable, observed)
+                # Unobserved texels pass through as they came, so a later stage still sees them.
+                return jnp.where(obs, out, g)
 
-            res = _with_mask(fast, masked, observed, (g, gd))
+            if mask_unobserved:
+                res = masked((g, gd))
+            else:
+                res = _with_mask(fast, masked, observed, (g, gd))
             if not atrous._is_concrete(spec.sigma_d):
                 res = res * _sigma_guard(spec.sigma_d).astype(res.dtype)
             out.append(res)
@@ -248,7 +261,7 @@ class PostfilterState(NamedTuple):
 
 
 def _is_zero(x) -> bool:
-    return x is not None and atrous._is_concrete(x) and float(jnp.asarray(x)) == 0.0
+    return x is not None and atrous._is_concrete(x) and float(np.asarray(x)) == 0.0
 
 
 def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, separable=True,

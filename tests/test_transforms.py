@@ -1,0 +1,348 @@
+"""The Optax transforms: Adam equivalence, the paper's equations, composition and interop."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+import pytest
+from hypothesis import given, settings, strategies as st
+
+import optax_bilateral as ob
+from optax_bilateral import atrous_bilateral
+
+KEY = jax.random.PRNGKey(0)
+
+
+def _grads(i, like, scale=1.0):
+    return jax.tree.map(lambda p: scale * jax.random.normal(jax.random.fold_in(KEY, i), p.shape, p.dtype),
+                        like)
+
+
+def _run(opt, params, steps, noise=1.0, jit=True):
+    state = opt.init(params)
+    upd = jax.jit(opt.update) if jit else opt.update
+    out = []
+    for i in range(steps):
+        g = _grads(i, params, noise)
+        u, state = upd(g, state, params)
+        params = optax.apply_updates(params, u)
+        out.append((g, u))
+    return params, state, out
+
+
+# --- Adam equivalence -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("b1,b2,eps_root", [(0.9, 0.999, 0.0), (0.2, 0.36, 1e-8), (0.0, 0.5, 0.0)])
+def test_scale_by_adam_equals_optax(b1, b2, eps_root):
+    params = {"a": jnp.zeros((6, 5, 2)), "b": jnp.zeros(())}
+    ours, theirs = ob.scale_by_adam(b1, b2, 1e-8, eps_root), optax.scale_by_adam(b1, b2, 1e-8, eps_root)
+    s1, s2 = ours.init(params), theirs.init(params)
+    u1f, u2f = jax.jit(ours.update), jax.jit(theirs.update)
+    for i in range(35):
+        g = _grads(i, params)
+        u1, s1 = u1f(g, s1, params)
+        u2, s2 = u2f(g, s2, params)
+        # Same arithmetic in the same order, compiled the same way: bit-identical.
+        jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), u1, u2)
+        jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
+                     (s1.mu, s1.nu), (s2.mu, s2.nu))
+
+
+@pytest.mark.parametrize("prefilter", [False, True])
+def test_bilateral_adam_levels_zero_equals_optax_adam(prefilter):
+    params = {"tex": jnp.full((8, 8, 3), 0.5), "light": jnp.ones(())}
+    ours = ob.bilateral_adam(0.05, 0.3, 0.7, 1e-6, levels=0, prefilter=prefilter)
+    theirs = optax.adam(0.05, 0.3, 0.7, 1e-6)
+    p1, s1, t1 = _run(ours, params, 30)
+    p2, s2, t2 = _run(theirs, params, 30)
+    # Same formula; XLA fuses the two programs differently, so agreement is to a few ulps.
+    for (_, a), (_, b) in zip(t1, t2):
+        jax.tree.map(lambda x, y: np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=5e-7,
+                                                             atol=1e-9), a, b)
+
+
+def test_default_b2_is_one_minus_squared():
+    params = jnp.zeros((6, 6))
+    a = ob.bilateral_adam(0.1, b1=0.2, levels=0)
+    b = optax.adam(0.1, 0.2, 1 - 0.8 ** 2)
+    _, _, t1 = _run(a, params, 5)
+    _, _, t2 = _run(b, params, 5)
+    np.testing.assert_allclose(np.asarray(t1[-1][1]), np.asarray(t2[-1][1]), rtol=5e-7)
+
+
+# --- The paper's equations ----------------------------------------------------------------
+
+
+def _B(x, guide, sigma_d, levels, separable=True):
+    return atrous_bilateral(x, guide, sigma_d=sigma_d, levels=levels, spatial_axes=(0, 1),
+                            separable=separable)
+
+
+@pytest.mark.parametrize("separable", [True, False])
+def test_postfilter_matches_eq_11_and_keeps_unfiltered_moments(separable):
+    """chain(prefilter, postfilter) after 4 steps against a by-hand evaluation of eq. 11."""
+    b1, b2, eps, sig, F = 0.3, 0.6, 1e-8, 0.4, 2
+    theta = jax.random.uniform(KEY, (9, 7, 2))
+    opt = optax.chain(ob.prefilter(sig, F, separable=separable),
+                      ob.postfilter(b1, b2, eps, sigma_d=sig, levels=F, separable=separable))
+    state = opt.init(theta)
+    m = v = jnp.zeros_like(theta)
+    for t in range(1, 5):
+        g = _grads(t, theta)
+        u, state = jax.jit(opt.update)(g, state, theta)
+        ag = _B(g, theta, sig, F, separable)
+        m, v = b1 * m + (1 - b1) * ag, b2 * v + (1 - b2) * ag ** 2
+        bm, bv = _B((m, v), theta, sig, F, separable)
+        expect = (bm / (1 - b1 ** t)) / (jnp.sqrt(bv / (1 - b2 ** t)) + eps)
+        np.testing.assert_allclose(np.asarray(u), np.asarray(expect), rtol=2e-5, atol=1e-6)
+        theta = theta - 0.01 * u
+    # The state holds the unfiltered EMAs (eqs. 2, 4), not B m / B v.
+    post_state = state[1]
+    np.testing.assert_allclose(np.asarray(post_state.mu), np.asarray(m), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(post_state.nu), np.asarray(v), rtol=1e-5, atol=1e-7)
+
+
+def test_memoryless_limits_eqs_15_to_17():
+    theta = jax.random.uniform(KEY, (10, 10, 3))
+    g = _grads(3, theta)
+    # Adam: sign(g) up to eps (eq. 15).
+    u, _ = ob.scale_by_adam(0.0, 0.0, 1e-12).update(g, ob.scale_by_adam(0.0, 0.0).init(theta), theta)
+    np.testing.assert_allclose(np.asarray(u), np.sign(np.asarray(g)), rtol=1e-6)
+    # Prefilter + Adam: sign(A g) (eq. 16).
+    ch = optax.chain(ob.prefilter(0.3, 3), ob.scale_by_adam(0.0, 0.0, 1e-12))
+    u, _ = ch.update(g, ch.init(theta), theta)
+    np.testing.assert_allclose(np.asarray(u), np.sign(np.asarray(_B(g, theta, 0.3, 3))), rtol=1e-6)
+    # Postfilter: B g / sqrt(B g^2) (eq. 17), with no param-sized buffers in the state.
+    post = ob.postfilter(0.0, 0.0, 0.0, sigma_d=0.3, levels=3)
+    state = post.init(theta)
+    assert all(np.size(x) <= 1 for x in jax.tree.leaves(state))
+    u, state = post.update(g, state, theta)
+    bg, bg2 = _B((g, g * g), theta, 0.3, 3)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(bg / jnp.sqrt(bg2)), rtol=1e-5)
+    assert all(np.size(x) <= 1 for x in jax.tree.leaves(state))
+    # Unlike sign steps, its magnitude falls as noise grows (eq. 24).
+    signal = jnp.ones_like(theta)
+    mags = []
+    for noise in (0.1, 1.0, 10.0):
+        u, _ = post.update(signal + noise * g, post.init(theta), theta)
+        mags.append(float(jnp.mean(jnp.abs(u))))
+    assert mags[0] > mags[1] > mags[2]
+
+
+@settings(max_examples=12)  # each example compiles a new update (static settings)
+@given(seed=st.integers(0, 2**31 - 1), sigma_d=st.sampled_from([0.0, 0.05, 0.5, np.inf]),
+       b1=st.sampled_from([0.0, 0.2, 0.9]), levels=st.integers(1, 3), separable=st.booleans(),
+       scale=st.sampled_from([1e-3, 1.0, 1e3]))
+def test_postfilter_step_is_bounded_supplement_1_3(seed, sigma_d, b1, levels, separable, scale):
+    """|Delta| <= max_k |m_hat_k| / sqrt(v_hat_k) for the cross-bilateral postfilter."""
+    b2 = 1 - (1 - b1) ** 2
+    key = jax.random.PRNGKey(seed)
+    theta = jax.random.uniform(key, (6, 5, 2))
+    post = ob.postfilter(b1, b2, 0.0, sigma_d=sigma_d, levels=levels, separable=separable)
+    state = post.init(theta)
+    upd = jax.jit(post.update)
+    for t in range(1, 6):
+        g = scale * jax.random.normal(jax.random.fold_in(key, t), theta.shape)
+        u, state = upd(g, state, theta)
+        if b1 == 0:  # memoryless: no buffers, m = g and v = g^2
+            m_hat, v_hat = g, g * g
+        else:
+            m_hat = state.mu / (1 - b1 ** t)
+            v_hat = state.nu / (1 - b2 ** t)
+        bound = float(jnp.max(jnp.abs(m_hat) / jnp.sqrt(v_hat)))
+        assert float(jnp.max(jnp.abs(u))) <= bound * (1 + 1e-5)  # float32 rounding of the ratio
+
+
+# --- Leaves, guides, masks -----------------------------------------------------------------
+
+
+def test_default_leaf_rule():
+    assert ob.default_spatial_axes(jnp.zeros(())) == ()
+    assert ob.default_spatial_axes(jnp.zeros((5,))) == ()
+    assert ob.default_spatial_axes(jnp.zeros((5, 4))) == (0, 1)
+    assert ob.default_spatial_axes(jnp.zeros((5, 4, 3))) == (0, 1)
+    assert ob.default_spatial_axes(jnp.zeros((5, 4, 3, 2))) == (0, 1, 2)
+
+
+def test_mixed_pytree_filters_the_texture_and_adams_the_scalar():
+    params = {"tex": jax.random.uniform(KEY, (8, 8, 3)), "light": jnp.asarray(2.0),
+              "curve": jnp.linspace(0, 1, 7)}
+    g = _grads(1, params)
+    opt = ob.bilateral_adam(1.0, b1=0.0, b2=0.0, eps=0.0, sigma_d=0.5, levels=2)
+    u, _ = opt.update(g, opt.init(params), params)
+    # Unfiltered leaves: memoryless Adam = sign(g) (times -lr).
+    np.testing.assert_allclose(np.asarray(u["light"]), -np.sign(np.asarray(g["light"])), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(u["curve"]), -np.sign(np.asarray(g["curve"])), rtol=1e-6)
+    bg, bg2 = _B((g["tex"], g["tex"] ** 2), params["tex"], 0.5, 2)
+    np.testing.assert_allclose(np.asarray(u["tex"]), -np.asarray(bg / jnp.sqrt(bg2)), rtol=1e-5)
+
+
+def test_spatial_axes_prefix_callable_and_per_leaf_sigma():
+    params = {"a": jax.random.uniform(KEY, (3, 8, 8)), "b": jax.random.uniform(KEY, (8, 8, 3))}
+    g = _grads(2, params)
+    opt = ob.prefilter({"a": 0.2, "b": np.inf}, 2, spatial_axes={"a": (1, 2), "b": ()})
+    u, _ = opt.update(g, opt.init(params), params)
+    exp_a = atrous_bilateral(g["a"], params["a"], sigma_d=0.2, levels=2, spatial_axes=(1, 2))
+    np.testing.assert_allclose(np.asarray(u["a"]), np.asarray(exp_a), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(u["b"]), np.asarray(g["b"]))
+    opt2 = ob.prefilter(0.2, 2, spatial_axes=lambda leaf: (1, 2) if leaf.shape[0] == 3 else ())
+    u2, _ = opt2.update(g, opt2.init(params), params)
+    np.testing.assert_allclose(np.asarray(u2["a"]), np.asarray(exp_a), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(u2["b"]), np.asarray(g["b"]))
+
+
+def test_guide_options():
+    theta = jax.random.uniform(KEY, (8, 8, 2)) + 0.1
+    g = _grads(4, theta)
+    # log_guide: the guide is log(|theta| + 1e-8).
+    u, _ = ob.prefilter(0.3, 2, log_guide=True).update(g, (), theta)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, jnp.log(theta + 1e-8), 0.3, 2)), rtol=1e-5)
+    # "self": the gradient guides itself.
+    u, _ = ob.prefilter(0.3, 2, guide="self").update(g, (), theta)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, g, 0.3, 2)), rtol=1e-5)
+    # A callable returning auxiliary features (here a guide without channels).
+    feat = lambda p: jnp.sum(p, axis=-1)
+    u, _ = ob.prefilter(0.3, 2, guide=feat).update(g, (), theta)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, feat(theta), 0.3, 2)), rtol=1e-5)
+    # "self" in the postfilter: m and v get different weights (m guided by m, v by v).
+    post = ob.postfilter(0.0, 0.0, 0.0, sigma_d=0.3, levels=2, guide="self")
+    u, _ = post.update(g, post.init(theta), theta)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, g, 0.3, 2) / jnp.sqrt(_B(g * g, g * g, 0.3, 2))),
+                               rtol=1e-5)
+
+
+def test_missing_params_is_a_clear_error():
+    opt = ob.bilateral_adam(0.1)
+    p = jnp.zeros((4, 4))
+    with pytest.raises(ValueError, match="params"):
+        opt.update(p, opt.init(p))
+    # guide="self" does not need params.
+    opt = ob.bilateral_adam(0.1, guide="self")
+    opt.update(jnp.ones((4, 4)), opt.init(p))
+
+
+def test_mask_unobserved_keeps_state_and_zeroes_update():
+    theta = jax.random.uniform(KEY, (8, 8, 2))
+    post = ob.postfilter(0.2, sigma_d=0.5, levels=2, mask_unobserved=True)
+    state = post.init(theta)
+    _, state = post.update(_grads(0, theta), state, theta)
+    g = _grads(1, theta).at[2:4, 2:5].set(0.0)
+    u, new = post.update(g, state, theta)
+    assert np.all(np.asarray(u[2:4, 2:5]) == 0)
+    np.testing.assert_array_equal(np.asarray(new.mu[2:4, 2:5]), np.asarray(state.mu[2:4, 2:5]))
+    np.testing.assert_array_equal(np.asarray(new.nu[2:4, 2:5]), np.asarray(state.nu[2:4, 2:5]))
+    # Observed texels moved, and the unobserved ones were left out of their filter sums.
+    obs = np.ones((8, 8), bool)
+    obs[2:4, 2:5] = False
+    bm, bv = atrous_bilateral((new.mu, new.nu), theta, sigma_d=0.5, levels=2, spatial_axes=(0, 1),
+                              mask=jnp.asarray(obs))
+    expect = (bm / (1 - 0.2 ** 2)) / (jnp.sqrt(bv / (1 - 0.36 ** 2)) + 1e-8)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(expect), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_nonfinite_texel_does_not_poison_neighbours_or_state(bad):
+    theta = jax.random.uniform(KEY, (16, 16, 3))
+    opt = ob.bilateral_adam(0.1, sigma_d=np.inf, levels=3, prefilter=True)
+    state = opt.init(theta)
+    g = _grads(0, theta).at[5, 7, 1].set(bad)
+    u, state = jax.jit(opt.update)(g, state, theta)
+    assert np.all(np.isfinite(np.asarray(u)))
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(state))
+    assert np.all(np.asarray(u[5, 7]) == 0)
+    # The neighbours equal a run where that texel was masked out (unobserved) from the start.
+    opt_m = ob.bilateral_adam(0.1, sigma_d=np.inf, levels=3, prefilter=True, mask_unobserved=True)
+    u_m, _ = jax.jit(opt_m.update)(g.at[5, 7].set(0.0), opt_m.init(theta), theta)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(u_m), rtol=1e-6, atol=1e-7)
+
+
+# --- Interop ------------------------------------------------------------------------------
+
+
+def test_chain_with_other_transforms_and_jit_of_the_whole_step():
+    theta = jnp.full((16, 16, 3), 0.5)
+    # A piecewise-constant target: what an edge-stopping filter is built to recover.
+    target = jnp.where(jnp.arange(16)[:, None, None] < 8, 0.2, 0.9) * jnp.ones(theta.shape)
+    opt = optax.chain(optax.clip_by_global_norm(10.0), ob.prefilter(0.2, 3),
+                      ob.postfilter(0.2, sigma_d=0.2, levels=3), optax.scale_by_learning_rate(0.05))
+    loss = lambda p: jnp.mean((p - target) ** 2)
+
+    @jax.jit
+    def step(p, s):
+        g = jax.grad(loss)(p)
+        u, s = opt.update(g, s, p)
+        return optax.apply_updates(p, u), s
+
+    s = opt.init(theta)
+    l0 = float(loss(theta))
+    for _ in range(50):
+        theta, s = step(theta, s)
+    assert float(loss(theta)) < 0.5 * l0
+
+
+def test_inject_hyperparams_sigma_schedule_compiles_once():
+    traces = []
+    opt = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels",))(
+        learning_rate=optax.linear_schedule(0.1, 0.01, 20), sigma_d=optax.linear_schedule(1.0, 0.01, 20),
+        levels=3)
+    theta = jax.random.uniform(KEY, (8, 8, 3))
+
+    @jax.jit
+    def step(g, s, p):
+        traces.append(1)
+        return opt.update(g, s, p)
+
+    s = opt.init(theta)
+    sig = []
+    for i in range(6):
+        u, s = step(_grads(i, theta), s, theta)
+        sig.append(float(s.hyperparams["sigma_d"]))
+        assert np.all(np.isfinite(np.asarray(u)))
+    assert len(traces) == 1
+    assert sig[0] > sig[-1]
+
+
+def test_inject_hyperparams_traced_levels_is_a_clear_error():
+    opt = optax.inject_hyperparams(ob.bilateral_adam)(learning_rate=0.1, levels=3)
+    theta = jnp.zeros((8, 8))
+    s = opt.init(theta)
+    with pytest.raises(TypeError, match="static_args"):
+        jax.jit(opt.update)(theta, s, theta)
+
+
+def test_multi_transform_filters_only_the_texture():
+    params = {"tex": jax.random.uniform(KEY, (8, 8, 3)), "light": jnp.ones((3,))}
+    opt = optax.multi_transform({"tex": ob.bilateral_adam(0.1, sigma_d=0.3, levels=2),
+                                 "other": optax.adam(0.1)}, {"tex": "tex", "light": "other"})
+    g = _grads(0, params)
+    u, s = jax.jit(opt.update)(g, opt.init(params), params)
+    u_tex, _ = ob.bilateral_adam(0.1, sigma_d=0.3, levels=2).update(
+        g["tex"], ob.bilateral_adam(0.1, sigma_d=0.3, levels=2).init(params["tex"]), params["tex"])
+    np.testing.assert_allclose(np.asarray(u["tex"]), np.asarray(u_tex), rtol=1e-6)
+    u_l, _ = optax.adam(0.1).update(g["light"], optax.adam(0.1).init(params["light"]))
+    np.testing.assert_allclose(np.asarray(u["light"]), np.asarray(u_l), rtol=1e-6)
+
+
+def test_optimistix_optax_minimiser():
+    target = jax.random.uniform(KEY, (12, 12, 2))
+
+    def fn(y, args):
+        return jnp.sum((y - target) ** 2)
+
+    solver = optx.OptaxMinimiser(ob.bilateral_adam(0.05, sigma_d=0.1, levels=2), rtol=1e-6, atol=1e-6)
+    y0 = jnp.full((12, 12, 2), 0.5)
+    sol = optx.minimise(fn, solver, y0, max_steps=300, throw=False)
+    assert float(fn(sol.value, None)) < 0.05 * float(fn(y0, None))
+
+
+def test_vmap_over_independent_problems():
+    opt = ob.bilateral_adam(0.1, sigma_d=0.3, levels=2)
+    thetas = jax.random.uniform(KEY, (3, 8, 8, 2))
+    gs = jax.random.normal(jax.random.fold_in(KEY, 9), thetas.shape)
+    states = jax.vmap(opt.init)(thetas)
+    u, _ = jax.jit(jax.vmap(opt.update))(gs, states, thetas)
+    for i in range(3):
+        ui, _ = opt.update(gs[i], opt.init(thetas[i]), thetas[i])
+        np.testing.assert_allclose(np.asarray(u[i]), np.asarray(ui), rtol=1e-5, atol=1e-7)
