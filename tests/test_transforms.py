@@ -108,17 +108,17 @@ def test_memoryless_limits_eqs_15_to_17():
     theta = jax.random.uniform(KEY, (10, 10, 3))
     g = _grads(3, theta)
     # Adam: sign(g) up to eps (eq. 15).
-    u, _ = ob.scale_by_adam(0.0, 0.0, 1e-12).update(g, ob.scale_by_adam(0.0, 0.0).init(theta), theta)
+    u, _ = jax.jit(ob.scale_by_adam(0.0, 0.0, 1e-12).update)(g, ob.scale_by_adam(0.0, 0.0).init(theta), theta)
     np.testing.assert_allclose(np.asarray(u), np.sign(np.asarray(g)), rtol=1e-6)
     # Prefilter + Adam: sign(A g) (eq. 16).
     ch = optax.chain(ob.prefilter(0.3, 3), ob.scale_by_adam(0.0, 0.0, 1e-12))
-    u, _ = ch.update(g, ch.init(theta), theta)
+    u, _ = jax.jit(ch.update)(g, ch.init(theta), theta)
     np.testing.assert_allclose(np.asarray(u), np.sign(np.asarray(_B(g, theta, 0.3, 3))), rtol=1e-6)
     # Postfilter: B g / sqrt(B g^2) (eq. 17), with no param-sized buffers in the state.
     post = ob.postfilter(0.0, 0.0, 0.0, sigma_d=0.3, levels=3)
     state = post.init(theta)
     assert all(np.size(x) <= 1 for x in jax.tree.leaves(state))
-    u, state = post.update(g, state, theta)
+    u, state = jax.jit(post.update)(g, state, theta)
     bg, bg2 = _B((g, g * g), theta, 0.3, 3)
     np.testing.assert_allclose(np.asarray(u), np.asarray(bg / jnp.sqrt(bg2)), rtol=1e-5)
     assert all(np.size(x) <= 1 for x in jax.tree.leaves(state))
@@ -126,7 +126,7 @@ def test_memoryless_limits_eqs_15_to_17():
     signal = jnp.ones_like(theta)
     mags = []
     for noise in (0.1, 1.0, 10.0):
-        u, _ = post.update(signal + noise * g, post.init(theta), theta)
+        u, _ = jax.jit(post.update)(signal + noise * g, post.init(theta), theta)
         mags.append(float(jnp.mean(jnp.abs(u))))
     assert mags[0] > mags[1] > mags[2]
 
@@ -171,7 +171,7 @@ def test_mixed_pytree_filters_the_texture_and_adams_the_scalar():
               "curve": jnp.linspace(0, 1, 7)}
     g = _grads(1, params)
     opt = ob.bilateral_adam(1.0, b1=0.0, b2=0.0, eps=0.0, sigma_d=0.5, levels=2)
-    u, _ = opt.update(g, opt.init(params), params)
+    u, _ = jax.jit(opt.update)(g, opt.init(params), params)
     # Unfiltered leaves: memoryless Adam = sign(g) (times -lr).
     np.testing.assert_allclose(np.asarray(u["light"]), -np.sign(np.asarray(g["light"])), rtol=1e-6)
     np.testing.assert_allclose(np.asarray(u["curve"]), -np.sign(np.asarray(g["curve"])), rtol=1e-6)
@@ -183,12 +183,12 @@ def test_spatial_axes_prefix_callable_and_per_leaf_sigma():
     params = {"a": jax.random.uniform(KEY, (3, 8, 8)), "b": jax.random.uniform(KEY, (8, 8, 3))}
     g = _grads(2, params)
     opt = ob.prefilter({"a": 0.2, "b": np.inf}, 2, spatial_axes={"a": (1, 2), "b": ()})
-    u, _ = opt.update(g, opt.init(params), params)
+    u, _ = jax.jit(opt.update)(g, opt.init(params), params)
     exp_a = atrous_bilateral(g["a"], params["a"], sigma_d=0.2, levels=2, spatial_axes=(1, 2))
     np.testing.assert_allclose(np.asarray(u["a"]), np.asarray(exp_a), rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(u["b"]), np.asarray(g["b"]))
     opt2 = ob.prefilter(0.2, 2, spatial_axes=lambda leaf: (1, 2) if leaf.shape[0] == 3 else ())
-    u2, _ = opt2.update(g, opt2.init(params), params)
+    u2, _ = jax.jit(opt2.update)(g, opt2.init(params), params)
     np.testing.assert_allclose(np.asarray(u2["a"]), np.asarray(exp_a), rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(u2["b"]), np.asarray(g["b"]))
 
@@ -197,18 +197,18 @@ def test_guide_options():
     theta = jax.random.uniform(KEY, (8, 8, 2)) + 0.1
     g = _grads(4, theta)
     # log_guide: the guide is log(|theta| + 1e-8).
-    u, _ = ob.prefilter(0.3, 2, log_guide=True).update(g, (), theta)
+    u, _ = jax.jit(ob.prefilter(0.3, 2, log_guide=True).update)(g, (), theta)
     np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, jnp.log(theta + 1e-8), 0.3, 2)), rtol=1e-5)
     # "self": the gradient guides itself.
-    u, _ = ob.prefilter(0.3, 2, guide="self").update(g, (), theta)
+    u, _ = jax.jit(ob.prefilter(0.3, 2, guide="self").update)(g, (), theta)
     np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, g, 0.3, 2)), rtol=1e-5)
     # A callable returning auxiliary features (here a guide without channels).
     feat = lambda p: jnp.sum(p, axis=-1)
-    u, _ = ob.prefilter(0.3, 2, guide=feat).update(g, (), theta)
+    u, _ = jax.jit(ob.prefilter(0.3, 2, guide=feat).update)(g, (), theta)
     np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, feat(theta), 0.3, 2)), rtol=1e-5)
     # "self" in the postfilter: m and v get different weights (m guided by m, v by v).
     post = ob.postfilter(0.0, 0.0, 0.0, sigma_d=0.3, levels=2, guide="self")
-    u, _ = post.update(g, post.init(theta), theta)
+    u, _ = jax.jit(post.update)(g, post.init(theta), theta)
     np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, g, 0.3, 2) / jnp.sqrt(_B(g * g, g * g, 0.3, 2))),
                                rtol=1e-5)
 
@@ -227,9 +227,9 @@ def test_mask_unobserved_keeps_state_and_zeroes_update():
     theta = jax.random.uniform(KEY, (8, 8, 2))
     post = ob.postfilter(0.2, sigma_d=0.5, levels=2, mask_unobserved=True)
     state = post.init(theta)
-    _, state = post.update(_grads(0, theta), state, theta)
+    _, state = jax.jit(post.update)(_grads(0, theta), state, theta)
     g = _grads(1, theta).at[2:4, 2:5].set(0.0)
-    u, new = post.update(g, state, theta)
+    u, new = jax.jit(post.update)(g, state, theta)
     assert np.all(np.asarray(u[2:4, 2:5]) == 0)
     np.testing.assert_array_equal(np.asarray(new.mu[2:4, 2:5]), np.asarray(state.mu[2:4, 2:5]))
     np.testing.assert_array_equal(np.asarray(new.nu[2:4, 2:5]), np.asarray(state.nu[2:4, 2:5]))
@@ -318,7 +318,7 @@ def test_multi_transform_filters_only_the_texture():
                                  "other": optax.adam(0.1)}, {"tex": "tex", "light": "other"})
     g = _grads(0, params)
     u, s = jax.jit(opt.update)(g, opt.init(params), params)
-    u_tex, _ = ob.bilateral_adam(0.1, sigma_d=0.3, levels=2).update(
+    u_tex, _ = jax.jit(ob.bilateral_adam(0.1, sigma_d=0.3, levels=2).update)(
         g["tex"], ob.bilateral_adam(0.1, sigma_d=0.3, levels=2).init(params["tex"]), params["tex"])
     np.testing.assert_allclose(np.asarray(u["tex"]), np.asarray(u_tex), rtol=1e-6)
     u_l, _ = optax.adam(0.1).update(g["light"], optax.adam(0.1).init(params["light"]))
@@ -344,5 +344,5 @@ def test_vmap_over_independent_problems():
     states = jax.vmap(opt.init)(thetas)
     u, _ = jax.jit(jax.vmap(opt.update))(gs, states, thetas)
     for i in range(3):
-        ui, _ = opt.update(gs[i], opt.init(thetas[i]), thetas[i])
+        ui, _ = jax.jit(opt.update)(gs[i], opt.init(thetas[i]), thetas[i])
         np.testing.assert_allclose(np.asarray(u[i]), np.asarray(ui), rtol=1e-5, atol=1e-7)
