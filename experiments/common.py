@@ -76,6 +76,10 @@ class Trace:
         ``evaluate`` values after it.
       step_seconds: ``(N,)`` wall time of every step; step 1 includes compilation.
       final: the final carry (e.g. the parameters), as returned by the last step.
+      timed_seconds_per_iteration: if set (e.g. from :func:`time_steps_interleaved`),
+        the cost of one step used for ``seconds_per_iteration`` and the time axis
+        (``iterations * it``) instead of this run's own clock, which on a shared,
+        loaded machine measures the neighbours as much as the method.
     """
 
     name: str
@@ -85,17 +89,25 @@ class Trace:
     metrics: dict[str, np.ndarray]
     step_seconds: np.ndarray
     final: Any = None
+    timed_seconds_per_iteration: float | None = None
 
     @property
-    def seconds_per_iteration(self) -> float:
-        """Median step time excluding step 1 (compilation); robust to a shared, noisy CPU."""
+    def measured_seconds_per_iteration(self) -> float:
+        """Median step time of this run, excluding step 1 (compilation)."""
         steps = self.step_seconds[1:] if len(self.step_seconds) > 1 else self.step_seconds
         return float(np.median(steps))
 
     @property
+    def seconds_per_iteration(self) -> float:
+        """``timed_seconds_per_iteration`` if set, else :attr:`measured_seconds_per_iteration`."""
+        if self.timed_seconds_per_iteration is not None:
+            return float(self.timed_seconds_per_iteration)
+        return self.measured_seconds_per_iteration
+
+    @property
     def compile_seconds(self) -> float:
         """Extra time of the first step over the median step: roughly the jit compile time."""
-        return float(max(self.step_seconds[0] - self.seconds_per_iteration, 0.0))
+        return float(max(self.step_seconds[0] - self.measured_seconds_per_iteration, 0.0))
 
     def final_metric(self, key: str) -> float:
         """The last recorded (non-NaN) value of ``key``; NaN if there is none."""
@@ -106,12 +118,12 @@ class Trace:
     def metric_at_time(self, key: str, seconds: float) -> float:
         """Value of ``key`` at the last record whose cumulative step time is <= ``seconds``.
 
-        Times are re-based so that step 1 costs the median step (compilation is not
-        charged to anyone). Returns NaN when no record is that early.
+        Times are :attr:`time_axis` (compilation is not charged to anyone). Returns
+        NaN when no record is that early.
         """
         values = self.metrics[key]
         keep = ~np.isnan(values)
-        t = self.rebased_wall_time[keep]
+        t = self.time_axis[keep]
         idx = np.searchsorted(t, seconds, side="right") - 1
         return float(values[keep][idx]) if idx >= 0 else math.nan
 
@@ -126,6 +138,14 @@ class Trace:
     def rebased_wall_time(self) -> np.ndarray:
         """Cumulative step time at each record, with the compile overhead of step 1 removed."""
         return self.wall_time - self.compile_seconds
+
+    @property
+    def time_axis(self) -> np.ndarray:
+        """Seconds at each record: ``iterations * timed_seconds_per_iteration`` if that is set,
+        else :attr:`rebased_wall_time`."""
+        if self.timed_seconds_per_iteration is not None:
+            return self.iterations * float(self.timed_seconds_per_iteration)
+        return self.rebased_wall_time
 
 
 def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any]]], carry: Any,
@@ -200,6 +220,27 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
                  step_seconds=step_seconds[:i + 1], final=carry)
 
 
+def time_steps_interleaved(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 7,
+                           first_iteration: int = 0) -> dict[str, float]:
+    """Median seconds per step of each ``step(carry, i)``, timed in alternation.
+
+    Round ``r`` runs every step once, in turn, on its own evolving carry, so a burst
+    of load from other processes hits all of them alike: the *ratios* are fair even
+    on a shared machine. Call after the steps are compiled (or add a round).
+    """
+    if not isinstance(rounds, int) or rounds < 1:
+        raise ValueError(f"rounds must be a positive int, got {rounds!r}")
+    carries = {k: c for k, (_, c) in steps.items()}
+    times: dict[str, list[float]] = {k: [] for k in steps}
+    for r in range(rounds):
+        for k, (fn, _) in steps.items():
+            t0 = time.perf_counter()
+            carries[k], aux = fn(carries[k], first_iteration + r)
+            jax.block_until_ready((carries[k], aux))
+            times[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v)) for k, v in times.items()}
+
+
 def concat_traces(first: Trace, second: Trace, name: str | None = None,
                   hyperparameters: Mapping[str, Any] | None = None) -> Trace:
     """``second`` (run with ``first_iteration`` = the end of ``first``) appended to ``first``."""
@@ -215,7 +256,7 @@ def concat_traces(first: Trace, second: Trace, name: str | None = None,
                  wall_time=np.concatenate([first.wall_time, first.wall_time[-1] + second.wall_time]),
                  metrics={k: np.concatenate([get(first, k), get(second, k)]) for k in keys},
                  step_seconds=np.concatenate([first.step_seconds, second.step_seconds]),
-                 final=second.final)
+                 final=second.final, timed_seconds_per_iteration=first.timed_seconds_per_iteration)
 
 
 def summary_entry(trace: Trace, metric_keys: Mapping[str, str] | None = None) -> dict:
@@ -229,6 +270,8 @@ def summary_entry(trace: Trace, metric_keys: Mapping[str, str] | None = None) ->
         metric_keys = {"final_param_error": "param_error", "final_loss": "loss"}
     entry = {k: trace.final_metric(m) for k, m in metric_keys.items() if m in trace.metrics}
     entry["seconds_per_iteration"] = trace.seconds_per_iteration
+    if trace.timed_seconds_per_iteration is not None:
+        entry["measured_seconds_per_iteration"] = trace.measured_seconds_per_iteration
     entry["iterations"] = int(trace.iterations[-1])
     entry["hyperparameters"] = _jsonable(trace.hyperparameters)
     return entry
@@ -283,11 +326,14 @@ def plot_curves(traces: Mapping[str, Trace], metric: str, path: str | os.PathLik
     for label, tr in traces.items():
         if metric not in tr.metrics:
             continue
-        xs = tr.iterations if x == "iteration" else tr.rebased_wall_time
+        xs = tr.iterations if x == "iteration" else tr.time_axis
         ys = tr.metrics[metric]
         keep = np.isfinite(ys)
         ax.plot(xs[keep], ys[keep], label=label, lw=1.4, marker="." if keep.sum() < 30 else None)
-    ax.set_xlabel("iteration" if x == "iteration" else "wall-clock seconds (steps only, no compile)")
+    timed = any(t.timed_seconds_per_iteration is not None for t in traces.values())
+    ax.set_xlabel("iteration" if x == "iteration" else
+                  "seconds (iterations x interleaved step time)" if timed else
+                  "wall-clock seconds (steps only, no compile)")
     ax.set_ylabel(ylabel or metric)
     if log_y:
         ax.set_yscale("log")
