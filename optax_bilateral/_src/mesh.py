@@ -33,7 +33,7 @@ weights in ``(0, 1]`` so small ``sigma_d`` does not overflow float32.
 Solver (measured on this project's 2-core CPU; numbers and commands in the
 README / report): every solve is a preconditioned conjugate gradient
 (``jax.scipy.sparse.linalg.cg``, Jacobi preconditioner ``1 + lambda deg``) on all
-right-hand sides at once, ``(V, C)`` column-major in memory with a padded
+right-hand sides at once, as one ``(V, C)`` array, with a padded
 neighbour table for the matrix-vector product. "Factorise once per mesh" here
 means building that table and the degrees once, in NumPy, when the transform is
 made. Why CG and not a sparse Cholesky:
@@ -42,11 +42,23 @@ made. Why CG and not a sparse Cholesky:
   Cholesky; CG is jit-able, runs on any backend and needs no host callback;
 * ``lambda`` may be traced, so it can be scheduled (supplement §4 suggests decaying
   the smoothing weight) without refactorising;
-* at 10k vertices, ``lambda = 19``, 3 right-hand sides CG took 52 ms against 12 ms
-  for a SciPy SuperLU solve (plus a 119 ms factorisation); with the 128 right-hand
-  sides of the bilateral filter CG took 0.70 s against 0.58 s, i.e. the same order,
-  and CG's cost falls with the tolerance (0.40 s at ``tol=1e-3``);
-* per-column CG (``vmap`` over ``cg``) was 3-5x slower than one CG over the
+* measured with ``python -m experiments.mesh --overhead`` (``lambda = 19``,
+  ``tol = 1e-4``, float32 CG vs float64 SciPy SuperLU, medians of 5):
+
+  ========  ===  =========  ============  ===================
+  vertices  rhs  CG         SuperLU solve SuperLU factorise
+  ========  ===  =========  ============  ===================
+  10242     3    17 ms      11 ms         143 ms
+  10242     128  0.36 s     2.4 s
+  34812     3    92 ms      49 ms         1.1 s
+  34812     128  3.5 s      13 s
+  166412    3    0.13 s     0.45 s        13.5 s
+  166412    128  23 s       104 s
+  ========  ===  =========  ============  ===================
+
+  so CG is at most 2x slower for Large Steps' 3 columns at small sizes and
+  3.7-6.6x faster for the bilateral filter's 128 columns;
+* per-column CG (``vmap`` over ``cg``) was about 5x slower than one CG over the
   column-normalised block, so columns are scaled to unit norm first (the solve is
   linear, so this changes no result) and share one Krylov iteration.
 
@@ -165,6 +177,24 @@ def _matvec(mesh: MeshLaplacian, lambda_, x):
     return x + lambda_ * (mesh.degree.astype(x.dtype)[:, None] * x - neighbour_sum)
 
 
+@jax.jit
+def _solve(neighbors, degree, b, lambda_, tol, maxiter):
+    # One compilation per shape, shared by every transform and eager call
+    # (cg's while_loop would otherwise be retraced for each new closure).
+    mesh = MeshLaplacian(neighbors, degree, jnp.zeros((0, 3), jnp.int32))
+    dtype = b.dtype
+    scale = jnp.sqrt(jnp.sum(b * b, axis=0))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    inv_diag = (1.0 / (1.0 + lambda_ * degree.astype(dtype)))[:, None]
+    b = b / scale
+    # Start from the Jacobi guess rather than zeros: a constant x0 makes XLA
+    # constant-fold the first matvec's gathers, which takes seconds at 166k vertices.
+    x, _ = jax.scipy.sparse.linalg.cg(
+        lambda v: _matvec(mesh, lambda_, v), b, x0=inv_diag * b, tol=tol, atol=0.0,
+        maxiter=maxiter, M=lambda r: inv_diag * r)
+    return x * scale
+
+
 def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, tol: float = DEFAULT_TOL,
                     maxiter: int = DEFAULT_MAXITER):
     """Solves ``(I + lambda L) x = b`` with Jacobi-preconditioned CG (Large Steps' "smooth").
@@ -188,15 +218,8 @@ def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, tol: float = DEFAULT_TOL
     if squeeze:
         b = b[:, None]
     dtype = b.dtype if jnp.issubdtype(b.dtype, jnp.floating) else jnp.float32
-    b = b.astype(dtype)
-    lambda_ = jnp.asarray(lambda_, dtype)
-    scale = jnp.sqrt(jnp.sum(b * b, axis=0))
-    scale = jnp.where(scale > 0, scale, 1.0)
-    inv_diag = (1.0 / (1.0 + lambda_ * mesh.degree.astype(dtype)))[:, None]
-    x, _ = jax.scipy.sparse.linalg.cg(
-        lambda v: _matvec(mesh, lambda_, v), b / scale, tol=tol, atol=0.0,
-        maxiter=maxiter, M=lambda r: inv_diag * r)
-    x = x * scale
+    x = _solve(mesh.neighbors, mesh.degree, b.astype(dtype), jnp.asarray(lambda_, dtype),
+               jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32))
     return x[:, 0] if squeeze else x
 
 
@@ -266,6 +289,20 @@ def _is_concrete_inf(x) -> bool:
         return False
 
 
+@jax.jit
+def _bilateral(neighbors, degree, x, n, s, lambda_, sigma_d, tol, maxiter):
+    """Splat (w_k * x, w_k), diffuse with one solve, slice with w_k, divide."""
+    w = jnp.exp((n @ s.T - 1.0) / sigma_d)  # (V, K)
+    num_v, num_dirs, channels = x.shape[0], w.shape[1], x.shape[1]
+    splat = jnp.concatenate([w[:, :, None] * x[:, None, :], w[:, :, None]], axis=2)
+    diffused = _solve(neighbors, degree, splat.reshape(num_v, num_dirs * (channels + 1)),
+                      lambda_, tol, maxiter).reshape(num_v, num_dirs, channels + 1)
+    sliced = jnp.einsum("vk,vkc->vc", w, diffused)
+    num, den = sliced[:, :channels], sliced[:, channels:]
+    ok = den > jnp.finfo(x.dtype).tiny
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), x)
+
+
 def bilateral_normal_filter(fields: Sequence[Any], normals, mesh: MeshLaplacian, *,
                             lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D,
                             directions=DEFAULT_DIRECTIONS, tol: float = DEFAULT_TOL,
@@ -304,18 +341,9 @@ def bilateral_normal_filter(fields: Sequence[Any], normals, mesh: MeshLaplacian,
         return jnp.split(smoothing_solve(mesh, x, lambda_, tol=tol, maxiter=maxiter), splits, axis=1)
     s = directions if isinstance(directions, jax.Array) else _as_directions(directions)
     dtype = x.dtype
-    n = jnp.asarray(normals, dtype)
-    w = jnp.exp((n @ s.T.astype(dtype) - 1.0) / jnp.asarray(sigma_d, dtype))  # (V, K)
-    num_dirs, channels = w.shape[1], x.shape[1]
-    # Right-hand sides: for each direction, w_k * x (C columns) and w_k (1 column).
-    splat = jnp.concatenate([w[:, :, None] * x[:, None, :], w[:, :, None]], axis=2)
-    diffused = smoothing_solve(mesh, splat.reshape(x.shape[0], num_dirs * (channels + 1)),
-                               lambda_, tol=tol, maxiter=maxiter)
-    diffused = diffused.reshape(x.shape[0], num_dirs, channels + 1)
-    sliced = jnp.einsum("vk,vkc->vc", w, diffused)
-    num, den = sliced[:, :channels], sliced[:, channels:]
-    ok = den > jnp.finfo(dtype).tiny
-    out = jnp.where(ok, num / jnp.where(ok, den, 1.0), x)
+    out = _bilateral(mesh.neighbors, mesh.degree, x, jnp.asarray(normals, dtype), s.astype(dtype),
+                     jnp.asarray(lambda_, dtype), jnp.asarray(sigma_d, dtype),
+                     jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32))
     return jnp.split(out, splits, axis=1)
 
 
