@@ -236,11 +236,6 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
             progress=progress)
         adam_long = common.concat_traces(adam_best, more, name="adam (equal time)")
 
-    summary = _summary(cfg, prob, traces, best, adam_long, budget)
-    summary["total_seconds"] = time.perf_counter() - t_start
-    common.write_summary(out, summary["methods"], **{k: v for k, v in summary.items() if k != "methods"})
-    table = markdown(summary)
-    (out / "table.md").write_text(table + "\n")
     curves = {m: best[m] for m in METHODS}
     if adam_long is not adam_best:
         curves["adam (equal time)"] = adam_long
@@ -250,7 +245,13 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
                                title=f"texture {cfg.size}^2 ({cfg.target}): {m} vs {x}")
             for m in ("loss", "param_error") for x in ("iteration", "time")]
     pngs.append(_plot_images(prob, best, adam_long, out / "images.png"))
+
+    summary = _summary(cfg, prob, traces, best, adam_long, budget)
     summary["pngs"] = [str(p) for p in pngs]
+    summary["total_seconds"] = time.perf_counter() - t_start
+    common.write_summary(out, summary["methods"], **{k: v for k, v in summary.items() if k != "methods"})
+    table = markdown(summary)
+    (out / "table.md").write_text(table + "\n")
     summary["table"] = table
     return summary
 
