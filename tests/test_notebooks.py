@@ -8,17 +8,26 @@ and keeps no buffers; the jointly filtered steps respect the bound of supplement
 §1.3), and if it does not save its figures.
 """
 
+import importlib.util
 import os
 import pathlib
-import sys
 import time
 
 import nbformat
 import pytest
 
 NOTEBOOKS = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
-sys.path.insert(0, str(NOTEBOOKS))       # build_notebooks is a script, not a package module
-import build_notebooks  # noqa: E402
+
+
+def _load_builder():
+    """``notebooks/build_notebooks.py`` is a script, not a package module: load it by path."""
+    spec = importlib.util.spec_from_file_location("build_notebooks", NOTEBOOKS / "build_notebooks.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+build_notebooks = _load_builder()
 
 # Figures each notebook must write into results/notebooks/ (the quick run writes them too).
 FIGURES = {
