@@ -226,14 +226,18 @@ def time_steps_interleaved(steps: Mapping[str, tuple[Callable, Any]], rounds: in
 
     Round ``r`` runs every step once, in turn, on its own evolving carry, so a burst
     of load from other processes hits all of them alike: the *ratios* are fair even
-    on a shared machine. Call after the steps are compiled (or add a round).
+    on a shared machine. The order rotates every round (the first step of a round
+    was measured ~10-30% slower on a loaded machine). Call after the steps are
+    compiled (or add a round).
     """
     if not isinstance(rounds, int) or rounds < 1:
         raise ValueError(f"rounds must be a positive int, got {rounds!r}")
     carries = {k: c for k, (_, c) in steps.items()}
     times: dict[str, list[float]] = {k: [] for k in steps}
+    names = list(steps)
     for r in range(rounds):
-        for k, (fn, _) in steps.items():
+        for k in names[r % len(names):] + names[:r % len(names)]:
+            fn = steps[k][0]
             t0 = time.perf_counter()
             carries[k], aux = fn(carries[k], first_iteration + r)
             jax.block_until_ready((carries[k], aux))
