@@ -376,7 +376,8 @@ def render(alpha, scene: TextureScene, key, spp: int = 1, spp_grad: int = 1) -> 
 
     ``key`` is split into a primal and a gradient key (``jax.random.split``);
     the two estimates are independent, so loss gradients are unbiased (module
-    docstring). ``spp`` and ``spp_grad`` are static.
+    docstring). ``spp`` and ``spp_grad`` are static. Reverse mode only (``jax.grad``,
+    ``jax.vjp``): the derivative is a custom VJP; for forward mode use :func:`estimate`.
     """
     _check(alpha, scene, spp)
     _check(alpha, scene, spp_grad, "spp_grad")
