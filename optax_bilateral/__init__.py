@@ -7,6 +7,7 @@ for Inverse Rendering". SIGGRAPH Asia 2024.
 from optax_bilateral._src.alias import bilateral_adam
 from optax_bilateral._src.atrous import atrous_bilateral
 from optax_bilateral._src.leaves import default_spatial_axes
+from optax_bilateral._src.state_io import load_state, save_state
 from optax_bilateral._src.transforms import (
     DEFAULT_SIGMA_D,
     PostfilterState,
@@ -27,7 +28,9 @@ __all__ = (
     "atrous_bilateral",
     "bilateral_adam",
     "default_spatial_axes",
+    "load_state",
     "postfilter",
     "prefilter",
+    "save_state",
     "scale_by_adam",
 )

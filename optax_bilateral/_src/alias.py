@@ -27,9 +27,12 @@ def bilateral_adam(learning_rate, b1=0.2, b2=None, eps=1e-8, *,
     Adam). ``A`` and ``B`` are a-trous cross-bilateral filters with ``levels`` =
     F levels guided by the current parameters.
 
-    Equivalent to ``optax.chain(prefilter(...)?, postfilter(...) or
-    scale_by_adam(...), optax.scale_by_learning_rate(learning_rate))``. With
-    ``levels=0`` it is exactly ``optax.adam(learning_rate, b1, b2, eps)``.
+    Equivalent to ``optax.chain(prefilter(...)?, postfilter(...),
+    optax.scale_by_learning_rate(learning_rate))``; without the postfilter the
+    middle stage is ``postfilter(..., levels=0)``, i.e. Adam with this library's
+    handling of non-finite and extreme gradients (``scale_by_adam`` has none).
+    With ``levels=0`` it is ``optax.adam(learning_rate, b1, b2, eps)`` on finite
+    gradients of moderate size (docs/robustness.md lists the extremes).
 
     Defaults follow the paper's grid runs: ``b1 = 0.2``, ``b2 = 1 - (1 - b1)^2``
     (= 0.36), postfilter only, ``levels = 5``. ``sigma_d = 0.1`` suits
@@ -57,6 +60,9 @@ def bilateral_adam(learning_rate, b1=0.2, b2=None, eps=1e-8, *,
         parts.append(transforms.postfilter(b1, b2, eps, mask_unobserved=mask_unobserved,
                                            eps_root=eps_root, mu_dtype=mu_dtype, **common))
     else:
-        parts.append(transforms.scale_by_adam(b1, b2, eps, eps_root, mu_dtype=mu_dtype))
+        # Unfiltered Adam, with the postfilter's non-finite and overflow policies.
+        parts.append(transforms.postfilter(b1, b2, eps, levels=0, mask_unobserved=mask_unobserved,
+                                           eps_root=eps_root, mu_dtype=mu_dtype,
+                                           spatial_axes=spatial_axes))
     parts.append(optax.scale_by_learning_rate(learning_rate))
     return optax.chain(*parts)

@@ -80,14 +80,36 @@ class LeafSpec(NamedTuple):
     sigma_d: Any
 
 
+def leaf_names(tree) -> list[str]:
+    """A readable path per leaf (``['tex']``, ``[0].albedo``) for error messages."""
+    paths = jax.tree_util.tree_flatten_with_path(tree)[0]
+    return [jax.tree_util.keystr(p) or "(the root)" for p, _ in paths]
+
+
+def check_spatial_axes_setting(spatial_axes) -> None:
+    """Construction-time check of ``spatial_axes`` (ranges need the leaves: see :func:`leaf_specs`)."""
+    atoms = jax.tree.leaves(spatial_axes, is_leaf=_is_axes_atom)
+    for ax in atoms:
+        if ax is None or callable(ax):
+            continue
+        if not _is_axes_atom(ax):
+            raise TypeError(f"spatial_axes must be None, a tuple of ints, a pytree prefix of such "
+                            f"tuples or a callable leaf -> axes; found {ax!r}")
+        ax = (ax,) if isinstance(ax, numbers.Integral) else tuple(ax)
+        if len(set(ax)) != len(ax):
+            raise ValueError(f"spatial_axes={ax} repeats an axis")
+
+
 def leaf_specs(tree, *, spatial_axes, sigma_d, levels) -> list[LeafSpec]:
     """Resolves spatial axes, levels and sigma_d for every leaf of ``tree``."""
     leaves = jax.tree.leaves(tree)
+    names = leaf_names(tree)
     axes_list = broadcast_prefix(spatial_axes, tree, _is_axes_atom, "spatial_axes")
     sigma_list = broadcast_prefix(sigma_d, tree, _is_scalar_atom, "sigma_d")
     levels_list = broadcast_prefix(levels, tree, _is_scalar_atom, "levels")
     specs = []
     for i, (leaf, ax, sig, lev) in enumerate(zip(leaves, axes_list, sigma_list, levels_list)):
+        name = names[i]
         if ax is None:
             ax = default_spatial_axes(leaf)
         elif callable(ax):
@@ -97,18 +119,65 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels) -> list[LeafSpec]:
         nd = np.ndim(leaf)
         if len(ax) > nd:
             raise ValueError(f"spatial_axes={ax} asks for {len(ax)} spatial axes but parameter "
-                             f"leaf {i} has shape {np.shape(leaf)} ({nd} dimension(s))")
-        ax = atrous.normalize_axes(ax, nd, name=f"spatial_axes (for leaf {i}, shape {np.shape(leaf)})")
-        lev = atrous.check_levels(lev, name=f"levels (for leaf {i})")
+                             f"leaf {name} has shape {np.shape(leaf)} ({nd} dimension(s))")
+        ax = atrous.normalize_axes(ax, nd, name=f"spatial_axes (for leaf {name}, shape {np.shape(leaf)})")
+        lev = atrous.check_levels(lev, name=f"levels (for leaf {name})")
         if sig is None:
-            raise ValueError(f"sigma_d is None for leaf {i}; pass a number (inf for a low-pass)")
-        atrous.check_sigma_d(sig, name=f"sigma_d (for leaf {i})")
+            raise ValueError(f"sigma_d is None for leaf {name}; pass a number (inf for a low-pass)")
+        atrous.check_sigma_d(sig, name=f"sigma_d (for leaf {name})")
         if ax and lev > 0:
             dt = jnp.result_type(leaf)
             if not jnp.issubdtype(dt, jnp.floating):
-                raise TypeError(f"parameter leaf {i} has dtype {dt}; filtered leaves must be "
+                raise TypeError(f"params leaf {name} has dtype {dt}; filtered leaves must be "
                                 "floating point (integer parameters have no gradient)")
         specs.append(LeafSpec(ax if lev > 0 else (), lev, sig))
+    return specs
+
+
+def _guide_spatial_shape(guide_shape, leaf_shape, axes, name):
+    """The guide's spatial shape under :func:`atrous_bilateral`'s rule, or a clear error."""
+    if len(guide_shape) == len(axes):
+        return tuple(guide_shape)
+    if len(guide_shape) < len(axes) or any(a >= len(guide_shape) for a in axes):
+        raise ValueError(f"guide for params leaf {name} has shape {tuple(guide_shape)}, which "
+                         f"lacks the spatial axes {axes} of the leaf (shape {tuple(leaf_shape)})")
+    return tuple(guide_shape[a] for a in axes)
+
+
+def check_params(params, *, spatial_axes, sigma_d, levels, guide, transform: str,
+                 all_leaves: bool) -> list[LeafSpec]:
+    """Init-time checks: leaf dtypes and dimensions, the settings per leaf, the guide's shapes.
+
+    ``all_leaves``: every leaf must be floating point (it has moments), not only the
+    filtered ones.
+    """
+    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels)
+    names = leaf_names(params)
+    leaves = jax.tree.leaves(params)
+    if all_leaves:
+        for leaf, name in zip(leaves, names):
+            dt = jnp.result_type(leaf)
+            if not jnp.issubdtype(dt, jnp.floating):
+                raise TypeError(f"params leaf {name} has dtype {dt}; {transform} keeps Adam moments "
+                                "for every leaf, which needs real floating point parameters "
+                                "(exclude other leaves with optax.multi_transform)")
+    if callable(guide) and guide not in ("params", "self") and any(s.axes for s in specs):
+        shapes = jax.eval_shape(guide, params)
+        g_list = broadcast_prefix(shapes, params, lambda x: x is None or hasattr(x, "shape"),
+                                  "the guide callable's result")
+        for leaf, name, spec, gd in zip(leaves, names, specs, g_list):
+            if not spec.axes:
+                continue
+            if gd is None:
+                raise ValueError(f"guide returned None for params leaf {name}, which is filtered "
+                                 f"(spatial axes {spec.axes}); return an array for it or give it "
+                                 "spatial_axes=()")
+            want = tuple(np.shape(leaf)[a] for a in spec.axes)
+            got = _guide_spatial_shape(gd.shape, np.shape(leaf), spec.axes, name)
+            if got != want:
+                raise ValueError(f"guide for params leaf {name} has spatial shape {got} but the leaf "
+                                 f"has {want} along spatial_axes {spec.axes}: the guide must cover "
+                                 "the same grid")
     return specs
 
 
@@ -136,6 +205,10 @@ def guide_leaves(guide, params, tree, specs: list[LeafSpec], log_guide: bool, tr
     else:
         g = broadcast_prefix(guide(params), tree, lambda x: x is None or hasattr(x, "shape"),
                              "the guide callable's result")
+        for x, s, name in zip(g, specs, leaf_names(tree)):
+            if x is None and s.axes:
+                raise ValueError(f"guide returned None for leaf {name}, which is filtered; return "
+                                 "an array for it or give it spatial_axes=()")
     return [log_transform(x) if (log_guide and x is not None) else x for x in g]
 
 

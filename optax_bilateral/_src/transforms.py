@@ -21,11 +21,31 @@ treated as *unobserved* for that step, as ``mask_unobserved`` treats all-zero
 texels: it is left out of every filter sum, its moments are kept, and its
 update is 0. So one bad Monte Carlo sample cannot spread over a filter
 footprint or into the optimizer state. ``scale_by_adam`` stays identical to
-``optax.scale_by_adam`` and does not do this.
+``optax.scale_by_adam`` and does not do this (``bilateral_adam`` therefore uses
+``postfilter`` with ``levels=0`` for its unfiltered Adam path).
+
+Numerical extremes (``postfilter``; docs/robustness.md has the full table):
+
+* Finite gradients are clipped to ``+-G`` before the moment update, with ``G``
+  the largest magnitude whose square still fits the second moment's dtype
+  (``G^2 = max/2``: 1.3e19 for float32 and bfloat16 moments, 181 for float16).
+  Without it ``v = g^2`` overflows to inf and the texel (and, through ``B v``,
+  its footprint) would step 0 from then on. Since the step is scale-invariant, a
+  uniformly huge gradient still gives Adam's ``+-1`` step.
+* Where the denominator ``sqrt(B v / (1-b2^t) + eps_root) + eps`` is 0 (only
+  with ``eps = eps_root = 0``: all-zero gradients, or gradients whose square
+  underflows, ``|g| < ~1e-19`` in float32) the step is 0, not 0/0.
+  ``sqrt`` is given derivative 0 at 0 so meta-gradients stay finite there.
+* For ``b`` within ``2^-14`` of 1 the bias correction ``1 - b^t`` is evaluated as
+  ``-expm1(t log1p(-(1-b)))`` with ``1 - b`` in float64, so ``b`` that rounds to
+  1 in float32 (``b2 = 1 - (1-b1)^2`` for ``b1 = 0.999999``) still works.
+* ``prefilter`` clips its input to a quarter of the float maximum so the
+  filter's sums cannot overflow (``|A g| <= max |g|``).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -63,6 +83,61 @@ def _check_nonneg(x, name):
         raise ValueError(f"{name} must be >= 0, got {v}")
 
 
+def _one_minus(b):
+    """``1 - b``, in float64 when ``b`` is a concrete number (keeps its digits for b near 1)."""
+    if atrous._is_concrete(b):
+        return float(1.0 - np.float64(np.asarray(b)))
+    return 1 - b
+
+
+# Below this 1 - b, float32 keeps fewer than 10 bits of 1 - b in b itself.
+_NEAR_ONE = 2.0 ** -14
+
+
+def _bias_correction(b, count):
+    """Adam's ``1 - b^t``.
+
+    Written as optax writes it, except for ``b`` within ``2^-14`` of 1: there
+    ``-expm1(t log1p(-(1 - b)))``, which keeps its digits (``1 - b^t`` has an
+    absolute error of float32's eps, 3% of ``1 - b`` at ``b = 0.999999``). For a
+    concrete ``b``, ``1 - b`` is taken in float64, so ``b`` that rounds to 1 in
+    float32 still works (``1 - b^t`` would be 0 and the step 0/0); a traced ``b``
+    has float32's precision, so pass such ``b`` as a number, not a hyperparameter.
+    """
+    t = count.astype(jnp.float32)
+    a = _one_minus(b)
+    if atrous._is_concrete(b):
+        if a < _NEAR_ONE:
+            return -jnp.expm1(t * jnp.log1p(jnp.float32(-a)))
+        return 1 - b ** count
+    # Traced b: choose at run time; the unused branch gets a safe a (finite derivatives).
+    near = a < _NEAR_ONE
+    exact = -jnp.expm1(t * jnp.log1p(-jnp.where(near, a, 0)))
+    return jnp.where(near, exact, 1 - b ** count)
+
+
+def _grad_limit(*dtypes) -> float:
+    """Largest |g| whose moments fit every dtype: g^2 <= max/2 for v, |g| <= max/2 for m."""
+    limits = [math.sqrt(float(jnp.finfo(dtypes[0]).max) / 2)]
+    limits += [float(jnp.finfo(d).max) / 2 for d in dtypes[1:]]
+    return min(limits)
+
+
+def _safe_step(m_f, v_f, c1, c2, eps, eps_root):
+    """``(m_f/c1) / (sqrt(v_f/c2 + eps_root) + eps)``, with 0 where the denominator is 0.
+
+    Same values as the plain expression wherever that is finite. ``sqrt`` gets
+    derivative 0 at 0: ``B v = 0`` means no gradient reached the footprint, which
+    stays so under small changes of the hyperparameters (true derivative 0),
+    and ``sqrt'(0) = inf`` times a zero cotangent would make meta-gradients NaN.
+    """
+    v_hat = v_f / c2.astype(v_f.dtype) + eps_root
+    pos = v_hat > 0
+    den = jnp.where(pos, jnp.sqrt(jnp.where(pos, v_hat, 1)), 0) + eps
+    ok = den > 0
+    return jnp.where(ok, (m_f / c1.astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
+
+
 def _sigma_guard(sigma_d):
     """1 for a valid sigma_d, NaN for a negative or NaN one (traced values cannot raise)."""
     s = jnp.asarray(sigma_d, jnp.float32)
@@ -96,7 +171,7 @@ def scale_by_adam(b1=0.9, b2=0.999, eps=1e-8, eps_root=0.0, *, mu_dtype=None
     _check_unit(b1, "b1")
     _check_unit(b2, "b2")
     _check_nonneg(eps, "eps")
-    mu_dtype = None if mu_dtype is None else jnp.dtype(mu_dtype)
+    mu_dtype = _check_mu_dtype(mu_dtype)
 
     def init_fn(params):
         mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
@@ -147,10 +222,14 @@ def _filter_self(fields, spec, separable, mask, log_guide):
     return tuple(out)
 
 
-def _with_mask(fn_fast, fn_masked, observed, operands):
-    """Runs ``fn_fast`` when every texel is observed, else ``fn_masked`` (one branch executes)."""
-    return lax.cond(jnp.all(observed), lambda ops: fn_fast(ops), lambda ops: fn_masked(ops),
-                    operands)
+def _with_mask(fn_fast, fn_masked, g, lim, operands):
+    """Runs ``fn_fast`` when every entry of ``g`` is finite and within ``+-lim``, else
+    ``fn_masked`` (which masks and clips); only one branch executes.
+
+    The fast branch is the plain formula, compiled exactly as before the clip existed.
+    """
+    return lax.cond(jnp.all(jnp.abs(g) <= lim), lambda ops: fn_fast(ops),
+                    lambda ops: fn_masked(ops), operands)
 
 
 # ----------------------------------------------------------------------------------------
@@ -188,12 +267,17 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
         filter), or a callable ``leaf -> axes``.
       mask_unobserved: leave texels whose gradient is 0 in every channel out of
         the sums (see :func:`postfilter`).
+
+    Gradients beyond a quarter of the float maximum are clipped first, so the
+    sums cannot overflow (the module docstring lists the numerical policies).
     """
     lv.check_guide(guide)
-    _static_checks(sigma_d, levels)
+    _static_checks(sigma_d, levels, spatial_axes)
 
     def init_fn(params):
-        del params
+        # Shapes, dtypes and the guide are checked now rather than at the first update.
+        lv.check_params(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels,
+                        guide=guide, transform="prefilter", all_leaves=False)
         return PrefilterState()
 
     def update_fn(updates, state, params=None, **extra_args):
@@ -207,6 +291,9 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
                 out.append(g)
                 continue
             observed = _observed(g, spec.axes, mask_unobserved)
+            # |A g| <= max|g| in exact arithmetic; the margin keeps the float sums finite too.
+            lim = min(float(jnp.finfo(jnp.promote_types(g.dtype, jnp.float32)).max) / 4,
+                      float(jnp.finfo(g.dtype).max))
 
             def fast(ops, spec=spec):
                 g, gd = ops
@@ -214,10 +301,10 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
                     return _filter_self((g,), spec, separable, None, log_guide)[0]
                 return _filter(g, gd, spec, separable, None)
 
-            def masked(ops, spec=spec, observed=observed):
+            def masked(ops, spec=spec, observed=observed, lim=lim):
                 g, gd = ops
                 obs = lv.expand_mask(observed, g.ndim, spec.axes)
-                g0 = jnp.where(obs, g, 0)
+                g0 = jnp.clip(jnp.where(obs, g, 0), -lim, lim)
                 if guide == "self":
                     out = _filter_self((g0,), spec, separable, observed, log_guide)[0]
                 else:
@@ -228,7 +315,7 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
             if mask_unobserved:
                 res = masked((g, gd))
             else:
-                res = _with_mask(fast, masked, observed, (g, gd))
+                res = _with_mask(fast, masked, g, lim, (g, gd))
             if not atrous._is_concrete(spec.sigma_d):
                 res = res * _sigma_guard(spec.sigma_d).astype(res.dtype)
             out.append(res)
@@ -237,12 +324,20 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def _static_checks(sigma_d, levels):
-    """Construction-time checks of plain-number settings (prefix trees are checked per leaf)."""
-    if lv._is_scalar_atom(sigma_d) and sigma_d is not None:
-        atrous.check_sigma_d(sigma_d)
-    if isinstance(levels, (int,)) or hasattr(levels, "dtype"):
-        atrous.check_levels(levels)
+def _static_checks(sigma_d, levels, spatial_axes):
+    """Construction-time checks of the settings that need no parameters.
+
+    Plain values and the values inside a pytree prefix are checked here; what
+    depends on the leaves (axis ranges, dimensions) is checked by ``init``.
+    """
+    for sig in jax.tree.leaves(sigma_d, is_leaf=lambda x: x is None):
+        if sig is None:
+            raise ValueError("sigma_d must be a number >= 0 (inf for a low-pass), got None")
+        atrous.check_sigma_d(sig)
+    for lev in jax.tree.leaves(levels):
+        if not (hasattr(lev, "shape") and not atrous._is_concrete(lev)):  # traced: update says how
+            atrous.check_levels(lev)
+    lv.check_spatial_axes_setting(spatial_axes)
 
 
 # ----------------------------------------------------------------------------------------
@@ -298,6 +393,11 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
         filter sums (Mitsuba's ``mask_updates``; PyTorch's SparseAdam).
         Non-finite gradients are always treated this way.
       mu_dtype: dtype of the first moment buffer (default: the parameters').
+        The second moment always has the parameters' dtype.
+
+    Finite gradients are clipped to the largest magnitude whose square fits the
+    second moment's dtype (1.3e19 for float32, 181 for float16), and a zero
+    denominator gives a zero step; the module docstring lists these policies.
     """
     if b2 is None:
         b2 = 1 - (1 - b1) ** 2
@@ -306,10 +406,13 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
     _check_nonneg(eps, "eps")
     _check_nonneg(eps_root, "eps_root")
     lv.check_guide(guide)
-    _static_checks(sigma_d, levels)
-    mu_dtype = None if mu_dtype is None else jnp.dtype(mu_dtype)
+    _static_checks(sigma_d, levels, spatial_axes)
+    mu_dtype = _check_mu_dtype(mu_dtype)
 
     def init_fn(params):
+        # Shapes, dtypes and the guide are checked now rather than at the first update.
+        lv.check_params(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels,
+                        guide=guide, transform="postfilter", all_leaves=True)
         count = jnp.zeros([], jnp.int32)
         if _is_zero(b1) and _is_zero(b2):
             return PostfilterState(count=count, mu=None, nu=None)
@@ -329,26 +432,29 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
         else:
             mus = treedef.flatten_up_to(state.mu)
             nus = treedef.flatten_up_to(state.nu)
-        c1 = 1 - b1 ** count_inc
-        c2 = 1 - b2 ** count_inc
+        c1 = _bias_correction(b1, count_inc)
+        c2 = _bias_correction(b2, count_inc)
+        a1, a2 = _one_minus(b1), _one_minus(b2)
 
         outs, new_mu, new_nu = [], [], []
         for g, gd, spec, m_old, v_old in zip(flat, guides, specs, mus, nus):
             # Moments are updated in at least float32 and stored back in their own dtype.
             ct = jnp.promote_types(
                 jnp.result_type(g, *([] if memoryless else [m_old, v_old])), jnp.float32)
+            # Clip so that v = g^2 (and m) cannot overflow where they are stored.
+            lim = min(_grad_limit(ct) if memoryless else _grad_limit(v_old.dtype, m_old.dtype, ct),
+                      float(jnp.finfo(g.dtype).max))  # finite in g's dtype: |g| <= lim rejects inf
 
-            def moments(g, m_old, v_old):
-                g = g.astype(ct)
+            def moments(g, m_old, v_old, ct=ct, lim=None):
+                g = g.astype(ct) if lim is None else jnp.clip(g.astype(ct), -lim, lim)
                 if memoryless:
                     return g, g * g
-                m = (1 - b1) * g + b1 * m_old.astype(ct)
-                v = (1 - b2) * (g ** 2) + b2 * v_old.astype(ct)
+                m = a1 * g + b1 * m_old.astype(ct)
+                v = a2 * (g ** 2) + b2 * v_old.astype(ct)
                 return m, v
 
             def step(m_f, v_f):
-                return (m_f / c1.astype(m_f.dtype)) / (
-                    jnp.sqrt(v_f / c2.astype(v_f.dtype) + eps_root) + eps)
+                return _safe_step(m_f, v_f, c1, c2, eps, eps_root)
 
             def filt(m, v, mask, spec=spec, gd=gd):
                 if not spec.axes:
@@ -373,10 +479,10 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
                 return step(mf, vf).astype(g.dtype), m, v
 
             def masked(ops, filt=filt, moments=moments, step=step, obs_full=obs_full,
-                       observed=observed, spec=spec):
+                       observed=observed, spec=spec, ct=ct, lim=lim):
                 g, m_old, v_old = ops
                 g0 = jnp.where(obs_full, g, 0)
-                m, v = moments(g0, m_old, v_old)
+                m, v = moments(g0, m_old, v_old, lim=lim)
                 if not memoryless:
                     m = jnp.where(obs_full, m, m_old.astype(ct))
                     v = jnp.where(obs_full, v, v_old.astype(ct))
@@ -388,7 +494,7 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
             if mask_unobserved:
                 d, m, v = masked(ops)
             else:
-                d, m, v = _with_mask(fast, masked, observed, ops)
+                d, m, v = _with_mask(fast, masked, g, lim, ops)
             if spec.axes and not atrous._is_concrete(spec.sigma_d):
                 d = d * _sigma_guard(spec.sigma_d).astype(d.dtype)
             outs.append(d)
@@ -403,3 +509,16 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
         return jax.tree.unflatten(treedef, outs), new_state
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
+
+
+def _check_mu_dtype(mu_dtype):
+    if mu_dtype is None:
+        return None
+    try:
+        dt = jnp.dtype(mu_dtype)
+    except TypeError:
+        raise TypeError(f"mu_dtype must be a floating dtype (e.g. jnp.float32) or None, "
+                        f"got {mu_dtype!r}") from None
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise TypeError(f"mu_dtype must be a floating dtype (e.g. jnp.float32) or None, got {dt}")
+    return dt
