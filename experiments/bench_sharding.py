@@ -1,0 +1,445 @@
+"""Scale-out benchmark: one ``bilateral_adam`` step on a grid sharded over 1, 2, 4, 8 devices.
+
+For every grid (a 2-D texture ``(N, N, C)`` and a 3-D volume ``(N, N, N, C)``), filter
+mode (separable / full) and device mesh, it compiles one optimizer update
+(``bilateral_adam``: postfilter of ``m, v`` guided by the parameters) two ways:
+
+* ``shard_map``: parameters on an *explicit* mesh (``jax.make_mesh``'s default);
+  the filter runs per device with explicit halo exchange
+  (``optax_bilateral/_src/sharded.py``);
+* ``xla_auto``: parameters on an *auto* mesh; the single-device filter is split
+  by XLA's SPMD partitioner.
+
+and reports, per configuration:
+
+* the largest difference from the unsharded step (updates and state);
+* whether the updates and state keep the parameters' sharding;
+* the time per step (median over interleaved rounds, compilation excluded);
+* the bytes the compiled program moves between devices per step, read from its
+  HLO: every ``collective-permute`` (operand bytes x source-target pairs),
+  ``all-gather`` and ``all-reduce`` (result bytes), summed over devices, on the
+  branch a step with all-finite gradients takes;
+* the halo volumes it is compared with: ``halo_per_level``, the fields and the
+  guide exchanged at every level ``i`` within its radius ``r_i = 2 * 2**i``
+  (``2 r_i`` x face area per cut), and ``halo_minimum``, the fields per level plus
+  the guide once at the widest radius (the guide never changes), which is what
+  must cross devices (corners of 2-axis splits in full mode not counted).
+
+Honest caveat, printed with the table: the devices are *virtual* CPU devices
+(``XLA_FLAGS=--xla_force_host_platform_device_count=8``) sharing this machine's
+2 cores, so more devices cannot run faster here; the timings show the overhead
+of splitting, the byte counts show what a real multi-device run would move.
+
+``python -m experiments.bench_sharding [--quick] [--out DIR]`` writes
+``summary.json``, ``table.md`` and ``step_time.png`` to DIR
+(default ``results/bench_sharding``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+if "jax" not in sys.modules:
+    # Must precede the first jax import: the device count is fixed at start-up.
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_force_host_platform_device_count=8").strip()
+
+import dataclasses
+import math
+import pathlib
+import re
+import time
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
+
+import optax_bilateral as ob
+from experiments import common
+from optax_bilateral._src import sharded, transforms
+
+# ----------------------------------------------------------------------------------------
+# Bytes moved, read from compiled HLO text
+
+_DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2,
+                "s32": 4, "u32": 4, "f32": 4, "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16}
+_SHAPE = re.compile(r"\b(pred|bf16|c64|c128|[suf]\d+)\[([\d,]*)\]")
+_HEADER = re.compile(r"^(ENTRY\s+)?%?([\w.\-]+)\s*\(.*\)\s*->.*\{\s*$")
+_INSTR = re.compile(r"^\s*(?:ROOT\s+)?%?[\w.\-]+\s*=\s*(.*?)\s([a-z][\w\-]*)\((.*)$")
+COLLECTIVES = ("collective-permute", "all-gather", "all-reduce", "all-to-all", "reduce-scatter")
+
+
+def shape_bytes(text: str) -> int:
+    """Bytes of every array shape in ``text`` (e.g. ``f32[3,32,2]`` or a tuple of them)."""
+    total = 0
+    for dtype, dims in _SHAPE.findall(text):
+        total += math.prod(int(d) for d in dims.split(",") if d) * _DTYPE_BYTES[dtype]
+    return total
+
+
+def _computations(hlo: str):
+    comps, entry, cur = {}, None, None
+    for line in hlo.splitlines():
+        m = _HEADER.match(line)
+        if m:
+            cur = m.group(2)
+            comps[cur] = []
+            entry = cur if m.group(1) else entry
+        elif line.startswith("}"):
+            cur = None
+        elif cur is not None:
+            mi = _INSTR.match(line)
+            if mi:
+                comps[cur].append((mi.group(2), mi.group(1), mi.group(3)))
+    return comps, entry
+
+
+def _group_size(rest: str, devices: int) -> int:
+    """Devices per replica group of a collective (all of them if the text does not say)."""
+    m = re.search(r"replica_groups=\{\{([\d,]*)\}", rest)
+    if m:
+        return len(m.group(1).split(","))
+    m = re.search(r"replica_groups=\[(\d+),(\d+)\]<=", rest)
+    if m:
+        return int(m.group(2))
+    m = re.search(r"replica_groups=mesh\[([^\]]*)\]\s*\{([^}]*)\}", rest)
+    if m:
+        sizes = dict((k.strip("' "), int(v)) for k, v in re.findall(r"([^,=]+)=(\d+)", m.group(1)))
+        return math.prod(sizes.get(a.strip("' "), 1) for a in m.group(2).split(",") if a.strip())
+    return devices
+
+
+def collective_stats(hlo: str, branch: int | None = -1) -> dict:
+    """Collectives of a compiled SPMD module, per kind: ``{"count", "bytes", "max_bytes"}``.
+
+    ``bytes`` is summed over devices: a collective-permute's operand times its
+    source-target pairs; an all-gather's result times ``(g-1)/g`` per device (the
+    part that came from the other ``g-1`` devices of its group); an all-reduce's
+    operand times ``2 (g-1)/g`` per device (a ring). ``max_bytes``: the largest
+    single result on one device. Computations called by an instruction count as
+    often as they are called; of a ``conditional`` only branch ``branch`` does
+    (``-1``: the last, ``lax.cond``'s true branch; ``None``: the one moving most).
+    """
+    comps, entry = _computations(hlo)
+    m = re.search(r"num_partitions=(\d+)", hlo)
+    devices = int(m.group(1)) if m else 1
+    memo: dict = {}
+
+    def walk(name):
+        if name in memo:
+            return memo[name]
+        acc = {k: {"count": 0, "bytes": 0, "max_bytes": 0} for k in COLLECTIVES}
+
+        def add(other):
+            for k in COLLECTIVES:
+                acc[k]["count"] += other[k]["count"]
+                acc[k]["bytes"] += other[k]["bytes"]
+                acc[k]["max_bytes"] = max(acc[k]["max_bytes"], other[k]["max_bytes"])
+
+        for op, shape, rest in comps.get(name, []):
+            kind = op[:-len("-start")] if op.endswith("-start") else op
+            if kind in COLLECTIVES and not op.endswith("-done"):
+                b = shape_bytes(shape)
+                if op.endswith("-start"):
+                    b //= 2                               # an async start's shape is (in, out)
+                if kind == "collective-permute":
+                    pairs = re.search(r"source_target_pairs=\{(.*?)\}\}", rest)
+                    moved = b * (len(re.findall(r"\{\d+,\d+", pairs.group(0))) if pairs else 1)
+                else:
+                    g = _group_size(rest, devices)
+                    share = (g - 1) / g if g else 0.0
+                    moved = devices * b * share * (2 if kind == "all-reduce" else 1)
+                acc[kind]["count"] += 1
+                acc[kind]["bytes"] += int(round(moved))
+                acc[kind]["max_bytes"] = max(acc[kind]["max_bytes"], b)
+            for key in ("calls", "to_apply", "body", "condition"):
+                for mm in re.finditer(key + r"=%?([\w.\-]+)", rest):
+                    add(walk(mm.group(1)))
+            mm = re.search(r"branch_computations=\{([^}]*)\}", rest)
+            branches = [c.strip().lstrip("%") for c in mm.group(1).split(",")] if mm else []
+            for key in ("false_computation", "true_computation"):
+                mm = re.search(key + r"=%?([\w.\-]+)", rest)
+                if mm:
+                    branches.append(mm.group(1))
+            if branches:
+                stats = [walk(c) for c in branches]
+                if branch is None:
+                    add(max(stats, key=lambda s: sum(v["bytes"] for v in s.values())))
+                else:
+                    add(stats[branch])
+        memo[name] = acc
+        return acc
+
+    return walk(entry)
+
+
+def _radius(size: int, stride: int) -> int:
+    """The widest tap of a level that lands inside an axis of ``size`` points."""
+    return max([d * stride for d in (1, 2) if d * stride < size] + [0])
+
+
+def _remote_points(shape, blocks, radii, clip: bool = True) -> int:
+    """Points other blocks hold within ``radii[k]`` of a block along every split axis k.
+
+    Summed over blocks: the box ``block + radii`` on each side (only along split
+    axes; neighbours along an unsplit axis are local), minus the block itself.
+    ``clip``: count only points on the grid (what must move); without it, the whole
+    box (what an exchange that also forwards a neighbour's off-grid zeros moves).
+    Along one axis with ``r <= L`` this is ``2 r`` x face area per cut.
+    """
+    shape, blocks = tuple(shape), tuple(blocks)
+    total = 0
+    for index in np.ndindex(*blocks):
+        box, own = 1, 1
+        for size, n, b, r in zip(shape, blocks, index, radii):
+            block = size // n
+            if n == 1 or r == 0:
+                box, own = box * block, own * block
+                continue
+            lo, hi = b * block - r, (b + 1) * block + r
+            box *= (min(hi, size) - max(lo, 0)) if clip else hi - lo
+            own *= block
+        total += box - own
+    return total
+
+
+def halo_bytes(shape: Sequence[int], blocks: Sequence[int], levels: int, fields: int,
+               guide: int, separable: bool = True, itemsize: int = 4) -> dict:
+    """Halo volumes (bytes, summed over devices) of one filter call on a split grid.
+
+    A level of stride ``s`` reads up to ``r = 2 s`` points away (less on short axes):
+    separable, along one axis per pass; full, in a box (with corners).
+
+    * ``per_level``: fields and guide exchanged at every level, ``2 r`` x face area
+      per cut and level (corners not counted): the bound the issue states.
+    * ``minimum``: what must cross devices: the fields per level (boxes in full
+      mode) and the guide once, at the widest radius (it never changes).
+    * ``box``: ``minimum`` without clipping the boxes at the grid's edge: an upper
+      bound for an exchange that forwards the off-grid zeros of a neighbour's halo
+      when it extends a second axis (full mode on 2-axis splits).
+    """
+    shape, blocks = tuple(shape), tuple(blocks)
+    n = len(shape)
+    radii_by_level = [[_radius(shape[k], 2 ** i) for k in range(n)] for i in range(levels)]
+    widest = [max([r[k] for r in radii_by_level] + [0]) for k in range(n)]
+
+    def along(k, r):
+        return [r if j == k else 0 for j in range(n)]
+
+    per_level = sum(_remote_points(shape, blocks, along(k, r[k])) for r in radii_by_level
+                    for k in range(n))
+    out = {"per_level": per_level * (fields + guide) * itemsize}
+    for name, clip in (("minimum", True), ("box", False)):
+        if separable:
+            f = sum(_remote_points(shape, blocks, along(k, r[k]), clip)
+                    for r in radii_by_level for k in range(n))
+            g = sum(_remote_points(shape, blocks, along(k, widest[k]), clip) for k in range(n))
+        else:
+            f = sum(_remote_points(shape, blocks, r, clip) for r in radii_by_level)
+            g = _remote_points(shape, blocks, widest, clip)
+        out[name] = (f * fields + g * guide) * itemsize
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# The benchmark
+
+
+def route_transforms_through_sharded() -> None:
+    """Makes the transforms call :func:`sharded.atrous_bilateral`.
+
+    This is the one-line change proposed for ``transforms._filter`` (see
+    docs/sharding.md); once it is in the library this is a no-op.
+    """
+    def _filter(fields, guide, spec, separable, mask):
+        return sharded.atrous_bilateral(fields, guide, sigma_d=spec.sigma_d, levels=spec.levels,
+                                        spatial_axes=spec.axes, separable=separable, mask=mask)
+    transforms._filter = _filter
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    name: str
+    shape: tuple        # spatial shape
+    channels: int
+    levels: int
+    separable: bool
+    paths: tuple        # ("shard_map", "xla_auto")
+
+
+def default_cases(quick: bool) -> list[Case]:
+    if quick:
+        return [Case("texture 32^2x3, F=2, separable", (32, 32), 3, 2, True, ("shard_map",))]
+    return [
+        Case("texture 1024^2x3, F=5, separable", (1024, 1024), 3, 5, True, ("shard_map", "xla_auto")),
+        Case("texture 512^2x3, F=5, full", (512, 512), 3, 5, False, ("shard_map", "xla_auto")),
+        Case("volume 64^3x4, F=4, separable", (64, 64, 64), 4, 4, True, ("shard_map", "xla_auto")),
+        # XLA's partitioner needs minutes to compile full 3-D (measured 92 s for 16^3, F=2).
+        Case("volume 32^3x4, F=3, full", (32, 32, 32), 4, 3, False, ("shard_map",)),
+    ]
+
+
+MESHES = ((1, 1), (2, 1), (4, 1), (8, 1), (4, 2))
+
+
+def _mesh(shape, axis_type):
+    devices = np.array(jax.devices()[:math.prod(shape)]).reshape(shape)
+    return Mesh(devices, ("x", "y"), axis_types=(axis_type, axis_type))
+
+
+def _problem(case: Case):
+    key = jax.random.PRNGKey(0)
+    full = case.shape + (case.channels,)
+    params = {"grid": jax.random.uniform(key, full, jnp.float32, 0.05, 1.0)}
+    grads = {"grid": jax.random.normal(jax.random.fold_in(key, 1), full, jnp.float32)}
+    tx = ob.bilateral_adam(1e-2, levels=case.levels, separable=case.separable)
+    state = tx.init(params)
+    # One step first, so the state's moments are not all zero.
+    _, state = jax.jit(tx.update)(grads, state, params)
+    return tx, params, grads, state
+
+
+def _max_diff(a, b) -> float:
+    return max(float(jnp.max(jnp.abs(jnp.asarray(x, jnp.float32) - jnp.asarray(y, jnp.float32))))
+               for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)) if np.size(x))
+
+
+def _keeps_sharding(tree, sharding_of_grid, ndim) -> bool:
+    """Every grid-shaped leaf of ``tree`` has the parameters' sharding."""
+    ok = True
+    for leaf in jax.tree.leaves(tree):
+        if np.ndim(leaf) == ndim:
+            ok &= leaf.sharding.is_equivalent_to(sharding_of_grid, ndim)
+    return bool(ok)
+
+
+def run_case(case: Case, repeats: int, quick: bool = False, progress: bool = True) -> list[dict]:
+    from tqdm.auto import tqdm
+
+    tx, params, grads, state = _problem(case)
+    step = jax.jit(tx.update)
+    ref_out = step(grads, state, params)
+    ndim = len(case.shape) + 1
+    configs = {"1 device, unsharded": (step.lower(grads, state, params).compile(),
+                                       (grads, state, params), None, None, None)}
+    rows = []
+    meshes = MESHES[:4] if quick else MESHES
+    todo = [(path, m) for path in case.paths for m in meshes]
+    for path, mshape in tqdm(todo, desc=case.name, disable=not progress, leave=False):
+        mesh = _mesh(mshape, AxisType.Explicit if path == "shard_map" else AxisType.Auto)
+        sh = NamedSharding(mesh, P("x", "y"))
+        put = lambda t: jax.tree.map(lambda a: jax.device_put(a, sh) if np.ndim(a) == ndim
+                                     else jax.device_put(a, NamedSharding(mesh, P())), t)
+        args = (put(grads), put(state), put(params))
+        t0 = time.perf_counter()
+        compiled = jax.jit(tx.update).lower(*args).compile()
+        compile_s = time.perf_counter() - t0
+        out = compiled(*args)
+        stats = collective_stats(compiled.as_text())
+        blocks = tuple(mshape) + (1,) * (len(case.shape) - 2)
+        # postfilter: fields m and v (2C channels), guide theta (C channels)
+        halo = halo_bytes(case.shape, blocks, case.levels, fields=2 * case.channels,
+                          guide=case.channels, separable=case.separable)
+        moved = sum(v["bytes"] for v in stats.values())
+        grid_bytes = math.prod(case.shape) * case.channels * 4
+        row = dict(case=case.name, path=path, devices=math.prod(mshape),
+                   mesh="x".join(map(str, mshape)),
+                   max_abs_diff=_max_diff(out, ref_out),
+                   sharding_kept=_keeps_sharding(out, sh, ndim),
+                   compile_s=compile_s,
+                   permute_bytes=stats["collective-permute"]["bytes"],
+                   permute_count=stats["collective-permute"]["count"],
+                   all_gather_bytes=stats["all-gather"]["bytes"],
+                   all_gather_count=stats["all-gather"]["count"],
+                   largest_all_gather_vs_grid=stats["all-gather"]["max_bytes"] / grid_bytes,
+                   all_reduce_bytes=stats["all-reduce"]["bytes"],
+                   bytes_moved=moved, halo_per_level=halo["per_level"],
+                   halo_minimum=halo["minimum"],
+                   moved_over_minimum=(moved / halo["minimum"]) if halo["minimum"]
+                   else (0.0 if moved == 0 else math.inf))
+        rows.append(row)
+        configs[(path, row["mesh"])] = (compiled, args, row, None, None)
+
+    # Interleaved timing: every round runs every configuration once.
+    times = {k: [] for k in configs}
+    for c, a, *_ in configs.values():
+        jax.block_until_ready(c(*a))
+    for _ in range(repeats):
+        for k, (c, a, *_) in configs.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(c(*a))
+            times[k].append(time.perf_counter() - t0)
+    base = float(np.median(times["1 device, unsharded"]))
+    for k, (_, _, row, *_) in configs.items():
+        if row is not None:
+            row["step_ms"] = 1e3 * float(np.median(times[k]))
+            row["vs_unsharded"] = row["step_ms"] / (1e3 * base)
+    rows.insert(0, dict(case=case.name, path="unsharded", devices=1, mesh="-", step_ms=1e3 * base,
+                        vs_unsharded=1.0, max_abs_diff=0.0, sharding_kept=True, bytes_moved=0))
+    return rows
+
+
+NOTE = ("Devices are virtual CPU devices (XLA_FLAGS=--xla_force_host_platform_device_count=8) "
+        "sharing this machine's 2 cores with other jobs: splitting cannot speed a step up here, "
+        "so step_ms shows the cost of splitting, not a speed-up. Bytes are read from the "
+        "compiled HLO and are what a real multi-device run would move per step.")
+
+COLUMNS = ("case", "path", "mesh", "devices", "step_ms", "vs_unsharded", "compile_s",
+           "max_abs_diff", "sharding_kept", "bytes_moved", "halo_per_level", "halo_minimum",
+           "moved_over_minimum",
+           "permute_count", "all_gather_count", "largest_all_gather_vs_grid")
+
+
+def _plot(rows, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cases = list(dict.fromkeys(r["case"] for r in rows))
+    fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.4), dpi=110, squeeze=False)
+    for ax, case in zip(axes[0], cases):
+        base = [r for r in rows if r["case"] == case and r["path"] == "unsharded"][0]["step_ms"]
+        ax.axhline(base, color="k", lw=1, ls=":", label="unsharded")
+        for p in ("shard_map", "xla_auto"):
+            pts = [r for r in rows if r["case"] == case and r["path"] == p and r["mesh"].endswith("x1")]
+            if pts:
+                ax.plot([r["devices"] for r in pts], [r["step_ms"] for r in pts], "o-", label=p)
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("virtual CPU devices (row split)")
+        ax.set_ylabel("ms per step")
+        ax.set_title(case, fontsize=9)
+        ax.legend(fontsize=7)
+    fig.suptitle("2 shared CPU cores: splitting shows overhead, not speed-up", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv=None) -> dict:
+    args = common.parse_args("sharded bilateral_adam step: time and bytes moved",
+                             "results/bench_sharding", argv)
+    if jax.device_count() < 8:
+        raise RuntimeError("bench_sharding needs 8 devices: run it as its own process (it sets "
+                           "XLA_FLAGS=--xla_force_host_platform_device_count=8 before importing jax)")
+    route_transforms_through_sharded()
+    repeats = 3 if args.quick else 7
+    rows = []
+    for case in default_cases(args.quick):
+        rows += run_case(case, repeats, args.quick)
+    args.out.mkdir(parents=True, exist_ok=True)
+    summary = {"note": NOTE, "quick": args.quick, "rows": rows,
+               "jax": jax.__version__, "devices": jax.device_count()}
+    path = common.write_summary(args.out, {}, **summary)
+    table = common.markdown_table(rows, COLUMNS)
+    (args.out / "table.md").write_text(f"{NOTE}\n\n{table}\n")
+    _plot(rows, args.out / "step_time.png")
+    print(table)
+    print(f"\n{NOTE}\nwrote {path}")
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,280 @@
+"""Grids sharded across devices: same numbers as one device, shardings kept, halos only.
+
+The suite runs with one CPU device, and the device count is fixed when jax starts,
+so the checks run in a child process (this file, run as a script) with
+``XLA_FLAGS=--xla_force_host_platform_device_count=8``, on meshes 8x1 and 4x2. The
+child prints one JSON record per check; the tests below assert on them.
+
+Two routes are checked:
+
+* explicit meshes (``jax.make_mesh``'s default): the filter runs per device with
+  explicit halo exchange (``optax_bilateral/_src/sharded.py``);
+* auto meshes: the single-device filter, split by XLA's SPMD partitioner.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+# Filtered values are O(1) means of O(1) inputs, computed in float32 with the same terms
+# in the same order; only XLA's fusion (FMA contraction) differs: a few ulps, far below 1e-5.
+TOL = 1e-5
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+# ----------------------------------------------------------------------------------------
+# The child: runs with 8 virtual CPU devices.
+
+
+def _child() -> None:  # pragma: no cover - runs in the subprocess
+    import math
+    import time
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    import optax
+    from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
+
+    import optax_bilateral as ob
+    from experiments import bench_sharding as bench
+    from optax_bilateral._src import atrous, sharded
+
+    assert jax.device_count() == 8, jax.device_count()
+    bench.route_transforms_through_sharded()
+    records = []
+
+    clock = [time.process_time()]
+
+    def emit(**rec):
+        rec["cpu_s"] = round(time.process_time() - clock[0], 1)   # CPU seconds of this check
+        clock[0] = time.process_time()
+        records.append(rec)
+        print(json.dumps(rec), flush=True)
+
+    def mesh_of(shape, axis_type):
+        devs = np.array(jax.devices()[:math.prod(shape)]).reshape(shape)
+        return Mesh(devs, ("x", "y"), axis_types=(axis_type,) * 2)
+
+    def max_diff(a, b):
+        """Largest |a - b|; inf if NaNs (a passed-through bad gradient) differ in place."""
+        worst = 0.0
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+            x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+            if not np.array_equal(np.isnan(x), np.isnan(y)):
+                return math.inf
+            if x.size:
+                worst = max(worst, float(np.max(np.abs(np.where(np.isnan(x), 0, x - y)))))
+        return worst
+
+    def stats(compiled):
+        return bench.collective_stats(compiled.as_text(), branch=None)   # worst branch
+
+    key = jax.random.PRNGKey(0)
+
+    # --- The filter itself, explicit meshes: every spatial split, multi-hop halos, masks.
+    filter_cases = [
+        # (grid, mesh, spec over (x, y), levels, separable, mask). 16 rows in 8 blocks of 2
+        # with offsets up to 8: halos of 4 hops.
+        ((16, 12), (8, 1), P("x", "y"), 3, False, True),
+        ((16, 16), (4, 2), P("y", "x"), 2, False, False),
+        ((8, 8, 4), (4, 2), P("x", "y"), 2, True, True),
+        ((8, 8, 4), (4, 2), P(None, "x", "y"), 1, False, False),
+    ]
+    for i, (shape, mshape, spec, levels, sep, use_mask) in enumerate(filter_cases):
+        mesh = mesh_of(mshape, AxisType.Explicit)
+        k = jax.random.fold_in(key, i)
+        m = jax.random.normal(k, shape + (2,))
+        v = jax.random.uniform(jax.random.fold_in(k, 1), shape + (3,))
+        guide = jax.random.uniform(jax.random.fold_in(k, 2), shape + (3,))
+        mask = (jax.random.uniform(jax.random.fold_in(k, 3), shape) > 0.2) if use_mask else None
+        axes = tuple(range(len(shape)))
+        kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep)
+        ref = atrous.atrous_bilateral((m, v), guide, mask=mask, **kw)
+        sh = NamedSharding(mesh, spec)
+        args = [jax.device_put(a, sh) for a in (m, v, guide)]
+        margs = [jax.device_put(mask, NamedSharding(mesh, P(*tuple(spec)[:len(shape)])))] \
+            if use_mask else [None]
+        fn = jax.jit(lambda m, v, g, mk: sharded.atrous_bilateral((m, v), g, mask=mk, **kw))
+        compiled = fn.lower(*args, *margs).compile()
+        out = compiled(*args, *margs)
+        st = stats(compiled)
+        blocks = [1] * len(shape)
+        for a, e in enumerate(tuple(spec)[:len(shape)]):
+            if e is not None:
+                blocks[a] = mesh.shape[e]
+        # Fields per level plus the guide once at the widest radius: what must move.
+        halo = bench.halo_bytes(shape, blocks, levels, fields=5, guide=3, separable=sep)
+        emit(check="filter", case=f"{shape} {mshape} {spec} F={levels} "
+                                   f"{'sep' if sep else 'full'}{' mask' if use_mask else ''}",
+             separable=sep, max_diff=max_diff(out, ref),
+             sharding_kept=all(o.sharding.is_equivalent_to(sh, len(shape) + 1) for o in out),
+             kinds=sorted(k for k, s in st.items() if s["count"]),
+             permute_bytes=st["collective-permute"]["bytes"], minimum=halo["minimum"],
+             box=halo["box"])
+
+    # --- The transforms and bilateral_adam, explicit and auto meshes.
+    params = {"tex": jax.random.uniform(key, (16, 16, 3), minval=0.05, maxval=1.0),
+              "vol": jax.random.uniform(jax.random.fold_in(key, 1), (8, 8, 4, 2), minval=0.05),
+              "bias": jnp.ones((5,))}
+    grads = jax.tree.map(lambda p: jax.random.normal(jax.random.fold_in(key, 10), p.shape), params)
+    grads["tex"] = grads["tex"].at[3, 5, 1].set(jnp.nan)   # a non-finite texel: the masked path
+
+    def make(names, sep, levels, masked):
+        # masked: mask_unobserved=True, one code path (no lax.cond): halves the compile.
+        kw = dict(sigma_d=0.2, levels=levels, separable=sep)
+        adam = optax.inject_hyperparams(ob.bilateral_adam, static_args=(
+            "levels", "separable", "prefilter", "mask_unobserved"))
+        txs = {"prefilter": lambda: ob.prefilter(mask_unobserved=masked, **kw),
+               "postfilter": lambda: ob.postfilter(mask_unobserved=masked, **kw),
+               "scale_by_adam": ob.scale_by_adam,
+               # sigma_d traced (a hyperparameter in the state), prefilter + postfilter.
+               "bilateral_adam": lambda: adam(learning_rate=0.1, prefilter=True,
+                                              mask_unobserved=masked, **kw)}
+        return {n: txs[n]() for n in names}
+
+    def one_step(txs, g, p):
+        return {name: tx.update(g, tx.init(p), p) for name, tx in txs.items()}
+
+    every = ("prefilter", "postfilter", "scale_by_adam", "bilateral_adam")
+    specs = {"tex": P("x", "y"), "vol": P("x", "y"), "bias": P()}
+    grids = ("tex", "vol", "bias")
+    configs = [  # (route, mesh, transforms, separable, levels, masked, leaves)
+        ("shard_map", (8, 1), every, True, 2, False, grids),
+        ("shard_map", (4, 2), every, True, 2, True, grids),
+        # Full 3-D (62 offset pairs per level) compiles slowly: the filter checks cover it.
+        ("shard_map", (4, 2), every, False, 1, True, ("tex", "bias")),
+        # XLA's partitioner compiles the filter slowly: one small configuration.
+        ("xla_auto", (4, 2), ("postfilter",), True, 1, False, ("tex", "bias")),
+    ]
+    refs = {}
+    for route, mshape, names, sep, levels, masked, keys in configs:
+        txs = make(names, sep, levels, masked)
+        fn = jax.jit(lambda g, p, txs=txs: one_step(txs, g, p))
+        sub = lambda t: {k: t[k] for k in keys}
+        cfg = (names, sep, levels, masked, keys)
+        if cfg not in refs:
+            refs[cfg] = fn(sub(grads), sub(params))
+        atype = AxisType.Explicit if route == "shard_map" else AxisType.Auto
+        mesh = mesh_of(mshape, atype)
+        put = lambda t: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)),
+                                     sub(t), sub(specs))
+        g_s, p_s = put(grads), put(params)
+        t0 = time.perf_counter()
+        compiled = fn.lower(g_s, p_s).compile()
+        compile_s = time.perf_counter() - t0
+        out = compiled(g_s, p_s)
+        kept = True
+        by_shape = {p.shape: p.sharding for p in p_s.values() if p.ndim >= 2}
+        for name, (u, s) in out.items():
+            for leaf, p in zip(jax.tree.leaves(u), jax.tree.leaves(p_s)):
+                kept &= leaf.sharding.is_equivalent_to(p.sharding, p.ndim)
+            for leaf in jax.tree.leaves(s):          # grid-shaped state: m, v
+                if leaf.shape in by_shape:
+                    kept &= leaf.sharding.is_equivalent_to(by_shape[leaf.shape], leaf.ndim)
+        st = stats(compiled)
+        emit(check="transforms", route=route, mesh="x".join(map(str, mshape)),
+             transforms=list(names), leaves=list(keys), separable=sep, levels=levels,
+             max_diff=max_diff(out, refs[cfg]), sharding_kept=bool(kept),
+             compile_s=round(compile_s, 1),
+             kinds=sorted(k for k, v in st.items() if v["count"]),
+             all_reduce_max_bytes=st["all-reduce"]["max_bytes"],
+             largest_all_gather_vs_tex=st["all-gather"]["max_bytes"] / (16 * 16 * 3 * 4))
+
+    # --- The benchmark's quick run (also checks its own results).
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = bench.main(["--quick", "--out", tmp])
+        files = sorted(os.listdir(tmp))
+    emit(check="bench", files=files, rows=summary["rows"])
+
+
+# ----------------------------------------------------------------------------------------
+# The tests (parent process, one device).
+
+_RESULTS = None
+
+
+def _results() -> list[dict]:
+    global _RESULTS
+    if _RESULTS is None:
+        env = dict(os.environ)
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=8")
+        env["OPTAX_BILATERAL_QUICK"] = "1"
+        env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+        proc = subprocess.run([sys.executable, __file__], cwd=ROOT, env=env, capture_output=True,
+                              text=True, timeout=900)
+        recs = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+        assert proc.returncode == 0, f"child failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+        _RESULTS = recs
+    return _RESULTS
+
+
+def _checks(kind):
+    recs = [r for r in _results() if r["check"] == kind]
+    assert recs, f"the child reported no {kind!r} checks"
+    return recs
+
+
+def test_sharded_filter_equals_single_device():
+    for r in _checks("filter"):
+        assert r["max_diff"] <= TOL, r
+
+
+def test_sharded_filter_keeps_sharding():
+    for r in _checks("filter"):
+        assert r["sharding_kept"], r
+
+
+def test_sharded_filter_moves_only_halos():
+    for r in _checks("filter"):
+        # Only neighbour exchanges: no all-gather, all-to-all or reduction of grid data.
+        assert r["kinds"] == ["collective-permute"], r
+        # Separable: exactly what must move (fields per level, guide once). Full mode on
+        # 2-axis splits also forwards the off-grid zeros of edge blocks' corners: at most
+        # the unclipped halo boxes.
+        assert r["minimum"] <= r["permute_bytes"] <= (r["minimum"] if r["separable"] else r["box"]), r
+
+
+def test_transforms_equal_single_device():
+    recs = _checks("transforms")
+    # Separable on both meshes; full mode on 4x2 (8x1 full: the filter checks).
+    assert {(r["route"], r["mesh"], r["separable"]) for r in recs if r["route"] == "shard_map"} \
+        == {("shard_map", "8x1", True), ("shard_map", "4x2", True), ("shard_map", "4x2", False)}
+    assert any(r["route"] == "xla_auto" for r in recs)
+    for r in recs:
+        assert r["max_diff"] <= TOL, r
+
+
+def test_transforms_keep_parameter_sharding():
+    for r in _checks("transforms"):
+        assert r["sharding_kept"], r
+
+
+def test_shard_map_route_gathers_nothing():
+    for r in _checks("transforms"):
+        if r["route"] == "shard_map":
+            # Halos by collective-permute; all-reduces only of the scalar "all texels
+            # observed?" predicate of the non-finite fast path.
+            assert set(r["kinds"]) <= {"collective-permute", "all-reduce"}, r
+            assert "collective-permute" in r["kinds"], r
+            assert r["all_reduce_max_bytes"] <= 8, r
+
+
+def test_bench_quick_writes_results_and_matches_single_device():
+    (r,) = _checks("bench")
+    assert {"summary.json", "table.md", "step_time.png"} <= set(r["files"]), r["files"]
+    rows = [x for x in r["rows"] if x["path"] != "unsharded"]
+    assert sorted({x["devices"] for x in rows}) == [1, 2, 4, 8]
+    for x in rows:
+        assert x["max_abs_diff"] <= TOL and x["sharding_kept"] and x["step_ms"] > 0, x
+        assert x["all_gather_count"] == 0, x
+
+
+if __name__ == "__main__":
+    _child()
