@@ -47,7 +47,7 @@ if QUICK:
     REFERENCE_SPP = EVAL_SPP = 64
 else:
     SIZE, ITERATIONS, LEVELS = 512, 150, 5
-    LRS = [0.005, 0.01, 0.02, 0.04, 0.08]
+    LRS = [0.00125, 0.0025, 0.005, 0.01, 0.02, 0.04, 0.08]
     REFERENCE_SPP, EVAL_SPP = 256, 64
 B1 = 0.2
 B2 = 1 - (1 - B1) ** 2          # 0.36, as both reference implementations
