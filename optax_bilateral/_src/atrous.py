@@ -9,16 +9,26 @@ with ``h = [1/16, 1/4, 3/8, 1/4, 1/16]``. Level ``i`` uses stride ``2**i`` and
 filters the previous level's output; the guide stays fixed. Neighbours outside
 the grid are skipped and the remaining weights renormalised.
 
-Implementation notes (why it looks the way it does):
+Implementation notes (why it looks the way it does; the numbers are in
+BENCHMARKS.md). XLA's CPU backend decides what gets fused and vectorised, so most
+of the choices below exist to steer it:
 
-* Every pass works on a *planar* copy of the fields, ``(channels, *spatial)``:
-  shifting along the fastest spatial axis then moves contiguous memory and the
-  weights (spatial shape only) broadcast over the leading channel axis for free.
-* The data term is symmetric, ``w(p, p + o) = w(p + o, p)``, so each pass
-  computes one weight array per *pair* of opposite offsets, on the cropped
-  region where both ends are inside the grid, and reuses it for ``+o`` and ``-o``
-  by zero-padding it on either side. Zero padding is also what skips the
-  out-of-grid neighbours.
+* Every pass works on a *planar* copy of the fields, ``(channels, *spatial)``,
+  padded with zero rows along the *outer* spatial axis only. Every neighbour
+  ``p + o`` is then one contiguous slice of the flattened plane, at the offset's
+  flat position; a read that runs off an inner axis wraps into the next row, where
+  its weight is 0 (and an index test zeroes the value, so 0 * inf cannot leak in).
+  Padding the fastest axis instead puts a bounds test on every element and
+  stops vectorisation.
+* The data term is symmetric, ``w(p, p + o) = w(p + o, p)``: one exp per *pair* of
+  opposite offsets gives both taps, and offset ``2d * 2**i`` at level ``i`` equals
+  offset ``d * 2**(i+1)`` at level ``i+1``, so those weights are computed once.
+* The weights are decided inside the exponent (``exp`` is the last operation), so
+  XLA materialises them once instead of re-deriving them in every consumer.
+* A few exact no-ops (``_after``, ``_opaque_one``) steer XLA's scheduler and
+  fusion: each pass's weights wait for the previous pass (otherwise every level's
+  weights are computed up front and tens of MB stay alive), and each pass is
+  materialised rather than fused into the next pass's padding.
 * All fields (e.g. Adam's ``m`` and ``v``) are filtered by one call, so they get
   exactly the same weights: the bounded-step argument of supplement §1.3 needs
   ``m`` and ``v`` filtered by the *same* row-stochastic operator.
@@ -105,38 +115,28 @@ def normalize_axes(spatial_axes, ndim: int, name: str = "spatial_axes") -> tuple
     return tuple(out)
 
 
-def _weight(d2: jax.Array, sigma_d: jax.Array) -> jax.Array:
+def _weight(d2: jax.Array, sigma_d: jax.Array, keep=None) -> jax.Array:
     """exp(-sqrt(d2) / sigma_d), with equal guides weighing 1 for every sigma_d.
 
     Written so that sigma_d = 0 (only equal guides), sigma_d = inf (all 1), an
     overflowing d2 and reverse-mode derivatives at d2 = 0 are all well defined.
+    ``keep`` (bool, optional) zeroes the weight where False. Every case is decided
+    in the exponent, so the exp is the last operation: XLA then materialises the
+    weights once instead of re-deriving the cheap selects (and the guide distance
+    they need) inside every consumer.
     """
     pos = d2 > 0
     dist = jnp.sqrt(jnp.where(pos, d2, 1.0))
     s_pos = sigma_d > 0
     s_safe = jnp.where(s_pos, sigma_d, 1.0)
-    w = jnp.exp(-dist / s_safe)
-    w = jnp.where(s_pos, w, 0.0)                      # sigma_d = 0: unequal guides get 0
-    w = jnp.where(jnp.isposinf(sigma_d), 1.0, w)      # inf/inf would be NaN
-    w = jnp.where(pos, w, 1.0)                        # equal guides: 1 for any sigma_d
-    return jnp.where(jnp.isnan(d2), 0.0, w)           # a non-finite guide is nobody's neighbour
-
-
-def _crop(x: jax.Array, lo: Sequence[int], hi: Sequence[int], first_axis: int) -> jax.Array:
-    """x[..., lo_k : n_k - hi_k, ...] over the trailing spatial axes."""
-    starts = [0] * x.ndim
-    limits = list(x.shape)
-    for k, (a, b) in enumerate(zip(lo, hi)):
-        starts[first_axis + k] = a
-        limits[first_axis + k] = x.shape[first_axis + k] - b
-    return lax.slice(x, starts, limits)
-
-
-def _pad(x: jax.Array, lo: Sequence[int], hi: Sequence[int], first_axis: int) -> jax.Array:
-    cfg = [(0, 0, 0)] * x.ndim
-    for k, (a, b) in enumerate(zip(lo, hi)):
-        cfg[first_axis + k] = (a, b, 0)
-    return lax.pad(x, jnp.zeros((), x.dtype), cfg)
+    arg = -dist / s_safe
+    arg = jnp.where(s_pos, arg, -jnp.inf)                 # sigma_d = 0: unequal guides get 0
+    arg = jnp.where(jnp.isposinf(sigma_d), 0.0, arg)      # inf/inf would be NaN
+    arg = jnp.where(pos, arg, 0.0)                        # equal guides: 1 for any sigma_d
+    drop = jnp.isnan(d2)                                  # a non-finite guide is nobody's neighbour
+    if keep is not None:
+        drop = drop | ~keep
+    return jnp.exp(jnp.where(drop, -jnp.inf, arg))
 
 
 def _channel_sq_dist(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -147,57 +147,34 @@ def _channel_sq_dist(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sum(jnp.square(a - b), axis=0)
 
 
-def _flat_offset(off: Sequence[int], shape: Sequence[int]) -> int:
-    """Offset of ``off`` in the row-major flattening of ``shape``."""
-    return sum(o * math.prod(shape[k + 1:]) for k, o in enumerate(off))
+def _pad_rows(x: jax.Array, lo: int, hi: int) -> jax.Array:
+    """Zero-pads axis 1 (the outer spatial axis of a planar array)."""
+    cfg = [(0, 0, 0)] * x.ndim
+    cfg[1] = (lo, hi, 0)
+    return lax.pad(x, jnp.zeros((), x.dtype), cfg)
 
 
-def _inner_in_grid(off, shape, first_row: int, rows: int):
-    """For rows ``first_row .. first_row + rows`` of the grid (outer axis may run off
-    it), whether ``p + off`` stays inside along every *inner* axis, or None if it
-    always does. (Along the outer axis the zero halo takes care of it.)"""
+def _window(a: jax.Array, start: int, rows: int) -> jax.Array:
+    """``rows`` rows of the planar array ``a`` (C, R, *inner), read from flat position
+    ``start`` of each channel's plane: one contiguous slice, whatever the offset."""
+    c, inner = a.shape[0], tuple(a.shape[2:])
+    flat = a.reshape(c, -1)
+    n = rows * math.prod(inner)
+    return lax.slice(flat, (0, start), (c, start + n)).reshape((c, rows) + inner)
+
+
+def _inner_ok(off: Sequence[int], shape: Sequence[int], rows: int):
+    """Whether ``p + off`` stays on the grid along every inner axis (for ``rows`` rows of
+    ``p``), or None if no inner component is non-zero. A flat read that runs off an
+    inner axis lands in the neighbouring row instead; this is what rejects it."""
     full = (rows,) + tuple(shape[1:])
     ok = None
     for k in range(1, len(shape)):
-        if off[k] == 0:
-            continue
-        i = lax.broadcasted_iota(jnp.int32, full, k) + off[k]
-        t = (i >= 0) & (i < shape[k])
-        ok = t if ok is None else ok & t
+        if off[k]:
+            i = lax.broadcasted_iota(jnp.int32, full, k) + off[k]
+            t = (i >= 0) & (i < shape[k])
+            ok = t if ok is None else ok & t
     return ok
-
-
-def _rows_in_grid(shape, first_row: int, rows: int, off0: int = 0):
-    full = (rows,) + tuple(shape[1:])
-    i = lax.broadcasted_iota(jnp.int32, full, 0) + (first_row + off0)
-    return (i >= 0) & (i < shape[0])
-
-
-def _flat_window(a: jax.Array, start: int, rows: int) -> jax.Array:
-    """Rows ``rows`` of the planar array ``a`` (C, R, *inner) read from flat position
-    ``start`` of each channel plane: a contiguous slice, whatever the offset."""
-    c, inner = a.shape[0], a.shape[2:]
-    n = rows * math.prod(inner)
-    flat = a.reshape(c, -1)
-    return lax.slice(flat, (0, start), (c, start + n)).reshape((c, rows) + tuple(inner))
-
-
-def _zero_halo(xpad, halo, first_axis):
-    """``xpad`` with its (already zero) halo zeroed again by an index test.
-
-    A no-op in value. It stops XLA's simplifier from rewriting the centre tap,
-    ``xpad[halo:-halo]``, back into the previous pass's output: that would give the
-    previous pass two consumers, and XLA's fusion would then recompute it inside
-    both (work doubling with every pass).
-    """
-    inside = None
-    for k, h in enumerate(halo):
-        if h == 0:
-            continue
-        i = lax.broadcasted_iota(jnp.int32, xpad.shape, first_axis + k)
-        ok = (i >= h) & (i < xpad.shape[first_axis + k] - h)
-        inside = ok if inside is None else inside & ok
-    return xpad if inside is None else jnp.where(inside, xpad, 0)
 
 
 def _after(x: jax.Array) -> jax.Array:
@@ -215,66 +192,138 @@ def _after(x: jax.Array) -> jax.Array:
     return jnp.where(probe > jnp.inf, 1.0, 0.0).astype(x.dtype)
 
 
-def _pass(x, guide, valid, sigma_d, offsets_and_taps, h0):
+class _Grid:
+    """Static geometry of the planar arrays, (C, n0, *inner), and their flat offsets."""
+
+    def __init__(self, shape: Sequence[int]):
+        self.shape = tuple(shape)
+        self.n0 = shape[0]
+        self.row = math.prod(shape[1:])
+
+    def flat(self, off: Sequence[int]) -> int:
+        # > 0 for every offset used (first non-zero component positive, |o_k| < n_k).
+        return sum(o * math.prod(self.shape[k + 1:]) for k, o in enumerate(off))
+
+    def halo(self, off: Sequence[int]) -> int:
+        return -(-self.flat(off) // self.row)          # rows spanned: ceil(flat / row)
+
+
+def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off):
+    """E[p] = w(p, p + off) for p over rows -h .. n0 (h = grid.halo(off)), zero where
+    p or p + off is off the grid or invalid.
+
+    w(p, p + off) = E[p] and w(p, p - off) = w(p - off, p) = E[p - off] are then both
+    plain flat slices of E: one exp per pair of opposite taps. ``gpad``/``vpad`` are the
+    guide and validity with ``lead`` zero rows on both sides. E is computed
+    over its whole range (the rows that are off the grid get exp(-inf) = 0) rather than
+    on the valid rows and then padded: a padded result makes XLA's CPU loop index the
+    flat reads non-linearly, which measured ~3x slower.
+    """
+    f, h = grid.flat(off), grid.halo(off)
+    rows = grid.n0 + h
+    start = (lead - h) * grid.row
+    d2 = _channel_sq_dist(_window(gpad, start, rows), _window(gpad, start + f, rows))
+    i = lax.broadcasted_iota(jnp.int32, (rows,) + grid.shape[1:], 0) - h
+    keep = (i >= 0) & (i < grid.n0 - off[0])             # p and p + off both on the grid
+    inner = _inner_ok(off, grid.shape, rows)
+    if inner is not None:
+        keep = keep & inner
+    if vpad is not None:
+        keep = keep & (_window(vpad, start, rows)[0] > 0) & (_window(vpad, start + f, rows)[0] > 0)
+    return _weight(d2, sigma_d, keep)[None]
+
+
+def _opaque_one(a: jax.Array) -> jax.Array:
+    """Exactly 1.0 for every element (NaN included), in a form XLA does not fold."""
+    return 1.0 + (a != a).astype(a.dtype) * 0.0
+
+
+def _pass(grid: _Grid, x, pairs, h0, valid, weights):
     """One normalised bilateral pass over planar arrays.
 
-    x: (C, *S) fields (zero where invalid); guide: (G, *S); valid: (*S) float 0/1 or
-    None; offsets_and_taps: [(offset vector, tap)] for one of each pair +o / -o.
+    x: (C, *S) fields (zero where invalid); pairs: [(offset, tap)] for one of each
+    pair +o / -o; valid: (*S) float 0/1 or None; weights(off, dep): E from
+    ``_pair_weights``, where ``dep`` (an exact 0.0) ties its computation to a point in
+    the pass (see ``_after``), so only a chunk's weights are alive at a time.
 
-    Every array is padded along the *outer* spatial axis only, by ``r`` rows, and
-    every neighbour is read as a contiguous slice of the flattened plane at the
-    offset's flat position. A read that runs off an inner axis wraps into the next
-    row; the weights (and, for the fields, an index test) zero it. Padding the outer
-    axis costs whole rows, so XLA's CPU loops stay vectorised; padding the fastest
-    axis instead puts a bounds test on every element and measured 2-4x slower.
+    The fields are padded along the outer spatial axis only (whole rows, so XLA's CPU
+    loops stay vectorised; a pad along the fastest axis puts a bounds test on every
+    element and measured 2-4x slower) and every neighbour is a contiguous flat slice.
     """
-    shape = x.shape[1:]
-    n0 = shape[0]
-    row = math.prod(shape[1:])
-    flats = [_flat_offset(off, shape) for off, _ in offsets_and_taps]
-    r = max(-(-abs(f) // row) for f in flats)       # halo rows: ceil(|flat offset| / row)
-
-    # Weights: E_o[p] = tap * w(p, p + o), for p over rows -r .. n0 + r (zero when
-    # p or p + o is off the grid or invalid). Then w(p, p+o) = E_o[p] and
-    # w(p, p-o) = w(p-o, p) = E_o[p - o]: one exp per pair, two plain slices.
-    gpad = _pad(guide, [2 * r], [2 * r], 1)
-    vpad = None if valid is None else _pad(valid[None], [2 * r], [2 * r], 1)
-    weights = []
-    for (off, tap), f in zip(offsets_and_taps, flats):
-        rows = n0 + 2 * r
-        g_p = _flat_window(gpad, r * row, rows)
-        g_q = _flat_window(gpad, r * row + f, rows)
-        w = tap * _weight(_channel_sq_dist(g_p, g_q), sigma_d)
-        ok = _rows_in_grid(shape, -r, rows) & _rows_in_grid(shape, -r, rows, off[0])
-        inner = _inner_in_grid(off, shape, -r, rows)
-        if inner is not None:
-            ok = ok & inner
-        if vpad is not None:
-            w = w * _flat_window(vpad, r * row, rows)[0] * _flat_window(vpad, r * row + f, rows)[0]
-        weights.append(jnp.where(ok, w, 0.0))
-
-    xpad = _pad(x, [r], [r], 1)
-    xpad = _zero_halo(xpad, [r], 1)
-    num = h0 * _flat_window(xpad, r * row, n0)
+    n0, row = grid.n0, grid.row
+    r = max(grid.halo(off) for off, _ in pairs)
+    xpad = _pad_rows(x, r, r)
+    centre = _window(xpad, r * row, n0)
+    num = h0 * centre
     den = h0 if valid is None else h0 * valid
-    for (off, _), f, e in zip(offsets_and_taps, flats, weights):
-        e = e[None]
-        w_plus = _flat_window(e, r * row, n0)[0]
-        w_minus = _flat_window(e, r * row - f, n0)[0]
-        x_plus = _flat_window(xpad, r * row + f, n0)
-        x_minus = _flat_window(xpad, r * row - f, n0)
-        # A wrapped read has weight 0; the index test keeps a non-finite value
-        # from the neighbouring row out of the sum (0 * inf), as zero padding would.
-        ok_plus = _inner_in_grid(off, shape, 0, n0)
-        if ok_plus is not None:
-            ok_minus = _inner_in_grid([-o for o in off], shape, 0, n0)
-            x_plus = jnp.where(ok_plus, x_plus, 0.0)
-            x_minus = jnp.where(ok_minus, x_minus, 0.0)
-        num = num + w_plus * x_plus + w_minus * x_minus
+    # Reads that wrap across an inner axis have weight 0, but 0 * inf is NaN: zero
+    # them, as zero padding would. The test depends on the inner offset only, so the
+    # products are summed per inner offset and each sum is masked once.
+    groups = {}
+
+    def flush(num):
+        for inner, part in groups.items():
+            ok = _inner_ok((0,) + inner, grid.shape, n0)
+            num = num + (part if ok is None else jnp.where(ok, part, 0.0))
+        groups.clear()
+        return num
+
+    dep = _after(x)
+    for k, (off, tap) in enumerate(pairs):
+        e = weights(off, dep)
+        f, h = grid.flat(off), grid.halo(off)
+        w_plus = tap * _window(e, h * row, n0)[0]
+        w_minus = tap * _window(e, h * row - f, n0)[0]
+        for inner, term in ((tuple(off[1:]), w_plus * _window(xpad, r * row + f, n0)),
+                            (tuple(-o for o in off[1:]), w_minus * _window(xpad, r * row - f, n0))):
+            groups[inner] = term if inner not in groups else groups[inner] + term
         den = den + w_plus + w_minus
+        if (k + 1) % _CHUNK == 0 and k + 1 < len(pairs):
+            # Full mode has up to 62 pairs per pass; one XLA loop over all of them stops
+            # vectorising (measured 0.12 ms per pair in chunks of 6, 0.36 ms in one
+            # loop of 62). Materialise the running sums every _CHUNK pairs.
+            num = flush(num)
+            y = jnp.concatenate([num, jnp.broadcast_to(den, num.shape[1:])[None]])
+            y = y / _opaque_one(y)              # an expensive root with two consumers
+            dep = _after(y)
+            num, den = y[:-1], y[-1] + dep
+    num = flush(num)
+    # Divide by a full-shape divisor: XLA then keeps a real divide (it rewrites
+    # x / broadcast(d) into x * broadcast(1 / d)), counts the pass as expensive and,
+    # with the next pass's _after probe as a second consumer, materialises it rather
+    # than fusing it into the next pass's padding, whose index arithmetic made the
+    # flat reads ~3x slower.
+    den = den * _opaque_one(centre)
     if valid is None:
         return num / den
     return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 0.0)
+
+
+_CHUNK = 6
+
+
+def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
+    """All levels on planar arrays: x (C, *S) zero where invalid, g (G, *S)."""
+    grid = _Grid(x.shape[1:])
+    lead = max([grid.halo(off) for i in range(levels)
+                for pairs, _ in _level_passes(grid.shape, 2 ** i, separable)
+                for off, _ in pairs] or [0])
+    # Zero rows in front for the weights' halo, and behind for the reads p + off.
+    gpad = _pad_rows(g, lead, lead)
+    vpad = None if valid is None else _pad_rows(valid[None], lead, lead)
+    cache = {}
+
+    def weights(off, dep):
+        # Offset 2d * 2**i at level i is offset d * 2**(i+1) at level i+1: the same
+        # weights up to the tap, computed once.
+        if off not in cache:
+            cache[off] = _pair_weights(grid, gpad, vpad, lead, sigma + dep, off)
+        return cache[off]
+
+    for i in range(levels):
+        for pairs, h0 in _level_passes(grid.shape, 2 ** i, separable):
+            x = _pass(grid, x, pairs, h0, valid, weights)
+    return x
 
 
 def _level_passes(shape: Sequence[int], stride: int, separable: bool):
@@ -300,6 +349,8 @@ def _level_passes(shape: Sequence[int], stride: int, separable: bool):
         if any(abs(c) * stride >= s for c, s in zip(d, shape)):
             continue
         pairs.append((tuple(c * stride for c in d), math.prod(_H[abs(c)] for c in d)))
+    # Grouped by inner offset (see _pass: one mask per group).
+    pairs.sort(key=lambda p: (tuple(abs(c) for c in p[0][1:]), p[0][1:], p[0][0]))
     return [(pairs, _H[0] ** n)] if pairs else []
 
 
@@ -424,9 +475,7 @@ def _atrous_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable
         valid = mask.astype(compute)
         x = jnp.where(mask, x, 0)                       # also drops NaN/Inf at masked entries
 
-    for i in range(levels):
-        for pairs, h0 in _level_passes(spatial_shape, 2 ** i, separable):
-            x = _pass(x, g, valid, sigma + _after(x), pairs, h0)
+    x = _filter_planar(x, g, valid, sigma, levels, separable)
     if valid is not None:
         x = jnp.where(mask, x, 0)
 
