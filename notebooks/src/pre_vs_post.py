@@ -188,7 +188,7 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # | postfilter, self-guided | 0.01 | 0.00924 | 0.031 |
 # | Adam β1 = 0.9, β2 = 0.999 | 0.01 | 0.0227 | 0.234 |
 #
-# **Filtering vs Adam — agrees.** Every filtered variant ends with 2.4–2.7× less parameter error
+# **Filtering vs Adam — agrees.** Every filtered variant ends with 2.0–2.8× less parameter error
 # than Adam at β1 = 0.2 or at its usual β1 = 0.9.
 #
 # **Postfilter vs prefilter — only a small difference here.** The postfilter is best, but at
