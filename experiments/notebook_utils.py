@@ -58,8 +58,12 @@ def results_dir(name: str = "notebooks") -> pathlib.Path:
 
 
 def save_figure(fig, name: str, folder: str = "notebooks") -> pathlib.Path:
-    """Saves ``fig`` as ``results/<folder>/<name>.png`` and returns the path (the notebook still shows it)."""
-    path = results_dir(folder) / f"{name}.png"
+    """Saves ``fig`` as ``results/<folder>/<name>.png`` and returns the path (the notebook still shows it).
+
+    At the quick size the figure goes to ``results/<folder>/quick/`` instead, so that
+    the test suite never overwrites the figures of a full-size run.
+    """
+    path = results_dir(f"{folder}/quick" if QUICK else folder) / f"{name}.png"
     fig.savefig(path, dpi=110, bbox_inches="tight")
     return path
 

@@ -4,6 +4,7 @@
     python notebooks/build_notebooks.py --check         # exit 1 if a notebook differs from its source
     python notebooks/build_notebooks.py --execute NAME  # run notebooks/NAME.ipynb; the executed
                                                         # copy goes to results/notebooks/NAME.ipynb
+                                                        # (results/notebooks/quick/ when quick)
 
 A source ``notebooks/src/NAME.py`` is plain Python split into cells by marker
 lines: ``# %%`` starts a code cell, ``# %% [markdown]`` a markdown cell whose
@@ -15,6 +16,7 @@ Set ``OPTAX_BILATERAL_QUICK=1`` for the test-suite size.
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import sys
 import time
@@ -84,7 +86,8 @@ def execute(name: str, timeout: int = 7200) -> pathlib.Path:
     t0 = time.perf_counter()
     NotebookClient(nb, timeout=timeout, kernel_name="python3",
                    resources={"metadata": {"path": str(HERE)}}).execute()
-    out = HERE.parent / "results" / "notebooks" / f"{name}.ipynb"
+    quick = os.environ.get("OPTAX_BILATERAL_QUICK", "") not in ("", "0")
+    out = HERE.parent / "results" / "notebooks" / ("quick" if quick else "") / f"{name}.ipynb"
     out.parent.mkdir(parents=True, exist_ok=True)
     nbformat.write(nb, out)
     print(f"{name}: executed in {time.perf_counter() - t0:.1f} s -> {out}")

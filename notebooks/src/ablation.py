@@ -24,7 +24,7 @@
 # Run: `OPTAX_BILATERAL_QUICK=1` for the test-suite size (32², 40 iterations); without it the
 # paper-like size (512², 150 iterations, 1 spp / 1 spp; the low-noise runs average 8 such gradients):
 # `python notebooks/build_notebooks.py --execute ablation`. Figures are saved in
-# `results/notebooks/`.
+# `results/notebooks/` (`results/notebooks/quick/` at the quick size).
 
 # %%
 import math

@@ -25,7 +25,8 @@
 # Run: `OPTAX_BILATERAL_QUICK=1` gives the test-suite size (32² texels, 40 iterations, F = 3);
 # without it the paper-like size (512² texels, 1 spp primal / 1 spp gradient, F = 5, 150
 # iterations). `python notebooks/build_notebooks.py --execute memoryless` runs it and saves the
-# executed copy in `results/notebooks/`; every figure is also saved there as PNG.
+# executed copy in `results/notebooks/`; every figure is also saved there as PNG (in
+# `results/notebooks/quick/` at the quick size).
 
 # %%
 import time

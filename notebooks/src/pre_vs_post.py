@@ -26,7 +26,7 @@
 # Run: `OPTAX_BILATERAL_QUICK=1` for the test-suite size (32², 40 iterations, F = 3); without it the
 # paper-like size (512², 1 spp / 1 spp, F = 5, 150 iterations):
 # `python notebooks/build_notebooks.py --execute pre_vs_post`. Figures are saved in
-# `results/notebooks/`.
+# `results/notebooks/` (`results/notebooks/quick/` at the quick size).
 
 # %%
 import time
