@@ -439,8 +439,19 @@ def bounded_step_probe(b1: float, b2: float) -> Probe:
 
 def table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None,
           floatfmt: str = ".4g") -> str:
-    """A Markdown table (shown with ``IPython.display.Markdown`` or printed)."""
-    return common.markdown_table(rows, columns, floatfmt)
+    """A Markdown table (shown with ``IPython.display.Markdown`` or printed).
+
+    ``|`` in names and text (``max |Δ|``) is escaped so that it does not split a cell.
+    """
+    if not rows:
+        return ""
+    columns = list(columns if columns is not None else rows[0].keys())
+
+    def esc(v):
+        return v.replace("|", "\\|") if isinstance(v, str) else v
+
+    escaped = [{esc(c): esc(r[c]) for c in columns if c in r} for r in rows]
+    return common.markdown_table(escaped, [esc(c) for c in columns], floatfmt)
 
 
 def iterations_to_reach(curve: np.ndarray, value: float) -> int | None:
