@@ -208,8 +208,8 @@ class _Grid:
         return -(-self.flat(off) // self.row)          # rows spanned: ceil(flat / row)
 
 
-def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off):
-    """E[p] = w(p, p + off) for p over rows -h .. n0 (h = grid.halo(off)), zero where
+def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int):
+    """E[p] = w(p, p + off) for p over rows -h .. n0 (h >= grid.halo(off)), zero where
     p or p + off is off the grid or invalid.
 
     w(p, p + off) = E[p] and w(p, p - off) = w(p - off, p) = E[p - off] are then both
@@ -219,7 +219,7 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off):
     on the valid rows and then padded: a padded result makes XLA's CPU loop index the
     flat reads non-linearly, which measured ~3x slower.
     """
-    f, h = grid.flat(off), grid.halo(off)
+    f = grid.flat(off)
     rows = grid.n0 + h
     start = (lead - h) * grid.row
     d2 = _channel_sq_dist(_window(gpad, start, rows), _window(gpad, start + f, rows))
@@ -270,8 +270,10 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights):
 
     dep = _after(x)
     for k, (off, tap) in enumerate(pairs):
-        e = weights(off, dep)
-        f, h = grid.flat(off), grid.halo(off)
+        if k % _CHUNK == 0:
+            chunk = weights([o for o, _ in pairs[k:k + _CHUNK]], dep)
+        e, h = chunk[off]
+        f = grid.flat(off)
         w_plus = tap * _window(e, h * row, n0)[0]
         w_minus = tap * _window(e, h * row - f, n0)[0]
         for inner, term in ((tuple(off[1:]), w_plus * _window(xpad, r * row + f, n0)),
@@ -313,12 +315,19 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
     vpad = None if valid is None else _pad_rows(valid[None], lead, lead)
     cache = {}
 
-    def weights(off, dep):
-        # Offset 2d * 2**i at level i is offset d * 2**(i+1) at level i+1: the same
-        # weights up to the tap, computed once.
-        if off not in cache:
-            cache[off] = _pair_weights(grid, gpad, vpad, lead, sigma + dep, off)
-        return cache[off]
+    def weights(offs, dep):
+        """{off: (E, h)} for a chunk of offsets. Offset 2d * 2**i at level i is offset
+        d * 2**(i+1) at level i+1: the same weights up to the tap, computed once. The
+        new ones are computed as one stacked array (one XLA kernel: compiling a kernel
+        per pair made a full-mode 3-D filter take minutes to compile)."""
+        new = [o for o in offs if o not in cache]
+        if new:
+            h = max(grid.halo(o) for o in new)
+            stack = jnp.concatenate([_pair_weights(grid, gpad, vpad, lead, sigma + dep, o, h)
+                                     for o in new])
+            for j, o in enumerate(new):
+                cache[o] = (stack[j:j + 1], h)
+        return {o: cache[o] for o in offs}
 
     for i in range(levels):
         for pairs, h0 in _level_passes(grid.shape, 2 ** i, separable):
