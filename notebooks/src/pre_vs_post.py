@@ -175,9 +175,10 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # ## What we measured (full size)
 #
 # Measured with `python notebooks/build_notebooks.py --execute pre_vs_post` (no
-# `OPTAX_BILATERAL_QUICK`), 2026-11-22, on a shared 2-core CPU (load ≈ 15 from other jobs): 1312 s
-# wall. Texture 512², F = 5, 150 iterations, 1 spp / 1 spp, start error 0.0807, learning rates
-# 0.00125 … 0.08 (every best rate below is inside the sweep).
+# `OPTAX_BILATERAL_QUICK`), 2026-11-22, library at commit 0144c60, on a shared 2-core CPU (load
+# 2–11 from other jobs): 901 s wall. (An earlier run, before the filter's rewrite in c0c5157, gave
+# the same numbers to 4 digits.) Texture 512², F = 5, 150 iterations, 1 spp / 1 spp, start error
+# 0.0807, learning rates 0.00125 … 0.08 (every best rate below is inside the sweep).
 #
 # | method (β1 = 0.2) | best lr | final param error | image loss |
 # |---|---|---|---|
