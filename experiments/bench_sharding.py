@@ -59,7 +59,6 @@ from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
 
 import optax_bilateral as ob
 from experiments import common
-from optax_bilateral._src import sharded, transforms
 
 # ----------------------------------------------------------------------------------------
 # Bytes moved, read from compiled HLO text
@@ -248,18 +247,6 @@ def halo_bytes(shape: Sequence[int], blocks: Sequence[int], levels: int, fields:
 # The benchmark
 
 
-def route_transforms_through_sharded() -> None:
-    """Makes the transforms call :func:`sharded.atrous_bilateral`.
-
-    This is the one-line change proposed for ``transforms._filter`` (see
-    docs/sharding.md); once it is in the library this is a no-op.
-    """
-    def _filter(fields, guide, spec, separable, mask):
-        return sharded.atrous_bilateral(fields, guide, sigma_d=spec.sigma_d, levels=spec.levels,
-                                        spatial_axes=spec.axes, separable=separable, mask=mask)
-    transforms._filter = _filter
-
-
 @dataclasses.dataclass(frozen=True)
 class Case:
     name: str
@@ -323,8 +310,9 @@ def run_case(case: Case, repeats: int, quick: bool = False, progress: bool = Tru
     step = jax.jit(tx.update)
     ref_out = step(grads, state, params)
     ndim = len(case.shape) + 1
-    configs = {"1 device, unsharded": (step.lower(grads, state, params).compile(),
-                                       (grads, state, params), None, None, None)}
+    # name -> (compiled step, its arguments, its table row)
+    configs = {"unsharded": (step.lower(grads, state, params).compile(),
+                             (grads, state, params), None)}
     rows = []
     meshes = MESHES[:4] if quick else MESHES
     todo = [(path, m) for path in case.paths for m in meshes]
@@ -361,19 +349,19 @@ def run_case(case: Case, repeats: int, quick: bool = False, progress: bool = Tru
                    moved_over_minimum=(moved / halo["minimum"]) if halo["minimum"]
                    else (0.0 if moved == 0 else math.inf))
         rows.append(row)
-        configs[(path, row["mesh"])] = (compiled, args, row, None, None)
+        configs[(path, row["mesh"])] = (compiled, args, row)
 
     # Interleaved timing: every round runs every configuration once.
     times = {k: [] for k in configs}
-    for c, a, *_ in configs.values():
+    for c, a, _ in configs.values():
         jax.block_until_ready(c(*a))
     for _ in range(repeats):
-        for k, (c, a, *_) in configs.items():
+        for k, (c, a, _) in configs.items():
             t0 = time.perf_counter()
             jax.block_until_ready(c(*a))
             times[k].append(time.perf_counter() - t0)
-    base = float(np.median(times["1 device, unsharded"]))
-    for k, (_, _, row, *_) in configs.items():
+    base = float(np.median(times["unsharded"]))
+    for k, (_, _, row) in configs.items():
         if row is not None:
             row["step_ms"] = 1e3 * float(np.median(times[k]))
             row["vs_unsharded"] = row["step_ms"] / (1e3 * base)
@@ -424,7 +412,6 @@ def main(argv=None) -> dict:
     if jax.device_count() < 8:
         raise RuntimeError("bench_sharding needs 8 devices: run it as its own process (it sets "
                            "XLA_FLAGS=--xla_force_host_platform_device_count=8 before importing jax)")
-    route_transforms_through_sharded()
     repeats = 3 if args.quick else 7
     rows = []
     for case in default_cases(args.quick):

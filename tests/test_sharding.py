@@ -46,7 +46,6 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     from optax_bilateral._src import atrous, sharded
 
     assert jax.device_count() == 8, jax.device_count()
-    bench.route_transforms_through_sharded()
     records = []
 
     clock = [time.process_time()]

@@ -54,7 +54,7 @@ import numpy as np
 import optax
 from jax import lax
 
-from optax_bilateral._src import atrous, leaves as lv
+from optax_bilateral._src import atrous, leaves as lv, sharded
 
 # Chosen for parameters in a unit range (albedo, roughness, density) and for
 # log-domain guides: a guide step of 0.1 weighs e^-1, a step of 0.5 weighs e^-5.
@@ -209,8 +209,10 @@ def _observed(g, axes, mask_zero: bool):
 
 
 def _filter(fields, guide, spec: lv.LeafSpec, separable: bool, mask):
-    return atrous.atrous_bilateral(fields, guide, sigma_d=spec.sigma_d, levels=spec.levels,
-                                   spatial_axes=spec.axes, separable=separable, mask=mask)
+    # sharded.atrous_bilateral is the single-device filter unless the fields' spatial axes
+    # are split over explicit mesh axes (then: per-device blocks with halo exchange).
+    return sharded.atrous_bilateral(fields, guide, sigma_d=spec.sigma_d, levels=spec.levels,
+                                    spatial_axes=spec.axes, separable=separable, mask=mask)
 
 
 def _filter_self(fields, spec, separable, mask, log_guide):
