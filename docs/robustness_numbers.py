@@ -1,4 +1,4 @@
-"""Measures the numbers quoted in docs/robustness.md.
+"""Measures the numbers quoted in the README's "Robustness" section.
 
     .venv/bin/python docs/robustness_numbers.py
 

@@ -1,6 +1,6 @@
 """Robustness: numerical extremes, non-finite gradients, bad input, state, meta-gradients.
 
-docs/robustness.md is the table these tests back. Compile time dominates on CPU, so
+The README's "Robustness" section is the table these tests back. Compile time dominates on CPU, so
 most tests share one compiled update whose hyperparameters (learning rate, b1, b2,
 eps, sigma_d) are traced through ``optax.inject_hyperparams`` and set per call.
 """
@@ -526,12 +526,29 @@ def test_meta_gradient_wrt_sigma_d_and_learning_rate_is_finite_and_correct():
         assert abs(float(d) - fd) <= 0.1 * max(abs(fd), abs(float(d))), (float(d), fd)
 
 
-@pytest.mark.xfail(strict=True, reason="atrous.py: the squared guide distance overflows float32 "
-                   "for guide differences above ~1.8e19, so the weight becomes exp(-inf) = 0 "
-                   "instead of exp(-dist / sigma_d); reported to the filter's owner")
 def test_huge_guide_differences_with_huge_sigma_d():
+    # The squared guide distance would overflow float32 above ~1.8e19; the filter rescales
+    # the guide and sigma_d by a power of two first (atrous.rescale_guide).
     x = jnp.asarray([0.0, 1.0])
     for gv in (1e18, 1e20):            # guide distance 2e18 (fine) and 2e20 (d^2 = inf)
         out = ob.atrous_bilateral(x, jnp.asarray([gv, -gv]), sigma_d=1e30, levels=1, spatial_axes=(0,))
         # exp(-2e20 / 1e30) = 1: both neighbours weigh their B-spline taps 3/8 and 1/4.
         np.testing.assert_allclose(np.asarray(out), [0.4, 0.6], rtol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [2.0 ** 70, 1e30, 2.0 ** 126])
+def test_guide_scale_invariance_up_to_float_max(scale):
+    # The weight depends on |g_p - g_q| / sigma_d only: guides and sigma_d scaled alike by up
+    # to ~float32 max (differences of 2 * 2^126 would overflow even unsquared) filter alike.
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(size=(3, 9, 7)), jnp.float32)
+    g = rng.uniform(-1.0, 1.0, size=(2, 9, 7))
+    kw = dict(levels=2, spatial_axes=(1, 2), guide_axes=(1, 2))
+    ref = ob.atrous_bilateral(x, jnp.asarray(g, jnp.float32), sigma_d=0.3, **kw)
+    out = ob.atrous_bilateral(x, jnp.asarray(g * scale, jnp.float32), sigma_d=0.3 * scale, **kw)
+    assert np.all(np.isfinite(np.asarray(out)))
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=2e-5, atol=2e-6)
+    # 2^50 is below the rescaling threshold (2^56): the plain computation, same result.
+    small = ob.atrous_bilateral(x, jnp.asarray(g * 2.0 ** 50, jnp.float32), sigma_d=0.3 * 2.0 ** 50,
+                                **kw)
+    np.testing.assert_allclose(np.asarray(small), np.asarray(ref), rtol=2e-5, atol=2e-6)

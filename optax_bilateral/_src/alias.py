@@ -32,7 +32,7 @@ def bilateral_adam(learning_rate, b1=0.2, b2=None, eps=1e-8, *,
     middle stage is ``postfilter(..., levels=0)``, i.e. Adam with this library's
     handling of non-finite and extreme gradients (``scale_by_adam`` has none).
     With ``levels=0`` it is ``optax.adam(learning_rate, b1, b2, eps)`` on finite
-    gradients of moderate size (docs/robustness.md lists the extremes).
+    gradients of moderate size (README.md, "Robustness", lists the extremes).
 
     Defaults follow the paper's grid runs: ``b1 = 0.2``, ``b2 = 1 - (1 - b1)^2``
     (= 0.36), postfilter only, ``levels = 5``. ``sigma_d = 0.1`` suits

@@ -139,6 +139,27 @@ def _weight(d2: jax.Array, sigma_d: jax.Array, keep=None) -> jax.Array:
     return jnp.exp(jnp.where(drop, -jnp.inf, arg))
 
 
+def rescale_guide(g: jax.Array, sigma: jax.Array):
+    """(g / s, sigma / s) with ``s`` a power of two that keeps squared guide distances finite.
+
+    The weight depends on ``|g_p - g_q| / sigma`` only, so scaling both by ``s`` changes
+    nothing but rounding; ``s = 1`` (an exact no-op) unless the largest finite ``|g|``
+    exceeds ``2^(maxexp/2 - 8)`` (``2^56`` in float32), where the squared distance
+    ``sum_c (g_p - g_q)^2`` of up to 4096 channels would otherwise overflow to inf and
+    weigh such neighbours 0 at any ``sigma``. Powers of two scale exactly (tiny guide
+    values may underflow, a difference far below the large ones' float resolution).
+    """
+    if not jnp.issubdtype(g.dtype, jnp.floating) or g.size == 0:
+        return g, sigma
+    limit = jnp.finfo(g.dtype).maxexp // 2 - 8
+    a = jnp.abs(g)
+    m = lax.stop_gradient(jnp.max(jnp.where(jnp.isfinite(a), a, 0)))
+    _, e = jnp.frexp(m)                                   # m < 2^e
+    k = jnp.maximum(e - limit, 0)
+    inv = jnp.ldexp(jnp.ones((), g.dtype), -k)
+    return g * inv, sigma * inv.astype(sigma.dtype)
+
+
 def _channel_sq_dist(a: jax.Array, b: jax.Array) -> jax.Array:
     """sum_c (a[c] - b[c])**2 over the leading axis."""
     if a.shape[0] <= 16:
@@ -478,6 +499,7 @@ def _atrous_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable
     g = jnp.transpose(guide, g_chan + g_axes).astype(compute)
     g = g.reshape((-1,) + spatial_shape)
     sigma = jnp.asarray(sigma_d, dtype=g.dtype)
+    g, sigma = rescale_guide(g, sigma)
 
     valid = None
     if mask is not None:

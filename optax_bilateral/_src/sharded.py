@@ -316,6 +316,10 @@ def _sharded_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separabl
         in_specs.append(_spec(part.names))
 
     compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
+    # One global scale for the whole grid (a scalar all-reduce), as on one device.
+    g_scaled, s_scaled = atrous.rescale_guide(guide.astype(compute),
+                                              jnp.asarray(sigma_d, compute))
+    args[0], args[len(fields) + 1] = s_scaled, g_scaled
     geo = tuple(_Axis(part.names[k], part.shards(k), shape[k] // part.shards(k), shape[k])
                 for k in range(len(shape)))
     passes = [p for i in range(levels) for p in atrous._level_passes(shape, 2 ** i, separable)]

@@ -24,7 +24,7 @@ footprint or into the optimizer state. ``scale_by_adam`` stays identical to
 ``optax.scale_by_adam`` and does not do this (``bilateral_adam`` therefore uses
 ``postfilter`` with ``levels=0`` for its unfiltered Adam path).
 
-Numerical extremes (``postfilter``; docs/robustness.md has the full table):
+Numerical extremes (``postfilter``; README.md, "Robustness", has the full table):
 
 * Finite gradients are clipped to ``+-G`` before the moment update, with ``G``
   the largest magnitude whose square still fits the second moment's dtype
