@@ -221,17 +221,20 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
 
 
 def time_steps_interleaved(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 7,
-                           first_iteration: int = 0) -> dict[str, float]:
+                           first_iteration: int = 0, inner: int = 1) -> dict[str, float]:
     """Median seconds per step of each ``step(carry, i)``, timed in alternation.
 
-    Round ``r`` runs every step once, in turn, on its own evolving carry, so a burst
-    of load from other processes hits all of them alike: the *ratios* are fair even
-    on a shared machine. The order rotates every round (the first step of a round
-    was measured ~10-30% slower on a loaded machine). Call after the steps are
-    compiled (or add a round).
+    Round ``r`` runs every step ``inner`` times in a row, in turn, on its own evolving
+    carry, so a burst of load from other processes hits all of them alike: the
+    *ratios* are fair even on a shared machine. The order rotates every round (the
+    first step of a round was measured ~10-30% slower on a loaded machine). A sample
+    is the mean over its ``inner`` steps (several steps per sample average out
+    dispatch jitter). Call after the steps are compiled (or add a round).
     """
     if not isinstance(rounds, int) or rounds < 1:
         raise ValueError(f"rounds must be a positive int, got {rounds!r}")
+    if not isinstance(inner, int) or inner < 1:
+        raise ValueError(f"inner must be a positive int, got {inner!r}")
     carries = {k: c for k, (_, c) in steps.items()}
     times: dict[str, list[float]] = {k: [] for k in steps}
     names = list(steps)
@@ -239,9 +242,10 @@ def time_steps_interleaved(steps: Mapping[str, tuple[Callable, Any]], rounds: in
         for k in names[r % len(names):] + names[:r % len(names)]:
             fn = steps[k][0]
             t0 = time.perf_counter()
-            carries[k], aux = fn(carries[k], first_iteration + r)
+            for j in range(inner):
+                carries[k], aux = fn(carries[k], first_iteration + r * inner + j)
             jax.block_until_ready((carries[k], aux))
-            times[k].append(time.perf_counter() - t0)
+            times[k].append((time.perf_counter() - t0) / inner)
     return {k: float(np.median(v)) for k, v in times.items()}
 
 

@@ -1,0 +1,68 @@
+"""The benchmark script's --quick mode runs and writes what it promises.
+
+Never a timed assertion: the numbers of --quick runs mean nothing (tiny grids on a
+shared machine). What is asserted are properties that hold whatever the timing.
+"""
+
+import json
+
+import numpy as np
+
+from experiments import benchmark
+
+
+def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
+    monkeypatch.setenv("OPTAX_BILATERAL_QUICK", "1")
+    result = benchmark.main(["--quick", "--out", str(tmp_path)])
+    for section in benchmark.SECTIONS:
+        assert (tmp_path / f"{section}.json").exists() and (tmp_path / f"{section}.md").exists()
+        json.loads((tmp_path / f"{section}.json").read_text())
+    assert (tmp_path / "summary.md").read_text().startswith("# Benchmarks")
+    assert result["machine"]["cores"] >= 1
+
+    # (a) every update-only row has a positive time and its ratio to Adam.
+    upd = result["overhead"]["update_only"]
+    assert {r["method"] for r in upd} >= {"adam"} and all(r["ms (median)"] > 0 for r in upd)
+    assert all(r["x adam (median)"] == 1.0 for r in upd if r["method"] == "adam")
+
+    # (b) the full float32 filter matches the full float64 one to float32 rounding
+    # (1e-5: a few float32 ulps accumulated over F levels of 5^n-tap sums), while the
+    # separable approximation differs from it by far more (it is a different operator).
+    flt = result["accuracy"]["filter"]
+    full32 = [r for r in flt if r["mode"] == "full" and r["dtype"] == "float32"]
+    sep32 = [r for r in flt if r["mode"] == "separable" and r["dtype"] == "float32"]
+    assert full32 and all(r["step rel. L2 error"] < 1e-5 for r in full32)
+    assert all(r["step rel. L2 error"] > 1e-3 for r in sep32)
+    assert all(np.isfinite(r["final mean |alpha - target|"]) for r in result["accuracy"]["texture_runs"])
+
+    # (c) peak memory is planned for every row and grows with the grid.
+    rows = [r for r in result["scaling"]["rows"] if r["sweep"] == "grid 2d" and r["method"] == "adam"]
+    assert len(rows) >= 2 and rows[-1]["peak MB (XLA plan)"] > rows[0]["peak MB (XLA plan)"]
+
+    # (d) a sigma_d schedule and changing step counts reuse one compiled program.
+    check = result["compile"]["recompile_check"]
+    assert check["no recompilation"] and check["compiled programs (jit cache size)"] == 1
+    assert check["sigma_d seen by the steps"][0] > check["sigma_d seen by the steps"][-1]
+
+
+def test_unknown_section_is_a_clear_error(tmp_path):
+    import pytest
+    with pytest.raises(ValueError, match="--only"):
+        benchmark.main(["--quick", "--out", str(tmp_path), "--only", "overhead,nope"])
+
+
+def test_targets_are_checked_from_the_overhead_ratios():
+    upd = [{"grid": "texture 512x512x3", "method": "ours F=5 separable", "ms (median)": 10.0,
+            "x adam (median)": 12.0},
+           {"grid": "texture 512x512x3", "method": "ours F=5 full", "ms (median)": 40.0,
+            "x adam (median)": 48.0},
+           {"grid": "volume 64^3x1", "method": "ours F=5 separable", "ms (median)": 5.0,
+            "x adam (median)": 31.0}]
+    tex = [{"method": "Adam", "% vs Adam": 0.0}, {"method": "Ours (F = 5)", "% vs Adam": 9.5}]
+    rows = {r["target"]: r for r in benchmark.targets({"update_only": upd, "texture": tex})}
+    assert rows["separable F=5 update / adam update, texture 512x512x3"]["met"]
+    assert not rows["separable F=5 update / adam update, volume 64^3x1"]["met"]      # 31 > 30
+    full = rows["full / separable update, F=5, texture 512x512x3"]
+    assert full["measured"] == 4.0 and full["limit"] == 3.75 and not full["met"]
+    assert rows["texture experiment per-iteration overhead, F=5"]["met"]
+    assert len(rows) == 4            # rows whose inputs are missing are left out, not guessed
