@@ -33,7 +33,7 @@ import numpy as np
 import optax
 
 from experiments import common
-from optax_bilateral._src import mesh as mesh_lib
+from optax_bilateral import mesh as mesh_lib
 from optax_bilateral.toy import mesh as toy
 
 DEFAULT_LAMBDA = 19.0

@@ -18,6 +18,8 @@ from optax_bilateral._src.transforms import (
     scale_by_adam,
 )
 
+from optax_bilateral import mesh  # noqa: E402  (triangle meshes: optax_bilateral.mesh)
+
 __version__ = "0.1.0"
 
 __all__ = (
@@ -29,6 +31,7 @@ __all__ = (
     "bilateral_adam",
     "default_spatial_axes",
     "load_state",
+    "mesh",
     "postfilter",
     "prefilter",
     "save_state",

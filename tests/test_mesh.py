@@ -275,3 +275,11 @@ def test_render_target_and_gradient_are_finite():
     img = toy.render_target(scene, 0)
     # The cube covers some pixels but not all; covered pixels have a lit colour.
     assert 0 < (img.sum(-1) > 0).mean() < 1
+
+
+def test_public_mesh_module_exports_the_transforms():
+    import optax_bilateral as ob
+    import optax_bilateral.mesh as obm
+    assert ob.mesh is obm
+    for name in obm.__all__:
+        assert getattr(obm, name) is getattr(M, name), name

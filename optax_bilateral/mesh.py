@@ -1,0 +1,49 @@
+"""Triangle meshes: Large Steps (Nicolet et al. 2021) and its bilateral variant.
+
+The vertex positions of a mesh are not a grid, so the a-trous filter does not apply;
+these transforms filter Adam's moments with the mesh's Laplacian instead (see
+docs/mesh.md for the method and the measured results)::
+
+    import optax_bilateral.mesh as obm
+    opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=0.5)
+"""
+
+from optax_bilateral._src.mesh import (
+    DEFAULT_DIRECTIONS,
+    DEFAULT_LAMBDA,
+    DEFAULT_MAXITER,
+    DEFAULT_SIGMA_D,
+    DEFAULT_TOL,
+    MeshLaplacian,
+    ScaleByUniformAdamState,
+    bilateral_large_steps,
+    bilateral_normal_filter,
+    large_steps,
+    laplacian_smoothing,
+    mesh_laplacian,
+    mesh_postfilter,
+    scale_by_uniform_adam,
+    smoothing_solve,
+    sphere_directions,
+    vertex_normals,
+)
+
+__all__ = (
+    "DEFAULT_DIRECTIONS",
+    "DEFAULT_LAMBDA",
+    "DEFAULT_MAXITER",
+    "DEFAULT_SIGMA_D",
+    "DEFAULT_TOL",
+    "MeshLaplacian",
+    "ScaleByUniformAdamState",
+    "bilateral_large_steps",
+    "bilateral_normal_filter",
+    "large_steps",
+    "laplacian_smoothing",
+    "mesh_laplacian",
+    "mesh_postfilter",
+    "scale_by_uniform_adam",
+    "smoothing_solve",
+    "sphere_directions",
+    "vertex_normals",
+)
