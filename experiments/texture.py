@@ -130,8 +130,8 @@ def fixed_hyperparameters(method: str, cfg: Config) -> dict:
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("opt", "spp", "spp_grad"))
-def _step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad):
+@functools.partial(jax.jit, static_argnames=("opt", "spp", "spp_grad", "barrier"))
+def _step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad, barrier=False):
     alpha, state = carry
     key = jax.random.fold_in(base_key, i)        # one key per iteration, shared by all methods
 
@@ -139,6 +139,9 @@ def _step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad):
         return tex.loss_fn(tex.render(a, scene, key, spp, spp_grad), reference)
 
     value, grad = jax.value_and_grad(loss)(alpha)
+    if barrier:
+        # Keep XLA from fusing the update into the gradient's computation (benchmarks).
+        grad = jax.lax.optimization_barrier(grad)
     updates, state = opt.update(grad, state, alpha)
     alpha = jnp.clip(optax.apply_updates(alpha, updates), tex.ALPHA_MIN, tex.ALPHA_MAX)
     return (alpha, state), {"loss": value, "param_error": jnp.mean(jnp.abs(alpha - target))}
@@ -159,12 +162,17 @@ class Problem:
         self.init = jnp.full((cfg.size, cfg.size), cfg.init_alpha, jnp.float32)
         self.final_images: dict[str, jax.Array] = {}
 
-    def step_fn(self, opt):
+    def step_fn(self, opt, barrier: bool = False):
+        """``step(carry, i)``: render, gradient, update and clip, in one jitted program.
+
+        ``barrier=True`` puts an optimisation barrier between the gradient and the update,
+        so that XLA compiles the two as it would separately (the benchmark times both).
+        """
         cfg = self.cfg
 
         def step(carry, i):
             return _step(carry, i, self.scene, self.reference, self.target, self.base_key,
-                         opt=opt, spp=cfg.spp, spp_grad=cfg.spp_grad)
+                         opt=opt, spp=cfg.spp, spp_grad=cfg.spp_grad, barrier=barrier)
         return step
 
     def evaluate(self, run_id: str):
