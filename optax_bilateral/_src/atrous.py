@@ -306,10 +306,23 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights):
             # vectorising (measured 0.12 ms per pair in chunks of 6, 0.36 ms in one
             # loop of 62). Materialise the running sums every _CHUNK pairs.
             num = flush(num)
-            y = jnp.concatenate([num, jnp.broadcast_to(den, num.shape[1:])[None]])
-            y = y / _opaque_one(y)              # an expensive root with two consumers
+            # The normaliser goes first: XLA's CPU backend splits this kernel over 2
+            # threads along the leading axis, and den (cheap: no field reads) last made
+            # the halves uneven (3-D, 2 fields: profiled 713 vs 521 us per chunk; den
+            # first: equal halves). The barrier materialises y (one buffer, read by the
+            # next chunk and the _after probe); the y / _opaque_one(y) root used before
+            # compiled to an extra kernel copying all C + 1 planes at every boundary.
+            # Together, filter only, full F=5 under load: 2-D -6%, 3-D +-0 (the update
+            # ratios on the shared machine moved within their +-5-20% noise).
+            # Tried, no gain or worse: _CHUNK 3/4/8/10/12 (4 ~ 6, larger slower); planar
+            # layout (n0, C, *inner) (balanced split, weights read once per row for all
+            # channels: filter +-0, update 1.3-1.5x slower in 2-D); exps on only the
+            # rows where E can be non-zero, written into a zero array (a fused pad still
+            # computes every exp; an in-place dynamic-update-slice: 3-D F=5 +15%).
+            y = jnp.concatenate([jnp.broadcast_to(den, num.shape[1:])[None], num])
+            y = lax.optimization_barrier(y)
             dep = _after(y)
-            num, den = y[:-1], y[-1] + dep
+            num, den = y[1:], y[0] + dep
     num = flush(num)
     # Divide by a full-shape divisor: XLA then keeps a real divide (it rewrites
     # x / broadcast(d) into x * broadcast(1 / d)), counts the pass as expensive and,
