@@ -84,8 +84,12 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         ((16, 16), (4, 2), P("y", "x"), 2, False, False),
         ((8, 8, 4), (4, 2), P("x", "y"), 2, True, True),
         ((8, 8, 4), (4, 2), P(None, "x", "y"), 1, False, False),
+        # Guide and sigma_d scaled by 2^100: squared distances would overflow float32; each
+        # block rescales its own guide (a power of two: same weights, no all-reduce).
+        ((16, 16), (4, 2), P("x", "y"), 2, True, False, 2.0 ** 100),
     ]
-    for i, (shape, mshape, spec, levels, sep, use_mask) in enumerate(filter_cases):
+    for i, (shape, mshape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
+        scale = scale[0] if scale else 1.0
         mesh = mesh_of(mshape, AxisType.Explicit)
         k = jax.random.fold_in(key, i)
         m = jax.random.normal(k, shape + (2,))
@@ -99,7 +103,9 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         args = [jax.device_put(a, sh) for a in (m, v, guide)]
         margs = [jax.device_put(mask, NamedSharding(mesh, P(*tuple(spec)[:len(shape)])))] \
             if use_mask else [None]
-        fn = jax.jit(lambda m, v, g, mk: sharded.atrous_bilateral((m, v), g, mask=mk, **kw))
+        kw_s = dict(kw, sigma_d=kw["sigma_d"] * scale)
+        args[2] = args[2] * scale
+        fn = jax.jit(lambda m, v, g, mk: sharded.atrous_bilateral((m, v), g, mask=mk, **kw_s))
         compiled = fn.lower(*args, *margs).compile()
         out = compiled(*args, *margs)
         st = stats(compiled)
@@ -110,7 +116,8 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         # Fields per level plus the guide once at the widest radius: what must move.
         halo = bench.halo_bytes(shape, blocks, levels, fields=5, guide=3, separable=sep)
         emit(check="filter", case=f"{shape} {mshape} {spec} F={levels} "
-                                   f"{'sep' if sep else 'full'}{' mask' if use_mask else ''}",
+                                   f"{'sep' if sep else 'full'}{' mask' if use_mask else ''}"
+                                   f"{f' guide x{scale:g}' if scale != 1 else ''}",
              separable=sep, max_diff=max_diff(out, ref),
              sharding_kept=all(o.sharding.is_equivalent_to(sh, len(shape) + 1) for o in out),
              kinds=sorted(k for k, s in st.items() if s["count"]),

@@ -316,10 +316,6 @@ def _sharded_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separabl
         in_specs.append(_spec(part.names))
 
     compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
-    # One global scale for the whole grid (a scalar all-reduce), as on one device.
-    g_scaled, s_scaled = atrous.rescale_guide(guide.astype(compute),
-                                              jnp.asarray(sigma_d, compute))
-    args[0], args[len(fields) + 1] = s_scaled, g_scaled
     geo = tuple(_Axis(part.names[k], part.shards(k), shape[k] // part.shards(k), shape[k])
                 for k in range(len(shape)))
     passes = [p for i in range(levels) for p in atrous._level_passes(shape, 2 ** i, separable)]
@@ -355,13 +351,18 @@ def _sharded_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separabl
             if pattern not in cache:
                 widths = [w if on else 0 for w, on in zip(g_halo, pattern)]
                 inside = _inside(widths, geo)
-                cache[pattern] = (jnp.where(inside, _extend(g, widths, 1, geo), jnp.nan), widths)
+                g_ext = jnp.where(inside, _extend(g, widths, 1, geo), jnp.nan)
+                # The single device's overflow guard, per block: the weights depend on
+                # |g_p - g_q| / sigma only and the scale is a power of two, so a block's own
+                # scale gives the same weights as a global one, without an all-reduce.
+                g_ext, s_ext = atrous.rescale_guide(g_ext, sigma)
+                cache[pattern] = (g_ext, widths, s_ext)
             return cache[pattern]
 
         for pairs, h0 in passes:
             pattern = tuple(any(off[k] for off, _ in pairs) for k in range(len(shape)))
-            g_ext, gw = extended(pattern)
-            x = _local_pass(x, g_ext, gw, valid, sigma, pairs, h0, geo)
+            g_ext, gw, s_ext = extended(pattern)
+            x = _local_pass(x, g_ext, gw, valid, s_ext, pairs, h0, geo)
             x = lax.optimization_barrier(x)
         if has_mask:
             x = jnp.where(m, x, 0)
