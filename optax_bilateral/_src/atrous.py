@@ -20,6 +20,10 @@ of the choices below exist to steer it:
   its weight is 0 (and an index test zeroes the value, so 0 * inf cannot leak in).
   Padding the fastest axis instead puts a bounds test on every element and
   stops vectorisation.
+* Every kernel computes in a 2-level shape, (rows * n1 * ... * n_{d-2}, n_{d-1})
+  (``_view``): XLA's CPU loops turned a flat read of a 3-level operand into a urem by
+  the plane size per element, vectorised only for power-of-two planes (3-D grids
+  with other sides were 2-3x slower per element).
 * The data term is symmetric, ``w(p, p + o) = w(p + o, p)``: one exp per *pair* of
   opposite offsets gives both taps, and offset ``2d * 2**i`` at level ``i`` equals
   offset ``d * 2**(i+1)`` at level ``i+1``, so those weights are computed once.
@@ -168,31 +172,70 @@ def _channel_sq_dist(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sum(jnp.square(a - b), axis=0)
 
 
-def _pad_rows(x: jax.Array, lo: int, hi: int) -> jax.Array:
-    """Zero-pads axis 1 (the outer spatial axis of a planar array)."""
+def _pad_rows(x: jax.Array, lo: int, hi: int, shape: Sequence[int]) -> jax.Array:
+    """Zero-pads the planar array ``x`` (C, *shape), or (C, *_view(shape, n0)), by
+    ``lo`` / ``hi`` rows along its outer spatial axis; returns it in ``_view``'s shape,
+    (C, (lo + n0 + hi) * m, n_last). In that shape the padded array is a 2-level operand
+    for ``_window``'s flat reads (see ``_view``), and the pad (along axis 1) stays a
+    plain pad kernel: padding the flattened (C, L) array instead compiled to a generic
+    loop measured 3x slower than the pad itself (128^3: 9 ms vs 3 ms per pad)."""
+    per_row = _view(shape, 1)
+    x = x.reshape((x.shape[0], -1) + per_row[1:])
     cfg = [(0, 0, 0)] * x.ndim
-    cfg[1] = (lo, hi, 0)
+    cfg[1] = (lo * per_row[0], hi * per_row[0], 0)
     return lax.pad(x, jnp.zeros((), x.dtype), cfg)
 
 
-def _window(a: jax.Array, start: int, rows: int) -> jax.Array:
-    """``rows`` rows of the planar array ``a`` (C, R, *inner), read from flat position
-    ``start`` of each channel's plane: one contiguous slice, whatever the offset."""
-    c, inner = a.shape[0], tuple(a.shape[2:])
+def _view(shape: Sequence[int], rows: int) -> tuple[int, ...]:
+    """The shape in which ``rows`` rows of a grid of ``shape`` are computed: every axis
+    but the fastest collapsed into one, (rows * n1 * ... * n_{d-2}, n_{d-1}).
+
+    XLA's CPU emitter loops over a kernel's output shape and, for every flat read,
+    delinearises the flat index into the operand's shape and linearises it back. LLVM
+    folds that round trip for a 2-level shape (row, column); for 3 levels it folded
+    only the inner pair and left a urem by the plane size n1 * n2 per element, which
+    is a mask (vectorised) for a power-of-two plane and a real urem (not vectorised)
+    otherwise. Measured, 3-D, F=5 filter: 48^3 87 ns/element vs 21 at 64^3, 96^3 69
+    vs 42 at 128^3 (the "non-power-of-two cliff"); 2-D grids never showed it. The
+    other axes' coordinates are then functions of the collapsed row index only (see
+    ``_coord``), computed once per row of the loop."""
+    shape = tuple(shape)
+    if len(shape) < 2:
+        return (rows,)
+    return (rows * math.prod(shape[1:-1]), shape[-1])
+
+
+def _coord(shape: Sequence[int], rows: int, k: int) -> jax.Array:
+    """The coordinate along axis ``k`` of every point of ``rows`` rows, in ``_view``'s
+    shape (for k = 0: the row index within the window)."""
+    shape = tuple(shape)
+    view = _view(shape, rows)
+    if len(shape) >= 2 and k == len(shape) - 1:
+        return lax.broadcasted_iota(jnp.int32, view, 1)
+    r = lax.broadcasted_iota(jnp.int32, view, 0)
+    r = r // math.prod(shape[k + 1:-1]) if k + 1 < len(shape) - 1 else r
+    return r if k == 0 else r % shape[k]
+
+
+def _window(a: jax.Array, start: int, rows: int, shape: Sequence[int]) -> jax.Array:
+    """``rows`` rows of a grid of ``shape``, in ``_view``'s shape, read from flat position
+    ``start`` of each channel of ``a`` (C, ...), e.g. from ``_pad_rows``: one contiguous
+    slice, whatever the offset."""
+    c = a.shape[0]
+    n = rows * math.prod(shape[1:])
     flat = a.reshape(c, -1)
-    n = rows * math.prod(inner)
-    return lax.slice(flat, (0, start), (c, start + n)).reshape((c, rows) + inner)
+    return lax.slice(flat, (0, start), (c, start + n)).reshape((c,) + _view(shape, rows))
 
 
 def _inner_ok(off: Sequence[int], shape: Sequence[int], rows: int):
     """Whether ``p + off`` stays on the grid along every inner axis (for ``rows`` rows of
-    ``p``), or None if no inner component is non-zero. A flat read that runs off an
-    inner axis lands in the neighbouring row instead; this is what rejects it."""
-    full = (rows,) + tuple(shape[1:])
+    ``p``, in ``_view``'s shape), or None if no inner component is non-zero. A flat
+    read that runs off an inner axis lands in the neighbouring row instead; this is
+    what rejects it."""
     ok = None
     for k in range(1, len(shape)):
         if off[k]:
-            i = lax.broadcasted_iota(jnp.int32, full, k) + off[k]
+            i = _coord(shape, rows, k) + off[k]
             t = (i >= 0) & (i < shape[k])
             ok = t if ok is None else ok & t
     return ok
@@ -243,15 +286,17 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int):
     f = grid.flat(off)
     rows = grid.n0 + h
     start = (lead - h) * grid.row
-    d2 = _channel_sq_dist(_window(gpad, start, rows), _window(gpad, start + f, rows))
-    i = lax.broadcasted_iota(jnp.int32, (rows,) + grid.shape[1:], 0) - h
+    d2 = _channel_sq_dist(_window(gpad, start, rows, grid.shape),
+                          _window(gpad, start + f, rows, grid.shape))
+    i = _coord(grid.shape, rows, 0) - h
     keep = (i >= 0) & (i < grid.n0 - off[0])             # p and p + off both on the grid
     inner = _inner_ok(off, grid.shape, rows)
     if inner is not None:
         keep = keep & inner
     if vpad is not None:
-        keep = keep & (_window(vpad, start, rows)[0] > 0) & (_window(vpad, start + f, rows)[0] > 0)
-    return _weight(d2, sigma_d, keep)[None]
+        keep = (keep & (_window(vpad, start, rows, grid.shape)[0] > 0)
+                & (_window(vpad, start + f, rows, grid.shape)[0] > 0))
+    return _weight(d2, sigma_d, keep).reshape(1, -1)    # (1, L): read by _window only
 
 
 def _opaque_one(a: jax.Array) -> jax.Array:
@@ -262,8 +307,8 @@ def _opaque_one(a: jax.Array) -> jax.Array:
 def _pass(grid: _Grid, x, pairs, h0, valid, weights):
     """One normalised bilateral pass over planar arrays.
 
-    x: (C, *S) fields (zero where invalid); pairs: [(offset, tap)] for one of each
-    pair +o / -o; valid: (*S) float 0/1 or None; weights(off, dep): E from
+    x: (C, *view) fields, view = _view(S, n0) (zero where invalid); pairs: [(offset,
+    tap)] for one of each pair +o / -o; valid: (*view) float 0/1 or None; weights(off, dep): E from
     ``_pair_weights``, where ``dep`` (an exact 0.0) ties its computation to a point in
     the pass (see ``_after``), so only a chunk's weights are alive at a time.
 
@@ -273,8 +318,9 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights):
     """
     n0, row = grid.n0, grid.row
     r = max(grid.halo(off) for off, _ in pairs)
-    xpad = _pad_rows(x, r, r)
-    centre = _window(xpad, r * row, n0)
+    xpad = _pad_rows(x, r, r, grid.shape)
+    read = functools.partial(_window, rows=n0, shape=grid.shape)
+    centre = read(xpad, r * row)
     num = h0 * centre
     den = h0 if valid is None else h0 * valid
     # Reads that wrap across an inner axis have weight 0, but 0 * inf is NaN: zero
@@ -295,10 +341,10 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights):
             chunk = weights([o for o, _ in pairs[k:k + _CHUNK]], dep)
         e, h = chunk[off]
         f = grid.flat(off)
-        w_plus = tap * _window(e, h * row, n0)[0]
-        w_minus = tap * _window(e, h * row - f, n0)[0]
-        for inner, term in ((tuple(off[1:]), w_plus * _window(xpad, r * row + f, n0)),
-                            (tuple(-o for o in off[1:]), w_minus * _window(xpad, r * row - f, n0))):
+        w_plus = tap * read(e, h * row)[0]
+        w_minus = tap * read(e, h * row - f)[0]
+        for inner, term in ((tuple(off[1:]), w_plus * read(xpad, r * row + f)),
+                            (tuple(-o for o in off[1:]), w_minus * read(xpad, r * row - f))):
             groups[inner] = term if inner not in groups else groups[inner] + term
         den = den + w_plus + w_minus
         if (k + 1) % _CHUNK == 0 and k + 1 < len(pairs):
@@ -339,14 +385,19 @@ _CHUNK = 6
 
 
 def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
-    """All levels on planar arrays: x (C, *S) zero where invalid, g (G, *S)."""
-    grid = _Grid(x.shape[1:])
+    """All levels on planar arrays: x (C, *S) or (C, *_view(S, n0)) zero where invalid,
+    g (G, *S). Returns (C, *S)."""
+    grid = _Grid(g.shape[1:])
     lead = max([grid.halo(off) for i in range(levels)
                 for pairs, _ in _level_passes(grid.shape, 2 ** i, separable)
                 for off, _ in pairs] or [0])
     # Zero rows in front for the weights' halo, and behind for the reads p + off.
-    gpad = _pad_rows(g, lead, lead)
-    vpad = None if valid is None else _pad_rows(valid[None], lead, lead)
+    gpad = _pad_rows(g, lead, lead, grid.shape)
+    vpad = None if valid is None else _pad_rows(valid[None], lead, lead, grid.shape)
+    # Every kernel works in _view's shape (the fastest axis, and all others collapsed).
+    view = _view(grid.shape, grid.n0)
+    x = x.reshape(x.shape[:1] + view)
+    valid = None if valid is None else valid.reshape(view)
     cache = {}
 
     def weights(offs, dep):
@@ -366,7 +417,7 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
     for i in range(levels):
         for pairs, h0 in _level_passes(grid.shape, 2 ** i, separable):
             x = _pass(grid, x, pairs, h0, valid, weights)
-    return x
+    return x.reshape(x.shape[:1] + grid.shape)
 
 
 def _level_passes(shape: Sequence[int], stride: int, separable: bool):
@@ -505,7 +556,9 @@ def _atrous_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable
         chan = tuple(a for a in range(f.ndim) if a not in axes)
         p = jnp.transpose(f, chan + axes).astype(compute)
         cshape = tuple(f.shape[a] for a in chan)
-        planes.append(p.reshape((-1,) + spatial_shape))
+        # In _view's shape already: a reshape between the concatenation and the first
+        # pass's padding stops XLA fusing them (3-D 128^3: one extra copy, +5 ms).
+        planes.append(p.reshape((-1,) + _view(spatial_shape, spatial_shape[0])))
         restore.append((f.dtype, chan + axes, cshape))
     x = jnp.concatenate(planes, axis=0) if len(planes) > 1 else planes[0]
     g_chan = tuple(a for a in range(guide.ndim) if a not in g_axes)
@@ -517,7 +570,7 @@ def _atrous_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable
     valid = None
     if mask is not None:
         valid = mask.astype(compute)
-        x = jnp.where(mask, x, 0)                       # also drops NaN/Inf at masked entries
+        x = jnp.where(mask.reshape(x.shape[1:]), x, 0)  # also drops NaN/Inf at masked entries
 
     x = _filter_planar(x, g, valid, sigma, levels, separable)
     if valid is not None:
