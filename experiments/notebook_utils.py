@@ -488,6 +488,44 @@ def plot_metric(ax, curves: Mapping[str, np.ndarray], *, ylabel: str, log_y: boo
     ax.legend(fontsize=7)
 
 
+def sweep_rows(runs: Mapping[str, "Runs"], extra: Callable | None = None) -> list[dict]:
+    """One table row per method and learning rate of a sweep, the best marked ``*``.
+
+    ``extra(name, runs, i)`` may add columns (a dict), placed before ``best``.
+    """
+    rows = []
+    for name, r in runs.items():
+        for i in range(len(r)):
+            row = {"method": name, "learning rate": float(r.hyperparams["learning_rate"][i]),
+                   "final param error": float(r.final_error()[i]),
+                   "image loss (low-noise render)": float(r.image_loss[i])}
+            if extra is not None:
+                row.update(extra(name, r, i))
+            row["best"] = "*" if i == r.best() else ""
+            rows.append(row)
+    return rows
+
+
+def sweep_report(problem: TextureProblem, timing, rows: Sequence[Mapping[str, Any]]) -> str:
+    """Markdown: the start error, the run time and the sweep table."""
+    return (f"Initial param error {problem.initial_error:.4f}; {timing.seconds:.1f} s for all "
+            f"runs ({timing.compile_seconds:.1f} s of it compilation).\n\n" + table(rows))
+
+
+def plot_best_curves(best: Mapping[str, "Runs"], suptitle: str):
+    """Training loss and parameter error of each method's best run, side by side."""
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    plot_metric(axes[0], {k: v.metrics["loss"][0] for k, v in best.items()},
+                ylabel="training loss (1 spp, moving average of 5)", smooth_width=5,
+                title="loss, best learning rate of each")
+    plot_metric(axes[1], {k: v.metrics["param_error"][0] for k, v in best.items()},
+                ylabel="mean |α − α_target|", title="parameter error")
+    fig.suptitle(suptitle)
+    fig.tight_layout()
+    return fig
+
+
 def show_roughness(ax, alpha, title: str = "") -> None:
     """A roughness texture on the log colour scale of the targets."""
     from matplotlib.colors import LogNorm

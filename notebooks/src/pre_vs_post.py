@@ -90,25 +90,11 @@ methods["Adam (b1=0.9, b2=0.999)"] = nu.Method(
 prob = nu.texture_problem(SIZE, reference_spp=REFERENCE_SPP, eval_spp=EVAL_SPP)
 runs, timing = nu.run_texture(prob, methods, ITERATIONS)
 best = {name: r.select(r.best(), name) for name, r in runs.items()}
-rows = []
-for name, r in runs.items():
-    for i in range(len(r)):
-        rows.append({"method": name, "learning rate": float(r.hyperparams["learning_rate"][i]),
-                     "final param error": float(r.final_error()[i]),
-                     "image loss (low-noise render)": float(r.image_loss[i]),
-                     "best": "*" if i == r.best() else ""})
-display(Markdown(f"Initial param error {prob.initial_error:.4f}; {timing.seconds:.1f} s for all "
-                 f"runs ({timing.compile_seconds:.1f} s of it compilation).\n\n" + nu.table(rows)))
+rows = nu.sweep_rows(runs)
+display(Markdown(nu.sweep_report(prob, timing, rows)))
 
 # %%
-fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-nu.plot_metric(axes[0], {k: v.metrics["loss"][0] for k, v in best.items()},
-               ylabel="training loss (1 spp, moving average of 5)", smooth_width=5,
-               title="loss, best learning rate of each")
-nu.plot_metric(axes[1], {k: v.metrics["param_error"][0] for k, v in best.items()},
-               ylabel="mean |α − α_target|", title="parameter error")
-fig.suptitle(f"β1 = {B1}, β2 = {B2:.2f}, texture {SIZE}²")
-fig.tight_layout()
+fig = nu.plot_best_curves(best, f"β1 = {B1}, β2 = {B2:.2f}, texture {SIZE}²")
 print(nu.save_figure(fig, "pre_vs_post_curves"))
 plt.show()
 
