@@ -119,7 +119,7 @@ def normalize_axes(spatial_axes, ndim: int, name: str = "spatial_axes") -> tuple
     return tuple(out)
 
 
-def _weight(d2: jax.Array, sigma_d: jax.Array, keep=None) -> jax.Array:
+def _weight(d2: jax.Array, sigma_d: jax.Array, keep=None, *, is_dist: bool = False) -> jax.Array:
     """exp(-sqrt(d2) / sigma_d), with equal guides weighing 1 for every sigma_d.
 
     Written so that sigma_d = 0 (only equal guides), sigma_d = inf (all 1), an
@@ -130,10 +130,10 @@ def _weight(d2: jax.Array, sigma_d: jax.Array, keep=None) -> jax.Array:
     they need) inside every consumer.
     """
     pos = d2 > 0
-    dist = jnp.sqrt(jnp.where(pos, d2, 1.0))
+    dist = jnp.where(pos, d2, 1.0) if is_dist else jnp.sqrt(jnp.where(pos, d2, 1.0))
     s_pos = sigma_d > 0
     s_safe = jnp.where(s_pos, sigma_d, 1.0)
-    arg = -dist / s_safe
+    arg = dist * (-1.0 / s_safe)                          # one scalar divide, not one per element
     arg = jnp.where(s_pos, arg, -jnp.inf)                 # sigma_d = 0: unequal guides get 0
     arg = jnp.where(jnp.isposinf(sigma_d), 0.0, arg)      # inf/inf would be NaN
     arg = jnp.where(pos, arg, 0.0)                        # equal guides: 1 for any sigma_d
@@ -286,8 +286,9 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int):
     f = grid.flat(off)
     rows = grid.n0 + h
     start = (lead - h) * grid.row
-    d2 = _channel_sq_dist(_window(gpad, start, rows, grid.shape),
-                          _window(gpad, start + f, rows, grid.shape))
+    a, b = _window(gpad, start, rows, grid.shape), _window(gpad, start + f, rows, grid.shape)
+    one = a.shape[0] == 1                                 # one guide channel: |a - b|, no sqrt
+    d2 = jnp.abs(a[0] - b[0]) if one else _channel_sq_dist(a, b)
     i = _coord(grid.shape, rows, 0) - h
     keep = (i >= 0) & (i < grid.n0 - off[0])             # p and p + off both on the grid
     inner = _inner_ok(off, grid.shape, rows)
@@ -296,7 +297,7 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int):
     if vpad is not None:
         keep = (keep & (_window(vpad, start, rows, grid.shape)[0] > 0)
                 & (_window(vpad, start + f, rows, grid.shape)[0] > 0))
-    return _weight(d2, sigma_d, keep).reshape(1, -1)    # (1, L): read by _window only
+    return _weight(d2, sigma_d, keep, is_dist=one).reshape(1, -1)    # (1, L): read by _window only
 
 
 def _opaque_one(a: jax.Array) -> jax.Array:
