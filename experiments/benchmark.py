@@ -657,11 +657,12 @@ def aggregate_targets(per_process: Sequence[Sequence[Mapping]]) -> list[dict]:
     return out
 
 
-def repeated_targets(out: pathlib.Path, quick: bool, processes: int) -> dict:
+def repeated_targets(out: pathlib.Path, quick: bool, processes: int) -> list[dict]:
     """:func:`target_measurements` in ``processes`` fresh Python processes, one after another.
 
     Why: the same compiled program can run at two speeds for a whole process on this
-    machine (BENCHMARKS.md, "Two speeds"), so one process's ratios can be 3x off. Each
+    machine (BENCHMARKS.md, "Targets over fresh processes"), so one process's ratios can
+    be 3x off. Each
     worker times everything side by side, as the overhead section does; the targets are
     then checked on the median over processes. The workers share a persistent
     compilation cache in ``out/jax_cache`` (compile time is not measured here).
@@ -669,17 +670,14 @@ def repeated_targets(out: pathlib.Path, quick: bool, processes: int) -> dict:
     env = dict(os.environ)
     env.setdefault("JAX_COMPILATION_CACHE_DIR", str((out / "jax_cache").resolve()))
     env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-    per_process, measured = [], []
+    per_process = []
     for i in tqdm(range(processes), desc="target processes"):
         d = out / "processes" / str(i)
         cmd = [sys.executable, "-m", "experiments.benchmark", "--worker", "--out", str(d)]
         subprocess.run(cmd + (["--quick"] if quick else []), check=True, env=env,
                        cwd=pathlib.Path(__file__).resolve().parent.parent)
-        data = json.loads((d / "measurements.json").read_text())
-        measured.append(data)
-        per_process.append(data["targets"])
-    rows = aggregate_targets(per_process)
-    return {"rows": rows, "processes": processes, "measurements": measured}
+        per_process.append(json.loads((d / "measurements.json").read_text())["targets"])
+    return aggregate_targets(per_process)
 
 
 def _targets_md(rows: Sequence[Mapping]) -> str:
@@ -732,8 +730,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
           "Machine: " + ", ".join(f"{k}={v}" for k, v in info.items()), ""]
     if "overhead" in results:
         if args.processes > 1:
-            rep = repeated_targets(out, quick, args.processes)
-            checked = rep["rows"]
+            checked = repeated_targets(out, quick, args.processes)
             note = (f"Median over {args.processes} fresh processes, each timing everything "
                     "side by side (`--processes`); `met in`: processes where the target held.")
         else:

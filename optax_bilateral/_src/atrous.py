@@ -122,6 +122,8 @@ def normalize_axes(spatial_axes, ndim: int, name: str = "spatial_axes") -> tuple
 def _weight(d2: jax.Array, sigma_d: jax.Array, keep=None, *, is_dist: bool = False) -> jax.Array:
     """exp(-sqrt(d2) / sigma_d), with equal guides weighing 1 for every sigma_d.
 
+    With ``is_dist``, ``d2`` already is the distance (one guide channel: ``|a - b|``).
+
     Written so that sigma_d = 0 (only equal guides), sigma_d = inf (all 1), an
     overflowing d2 and reverse-mode derivatives at d2 = 0 are all well defined.
     ``keep`` (bool, optional) zeroes the weight where False. Every case is decided
