@@ -258,6 +258,33 @@ def test_nonfinite_texel_does_not_poison_neighbours_or_state(bad):
     np.testing.assert_allclose(np.asarray(u), np.asarray(u_m), rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("prefilter", [False, True])
+def test_finite_gradients_build_no_observation_mask(prefilter):
+    """The unobserved-texel masks belong to the masked branch: a finite step must not
+    pay for them (a cond's closed-over values are computed before it, every step)."""
+    theta = jax.random.uniform(KEY, (16, 16, 3))
+    opt = ob.bilateral_adam(0.1, levels=2, prefilter=prefilter)
+    jaxpr = jax.make_jaxpr(opt.update)(_grads(0, theta), opt.init(theta), theta).jaxpr
+
+    def top_level_prims(jx):
+        """Primitives that run on every call: everything but the cond branches."""
+        out = []
+        for eqn in jx.eqns:
+            out.append(eqn.primitive.name)
+            if eqn.primitive.name == "cond":
+                continue                      # the branches: only one of them runs
+            for v in eqn.params.values():
+                for sub in (v if isinstance(v, (tuple, list)) else (v,)):
+                    sub = getattr(sub, "jaxpr", sub)
+                    if hasattr(sub, "eqns"):
+                        out += top_level_prims(sub)
+        return out
+
+    prims = top_level_prims(jaxpr)
+    assert "cond" in prims
+    assert "is_finite" not in top_level_prims(jaxpr)
+
+
 # --- Interop ------------------------------------------------------------------------------
 
 

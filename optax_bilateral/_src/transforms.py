@@ -230,6 +230,8 @@ def _with_mask(fn_fast, fn_masked, g, lim, operands):
 
     The fast branch is the plain formula, compiled exactly as before the clip existed.
     """
+    # (jnp.max(jnp.abs(g)) <= lim, one reduction instead of a compare and two, measured
+    # 2-D update -1..-5% but 3-D 64^3 separable +8..17%: not used.)
     return lax.cond(jnp.all(jnp.abs(g) <= lim), lambda ops: fn_fast(ops),
                     lambda ops: fn_masked(ops), operands)
 
@@ -292,7 +294,6 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
             if not spec.axes:
                 out.append(g)
                 continue
-            observed = _observed(g, spec.axes, mask_unobserved)
             # |A g| <= max|g| in exact arithmetic; the margin keeps the float sums finite too.
             lim = min(float(jnp.finfo(jnp.promote_types(g.dtype, jnp.float32)).max) / 4,
                       float(jnp.finfo(g.dtype).max))
@@ -303,8 +304,11 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
                     return _filter_self((g,), spec, separable, None, log_guide)[0]
                 return _filter(g, gd, spec, separable, None)
 
-            def masked(ops, spec=spec, observed=observed, lim=lim):
+            def masked(ops, spec=spec, lim=lim):
                 g, gd = ops
+                # Inside the branch: built only when the branch runs (a cond's closed-over
+                # values are computed before it, on every step).
+                observed = _observed(g, spec.axes, mask_unobserved)
                 obs = lv.expand_mask(observed, g.ndim, spec.axes)
                 g0 = jnp.clip(jnp.where(obs, g, 0), -lim, lim)
                 if guide == "self":
@@ -465,14 +469,14 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
                     return _filter_self((m, v), spec, separable, mask, log_guide)
                 return _filter((m, v), gd, spec, separable, mask)
 
-            if spec.axes:
-                observed = _observed(g, spec.axes, mask_unobserved)
-                obs_full = lv.expand_mask(observed, g.ndim, spec.axes)
-            else:
+            def observed_masks(g, spec=spec):
+                if spec.axes:
+                    observed = _observed(g, spec.axes, mask_unobserved)
+                    return observed, lv.expand_mask(observed, g.ndim, spec.axes)
                 obs_full = jnp.isfinite(g)
                 if mask_unobserved:
                     obs_full = obs_full & (g != 0)
-                observed = obs_full
+                return obs_full, obs_full
 
             def fast(ops, filt=filt, moments=moments, step=step):
                 g, m_old, v_old = ops
@@ -480,9 +484,12 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
                 mf, vf = filt(m, v, None)
                 return step(mf, vf).astype(g.dtype), m, v
 
-            def masked(ops, filt=filt, moments=moments, step=step, obs_full=obs_full,
-                       observed=observed, spec=spec, ct=ct, lim=lim):
+            def masked(ops, filt=filt, moments=moments, step=step, observed_masks=observed_masks,
+                       spec=spec, ct=ct, lim=lim):
                 g, m_old, v_old = ops
+                # Inside the branch: built only when the branch runs (a cond's closed-over
+                # values are computed before it, on every step).
+                observed, obs_full = observed_masks(g)
                 g0 = jnp.where(obs_full, g, 0)
                 m, v = moments(g0, m_old, v_old, lim=lim)
                 if not memoryless:
