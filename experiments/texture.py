@@ -130,21 +130,32 @@ def fixed_hyperparameters(method: str, cfg: Config) -> dict:
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("opt", "spp", "spp_grad", "barrier"))
-def _step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad, barrier=False):
-    alpha, state = carry
+@functools.partial(jax.jit, static_argnames=("spp", "spp_grad"))
+def _loss_and_grad(alpha, i, scene, reference, base_key, *, spp, spp_grad):
+    """Render (``spp``), loss and gradient (``spp_grad``); one program shared by all methods."""
     key = jax.random.fold_in(base_key, i)        # one key per iteration, shared by all methods
 
     def loss(a):
         return tex.loss_fn(tex.render(a, scene, key, spp, spp_grad), reference)
 
-    value, grad = jax.value_and_grad(loss)(alpha)
-    if barrier:
-        # Keep XLA from fusing the update into the gradient's computation (benchmarks).
-        grad = jax.lax.optimization_barrier(grad)
+    return jax.value_and_grad(loss)(alpha)
+
+
+@functools.partial(jax.jit, static_argnames=("opt",))
+def _apply(grad, carry, target, *, opt):
+    """The optimizer's update and the clip to the renderer's roughness range."""
+    alpha, state = carry
     updates, state = opt.update(grad, state, alpha)
     alpha = jnp.clip(optax.apply_updates(alpha, updates), tex.ALPHA_MIN, tex.ALPHA_MAX)
-    return (alpha, state), {"loss": value, "param_error": jnp.mean(jnp.abs(alpha - target))}
+    return (alpha, state), jnp.mean(jnp.abs(alpha - target))
+
+
+@functools.partial(jax.jit, static_argnames=("opt", "spp", "spp_grad"))
+def _fused_step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad):
+    value, grad = _loss_and_grad(carry[0], i, scene, reference, base_key, spp=spp,
+                                 spp_grad=spp_grad)
+    carry, err = _apply(grad, carry, target, opt=opt)
+    return carry, {"loss": value, "param_error": err}
 
 
 class Problem:
@@ -162,17 +173,27 @@ class Problem:
         self.init = jnp.full((cfg.size, cfg.size), cfg.init_alpha, jnp.float32)
         self.final_images: dict[str, jax.Array] = {}
 
-    def step_fn(self, opt, barrier: bool = False):
-        """``step(carry, i)``: render, gradient, update and clip, in one jitted program.
+    def step_fn(self, opt, fused: bool = False):
+        """``step(carry, i)``: render and gradient, then update and clip.
 
-        ``barrier=True`` puts an optimisation barrier between the gradient and the update,
-        so that XLA compiles the two as it would separately (the benchmark times both).
+        Two compiled programs: the render and gradient (compiled once, shared by every
+        method) and the method's update. ``fused=True`` compiles both into one program
+        instead; XLA then compiles the render differently for every optimizer, which
+        moved its time by up to ~15% between methods (BENCHMARKS.md), so the experiment
+        and its timings use the two programs.
         """
         cfg = self.cfg
+        if fused:
+            def step(carry, i):
+                return _fused_step(carry, i, self.scene, self.reference, self.target,
+                                   self.base_key, opt=opt, spp=cfg.spp, spp_grad=cfg.spp_grad)
+            return step
 
         def step(carry, i):
-            return _step(carry, i, self.scene, self.reference, self.target, self.base_key,
-                         opt=opt, spp=cfg.spp, spp_grad=cfg.spp_grad, barrier=barrier)
+            value, grad = _loss_and_grad(carry[0], i, self.scene, self.reference, self.base_key,
+                                         spp=cfg.spp, spp_grad=cfg.spp_grad)
+            carry, err = _apply(grad, carry, self.target, opt=opt)
+            return carry, {"loss": value, "param_error": err}
         return step
 
     def evaluate(self, run_id: str):
