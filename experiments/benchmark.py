@@ -547,6 +547,15 @@ def _plot_scaling(rows, path, ours):
 
 # --------------------------------------------------------------------------- (d) compile
 
+def _temp_mb(compiled) -> float:
+    """XLA's planned temporary memory of a compiled program, in MiB (NaN if not reported).
+
+    On CPU this is one allocation per call; above glibc's largest mmap threshold (32 MiB)
+    it is mapped and page-faulted afresh on every call (BENCHMARKS.md, "Allocator")."""
+    m = compiled.memory_analysis()
+    return float("nan") if m is None else m.temp_size_in_bytes / 2 ** 20
+
+
 def compile_times(out: pathlib.Path, quick: bool) -> dict:
     if quick:
         cases = [("texture 16x16x3", (16, 16, 3), 1, True)]
@@ -568,10 +577,10 @@ def compile_times(out: pathlib.Path, quick: bool) -> dict:
             t0 = time.perf_counter()
             lowered = prog.lower(grad, state, params)
             t1 = time.perf_counter()
-            lowered.compile()
+            compiled = lowered.compile()
             t2 = time.perf_counter()
             rows.append({"grid": name, "method": label, "trace + lower s": t1 - t0,
-                         "compile s": t2 - t1})
+                         "compile s": t2 - t1, "temp MB": _temp_mb(compiled)})
     # No recompilation: steps (count changes) and a traced sigma_d schedule.
     shape = (8, 8, 3) if quick else (128, 128, 3)
     params, grad = _arrays(shape)
@@ -590,7 +599,7 @@ def compile_times(out: pathlib.Path, quick: bool) -> dict:
              "no recompilation": int(step._cache_size()) == 1}
     data = {"rows": rows, "recompile_check": check}
     md = "\n".join([
-        "### Compile time of one update step (jit(opt.update), cold)", "",
+        "### Compile time of one update step (jit(opt.update), cold), and its planned temporary memory", "",
         _md([{k: _fmt(v) for k, v in r.items()} for r in rows]), "",
         f"Recompilation check: `optax.inject_hyperparams(bilateral_adam, static_args=(\"levels\",))` "
         f"with a decaying sigma_d schedule and a learning-rate schedule, {check['steps']} steps on "

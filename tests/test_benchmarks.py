@@ -7,6 +7,7 @@ shared machine). What is asserted are properties that hold whatever the timing.
 import json
 
 import numpy as np
+import pytest
 
 from experiments import benchmark
 
@@ -46,7 +47,6 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
 
 
 def test_unknown_section_is_a_clear_error(tmp_path):
-    import pytest
     with pytest.raises(ValueError, match="--only"):
         benchmark.main(["--quick", "--out", str(tmp_path), "--only", "overhead,nope"])
 
@@ -84,7 +84,6 @@ def test_targets_over_processes_take_the_median_and_count_where_met():
 
 
 def test_processes_run_fresh_workers_and_write_their_measurements(tmp_path, monkeypatch):
-    import pytest
     monkeypatch.setenv("OPTAX_BILATERAL_QUICK", "1")
     with pytest.raises(ValueError, match="--processes"):
         benchmark.main(["--quick", "--out", str(tmp_path), "--only", "compile", "--processes", "0"])
@@ -97,3 +96,17 @@ def test_processes_run_fresh_workers_and_write_their_measurements(tmp_path, monk
     assert isinstance(result["targets"], list)
     assert "Median over 2 fresh processes" in (tmp_path / "targets.md").read_text()
     assert "--processes 2" in result["machine"]["command"]
+
+
+def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
+    from experiments import ab_update
+    summary = ab_update.main(["--quick", "--rev", "HEAD", "--shape", "16x16x1", "--levels", "1",
+                              "--out", str(tmp_path)])
+    (row,) = summary["rows"]
+    for k in ("adam ms", "old ms", "new ms", "new / old"):
+        assert np.isfinite(row[k]) and row[k] > 0
+    assert (tmp_path / "ab_update.json").exists() and (tmp_path / "ab_update.md").exists()
+    with pytest.raises(ValueError, match="--shape"):
+        ab_update.main(["--quick", "--shape", "16", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match="--rev"):
+        ab_update.main(["--quick", "--rev", "no-such-revision", "--out", str(tmp_path)])
