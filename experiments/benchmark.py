@@ -216,9 +216,10 @@ def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[
     Each method is timed twice: as the experiment runs it (``split``: the render and
     gradient, one program shared by every method, then the method's update program)
     and as one program (``fused``: XLA may fuse the update into the gradient's
-    computation, but it also compiles the render anew for every optimizer, which moved
-    the render's time by up to ~15% between methods). The target uses ``split``: there
-    the methods differ by their update only.
+    computation, but it also compiles the render anew for every optimizer; with glibc's
+    default allocator these programs' times differed by up to 25% for reasons unrelated
+    to the update). The target uses ``split``: there the methods differ by their update
+    only.
     """
     from experiments import texture as texp
     cfg = texp.default_config(quick)

@@ -178,9 +178,10 @@ class Problem:
 
         Two compiled programs: the render and gradient (compiled once, shared by every
         method) and the method's update. ``fused=True`` compiles both into one program
-        instead; XLA then compiles the render differently for every optimizer, which
-        moved its time by up to ~15% between methods (BENCHMARKS.md), so the experiment
-        and its timings use the two programs.
+        instead (and the render with it, for every optimizer); with glibc's default
+        allocator the fused programs' times differed by up to 25% between optimizers for
+        reasons unrelated to the update (page faults, BENCHMARKS.md "Two speeds"), so the
+        experiment and its timings use the two programs.
         """
         cfg = self.cfg
         if fused:
