@@ -122,9 +122,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.quick:
         args.repeats, args.rounds, args.inner = 1, 1, 1
     with tempfile.TemporaryDirectory() as tmp:
-        old = export_revision(args.rev, pathlib.Path(tmp))
-        rows = compare(old, shape, args.levels, not args.full, args.log_guide, args.repeats,
-                       args.rounds, args.inner)
+        try:
+            old = export_revision(args.rev, pathlib.Path(tmp))
+            rows = compare(old, shape, args.levels, not args.full, args.log_guide,
+                           args.repeats, args.rounds, args.inner)
+        finally:                                # the folder is deleted: forget it
+            if tmp in sys.path:
+                sys.path.remove(tmp)
     summary = {"rev": args.rev, "shape": shape, "levels": args.levels,
                "separable": not args.full, "log_guide": args.log_guide, "rows": rows,
                "new / old (median)": float(np.median([r["new / old"] for r in rows])),

@@ -210,6 +210,10 @@ def _texture_problem(cfg):
     return _PROBLEMS[key]
 
 
+# How the texture experiment runs a step (first: its default, which the target uses).
+TEXTURE_STEP_KINDS = ("split", "fused")
+
+
 def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[dict]:
     """Per-iteration time of the texture experiment at its default settings.
 
@@ -250,10 +254,6 @@ def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[
             rows.append({"scene": scene, "method": name, "step": kind, "ms per iteration": 1e3 * t,
                          "% vs Adam": 100.0 * (t / spi[("Adam", kind)] - 1.0)})
     return rows
-
-
-# How the texture experiment runs a step (first: its default, which the target uses).
-TEXTURE_STEP_KINDS = ("split", "fused")
 
 
 def volume_iterations(quick: bool, repeats: int, steps: int, levels: Sequence[int]) -> list[dict]:
@@ -552,7 +552,7 @@ def _temp_mb(compiled) -> float:
     """XLA's planned temporary memory of a compiled program, in MiB (NaN if not reported).
 
     On CPU this is one allocation per call; above glibc's largest mmap threshold (32 MiB)
-    it is mapped and page-faulted afresh on every call (BENCHMARKS.md, "Allocator")."""
+    it is mapped and page-faulted afresh on every call (BENCHMARKS.md, "Two speeds: the allocator")."""
     m = compiled.memory_analysis()
     return float("nan") if m is None else m.temp_size_in_bytes / 2 ** 20
 

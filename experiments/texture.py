@@ -150,12 +150,15 @@ def _apply(grad, carry, target, *, opt):
     return (alpha, state), jnp.mean(jnp.abs(alpha - target))
 
 
-@functools.partial(jax.jit, static_argnames=("opt", "spp", "spp_grad"))
-def _fused_step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad):
+def _step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad):
+    """One iteration: two compiled programs, or one when called under ``jax.jit``."""
     value, grad = _loss_and_grad(carry[0], i, scene, reference, base_key, spp=spp,
                                  spp_grad=spp_grad)
     carry, err = _apply(grad, carry, target, opt=opt)
     return carry, {"loss": value, "param_error": err}
+
+
+_fused_step = jax.jit(_step, static_argnames=("opt", "spp", "spp_grad"))
 
 
 class Problem:
@@ -184,17 +187,11 @@ class Problem:
         experiment and its timings use the two programs.
         """
         cfg = self.cfg
-        if fused:
-            def step(carry, i):
-                return _fused_step(carry, i, self.scene, self.reference, self.target,
-                                   self.base_key, opt=opt, spp=cfg.spp, spp_grad=cfg.spp_grad)
-            return step
+        run = _fused_step if fused else _step
 
         def step(carry, i):
-            value, grad = _loss_and_grad(carry[0], i, self.scene, self.reference, self.base_key,
-                                         spp=cfg.spp, spp_grad=cfg.spp_grad)
-            carry, err = _apply(grad, carry, self.target, opt=opt)
-            return carry, {"loss": value, "param_error": err}
+            return run(carry, i, self.scene, self.reference, self.target, self.base_key,
+                       opt=opt, spp=cfg.spp, spp_grad=cfg.spp_grad)
         return step
 
     def evaluate(self, run_id: str):
