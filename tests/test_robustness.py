@@ -552,3 +552,19 @@ def test_guide_scale_invariance_up_to_float_max(scale):
     small = ob.atrous_bilateral(x, jnp.asarray(g * 2.0 ** 50, jnp.float32), sigma_d=0.3 * 2.0 ** 50,
                                 **kw)
     np.testing.assert_allclose(np.asarray(small), np.asarray(ref), rtol=2e-5, atol=2e-6)
+
+
+def test_one_channel_guide_at_float_max_needs_no_rescale():
+    # One guide channel takes the distance |a - b| without a square or a rescaling pass;
+    # |a - b| = 6e38 would overflow float32 unless halved (atrous._pair_weights).
+    x = jnp.asarray([0.0, 1.0])
+    out = ob.atrous_bilateral(x, jnp.asarray([3e38, -3e38], jnp.float32), sigma_d=1e38, levels=1,
+                              spatial_axes=(0,))
+    w = np.exp(-6.0)                      # exp(-|a - b| / sigma_d), float64
+    ref = [(0.25 * w) / (0.375 + 0.25 * w), 0.375 / (0.375 + 0.25 * w)]
+    # float32 rounding of the guide and of the weight's exponent: ~1e-6 relative.
+    np.testing.assert_allclose(np.asarray(out), ref, rtol=1e-5)
+    # The same guide as a 2-channel guide (second channel 0) takes the rescaling path.
+    g2 = jnp.asarray([[3e38, -3e38], [0.0, 0.0]], jnp.float32)
+    out2 = ob.atrous_bilateral(x, g2, sigma_d=1e38, levels=1, spatial_axes=(0,), guide_axes=(1,))
+    np.testing.assert_allclose(np.asarray(out2), np.asarray(out), rtol=1e-5)
