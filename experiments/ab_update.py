@@ -78,13 +78,18 @@ def optimizer(lib, levels: int, separable: bool, log_guide: bool):
         log_guide=log_guide)
 
 
-def compare(old_lib, shape, levels: int, separable: bool, log_guide: bool, repeats: int,
-            rounds: int, inner: int) -> list[dict]:
-    """``repeats`` rows of side-by-side medians: adam, old and new updates (ms), ratios."""
+def arrays(shape):
+    """(params, grad) of ``shape`` (``HxW``: one 2-D leaf) with positive params."""
     params, grad = bm._arrays(shape if len(shape) > 2 else shape + (1,))
     if len(shape) == 2:
         params, grad = params[..., 0], grad[..., 0]
-    params = abs(params) + 0.05                     # positive: the log guide is defined
+    return abs(params) + 0.05, grad                 # positive: the log guide is defined
+
+
+def compare(old_lib, shape, levels: int, separable: bool, log_guide: bool, repeats: int,
+            rounds: int, inner: int) -> list[dict]:
+    """``repeats`` rows of side-by-side medians: adam, old and new updates (ms), ratios."""
+    params, grad = arrays(shape)
     opts = {"adam": optax.adam(1e-2),
             "old": optimizer(old_lib, levels, separable, log_guide),
             "new": optimizer(ob, levels, separable, log_guide)}

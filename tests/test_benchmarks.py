@@ -110,3 +110,20 @@ def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
         ab_update.main(["--quick", "--shape", "16", "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="--rev"):
         ab_update.main(["--quick", "--rev", "no-such-revision", "--out", str(tmp_path)])
+
+
+def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
+    from experiments import profile_update
+    result = profile_update.main(["--quick", "--shape", "16x16", "--levels", "2", "--log-guide",
+                                  "--out", str(tmp_path)])
+    adam, ours = result["programs"]["adam"], result["programs"]["ours"]
+    # The filter's weights (exp kernels) and passes run in ours only, every traced call.
+    assert any("exponential" in f for f in ours["families"])
+    assert not any("exponential" in f for f in adam["families"])
+    assert ours["kernels run per call"] > adam["kernels run per call"] >= 1
+    for p in (adam, ours):
+        assert p["traced kernel ms per call"] > 0 and p["untraced ms (median)"] > 0
+        assert abs(sum(v["share"] for v in p["families"].values()) - 1.0) < 1e-9
+    assert (tmp_path / "profile.json").exists() and (tmp_path / "profile.md").exists()
+    with pytest.raises(ValueError, match="--calls"):
+        profile_update.main(["--quick", "--calls", "0", "--out", str(tmp_path)])
