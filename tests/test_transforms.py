@@ -373,3 +373,27 @@ def test_vmap_over_independent_problems():
     for i in range(3):
         ui, _ = jax.jit(opt.update)(gs[i], opt.init(thetas[i]), thetas[i])
         np.testing.assert_allclose(np.asarray(u[i]), np.asarray(ui), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("separable", [True, False])
+@pytest.mark.parametrize("guide_kind", ["spatial", "channels", "integer"])
+def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kind):
+    # The transforms leave unobserved texels out of the sums with a NaN guide there (one
+    # program for both branches of their lax.cond); at observed texels that must equal
+    # atrous_bilateral's mask. An integer guide has no NaN: it falls back to the mask.
+    from optax_bilateral._src import leaves as lv, transforms as tr
+    k1, k2, k3 = jax.random.split(KEY, 3)
+    m = jax.random.normal(k1, (9, 7, 3))
+    v = m * m
+    guide = {"spatial": jax.random.uniform(k2, (9, 7)),
+             "channels": jax.random.uniform(k2, (9, 7, 2)),
+             "integer": jax.random.randint(k2, (9, 7), 0, 3)}[guide_kind]
+    obs = jax.random.uniform(k3, (9, 7)) > 0.3
+    spec = lv.LeafSpec(axes=(0, 1), levels=2, sigma_d=0.2)
+    assert (tr._nan_guide(guide, obs, spec) is None) == (guide_kind == "integer")
+    out = tr._filter((m, v), guide, spec, separable, obs)
+    ref = atrous_bilateral((m, v), guide, sigma_d=0.2, levels=2, spatial_axes=(0, 1),
+                           separable=separable, mask=obs)
+    sel = np.asarray(obs)
+    for a, b in zip(out, ref):       # float32 sums of the same terms: a few ulps
+        np.testing.assert_allclose(np.asarray(a)[sel], np.asarray(b)[sel], rtol=1e-6, atol=1e-7)

@@ -209,10 +209,41 @@ def _observed(g, axes, mask_zero: bool):
 
 
 def _filter(fields, guide, spec: lv.LeafSpec, separable: bool, mask):
+    """The leaf's filter; ``mask`` (observed texels, in ``spec.axes`` order) or None.
+
+    Unobserved texels are left out of every sum. The filter is told so by a NaN guide
+    there (``atrous._weight`` gives a pair with a non-finite guide weight 0), not by its
+    ``mask``: the masked filter carries validity planes through every pass, which made
+    the masked branch of ``_with_mask``'s ``lax.cond`` the program's largest, and XLA
+    allocates the largest branch's temporaries on every call (full 2-D update,
+    512x512x3: 42.9 MiB, the unmasked branch 28.5 MiB; above glibc's 32 MiB mmap
+    threshold every call page-faults them, BENCHMARKS.md "Two speeds"). The outputs
+    at unobserved texels are then their own inputs, not 0; every caller discards them,
+    and their inputs must be finite (0 * inf would leak into the neighbours' sums).
+    """
+    if mask is not None:
+        nan_guide = _nan_guide(guide, mask, spec)
+        if nan_guide is not None:
+            guide, mask = nan_guide, None
     # sharded.atrous_bilateral is the single-device filter unless the fields' spatial axes
     # are split over explicit mesh axes (then: per-device blocks with halo exchange).
     return sharded.atrous_bilateral(fields, guide, sigma_d=spec.sigma_d, levels=spec.levels,
                                     spatial_axes=spec.axes, separable=separable, mask=mask)
+
+
+def _nan_guide(guide, mask, spec: lv.LeafSpec):
+    """``guide`` with NaN at the texels where ``mask`` is False, or None if its layout is
+    neither the spatial grid nor a leaf's (then the filter's own ``mask`` is used)."""
+    guide = jnp.asarray(guide)
+    if not jnp.issubdtype(guide.dtype, jnp.floating):
+        return None
+    if guide.shape == mask.shape:
+        m = mask
+    elif guide.ndim > max(spec.axes) and tuple(guide.shape[a] for a in spec.axes) == mask.shape:
+        m = lv.expand_mask(mask, guide.ndim, spec.axes)
+    else:
+        return None
+    return jnp.where(m, guide, jnp.nan)
 
 
 def _filter_self(fields, spec, separable, mask, log_guide):
