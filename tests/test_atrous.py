@@ -233,3 +233,16 @@ def test_bad_input_errors_name_the_argument():
         atrous_bilateral(jnp.zeros((4, 4), jnp.int32), g, sigma_d=1.0, levels=1, spatial_axes=(0, 1))
     with pytest.raises(ValueError, match="mask"):
         atrous_bilateral(x, g, sigma_d=1.0, levels=1, spatial_axes=(0, 1), mask=jnp.ones((4,), bool))
+
+
+@pytest.mark.parametrize("gch", [1, 2])
+def test_full_3d_pairs_handed_over_between_levels_match_reference(gch):
+    # Full 3-D mode computes the weights of offsets shared by consecutive levels once
+    # (atrous._handover_order): three levels, so a level both takes over and hands over.
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(9, 6, 7, 2)).astype(np.float32)
+    g = _quantised_guide(rng, (9, 6, 7), gch)
+    out = atrous_bilateral(jnp.asarray(x), jnp.asarray(g), sigma_d=0.35, levels=3,
+                           spatial_axes=(0, 1, 2), separable=False)
+    np.testing.assert_allclose(np.asarray(out), atrous_reference(x, g, 0.35, 3, False),
+                               rtol=RTOL, atol=1e-6)

@@ -316,7 +316,7 @@ def _opaque_one(a: jax.Array) -> jax.Array:
     return 1.0 + (a != a).astype(a.dtype) * 0.0
 
 
-def _pass(grid: _Grid, x, pairs, h0, valid, weights):
+def _pass(grid: _Grid, x, pairs, h0, valid, weights, parts=None):
     """One normalised bilateral pass over planar arrays.
 
     x: (C, *view) fields, view = _view(S, n0) (zero where invalid); pairs: [(offset,
@@ -348,9 +348,17 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights):
         return num
 
     dep = _after(x)
+    # Chunks of at most _CHUNK pairs, none across the ends of ``parts`` (lengths of
+    # consecutive runs of pairs; default: one run).
+    starts, a = set(), 0
+    for length in (parts or [len(pairs)]):
+        starts.update(range(a, a + length, _CHUNK))
+        a += length
+    ends = {b - 1 for b in sorted(starts)[1:]} | {len(pairs) - 1}
     for k, (off, tap) in enumerate(pairs):
-        if k % _CHUNK == 0:
-            chunk = weights([o for o, _ in pairs[k:k + _CHUNK]], dep)
+        if k in starts:
+            stop = min([e for e in ends if e >= k]) + 1
+            chunk = weights([o for o, _ in pairs[k:stop]], dep)
         e, h = chunk[off]
         f = grid.flat(off)
         w_plus = tap * read(e, h * row)[0]
@@ -359,7 +367,7 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights):
                             (tuple(-o for o in off[1:]), w_minus * read(xpad, r * row - f))):
             groups[inner] = term if inner not in groups else groups[inner] + term
         den = den + w_plus + w_minus
-        if (k + 1) % _CHUNK == 0 and k + 1 < len(pairs):
+        if k in ends and k + 1 < len(pairs):
             # Full mode has up to 62 pairs per pass; one XLA loop over all of them stops
             # vectorising (measured 0.12 ms per pair in chunks of 6, 0.36 ms in one
             # loop of 62). Materialise the running sums every _CHUNK pairs.
@@ -415,7 +423,7 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
     def weights(offs, dep):
         """{off: (E, h)} for a chunk of offsets. Offset 2d * 2**i at level i is offset
         d * 2**(i+1) at level i+1: the same weights up to the tap, computed once
-        (separable mode; full mode recomputes them, see below). The
+        (full mode: see _handover_order). The
         new ones are computed as one stacked array (one XLA kernel: compiling a kernel
         per pair made a full-mode 3-D filter take minutes to compile)."""
         new = [o for o in offs if o not in cache]
@@ -428,16 +436,33 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
         return {o: cache[o] for o in offs}
 
     for i in range(levels):
-        if not separable:
-            # Full mode recomputes the 13 (3-D) or 5 (2-D) pairs it could take over from
-            # the previous level: kept, they are alive across the level boundary. 3-D 64^3
-            # F=5: XLA's temporaries 35.6 -> 23.2 MiB, i.e. below glibc's largest mmap
-            # threshold (32 MiB), above which the temp buffer is mapped and page-faulted
-            # afresh on every call; measured 0.69-0.87x the time (F=3: 0.94-0.99x).
-            cache.clear()
         for pairs, h0 in _level_passes(grid.shape, 2 ** i, separable):
-            x = _pass(grid, x, pairs, h0, valid, weights)
+            parts = None
+            if not separable and len(grid.shape) >= 3:
+                pairs, parts = _handover_order(pairs, 2 ** i, i > 0, i + 1 < levels)
+            elif not separable:
+                cache.clear()        # 2-D full mode recomputes them (see _handover_order)
+            x = _pass(grid, x, pairs, h0, valid, weights, parts)
     return x.reshape(x.shape[:1] + grid.shape)
+
+
+def _handover_order(pairs, stride: int, has_prev: bool, has_next: bool):
+    """Full mode: a level's pairs ordered (taken over, own, handed over), and the lengths
+    of those runs (chunks do not cross them).
+
+    Offset ``stride * d`` with every ``d_k`` in {0, +-2} is offset ``2 stride * d/2`` of the
+    next level: its weights are computed once and used by both levels. Handed over last
+    and taken over first, in whole chunks of their own, they are alive only across the
+    level boundary, in place of one chunk's weights: 3-D (13 of 62 pairs per level),
+    64^3 F=5: temporaries 21.2 -> 28.6 MiB, 0.92-0.95x the time. Kept anywhere in the level
+    instead, they stayed alive for all of it (35.6 MiB, above glibc's 32 MiB mmap
+    threshold, page-faulted on every call). Not in 2-D (4 of 12 pairs): 512^2x3 went
+    to 33.9 MiB."""
+    taken = [p for p in pairs if has_prev and all(abs(c) <= stride for c in p[0])]
+    handed = [p for p in pairs if has_next and all(c % (2 * stride) == 0 for c in p[0])]
+    own = [p for p in pairs if p not in taken and p not in handed]
+    parts = [len(r) for r in (taken, own, handed) if r]
+    return taken + own + handed, parts
 
 
 def _level_passes(shape: Sequence[int], stride: int, separable: bool):
