@@ -103,7 +103,9 @@ def compare(old_lib, shape, levels: int, separable: bool, log_guide: bool, repea
         ms = {k: 1e3 * v["median"] for k, v in r.items()}
         rows.append({"repeat": rep + 1, "adam ms": ms["adam"], "old ms": ms["old"],
                      "new ms": ms["new"], "old x adam": ms["old"] / ms["adam"],
-                     "new x adam": ms["new"] / ms["adam"], "new / old": ms["new"] / ms["old"]})
+                     "new x adam": ms["new"] / ms["adam"], "new / old": ms["new"] / ms["old"],
+                     "new / old (paired)": common.paired_ratio(
+                         {k: v["samples"] for k, v in r.items()}, "new", "old")})
         print(" | ".join(f"{k} {bm._fmt(v)}" for k, v in rows[-1].items()), flush=True)
     return rows
 

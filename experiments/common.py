@@ -222,7 +222,26 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
 
 def time_steps_interleaved(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 7,
                            first_iteration: int = 0, inner: int = 1) -> dict[str, float]:
-    """Median seconds per step of each ``step(carry, i)``, timed in alternation.
+    """Median seconds per step of each ``step(carry, i)``, timed in alternation
+    (:func:`time_steps_samples`, whose rounds these are the medians of)."""
+    samples = time_steps_samples(steps, rounds, first_iteration, inner)
+    return {k: float(np.median(v)) for k, v in samples.items()}
+
+
+def paired_ratio(samples: Mapping[Any, Sequence[float]], a, b) -> float:
+    """Median over rounds of ``samples[a][r] / samples[b][r]``: the ratio of two programs
+    timed in the same round, so a slow stretch of a shared machine scales both sides.
+    Less noisy than the ratio of the two medians when the load drifts between rounds."""
+    x, y = np.asarray(samples[a], float), np.asarray(samples[b], float)
+    if x.shape != y.shape or x.size == 0:
+        raise ValueError(f"paired_ratio needs the same non-zero number of rounds for {a!r} "
+                         f"and {b!r}, got {x.size} and {y.size}")
+    return float(np.median(x / y))
+
+
+def time_steps_samples(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 7,
+                       first_iteration: int = 0, inner: int = 1) -> dict[str, list[float]]:
+    """Seconds per step of each ``step(carry, i)`` in every round, timed in alternation.
 
     Round ``r`` runs every step ``inner`` times in a row, in turn, on its own evolving
     carry, so a burst of load from other processes hits all of them alike: the
@@ -246,7 +265,7 @@ def time_steps_interleaved(steps: Mapping[str, tuple[Callable, Any]], rounds: in
                 carries[k], aux = fn(carries[k], first_iteration + r * inner + j)
             jax.block_until_ready((carries[k], aux))
             times[k].append((time.perf_counter() - t0) / inner)
-    return {k: float(np.median(v)) for k, v in times.items()}
+    return times
 
 
 def concat_traces(first: Trace, second: Trace, name: str | None = None,

@@ -24,7 +24,10 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
     # (a) every update-only row has a positive time and its ratio to Adam.
     upd = result["overhead"]["update_only"]
     assert {r["method"] for r in upd} >= {"adam"} and all(r["ms (median)"] > 0 for r in upd)
-    assert all(r["x adam (median)"] == 1.0 for r in upd if r["method"] == "adam")
+    assert all(r["x adam (median)"] == 1.0 and r["x adam (paired)"] == 1.0
+               for r in upd if r["method"] == "adam")
+    tex = result["overhead"]["texture"]
+    assert all(r["% vs Adam (paired)"] == 0.0 for r in tex if r["method"] == "Adam")
 
     # (b) the full float32 filter matches the full float64 one to float32 rounding
     # (1e-5: a few float32 ulps accumulated over F levels of 5^n-tap sums), while the
@@ -68,6 +71,34 @@ def test_targets_are_checked_from_the_overhead_ratios():
     assert len(rows) == 4            # rows whose inputs are missing are left out, not guessed
 
 
+def test_targets_use_the_paired_ratios_when_the_rows_have_them():
+    # Paired (per-round) ratios differ from the ratio of medians when the load drifts;
+    # the targets take the paired one.
+    upd = [{"grid": "volume 64^3x1", "method": "ours F=3 separable", "ms (median)": 4.0,
+            "x adam (median)": 8.0, "x adam (paired)": 7.0},
+           {"grid": "volume 64^3x1", "method": "ours F=3 full", "ms (median)": 52.0,
+            "x adam (median)": 104.0, "x adam (paired)": 90.0, "x separable (paired)": 12.0},
+           {"grid": "volume 64^3x1", "method": "ours F=5 separable", "ms (median)": 6.0,
+            "x adam (median)": 31.0, "x adam (paired)": 29.0}]
+    tex = [{"method": "Ours (F = 5)", "% vs Adam": 11.0, "% vs Adam (paired)": 9.0}]
+    rows = {r["target"]: r for r in benchmark.targets({"update_only": upd, "texture": tex})}
+    assert rows["separable F=5 update / adam update, volume 64^3x1"]["measured"] == 29.0
+    full = rows["full / separable update, F=3, volume 64^3x1"]
+    assert full["measured"] == 12.0 and full["met"]            # 52 / 4 = 13 would miss it
+    tex_row = rows["texture experiment per-iteration overhead, F=5"]
+    assert tex_row["measured"] == 9.0 and tex_row["met"]
+
+
+def test_paired_ratio_is_the_median_of_per_round_ratios():
+    from experiments import common
+    # Round 2 is slow for both programs: the paired ratio ignores it, medians do not.
+    s = {"a": [2.0, 20.0, 2.2, 2.0], "b": [1.0, 10.0, 1.0, 1.0]}
+    assert common.paired_ratio(s, "a", "b") == 2.0
+    assert np.median(s["a"]) / np.median(s["b"]) == 2.1
+    with pytest.raises(ValueError, match="rounds"):
+        common.paired_ratio({"a": [1.0], "b": [1.0, 2.0]}, "a", "b")
+
+
 def test_targets_over_processes_take_the_median_and_count_where_met():
     def rows(sep, overhead):
         return [{"target": "sep", "measured": sep, "limit": 20.0, "unit": "x", "met": sep <= 20},
@@ -103,7 +134,7 @@ def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
     summary = ab_update.main(["--quick", "--rev", "HEAD", "--shape", "16x16x1", "--levels", "1",
                               "--out", str(tmp_path)])
     (row,) = summary["rows"]
-    for k in ("adam ms", "old ms", "new ms", "new / old"):
+    for k in ("adam ms", "old ms", "new ms", "new / old", "new / old (paired)"):
         assert np.isfinite(row[k]) and row[k] > 0
     assert (tmp_path / "ab_update.json").exists() and (tmp_path / "ab_update.md").exists()
     with pytest.raises(ValueError, match="--shape"):
