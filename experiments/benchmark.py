@@ -389,8 +389,8 @@ def texture_runs(quick: bool, levels: Sequence[int], iterations: int | None) -> 
     if quick:
         settings = [(levels[-1], True, jnp.bfloat16)]
     else:
-        settings = [(f, True, None) for f in levels] + [(f, False, None) for f in levels]
-        settings += [(5, True, jnp.bfloat16), (5, False, jnp.bfloat16)]
+        settings = [(f, sep, mu) for mu in (None, jnp.bfloat16) for sep in (True, False)
+                    for f in levels]
     rows = []
     adam_opt = texp.make_optimizer("adam", cfg)
     adam_hp = cfg.sweeps["adam"][1] if len(cfg.sweeps["adam"]) > 1 else cfg.sweeps["adam"][0]
