@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, strategies as st
 
 from optax_bilateral import atrous_bilateral
+from optax_bilateral._src import atrous
 from reference import atrous_reference
 
 RTOL = 1e-5  # float32 accumulation of <= 125-tap sums over a few levels: ~1e-7 per op
@@ -233,6 +234,42 @@ def test_bad_input_errors_name_the_argument():
         atrous_bilateral(jnp.zeros((4, 4), jnp.int32), g, sigma_d=1.0, levels=1, spatial_axes=(0, 1))
     with pytest.raises(ValueError, match="mask"):
         atrous_bilateral(x, g, sigma_d=1.0, levels=1, spatial_axes=(0, 1), mask=jnp.ones((4,), bool))
+
+
+@pytest.mark.parametrize("shape", [(3, 4, 128), (3, 512)])
+def test_full_mode_pitch_column_is_off_the_grid(shape):
+    # Outer strides of 2 KiB and 4 KiB (powers of two) get a zero column appended in
+    # full mode (atrous._pitch); it must change nothing: same result as the reference,
+    # with and without a mask, and (2-D) finite guide gradients along the last column.
+    assert atrous._pitch(shape, separable=False) == 1
+    rng = np.random.default_rng(12)
+    x = rng.normal(size=shape + (2,)).astype(np.float32)
+    g = _quantised_guide(rng, shape, 1)
+    axes = tuple(range(len(shape)))
+    levels = 3 if len(shape) == 2 else 2                  # full 3-D compiles slowly
+    out = atrous_bilateral(jnp.asarray(x), jnp.asarray(g), sigma_d=0.35, levels=levels,
+                           spatial_axes=axes, separable=False)
+    np.testing.assert_allclose(np.asarray(out), atrous_reference(x, g, 0.35, levels, False),
+                               rtol=RTOL, atol=1e-6)
+    mask = rng.random(shape) > 0.3
+    out = atrous_bilateral(jnp.asarray(x), jnp.asarray(g), sigma_d=0.35, levels=1,
+                           spatial_axes=axes, separable=False, mask=jnp.asarray(mask))
+    np.testing.assert_allclose(np.asarray(out), atrous_reference(x, g, 0.35, 1, False, mask),
+                               rtol=RTOL, atol=1e-6)
+    if len(shape) == 2:                                     # 3-D reverse mode compiles slowly
+        gg = jax.grad(lambda g: jnp.sum(atrous_bilateral(
+            jnp.asarray(x), g, sigma_d=0.35, levels=1, spatial_axes=axes, separable=False) ** 2))(
+            jnp.asarray(g, jnp.float32))
+        assert np.all(np.isfinite(np.asarray(gg))) and np.any(np.asarray(gg)[..., -1, :] != 0)
+
+
+def test_pitch_rule():
+    p = atrous._pitch
+    assert p((64, 64, 64), False) == 1 and p((512, 512), False) == 1
+    assert p((64, 64, 64), True) == 0                       # separable: not measured faster
+    assert p((48, 48, 48), False) == 0 and p((96, 96, 96), False) == 0   # 9 KiB, 36 KiB
+    assert p((256, 256), False) == 0 and p((4096,), False) == 0          # 1 KiB; 1-D
+    assert p((32, 32, 32), False, itemsize=8) == 1 and p((512, 3), False) == 0
 
 
 @pytest.mark.parametrize("gch", [1, 2])

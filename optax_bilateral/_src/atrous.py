@@ -30,6 +30,9 @@ of the choices below exist to steer it:
   (separable mode; full mode recomputes them to keep its temporaries small).
 * The weights are decided inside the exponent (``exp`` is the last operation), so
   XLA materialises them once instead of re-deriving them in every consumer.
+* Full mode on grids whose outer stride is a power of two (64^3, 512^2) appends one
+  zero column to the fastest axis (``_pitch``): the many streams of a full pass then
+  stop mapping to the same cache sets (0.88x the time at 64^3, 0.93x at 512^2x3).
 * A few exact no-ops (``_after``, ``_opaque_one``) steer XLA's scheduler and
   fusion: each pass's weights wait for the previous pass (otherwise every level's
   weights are computed up front and tens of MB stay alive), and each pass is
@@ -230,7 +233,7 @@ def _window(a: jax.Array, start: int, rows: int, shape: Sequence[int]) -> jax.Ar
     return lax.slice(flat, (0, start), (c, start + n)).reshape((c,) + _view(shape, rows))
 
 
-def _inner_ok(off: Sequence[int], shape: Sequence[int], rows: int):
+def _inner_ok(off: Sequence[int], shape: Sequence[int], rows: int, last: int | None = None):
     """Whether ``p + off`` stays on the grid along every inner axis (for ``rows`` rows of
     ``p``, in ``_view``'s shape), or None if no inner component is non-zero. A flat
     read that runs off an inner axis lands in the neighbouring row instead; this is
@@ -239,7 +242,7 @@ def _inner_ok(off: Sequence[int], shape: Sequence[int], rows: int):
     for k in range(1, len(shape)):
         if off[k]:
             i = _coord(shape, rows, k) + off[k]
-            t = (i >= 0) & (i < shape[k])
+            t = (i >= 0) & (i < (last if last is not None and k == len(shape) - 1 else shape[k]))
             ok = t if ok is None else ok & t
     return ok
 
@@ -262,8 +265,10 @@ def _after(x: jax.Array) -> jax.Array:
 class _Grid:
     """Static geometry of the planar arrays, (C, n0, *inner), and their flat offsets."""
 
-    def __init__(self, shape: Sequence[int]):
+    def __init__(self, shape: Sequence[int], last: int | None = None):
         self.shape = tuple(shape)
+        self.last = shape[-1] if last is None else last     # the grid's own last size (see _pitch)
+        self.padded = self.last != shape[-1]
         self.n0 = shape[0]
         self.row = math.prod(shape[1:])
 
@@ -302,9 +307,11 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int):
         d2 = _channel_sq_dist(a, b)
     i = _coord(grid.shape, rows, 0) - h
     keep = (i >= 0) & (i < grid.n0 - off[0])             # p and p + off both on the grid
-    inner = _inner_ok(off, grid.shape, rows)
+    inner = _inner_ok(off, grid.shape, rows, grid.last)
     if inner is not None:
         keep = keep & inner
+    if grid.padded:                                      # p itself in a pitch column
+        keep = keep & (_coord(grid.shape, rows, len(grid.shape) - 1) < grid.last)
     if vpad is not None:
         keep = (keep & (_window(vpad, start, rows, grid.shape)[0] > 0)
                 & (_window(vpad, start + f, rows, grid.shape)[0] > 0))
@@ -343,7 +350,7 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights, parts=None):
 
     def flush(num):
         for inner, part in groups.items():
-            ok = _inner_ok((0,) + inner, grid.shape, n0)
+            ok = _inner_ok((0,) + inner, grid.shape, n0, grid.last)
             num = num + (part if ok is None else jnp.where(ok, part, 0.0))
         groups.clear()
         return num
@@ -407,9 +414,17 @@ _CHUNK = 6
 def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
     """All levels on planar arrays: x (C, *S) or (C, *_view(S, n0)) zero where invalid,
     g (G, *S). Returns (C, *S)."""
-    grid = _Grid(g.shape[1:])
+    shape = g.shape[1:]
+    pitch = _pitch(shape, separable, g.dtype.itemsize)
+    if pitch:
+        # Extra zero columns (off the grid for every weight), see _pitch.
+        g = jnp.pad(g, [(0, 0)] * (g.ndim - 1) + [(0, pitch)])
+        x = jnp.pad(x.reshape(x.shape[0], -1, shape[-1]), ((0, 0), (0, 0), (0, pitch)))
+        if valid is not None:
+            valid = jnp.pad(valid.reshape(-1, shape[-1]), ((0, 0), (0, pitch)))
+    grid = _Grid(g.shape[1:], last=shape[-1])
     lead = max([grid.halo(off) for i in range(levels)
-                for pairs, _ in _level_passes(grid.shape, 2 ** i, separable)
+                for pairs, _ in _level_passes(shape, 2 ** i, separable)
                 for off, _ in pairs] or [0])
     # Zero rows in front for the weights' halo, and behind for the reads p + off.
     gpad = _pad_rows(g, lead, lead, grid.shape)
@@ -436,14 +451,39 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool):
         return {o: cache[o] for o in offs}
 
     for i in range(levels):
-        for pairs, h0 in _level_passes(grid.shape, 2 ** i, separable):
+        for pairs, h0 in _level_passes(shape, 2 ** i, separable):
             parts = None
             if not separable and len(grid.shape) >= 3:
                 pairs, parts = _handover_order(pairs, 2 ** i, i > 0, i + 1 < levels)
             elif not separable:
                 cache.clear()        # 2-D full mode recomputes them (see _handover_order)
             x = _pass(grid, x, pairs, h0, valid, weights, parts)
-    return x.reshape(x.shape[:1] + grid.shape)
+    x = x.reshape(x.shape[:1] + grid.shape)
+    return x[..., :shape[-1]] if pitch else x
+
+
+def _pitch(shape: Sequence[int], separable: bool, itemsize: int = 4) -> int:
+    """Zero columns appended to the fastest axis in full mode: 1 where the grid's outer
+    stride (one step along axis 0, ``prod(shape[1:])`` elements) is a power of two of
+    at least 2 KiB, else 0.
+
+    A full pass's chunk kernel reads ~25 (2-D) to ~37 (3-D) streams at once, at flat
+    offsets ``s d``. With power-of-two strides the streams that differ in their outer
+    component are a multiple of 4 KiB apart (at 64^3, also those along axis 1 at stride
+    16): they map to the same sets of the L1 cache, most likely what makes those grids
+    slower per element (64^3 full F = 3: 64x65x64 and 64x64x65 0.88-0.92x the time per
+    element of 64^3, paired medians of 15 rounds). One extra column takes the strides
+    off the powers of two (64^3: 16640 bytes instead of 16384); its points are off the
+    grid for every weight (``_Grid.last``), and it is sliced off at the end.
+    Measured (``experiments.ab_update --full``, new/old): 64^3 F = 3 and 5 0.88x,
+    512^2x3 F = 5 0.93x, 1024^2 F = 3 0.83x, 32^3 F = 3 0.86-1.14x, 128^3 F = 3 1.00x;
+    strides that are not powers of two gained nothing (48^3 1.03x, 96^3 1.05x, 256^2x3
+    (1 KiB) 0.98x), nor did separable mode (512^2 1.07x, 64^3 0.97x: five reads per pass).
+    """
+    stride = math.prod(shape[1:]) * itemsize
+    if separable or len(shape) < 2 or stride < 2048 or stride & (stride - 1):
+        return 0
+    return 1
 
 
 def _handover_order(pairs, stride: int, has_prev: bool, has_next: bool):
