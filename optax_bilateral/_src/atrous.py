@@ -32,7 +32,7 @@ of the choices below exist to steer it:
   XLA materialises them once instead of re-deriving them in every consumer.
 * Full mode on grids whose outer stride is a power of two (64^3, 512^2) appends one
   zero column to the fastest axis (``_pitch``): the many streams of a full pass then
-  stop mapping to the same cache sets (0.88x the time at 64^3, 0.93x at 512^2x3).
+  stop mapping to the same cache sets (0.88x the time at 64^3, 0.90-0.94x at 512^2x3).
 * A few exact no-ops (``_after``, ``_opaque_one``) steer XLA's scheduler and
   fusion: each pass's weights wait for the previous pass (otherwise every level's
   weights are computed up front and tens of MB stay alive), and each pass is
@@ -233,16 +233,16 @@ def _window(a: jax.Array, start: int, rows: int, shape: Sequence[int]) -> jax.Ar
     return lax.slice(flat, (0, start), (c, start + n)).reshape((c,) + _view(shape, rows))
 
 
-def _inner_ok(off: Sequence[int], shape: Sequence[int], rows: int, last: int | None = None):
+def _inner_ok(off: Sequence[int], grid: "_Grid", rows: int):
     """Whether ``p + off`` stays on the grid along every inner axis (for ``rows`` rows of
     ``p``, in ``_view``'s shape), or None if no inner component is non-zero. A flat
     read that runs off an inner axis lands in the neighbouring row instead; this is
     what rejects it."""
     ok = None
-    for k in range(1, len(shape)):
+    for k in range(1, len(grid.shape)):
         if off[k]:
-            i = _coord(shape, rows, k) + off[k]
-            t = (i >= 0) & (i < (last if last is not None and k == len(shape) - 1 else shape[k]))
+            i = _coord(grid.shape, rows, k) + off[k]
+            t = (i >= 0) & (i < grid.bounds[k])
             ok = t if ok is None else ok & t
     return ok
 
@@ -267,8 +267,9 @@ class _Grid:
 
     def __init__(self, shape: Sequence[int], last: int | None = None):
         self.shape = tuple(shape)
-        self.last = shape[-1] if last is None else last     # the grid's own last size (see _pitch)
-        self.padded = self.last != shape[-1]
+        # The grid's own sizes: the layout's, but without _pitch's columns.
+        self.bounds = self.shape if last is None else self.shape[:-1] + (last,)
+        self.padded = self.bounds != self.shape
         self.n0 = shape[0]
         self.row = math.prod(shape[1:])
 
@@ -307,11 +308,11 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int):
         d2 = _channel_sq_dist(a, b)
     i = _coord(grid.shape, rows, 0) - h
     keep = (i >= 0) & (i < grid.n0 - off[0])             # p and p + off both on the grid
-    inner = _inner_ok(off, grid.shape, rows, grid.last)
+    inner = _inner_ok(off, grid, rows)
     if inner is not None:
         keep = keep & inner
     if grid.padded:                                      # p itself in a pitch column
-        keep = keep & (_coord(grid.shape, rows, len(grid.shape) - 1) < grid.last)
+        keep = keep & (_coord(grid.shape, rows, len(grid.shape) - 1) < grid.bounds[-1])
     if vpad is not None:
         keep = (keep & (_window(vpad, start, rows, grid.shape)[0] > 0)
                 & (_window(vpad, start + f, rows, grid.shape)[0] > 0))
@@ -350,7 +351,7 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights, parts=None):
 
     def flush(num):
         for inner, part in groups.items():
-            ok = _inner_ok((0,) + inner, grid.shape, n0, grid.last)
+            ok = _inner_ok((0,) + inner, grid, n0)
             num = num + (part if ok is None else jnp.where(ok, part, 0.0))
         groups.clear()
         return num
@@ -471,14 +472,14 @@ def _pitch(shape: Sequence[int], separable: bool, itemsize: int = 4) -> int:
     offsets ``s d``. With power-of-two strides the streams that differ in their outer
     component are a multiple of 4 KiB apart (at 64^3, also those along axis 1 at stride
     16): they map to the same sets of the L1 cache, most likely what makes those grids
-    slower per element (64^3 full F = 3: 64x65x64 and 64x64x65 0.88-0.92x the time per
-    element of 64^3, paired medians of 15 rounds). One extra column takes the strides
+    slower per element than their neighbours in size. One extra column takes the strides
     off the powers of two (64^3: 16640 bytes instead of 16384); its points are off the
-    grid for every weight (``_Grid.last``), and it is sliced off at the end.
-    Measured (``experiments.ab_update --full``, new/old): 64^3 F = 3 and 5 0.88x,
-    512^2x3 F = 5 0.93x, 1024^2 F = 3 0.83x, 32^3 F = 3 0.86-1.14x, 128^3 F = 3 1.00x;
-    strides that are not powers of two gained nothing (48^3 1.03x, 96^3 1.05x, 256^2x3
-    (1 KiB) 0.98x), nor did separable mode (512^2 1.07x, 64^3 0.97x: five reads per pass).
+    grid for every weight (``_Grid.bounds``), and it is sliced off at the end.
+    Measured (``experiments.ab_update --full``, paired new/old; BENCHMARKS.md, attempts):
+    64^3 F = 3 and 5 0.88-0.90x, 512^2x3 F = 5 0.90-0.94x, 1024^2 F = 3 0.82-0.83x,
+    32^3 F = 3 0.85-1.14x, 128^3 F = 3 1.01-1.03x; strides that are not powers of two
+    gained nothing (48^3 1.03x, 96^3 F = 2 0.96-1.06x, 256^2x3 (1 KiB) 0.97-1.01x), nor
+    did separable mode (512^2 1.07x, 64^3 0.97x: five reads per pass).
     """
     stride = math.prod(shape[1:]) * itemsize
     if separable or len(shape) < 2 or stride < 2048 or stride & (stride - 1):
