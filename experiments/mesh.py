@@ -123,7 +123,8 @@ def run_one(problem: Problem, method: str, lam: float, sigma_d: float | None, it
     hp = {"lambda": lam, "learning_rate": problem.lr, "b1": 0.9, "b2": 0.999,
           "vertices": int(len(problem.v0))}
     if sigma_d is not None:
-        hp.update(sigma_d=sigma_d, second_moment="uniform", directions=mesh_lib.DEFAULT_DIRECTIONS)
+        hp.update(sigma_d=sigma_d, sigma_phi=mesh_lib.DEFAULT_SIGMA_PHI, postfilter_v="uniform",
+                  directions=mesh_lib.DEFAULT_DIRECTIONS)
     return common.run_method(
         f"{name} lambda={lam:g}", problem.step_fn(method, lam, sigma_d), problem.initial_carry(method),
         iterations, record_every=record_every, hyperparameters=hp,

@@ -193,7 +193,7 @@ def test_bilateral_large_steps_reduces_to_large_steps(small, sigma_d):
 
 
 def test_filtered_second_moment_step_is_bounded(small):
-    tx = M.bilateral_large_steps(1.0, small["mesh"], LAM, 0.3, second_moment="filtered",
+    tx = M.bilateral_large_steps(1.0, small["mesh"], LAM, 0.3, postfilter_v="bilateral",
                                  directions=M.sphere_directions(16))
     x = jnp.asarray(cubified(small["v"]))
     state = tx.init(x)
@@ -231,8 +231,8 @@ def test_bad_arguments_raise_clear_errors(small):
         M.large_steps(0.1, mesh, -1.0)
     with pytest.raises(ValueError, match="sigma_d"):
         M.bilateral_large_steps(0.1, mesh, 1.0, 0.0)
-    with pytest.raises(ValueError, match="second_moment"):
-        M.mesh_postfilter(mesh, second_moment="max")
+    with pytest.raises(ValueError, match="postfilter_v"):
+        M.mesh_postfilter(mesh, postfilter_v="max")
     with pytest.raises(ValueError, match="directions"):
         M.mesh_postfilter(mesh, directions=np.ones((4, 2)))
     tx = M.mesh_postfilter(mesh, directions=M.sphere_directions(4))
