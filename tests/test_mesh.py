@@ -420,6 +420,8 @@ def test_new_options_reject_bad_values(small):
         M.mesh_postfilter(mesh, normals="cotan")
     with pytest.raises(ValueError, match="solver"):
         M.large_steps(0.1, mesh, solver="lu")
+    with pytest.raises(ValueError, match="warm_start"):
+        M.bilateral_large_steps(0.1, mesh, solver="cholesky", warm_start=True)
     with pytest.raises(ValueError, match="weld_positions"):
         M.mesh_laplacian(small["f"], weld_positions=np.zeros((3, 3)))
 

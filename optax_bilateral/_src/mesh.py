@@ -577,8 +577,11 @@ def _check_normals(normals):
         _check_choice(normals, "normals", NORMALS)
 
 
-def _check_solver(solver, tol, maxiter):
+def _check_solver(solver, tol, maxiter, warm_start=False):
     _check_solver_name(solver)
+    if warm_start and solver != "cg":
+        raise ValueError(f"warm_start starts the CG from the last solution; it does not apply to "
+                         f"solver={solver!r} (a direct solve)")
     # Concrete values only: optax.inject_hyperparams may pass them as (traced) arrays.
     t = _concrete_float(tol)
     if t is not None and not t > 0:
@@ -685,9 +688,9 @@ def laplacian_smoothing(faces, lambda_=DEFAULT_LAMBDA, *, solver: str = "cg",
     """
     mesh = mesh_laplacian(faces)
     _check_lambda(lambda_)
-    _check_solver(solver, tol, maxiter)
+    _check_solver(solver, tol, maxiter, warm_start)
     host = _host_for(mesh, solver)
-    warm_start = bool(warm_start) and solver == "cg"
+    warm_start = bool(warm_start)
 
     def update_fn(updates, state, params=None, **extra_args):
         del params, extra_args
@@ -728,12 +731,12 @@ def bilateral_smoothing(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, 
     _check_lambda(lambda_)
     _check_sigma(sigma_d)
     _check_sigma(sigma_phi, "sigma_phi")
-    _check_solver(solver, tol, maxiter)
+    _check_solver(solver, tol, maxiter, warm_start)
     _check_normals(normals)
     host = _host_for(mesh, solver)
     dirs = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
     normals_of = _normals_fn(normals, mesh)
-    warm_start = bool(warm_start) and solver == "cg"
+    warm_start = bool(warm_start)
     width = (lambda p: p.shape[1] if dirs is None else len(dirs) * (p.shape[1] + 1))  # noqa: E731
 
     def update_fn(updates, state, params=None, **extra_args):
@@ -867,13 +870,13 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
     _check_sigma(sigma_phi, "sigma_phi")
     _check_unit(b1, "b1")
     _check_unit(b2, "b2")
-    _check_solver(solver, tol, maxiter)
+    _check_solver(solver, tol, maxiter, warm_start)
     _check_choice(postfilter_v, "postfilter_v", POSTFILTERS_V)
     _check_normals(normals)
     host = _host_for(mesh, solver)
     dirs = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
     normals_of = _normals_fn(normals, mesh)
-    warm_start = bool(warm_start) and solver == "cg"
+    warm_start = bool(warm_start)
     k = 1 if dirs is None else len(dirs)
 
     def widths(p):
