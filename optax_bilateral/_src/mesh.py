@@ -250,7 +250,9 @@ class _Cholesky:
         for value in np.unique(flat_lam):
             which = np.nonzero(flat_lam == value)[0]
             # All batch members with this lambda as the columns of one solve.
-            rhs = np.ascontiguousarray(np.concatenate(list(flat_b[which]), axis=1), np.float64)
+            rhs = (flat_b[which[0]] if len(which) == 1
+                   else np.concatenate(list(flat_b[which]), axis=1))
+            rhs = np.ascontiguousarray(rhs, np.float64)
             x = np.empty_like(rhs)
             self.factor(float(value)).solve(rhs, x)
             out[which] = np.stack(np.split(x, len(which), axis=1))
