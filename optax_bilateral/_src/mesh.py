@@ -252,7 +252,7 @@ class _Cholesky:
             # All batch members with this lambda as the columns of one solve.
             rhs = (flat_b[which[0]] if len(which) == 1
                    else np.concatenate(list(flat_b[which]), axis=1))
-            rhs = np.ascontiguousarray(rhs, np.float64)
+            rhs = np.require(rhs, np.float64, ["C", "W"])  # cholespy takes writable C arrays
             x = np.empty_like(rhs)
             self.factor(float(value)).solve(rhs, x)
             out[which] = np.stack(np.split(x, len(which), axis=1))
