@@ -218,7 +218,8 @@ def test_inject_hyperparams_jit_and_pytree_params(small):
     upd, state = step(g, state, params)
     state.hyperparams["sigma_d"] = jnp.asarray(0.2)
     state.hyperparams["lambda_"] = jnp.asarray(2.0)
-    upd2, state = step(g, state, params)  # traced lambda_ and sigma_d: no retrace needed
+    state.hyperparams["sigma_phi"] = jnp.asarray(0.3)
+    upd2, state = step(g, state, params)  # traced lambda_, sigma_d, sigma_phi: no retrace needed
     assert np.all(np.isfinite(upd["shape"])) and not np.allclose(upd["shape"], upd2["shape"])
 
 
