@@ -1,7 +1,7 @@
 """Mesh recovery: Large Steps vs the paper's cross-bilateral normal filter (supplement §3-4).
 
     python -m experiments.mesh [--quick] [--out DIR]          # Fig. 2 grid + Fig. 6 (lambda=999)
-    python -m experiments.mesh --overhead [--quick] [--out DIR]  # Table 2 analogue + solver timings
+    python -m experiments.mesh --overhead [--quick] [--out DIR]  # Table 2 analogue: both methods x solvers
 
 A sphere (icosphere) is deformed into a cube from noisy multi-view renders
 (``optax_bilateral.toy.mesh``: one jittered sample and one light sample per pixel,
@@ -17,8 +17,9 @@ Outputs in ``--out`` (default ``results/mesh``): ``summary.json`` (``methods`` a
 the paper's defaults ``lambda=19``, ``sigma_d=0.5``; the full ``sweep``; the
 ``extreme`` lambda=999 runs), ``results.md``, ``grid.png`` (Fig. 2), ``extreme.png``
 (Fig. 6), Hausdorff / loss curves. ``--overhead`` writes ``overhead.json`` /
-``overhead.md``: per-iteration time of both methods at about 10k, 35k and 166k
-vertices, measured interleaved in one process, and CG vs SciPy SuperLU solve times.
+``overhead.md``: per-iteration and per-update time of both methods with each solver
+(CG, CG warm-started, CHOLMOD) at about 10k, 35k and 166k vertices, interleaved in
+one process, and CG vs CHOLMOD vs SciPy SuperLU solve times.
 """
 
 from __future__ import annotations
@@ -39,8 +40,6 @@ from optax_bilateral.toy import mesh as toy
 DEFAULT_LAMBDA = 19.0
 DEFAULT_SIGMA_D = 0.5
 EXTREME_LAMBDA = 999.0
-# A cheaper setting of ours, timed in --overhead only: half the directions, looser CG.
-FAST = {"directions": 16, "tol": 1e-3}
 
 
 def config(quick: bool) -> dict:
@@ -61,22 +60,17 @@ class Problem:
         self.renderer = toy.MeshRenderer(self.scene, self.faces)
         self.mesh = mesh_lib.mesh_laplacian(self.faces)
         self.directions = jnp.asarray(mesh_lib.sphere_directions(mesh_lib.DEFAULT_DIRECTIONS))
-        self.directions_fast = jnp.asarray(mesh_lib.sphere_directions(FAST["directions"]))
         self.lr = lr
         self.seed = seed
         renderer = self.renderer
         self.grad = jax.jit(jax.value_and_grad(lambda v, fr: renderer.loss(v, fr), has_aux=True))
         # lambda and sigma_d are traced: one compilation serves the whole sweep.
         self._update = {"large-steps": jax.jit(self._update_large_steps),
-                        "cross-bilateral": jax.jit(self._update_bilateral),
-                        "cross-bilateral-fast": jax.jit(self._update_fast)}
+                        "cross-bilateral": jax.jit(self._update_bilateral)}
 
     def transform(self, method: str, lam, sigma_d=None):
         if method == "large-steps":
             return mesh_lib.large_steps(self.lr, self.mesh, lam)
-        if method == "cross-bilateral-fast":
-            return mesh_lib.bilateral_large_steps(self.lr, self.mesh, lam, sigma_d,
-                                                  directions=self.directions_fast, tol=FAST["tol"])
         return mesh_lib.bilateral_large_steps(self.lr, self.mesh, lam, sigma_d,
                                               directions=self.directions)
 
@@ -87,10 +81,6 @@ class Problem:
 
     def _update_bilateral(self, g, state, params, lam, sigma_d):
         updates, state = self.transform("cross-bilateral", lam, sigma_d).update(g, state, params)
-        return optax.apply_updates(params, updates), state
-
-    def _update_fast(self, g, state, params, lam, sigma_d):
-        updates, state = self.transform("cross-bilateral-fast", lam, sigma_d).update(g, state, params)
         return optax.apply_updates(params, updates), state
 
     def step_fn(self, method: str, lam: float, sigma_d: float | None):
@@ -123,7 +113,8 @@ def run_one(problem: Problem, method: str, lam: float, sigma_d: float | None, it
     hp = {"lambda": lam, "learning_rate": problem.lr, "b1": 0.9, "b2": 0.999,
           "vertices": int(len(problem.v0))}
     if sigma_d is not None:
-        hp.update(sigma_d=sigma_d, second_moment="uniform", directions=mesh_lib.DEFAULT_DIRECTIONS)
+        hp.update(sigma_d=sigma_d, sigma_phi=mesh_lib.DEFAULT_SIGMA_PHI, postfilter_v="uniform",
+                  directions=mesh_lib.DEFAULT_DIRECTIONS)
     return common.run_method(
         f"{name} lambda={lam:g}", problem.step_fn(method, lam, sigma_d), problem.initial_carry(method),
         iterations, record_every=record_every, hyperparameters=hp,
@@ -246,111 +237,163 @@ def run_sweep(args) -> dict:
 # ----------------------------------------------------------------------------
 # Overhead (supplement Table 2 analogue)
 
+# Methods timed by --overhead: (optimizer, sigma_d or None for Large Steps, options).
+OVERHEAD_METHODS = {
+    "large-steps": ("large-steps", None, dict(solver="cg")),
+    "large-steps-cholesky": ("large-steps", None, dict(solver="cholesky")),
+    "ours": ("cross-bilateral", DEFAULT_SIGMA_D, dict(solver="cg")),
+    "ours-warm": ("cross-bilateral", DEFAULT_SIGMA_D, dict(solver="cg", warm_start=True)),
+    "ours-cholesky": ("cross-bilateral", DEFAULT_SIGMA_D, dict(solver="cholesky")),
+}
 
-def _solver_timings(problem: Problem, repeats: int) -> list[dict]:
-    """CG (this library) vs SciPy SuperLU on (I + 19 L) with 3 and 128 right-hand sides."""
+
+def _laplacian_csc(problem: Problem):
     import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
 
     v = len(problem.v0)
     nb = np.asarray(problem.mesh.neighbors)
     rows = np.repeat(np.arange(v), nb.shape[1])
     keep = nb.ravel() < v
     adj = sp.csr_matrix((np.ones(keep.sum()), (rows[keep], nb.ravel()[keep])), shape=(v, v))
-    lap = sp.diags(np.asarray(adj.sum(1)).ravel()) - adj
-    m = (sp.identity(v) + DEFAULT_LAMBDA * lap).tocsc()
+    return (sp.identity(v) + DEFAULT_LAMBDA * (sp.diags(np.asarray(adj.sum(1)).ravel()) - adj)).tocsc()
+
+
+def _solver_timings(problem: Problem, repeats: int, superlu_128: bool) -> list[dict]:
+    """(I + 19 L) X = B with 3 and 128 columns: CG (library, float32), CHOLMOD through
+    cholespy (float64, the library's solver="cholesky" without JAX around it) and
+    SciPy SuperLU (float64); interleaved, medians. SuperLU at 128 columns is timed once
+    when ``superlu_128`` (it takes minutes at 166k vertices), else skipped."""
+    import cholespy
+    import scipy.sparse.linalg as spla
+
+    m = _laplacian_csc(problem)
     t0 = time.perf_counter()
     lu = spla.splu(m)
-    factor = time.perf_counter() - t0
+    lu_factor = time.perf_counter() - t0
+    coo = m.tocoo()
+    t0 = time.perf_counter()
+    chol = cholespy.CholeskySolverD(m.shape[0], coo.row.astype(np.int32), coo.col.astype(np.int32),
+                                    coo.data.astype(np.float64), cholespy.MatrixType.COO)
+    chol_factor = time.perf_counter() - t0
     solve = jax.jit(lambda b: mesh_lib.smoothing_solve(problem.mesh, b, DEFAULT_LAMBDA))
     out = []
     rng = np.random.default_rng(0)
     for c in (3, 128):
-        b = rng.standard_normal((v, c)).astype(np.float32)
-        bj = jnp.asarray(b)
+        b = rng.standard_normal((m.shape[0], c))
+        bj = jnp.asarray(b, jnp.float32)
         solve(bj).block_until_ready()
-        cg_t, lu_t = [], []
-        for _ in range(repeats):  # interleaved
+        times = {"cg": [], "cholmod": [], "superlu": []}
+        for r in range(repeats):  # interleaved
             t0 = time.perf_counter()
             solve(bj).block_until_ready()
-            cg_t.append(time.perf_counter() - t0)
+            times["cg"].append(time.perf_counter() - t0)
+            x = np.empty_like(b)
             t0 = time.perf_counter()
-            lu.solve(np.asfortranarray(b, dtype=np.float64))
-            lu_t.append(time.perf_counter() - t0)
-        out.append({"vertices": v, "rhs": c, "cg_ms": 1e3 * float(np.median(cg_t)),
-                    "superlu_solve_ms": 1e3 * float(np.median(lu_t)),
-                    "superlu_factor_ms": 1e3 * factor})
+            chol.solve(np.ascontiguousarray(b), x)
+            times["cholmod"].append(time.perf_counter() - t0)
+            if c == 3 or (superlu_128 and r == 0):
+                t0 = time.perf_counter()
+                lu.solve(np.asfortranarray(b))
+                times["superlu"].append(time.perf_counter() - t0)
+        med = {k: 1e3 * float(np.median(t)) if t else None for k, t in times.items()}
+        out.append({"vertices": m.shape[0], "rhs": c, "cg_ms": med["cg"], "cholmod_ms": med["cholmod"],
+                    "superlu_ms": med["superlu"], "cg_over_cholmod": med["cg"] / med["cholmod"],
+                    "superlu_over_cholmod": (med["superlu"] / med["cholmod"]
+                                             if med["superlu"] is not None else None),
+                    "cholmod_factor_ms": 1e3 * chol_factor, "superlu_factor_ms": 1e3 * lu_factor})
     return out
 
 
 def run_overhead(args) -> dict:
+    """Per-iteration and per-update times of Large Steps and ours with each solver, at
+    ~10k, ~35k and ~166k vertices; methods interleaved within every repeat."""
     from tqdm.auto import tqdm
 
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    freqs, repeats, res = ([3], 2, 32) if args.quick else ([32, 59, 129], 5, 64)
+    freqs, repeats, res = ([3], 2, 32) if args.quick else ([32, 59, 129], 3, 64)
     rows, solver_rows = [], []
+    lam = jnp.float32(DEFAULT_LAMBDA)
     for freq in tqdm(freqs, desc="mesh sizes"):
         problem = Problem(freq, res, 0.01)
-        methods = {"large-steps": None, "cross-bilateral": DEFAULT_SIGMA_D,
-                   "cross-bilateral-fast": DEFAULT_SIGMA_D}
-        carries = {k: problem.initial_carry(k) for k in methods}
-        steps = {k: problem.step_fn(k, DEFAULT_LAMBDA, sd) for k, sd in methods.items()}
-        opt_only = {}
-        for k, sd in methods.items():  # the optimizer update alone, on a fixed gradient
-            params, state, rng = carries[k]
-            frame = problem.renderer.frame(np.asarray(params), rng)
-            (_, _), g = problem.grad(params, frame)
-            upd = problem._update[k]
-            args_ = (g, state, params, jnp.float32(DEFAULT_LAMBDA),
-                     jnp.float32(np.inf if sd is None else sd))
-            opt_only[k] = (upd, args_)
-        times = {k: [] for k in methods}
-        upd_times = {k: [] for k in methods}
-        for k in methods:  # compile
-            carries[k], _ = steps[k](carries[k], 0)
-            jax.block_until_ready(opt_only[k][0](*opt_only[k][1]))
-        for _ in range(repeats):  # interleaved repeats, medians
-            for k in methods:
+        x0 = jnp.asarray(problem.v0)
+        runs = {}
+        for name, (method, sd, opts) in OVERHEAD_METHODS.items():
+            if method == "large-steps":
+                tx = mesh_lib.large_steps(problem.lr, problem.mesh, lam, **opts)
+            else:
+                tx = mesh_lib.bilateral_large_steps(problem.lr, problem.mesh, lam, jnp.float32(sd),
+                                                    directions=problem.directions, **opts)
+            update = jax.jit(lambda g, s, p, tx=tx: _apply(tx, g, s, p))
+            runs[name] = {"update": update, "params": x0, "state": tx.init(x0),
+                          "rng": np.random.default_rng(problem.seed), "it": [], "upd": []}
+
+        def one_step(r):
+            frame = problem.renderer.frame(np.asarray(r["params"]), r["rng"])
+            t0 = time.perf_counter()
+            (_, _), g = problem.grad(r["params"], frame)
+            g = jax.block_until_ready(g)
+            t1 = time.perf_counter()
+            r["params"], r["state"] = jax.block_until_ready(r["update"](g, r["state"], r["params"]))
+            return t1 - t0, time.perf_counter() - t1
+
+        for r in runs.values():  # compile, and one step so warm starts have a solution
+            one_step(r)
+        for _ in range(repeats):
+            for r in runs.values():
                 t0 = time.perf_counter()
-                carries[k], aux = steps[k](carries[k], 0)
-                jax.block_until_ready((carries[k], aux))
-                times[k].append(time.perf_counter() - t0)
-                t0 = time.perf_counter()
-                jax.block_until_ready(opt_only[k][0](*opt_only[k][1]))
-                upd_times[k].append(time.perf_counter() - t0)
-        med = {k: 1e3 * float(np.median(t)) for k, t in times.items()}
-        upd = {k: 1e3 * float(np.median(t)) for k, t in upd_times.items()}
-        ls = med["large-steps"]
-        rows.append({"vertices": int(len(problem.v0)), "large_steps_ms": ls,
-                     "ours_ms": med["cross-bilateral"],
-                     "overhead_pct": 100 * (med["cross-bilateral"] / ls - 1),
-                     "ours_fast_ms": med["cross-bilateral-fast"],
-                     "fast_overhead_pct": 100 * (med["cross-bilateral-fast"] / ls - 1),
-                     "large_steps_update_ms": upd["large-steps"],
-                     "ours_update_ms": upd["cross-bilateral"],
-                     "ours_fast_update_ms": upd["cross-bilateral-fast"]})
-        solver_rows += _solver_timings(problem, repeats)
+                _, upd = one_step(r)
+                r["it"].append(time.perf_counter() - t0)
+                r["upd"].append(upd)
+        it = {k: 1e3 * float(np.median(r["it"])) for k, r in runs.items()}
+        upd = {k: 1e3 * float(np.median(r["upd"])) for k, r in runs.items()}
+        ls = it["large-steps"]
+        row = {"vertices": int(len(problem.v0)), "large_steps_ms": ls, "ours_ms": it["ours"],
+               "overhead_pct": 100 * (it["ours"] / ls - 1)}
+        for k in OVERHEAD_METHODS:
+            row[f"{k}_iteration_ms"] = it[k]
+            row[f"{k}_update_ms"] = upd[k]
+        row["ours-cholesky_overhead_pct"] = 100 * (it["ours-cholesky"] / it["large-steps-cholesky"] - 1)
+        row["ours_update_over_large_steps"] = upd["ours"] / upd["large-steps"]
+        row["ours-cholesky_update_over_large_steps-cholesky"] = (upd["ours-cholesky"]
+                                                                 / upd["large-steps-cholesky"])
+        row["warm_start_update_saving_pct"] = 100 * (1 - upd["ours-warm"] / upd["ours"])
+        rows.append(row)
+        solver_rows += _solver_timings(problem, repeats, superlu_128=not args.quick)
     result = {"iteration": rows, "solver": solver_rows,
               "setting": {"lambda": DEFAULT_LAMBDA, "sigma_d": DEFAULT_SIGMA_D,
+                          "sigma_phi": mesh_lib.DEFAULT_SIGMA_PHI,
                           "directions": mesh_lib.DEFAULT_DIRECTIONS, "tol": mesh_lib.DEFAULT_TOL,
-                          "fast": FAST,
+                          "methods": {k: dict(v[2], optimizer=v[0]) for k, v in OVERHEAD_METHODS.items()},
                           "resolution": res, "views_per_iteration": 2, "repeats": repeats,
                           "quick": args.quick, "devices": str(jax.devices())}}
     (out / "overhead.json").write_text(json.dumps(common._jsonable(result), indent=2) + "\n")
+    short = [{"vertices": r["vertices"], **{k: r[f"{k}_iteration_ms"] for k in OVERHEAD_METHODS}}
+             for r in rows]
+    upd_rows = [{"vertices": r["vertices"], **{k: r[f"{k}_update_ms"] for k in OVERHEAD_METHODS},
+                 "ours/LS (cg)": r["ours_update_over_large_steps"],
+                 "ours/LS (cholesky)": r["ours-cholesky_update_over_large_steps-cholesky"],
+                 "warm start saves %": r["warm_start_update_saving_pct"]} for r in rows]
     md = ("# Per-iteration time, Large Steps vs ours (supplement Table 2 analogue)\n\n"
-          f"Median of {repeats} interleaved repeats; an iteration = render 2 views at {res}^2 "
-          "(NumPy visibility + JAX gradient) + optimizer update. lambda=19, sigma_d=0.5, "
-          f"{mesh_lib.DEFAULT_DIRECTIONS} directions, CG tol {mesh_lib.DEFAULT_TOL:g}; 'fast': "
-          f"{FAST['directions']} directions, tol {FAST['tol']:g}. *_update_ms: the optimizer "
-          "update alone on a fixed gradient. Shared 2-core CPU: ratios are measured "
-          "side by side; absolute times vary with the load.\n\n"
-          + common.markdown_table(rows, floatfmt=".4g")
-          + "\n\n## Linear solver: CG (library) vs SciPy SuperLU, (I + 19 L) X = B\n\n"
+          f"Medians of {repeats} repeats, the methods interleaved within each repeat, each on its "
+          f"own trajectory. An iteration = render 2 views at {res}^2 (NumPy visibility + JAX "
+          "gradient) + the optimizer update. lambda=19, sigma_d=0.5, sigma_phi=0.4, "
+          f"{mesh_lib.DEFAULT_DIRECTIONS} directions, CG tol {mesh_lib.DEFAULT_TOL:g}; "
+          "cholesky = CHOLMOD via cholespy (factorised once, outside the timed steps); warm = CG "
+          "started from the previous step's solution. CPU: the paper's +2.7-9.3% (Table 2) is "
+          "a GPU number.\n\n## Iteration (ms)\n\n" + common.markdown_table(short, floatfmt=".4g")
+          + "\n\n## Optimizer update alone (ms)\n\n" + common.markdown_table(upd_rows, floatfmt=".4g")
+          + "\n\n## Linear solver: (I + 19 L) X = B, CG (library, float32) vs CHOLMOD "
+          "(cholespy) vs SciPy SuperLU (float64)\n\n"
           + common.markdown_table(solver_rows, floatfmt=".4g") + "\n")
     (out / "overhead.md").write_text(md)
     print(md)
     return result
+
+
+def _apply(tx, g, state, params):
+    updates, state = tx.update(g, state, params)
+    return optax.apply_updates(params, updates), state
 
 
 def main(argv=None):

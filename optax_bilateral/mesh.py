@@ -5,7 +5,7 @@ these transforms filter Adam's moments with the mesh's Laplacian instead (see
 docs/mesh.md for the method and the measured results)::
 
     import optax_bilateral.mesh as obm
-    opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=0.5)
+    opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=0.5, sigma_phi=0.4)
 """
 
 from optax_bilateral._src.mesh import (
@@ -13,11 +13,19 @@ from optax_bilateral._src.mesh import (
     DEFAULT_LAMBDA,
     DEFAULT_MAXITER,
     DEFAULT_SIGMA_D,
+    DEFAULT_SIGMA_PHI,
     DEFAULT_TOL,
+    NORMALS,
+    POSTFILTERS_V,
+    PREFILTERS,
+    SOLVERS,
     MeshLaplacian,
+    MeshPostfilterState,
     ScaleByUniformAdamState,
+    SmoothingState,
     bilateral_large_steps,
     bilateral_normal_filter,
+    bilateral_smoothing,
     large_steps,
     laplacian_smoothing,
     mesh_laplacian,
@@ -26,6 +34,7 @@ from optax_bilateral._src.mesh import (
     smoothing_solve,
     sphere_directions,
     vertex_normals,
+    weld_gradients,
 )
 
 __all__ = (
@@ -33,11 +42,19 @@ __all__ = (
     "DEFAULT_LAMBDA",
     "DEFAULT_MAXITER",
     "DEFAULT_SIGMA_D",
+    "DEFAULT_SIGMA_PHI",
     "DEFAULT_TOL",
+    "NORMALS",
+    "POSTFILTERS_V",
+    "PREFILTERS",
+    "SOLVERS",
     "MeshLaplacian",
+    "MeshPostfilterState",
     "ScaleByUniformAdamState",
+    "SmoothingState",
     "bilateral_large_steps",
     "bilateral_normal_filter",
+    "bilateral_smoothing",
     "large_steps",
     "laplacian_smoothing",
     "mesh_laplacian",
@@ -46,4 +63,5 @@ __all__ = (
     "smoothing_solve",
     "sphere_directions",
     "vertex_normals",
+    "weld_gradients",
 )

@@ -35,5 +35,8 @@ def test_mesh_overhead_quick(tmp_path):
     for row in result["iteration"]:
         assert row["large_steps_ms"] > 0 and row["ours_ms"] > 0
         assert math.isclose(row["overhead_pct"], 100 * (row["ours_ms"] / row["large_steps_ms"] - 1))
+        for k in ("large-steps", "large-steps-cholesky", "ours", "ours-warm", "ours-cholesky"):
+            assert row[f"{k}_iteration_ms"] > row[f"{k}_update_ms"] > 0, k
     assert {r["rhs"] for r in result["solver"]} == {3, 128}
+    assert all(r["cholmod_ms"] > 0 and r["cholmod_factor_ms"] > 0 for r in result["solver"])
     assert "Table 2" in (tmp_path / "overhead.md").read_text()

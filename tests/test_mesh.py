@@ -30,10 +30,11 @@ def cubified(v):
     return (v / np.abs(v).max(1, keepdims=True) * 0.5).astype(np.float32)
 
 
-def dense_bilateral(minv, normals, sigma_d, dirs):
-    """Reference: B_ij = Minv_ij K(n_i, n_j) / row sum, K(n_i, n_j) = sum_k w_k(i) w_k(j)."""
-    w = np.exp((normals.astype(np.float64) @ dirs.T.astype(np.float64) - 1.0) / sigma_d)
-    b = minv * (w @ w.T)
+def dense_bilateral(minv, normals, sigma_d, dirs, sigma_phi):
+    """Reference: B_ij = Minv_ij K(n_i, n_j) / row sum, K(n_i, n_j) = sum_k phi_k(i) w_k(j)."""
+    cos = normals.astype(np.float64) @ dirs.T.astype(np.float64)
+    w, phi = np.exp(cos / sigma_d), np.exp(cos / sigma_phi)
+    b = minv * (phi @ w.T)
     return b / b.sum(1, keepdims=True)
 
 
@@ -96,12 +97,12 @@ def test_sphere_directions_unit_and_spread():
 def test_bilateral_operator_row_stochastic_nonnegative_and_matches_dense(small, sigma_d):
     normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
     dirs = M.sphere_directions(32)
-    b = filter_matrix(small, normals, sigma_d, directions=dirs)
+    b = filter_matrix(small, normals, sigma_d, directions=dirs, sigma_phi=0.4)
     # Rows sum to one up to float32 and the CG tolerance (1e-7 relative per column).
     np.testing.assert_allclose(b.sum(1), 1.0, atol=1e-5)
     # M^-1 >= 0 and w >= 0, so B >= 0; CG round-off may dip below by ~1e-7.
     assert b.min() > -1e-6
-    np.testing.assert_allclose(b, dense_bilateral(small["minv"], normals, sigma_d, dirs), atol=2e-6)
+    np.testing.assert_allclose(b, dense_bilateral(small["minv"], normals, sigma_d, dirs, 0.4), atol=2e-6)
 
 
 def test_bilateral_reduces_to_large_steps_as_sigma_grows(small):
@@ -117,7 +118,9 @@ def test_bilateral_weights_less_across_cube_edges(small):
     """Row mass on neighbours whose normal differs by > 45 degrees shrinks as sigma_d falls."""
     normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
     other = (normals @ normals.T) < np.cos(np.pi / 4)
-    mass = [float((filter_matrix(small, normals, s) * other).sum(1).mean()) for s in (np.inf, 1.0, 0.2)]
+    # Splat and slice widths shrink together (the slice width alone also narrows B).
+    mass = [float((filter_matrix(small, normals, s, sigma_phi=s if np.isfinite(s) else 0.4) * other)
+                  .sum(1).mean()) for s in (np.inf, 1.0, 0.2)]
     assert mass[0] > mass[1] > mass[2]
     assert mass[2] < 0.5 * mass[0]
 
@@ -193,7 +196,7 @@ def test_bilateral_large_steps_reduces_to_large_steps(small, sigma_d):
 
 
 def test_filtered_second_moment_step_is_bounded(small):
-    tx = M.bilateral_large_steps(1.0, small["mesh"], LAM, 0.3, second_moment="filtered",
+    tx = M.bilateral_large_steps(1.0, small["mesh"], LAM, 0.3, postfilter_v="bilateral",
                                  directions=M.sphere_directions(16))
     x = jnp.asarray(cubified(small["v"]))
     state = tx.init(x)
@@ -215,7 +218,8 @@ def test_inject_hyperparams_jit_and_pytree_params(small):
     upd, state = step(g, state, params)
     state.hyperparams["sigma_d"] = jnp.asarray(0.2)
     state.hyperparams["lambda_"] = jnp.asarray(2.0)
-    upd2, state = step(g, state, params)  # traced lambda_ and sigma_d: no retrace needed
+    state.hyperparams["sigma_phi"] = jnp.asarray(0.3)
+    upd2, state = step(g, state, params)  # traced lambda_, sigma_d, sigma_phi: no retrace needed
     assert np.all(np.isfinite(upd["shape"])) and not np.allclose(upd["shape"], upd2["shape"])
 
 
@@ -231,8 +235,8 @@ def test_bad_arguments_raise_clear_errors(small):
         M.large_steps(0.1, mesh, -1.0)
     with pytest.raises(ValueError, match="sigma_d"):
         M.bilateral_large_steps(0.1, mesh, 1.0, 0.0)
-    with pytest.raises(ValueError, match="second_moment"):
-        M.mesh_postfilter(mesh, second_moment="max")
+    with pytest.raises(ValueError, match="postfilter_v"):
+        M.mesh_postfilter(mesh, postfilter_v="max")
     with pytest.raises(ValueError, match="directions"):
         M.mesh_postfilter(mesh, directions=np.ones((4, 2)))
     tx = M.mesh_postfilter(mesh, directions=M.sphere_directions(4))
@@ -241,6 +245,186 @@ def test_bad_arguments_raise_clear_errors(small):
         tx.update(x, tx.init(x))
     with pytest.raises(ValueError, match="one row per mesh vertex"):
         M.laplacian_smoothing(mesh).update(x[:10], optax.EmptyState())
+
+
+# --- solvers, warm start, seams, options ------------------------------------------
+
+
+def _filter_loss(small, solver):
+    mesh = small["mesh"]
+    r = jnp.asarray(np.random.default_rng(5).standard_normal((len(small["v"]), 3)), jnp.float32)
+    dirs = M.sphere_directions(8)
+
+    def loss(field, verts, lam):
+        normals = M.vertex_normals(verts, mesh)
+        (out,) = M.bilateral_normal_filter([field], normals, mesh, lambda_=lam, sigma_d=0.4,
+                                           directions=dirs, solver=solver, tol=1e-7)
+        return jnp.sum(out * r)
+    return loss
+
+
+def test_cholesky_keeps_jit_grad_and_vmap(small):
+    """Grads w.r.t. the field, the vertices (through the normals) and lambda, under jit,
+    equal the CG path's; vmap over fields and over lambdas equals a loop."""
+    field = jnp.asarray(_grads(small["v"], 1, seed=3)[0] * 10)
+    verts = jnp.asarray(cubified(small["v"]))
+    grads = {}
+    for solver in ("cg", "cholesky"):
+        f = jax.jit(jax.value_and_grad(_filter_loss(small, solver), argnums=(0, 1, 2)))
+        grads[solver] = f(field, verts, jnp.float32(LAM))
+    (v_cg, g_cg), (v_ch, g_ch) = grads["cg"], grads["cholesky"]
+    # float32 CG at tol 1e-7 against a float64 factor: 1e-4 of each gradient's scale.
+    np.testing.assert_allclose(v_ch, v_cg, rtol=1e-4)
+    for a, b in zip(g_ch, g_cg):
+        assert np.all(np.isfinite(a)) and np.abs(b).max() > 0
+        np.testing.assert_allclose(a, b, atol=1e-4 * float(np.abs(b).max()))
+    loss = _filter_loss(small, "cholesky")
+    fields = jnp.stack([field, 2 * field + 1, -field])
+    lams = jnp.asarray([1.0, LAM, 30.0], jnp.float32)
+    batched = jax.jit(jax.vmap(loss, in_axes=(0, None, 0)))(fields, verts, lams)
+    np.testing.assert_allclose(batched, [loss(a, verts, b) for a, b in zip(fields, lams)], rtol=1e-5)
+
+
+def test_cholesky_lambda_gradient_matches_finite_difference(small):
+    with jax.enable_x64(True):
+        b = jnp.asarray(small["v"][:, :2].astype(np.float64) + 0.3)
+
+        def f(lam):
+            return jnp.sum(M.smoothing_solve(small["mesh"], b, lam, solver="cholesky") ** 2)
+        g = jax.grad(f)(jnp.float64(LAM))
+        h = 1e-5
+        fd = (f(jnp.float64(LAM + h)) - f(jnp.float64(LAM - h))) / (2 * h)
+        # Central difference in float64: error ~h^2 f''' and 1e-16/h round-off.
+        np.testing.assert_allclose(g, fd, rtol=1e-7)
+
+
+@pytest.mark.parametrize("opt", ["large_steps", "bilateral_large_steps"])
+def test_warm_start_changes_the_trajectory_only_within_the_tolerance(small, opt):
+    make = getattr(M, opt)
+    kw = dict(directions=M.sphere_directions(8)) if opt != "large_steps" else {}
+    x0 = jnp.asarray(cubified(small["v"]))
+    runs = []
+    for warm in (False, True):
+        tx = make(0.02, small["mesh"], LAM, tol=1e-6, warm_start=warm, **kw)
+        x, state = x0, tx.init(x0)
+        update = jax.jit(tx.update)
+        for g in _grads(small["v"], 4):
+            u, state = update(jnp.asarray(g), state, x)
+            x = optax.apply_updates(x, u)
+        runs.append((x, state))
+    # 4 steps of <= lr = 0.02 with solves to 1e-6 relative: 1e-5 absolute.
+    np.testing.assert_allclose(runs[1][0], runs[0][0], atol=1e-5)
+    stored = [leaf for leaf in jax.tree.leaves(runs[1][1])
+              if leaf.ndim == 2 and leaf.shape[0] == len(x0) and leaf.shape[1] != 3]
+    if opt == "large_steps":
+        stored = [leaf for leaf in jax.tree.leaves(runs[1][1]) if leaf.ndim == 2]
+    assert stored and all(np.abs(leaf).max() > 0 for leaf in stored)  # the solutions are kept
+
+
+def seam_mesh(v, f):
+    """Cuts the sphere along the loop between faces with z > 0 and the rest: the z > 0
+    faces get their own copies of the loop's vertices (a UV seam)."""
+    top = v[f].mean(1)[:, 2] > 0
+    loop = np.intersect1d(np.unique(f[top]), np.unique(f[~top]))
+    copy = np.arange(len(v))
+    copy[loop] = len(v) + np.arange(len(loop))
+    f2 = f.copy()
+    f2[top] = copy[f[top]]
+    return np.concatenate([v, v[loop]]), f2, loop
+
+
+def test_welded_seam_does_not_open_and_equals_the_closed_mesh(small):
+    v, f = cubified(small["v"]), small["f"]
+    v2, f2, loop = seam_mesh(v, f)
+    assert len(loop) > 0 and len(v2) > len(v)
+    welded = M.mesh_laplacian(f2, weld_positions=v2)
+    assert welded.num_vertices == len(v2) and welded.num_merged == len(v)
+    for make, kw in ((M.large_steps, {}),
+                     (M.bilateral_large_steps, dict(directions=M.sphere_directions(8)))):
+        closed = make(0.02, small["mesh"], LAM, tol=1e-7, **kw)
+        cut = make(0.02, welded, LAM, tol=1e-7, **kw)
+        opened = make(0.02, M.mesh_laplacian(f2), LAM, tol=1e-7, **kw)
+        xa, xb, xc = jnp.asarray(v), jnp.asarray(v2), jnp.asarray(v2)
+        sa, sb, sc = closed.init(xa), cut.init(xb), opened.init(xc)
+        for g in _grads(v, 3):
+            # A seam vertex's gradient is shared by its copies (they sum to it).
+            g2 = np.concatenate([g, g[loop] / 2])
+            g2[loop] /= 2
+            ua, sa = closed.update(jnp.asarray(g), sa, xa)
+            ub, sb = cut.update(jnp.asarray(g2), sb, xb)
+            uc, sc = opened.update(jnp.asarray(g2), sc, xc)
+            xa, xb, xc = (optax.apply_updates(xa, ua), optax.apply_updates(xb, ub),
+                          optax.apply_updates(xc, uc))
+        # Welded: the copies move together and the mesh moves as the closed one.
+        np.testing.assert_array_equal(np.asarray(xb)[len(v):], np.asarray(xb)[loop])
+        np.testing.assert_allclose(np.asarray(xb)[:len(v)], xa, atol=1e-6)
+        # Not welded: the two halves are separate meshes and the seam opens.
+        assert np.abs(np.asarray(xc)[len(v):] - np.asarray(xc)[loop]).max() > 1e-4
+
+
+def test_update_accepts_extra_args_and_pytrees(small):
+    x = {"a": jnp.asarray(cubified(small["v"]))}
+    g = {"a": jnp.asarray(_grads(small["v"], 1)[0])}
+    mesh = small["mesh"]
+    dirs = M.sphere_directions(4)
+    for tx in (M.large_steps(0.1, mesh), M.bilateral_large_steps(0.1, mesh, prefilter="bilateral",
+                                                                 directions=dirs),
+               M.scale_by_uniform_adam(), M.weld_gradients(mesh),
+               M.bilateral_smoothing(mesh, directions=dirs)):
+        u, _ = tx.update(g, tx.init(x), x, value=jnp.float32(1.0), grad=g)
+        assert np.all(np.isfinite(u["a"]))
+
+
+def test_uniform_adam_bias_correction_for_b2_near_one():
+    """b2 = 1 - 1e-9 rounds to 1 in float32; the first step must still be g / max|g|."""
+    g = jnp.asarray(np.random.default_rng(2).standard_normal((10, 3)), jnp.float32)
+    for b2 in (1 - 1e-9, 1 - 1e-5):
+        tx = M.scale_by_uniform_adam(0.9, b2, eps=0.0)
+        u, _ = tx.update(g, tx.init(g))
+        np.testing.assert_allclose(u, g / jnp.abs(g).max(), rtol=1e-4)
+
+
+def test_normals_options_and_callable(small):
+    v = jnp.asarray(cubified(small["v"]))
+    f = small["f"]
+    ns = {w: np.asarray(M.vertex_normals(v, f, w)) for w in M.NORMALS}
+    for n in ns.values():
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    assert np.abs(ns["area"] - ns["uniform"]).max() > 1e-3  # they differ on a cube
+    g = jnp.asarray(_grads(small["v"], 1)[0])
+    dirs = M.sphere_directions(8)
+    by_name = M.mesh_postfilter(small["mesh"], normals="angle", directions=dirs)
+    by_fn = M.mesh_postfilter(small["mesh"], normals=lambda x: M.vertex_normals(x, f, "angle"),
+                              directions=dirs)
+    ua, _ = by_name.update(g, by_name.init(v), v)
+    ub, _ = by_fn.update(g, by_fn.init(v), v)
+    np.testing.assert_allclose(ua, ub, rtol=1e-6)
+
+
+def test_directions_lloyd_option():
+    a, b = M.sphere_directions(32), M.sphere_directions(32, lloyd=False)
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-12)
+    assert np.abs(a - b).max() > 1e-2
+
+    def closest(d):  # largest cosine between two directions
+        return np.sort((d @ d.T)[np.triu_indices(len(d), 1)])[-1]
+    assert closest(a) < closest(b)  # Lloyd spreads the points
+
+
+def test_new_options_reject_bad_values(small):
+    mesh = small["mesh"]
+    with pytest.raises(ValueError, match="sigma_phi"):
+        M.bilateral_large_steps(0.1, mesh, sigma_phi=0.0)
+    with pytest.raises(ValueError, match="prefilter"):
+        M.bilateral_large_steps(0.1, mesh, prefilter="gauss")
+    with pytest.raises(ValueError, match="normals"):
+        M.mesh_postfilter(mesh, normals="cotan")
+    with pytest.raises(ValueError, match="solver"):
+        M.large_steps(0.1, mesh, solver="lu")
+    with pytest.raises(ValueError, match="warm_start"):
+        M.bilateral_large_steps(0.1, mesh, solver="cholesky", warm_start=True)
+    with pytest.raises(ValueError, match="weld_positions"):
+        M.mesh_laplacian(small["f"], weld_positions=np.zeros((3, 3)))
 
 
 # --- the toy scene --------------------------------------------------------------

@@ -14,96 +14,69 @@ Large Steps optimises ``u = M x`` with "uniform" Adam. Since ``M`` is symmetric,
 with ``m^, v^`` bias-corrected and the max over every vertex and coordinate
 (Large Steps' ``AdamUniform``). The paper keeps ``A = M^-1`` and replaces ``B`` by
 a cross-bilateral filter whose spatial kernel is ``M^-1`` and whose data term
-compares vertex normals ``n`` with a von Mises-Fisher kernel, evaluated against a
-fixed set of sphere directions ``s_k`` (a splat / diffuse / slice scheme):
+compares vertex normals ``n`` with von Mises-Fisher kernels, evaluated against a
+fixed set of sphere directions ``s_k`` (splat, diffuse, slice), as the authors do:
 
-    w_k(i) = exp((n_i . s_k - 1) / sigma_d)
-    (B m)_i = sum_k w_k(i) [M^-1 (w_k * m)]_i / sum_k w_k(i) [M^-1 w_k]_i
+    w_k(i)   = exp((max(n_i . s_k, -1) - 1) / sigma_d)     (splat)
+    phi_k(i) = exp((max(n_i . s_k, -1) - 1) / sigma_phi)   (slice)
+    (B m)_i  = sum_k phi_k(i) [M^-1 (w_k * m)]_i / sum_k phi_k(i) [M^-1 w_k]_i
 
 so ``B_ij = [M^-1]_ij K(n_i, n_j) / sum_j [M^-1]_ij K(n_i, n_j)`` with
-``K(n_i, n_j) = sum_k w_k(i) w_k(j)``, a quadrature of
-``int exp((n_i + n_j) . s / sigma_d) ds``, which decreases with the angle between
-the normals. ``M`` is an M-matrix with ``M 1 = 1``, so ``M^-1`` is non-negative and
-row-stochastic; hence ``B`` is too (the bounded-step argument of supplement §1.3
-holds), and as ``sigma_d -> inf`` every ``w_k = 1`` and ``B = M^-1``: the method
-becomes Large Steps. The ``-1`` in the exponent is a global factor
-``exp(-1/sigma_d)`` that cancels between numerator and denominator; it keeps the
-weights in ``(0, 1]`` so small ``sigma_d`` does not overflow float32.
+``K(n_i, n_j) = sum_k phi_k(i) w_k(j)``. ``M`` is an M-matrix with ``M 1 = 1``, so
+``M^-1`` is non-negative and row-stochastic; hence ``B`` is too (the bounded-step
+argument of supplement §1.3 holds when ``m`` and ``v`` share ``B``), and as
+``sigma_d -> inf`` every ``w_k = 1`` and ``B = M^-1``: Large Steps. The ``-1`` in
+the exponents is a global factor that cancels between numerator and denominator;
+it keeps the weights in ``(0, 1]`` so that a small sigma does not overflow float32.
 
-Solver (measured on this project's 2-core CPU; numbers and commands in the
-README / report): every solve is a preconditioned conjugate gradient
-(``jax.scipy.sparse.linalg.cg``, Jacobi preconditioner ``1 + lambda deg``) on all
-right-hand sides at once, as one ``(V, C)`` array, with a padded
-neighbour table for the matrix-vector product. "Factorise once per mesh" here
-means building that table and the degrees once, in NumPy, when the transform is
-made. Why CG and not a sparse Cholesky:
+Solvers (``solver=``): ``"cg"`` (default), Jacobi-preconditioned conjugate gradients
+on all right-hand sides at once (columns scaled to unit norm share one Krylov
+iteration), jit-able on any backend with a traced ``lambda``; ``"cholesky"``, a
+sparse Cholesky factor of ``M`` computed once per (mesh, lambda) on the host by
+CHOLMOD through ``cholespy`` (the ``cholesky`` extra) and called through
+``jax.pure_callback`` inside ``lax.custom_linear_solve``, so ``jit``, ``grad``
+(w.r.t. the right-hand side, the vertices and lambda) and ``vmap`` keep working.
+``warm_start=True`` keeps each CG solution in the transform's state and starts the
+next step's CG there. docs/mesh.md has the measured costs of each.
 
-* the library may depend on jax, optax and numpy only, and JAX has no CPU sparse
-  Cholesky; CG is jit-able, runs on any backend and needs no host callback;
-* ``lambda`` may be traced, so it can be scheduled (supplement §4 suggests decaying
-  the smoothing weight) without refactorising;
-* measured with ``python -m experiments.mesh --overhead`` (``lambda = 19``,
-  ``tol = 1e-4``; float32 CG vs float64 SciPy SuperLU; medians of 5 interleaved
-  repeats, two runs on a shared, heavily loaded 2-core CPU, so ranges):
-
-  ========  ===  ============  =============  =================
-  vertices  rhs  CG            SuperLU solve  SuperLU factorise
-  ========  ===  ============  =============  =================
-  10242     3    12-17 ms      4-11 ms        0.14-0.20 s
-  10242     128  0.27-0.36 s   2.4-22 s
-  34812     3    46-92 ms      49-50 ms       1.1-1.4 s
-  34812     128  3.5-4.3 s     13-14 s
-  166412    3    0.13-0.41 s   0.45-0.48 s    13.5-15.5 s
-  166412    128  20-23 s       84-104 s
-  ========  ===  ============  =============  =================
-
-  so CG is at most ~3x slower for Large Steps' 3 columns (before counting the
-  factorisation) and 3-8x faster for the bilateral filter's 128 columns;
-* per-column CG (``vmap`` over ``cg``) was about 5x slower than one CG over the
-  column-normalised block, so columns are scaled to unit norm first (the solve is
-  linear, so this changes no result) and share one Krylov iteration.
-
-The cost is ``O(iterations * V * degree * C)`` with ``C = K (channels + 1)``
-right-hand sides for ``K`` directions; the iteration count grows like
-``sqrt(1 + lambda * 2 * max_degree)``. Inexact solves perturb the operator by
-about ``tol``; the numerator and denominator of each direction share one solve.
-
-Cost against Large Steps: the bilateral postfilter solves ``K (C + 1) = 128``
-columns (``K = 32`` directions, ``C = 3``, uniform second moment; 224 with
-"filtered") where Large Steps solves ``2 x 3``. On this project's CPU the update
-took 21-55x Large Steps' update and a whole toy-scene iteration 8-14x as long
-(+770% to +1300%) at 10k-166k vertices; with ``directions=16, tol=1e-3`` the
-update took 8-11x and an iteration +220% to +345%. The paper's +2.7% to +9.3%
-(supplement Table 2) is on a GPU, where rendering dominates and a batched
-triangular solve makes extra columns nearly free.
-
-Directions: ``sphere_directions`` maps a scrambled Sobol sequence
-(``scipy.stats.qmc``) to the sphere with the area-preserving cylindrical map. It
-imports SciPy lazily, when a transform is *built* with an integer ``directions``;
-pass a ``(K, 3)`` array of unit vectors instead to keep SciPy out entirely.
+Seams: a mesh with duplicated vertices (UV or normal seams) is welded by
+``mesh_laplacian(faces, weld_positions=vertices)``: the Laplacian, the normals and
+the filters act on the merged vertices, :func:`weld_gradients` sums the copies'
+gradients (the chain rule of ``x = x_merged[index]``), and every copy gets the
+merged vertex's update, so seams do not open (as Mitsuba's Large Steps does).
 """
 
 from __future__ import annotations
 
+import collections
+import hashlib
 import math
 import numbers
-from typing import Any, NamedTuple, Sequence
+import threading
+from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax import lax
 
-# Large Steps' examples use lambda around 10-100; 19 is a common choice there.
+# Large Steps' examples use lambda around 10-100; the authors' mesh run uses 19.
 DEFAULT_LAMBDA = 19.0
-# The paper's default data term (supplement §3: "sigma_d around 0.5").
+# The paper's default data term (supplement §3: "sigma_d around 0.5"); the authors'
+# code splats with sigma_d and slices with sigma_phi = 0.4.
 DEFAULT_SIGMA_D = 0.5
-# "A few dozen" directions; a power of two keeps Sobol's balance properties.
+DEFAULT_SIGMA_PHI = 0.4
+# "A few dozen" directions (the authors' n_filter_samples); a power of two keeps Sobol's balance.
 DEFAULT_DIRECTIONS = 32
-# Relative residual per right-hand side; 1e-4 perturbs the filter far below the
-# Monte Carlo noise it removes (lambda=19, 10k vertices: 70 CG iterations at 1e-5, 40 at 1e-3).
+# Relative residual per right-hand side (docs/mesh.md: iterations against tol).
 DEFAULT_TOL = 1e-4
 DEFAULT_MAXITER = 2000
+
+SOLVERS = ("cg", "cholesky")
+NORMALS = ("area", "uniform", "angle")
+PREFILTERS = ("smooth", "bilateral", "off")
+POSTFILTERS_V = ("uniform", "bilateral", "smooth")
 
 
 # ----------------------------------------------------------------------------
@@ -114,27 +87,51 @@ class MeshLaplacian(NamedTuple):
     """The combinatorial Laplacian of a triangle mesh, built once by :func:`mesh_laplacian`.
 
     Attributes:
-      neighbors: ``(V, D)`` int32, the one-ring of every vertex padded with ``V``
-        (which indexes an appended zero row), ``D`` the maximum degree.
-      degree: ``(V,)`` float32 vertex degrees.
-      faces: ``(F, 3)`` int32 triangles (for vertex normals).
+      neighbors: ``(U, D)`` int32, the one-ring of every (merged) vertex padded with
+        ``U`` (which indexes an appended zero row), ``D`` the maximum degree.
+      degree: ``(U,)`` float32 vertex degrees.
+      faces: ``(F, 3)`` int32 triangles over the merged vertices (for the normals).
+      index: ``(V,)`` int32 merged vertex of every input vertex, or None (no welding).
+      first: ``(U,)`` int32 one input vertex of every merged vertex, or None.
     """
 
     neighbors: jax.Array
     degree: jax.Array
     faces: jax.Array
+    index: Optional[jax.Array] = None
+    first: Optional[jax.Array] = None
 
     @property
     def num_vertices(self) -> int:
+        """``V``, the number of rows of the fields (input vertices, seams included)."""
+        return self.degree.shape[0] if self.index is None else self.index.shape[0]
+
+    @property
+    def num_merged(self) -> int:
+        """``U``, the number of distinct vertices the Laplacian acts on."""
         return self.degree.shape[0]
 
 
-def mesh_laplacian(faces, num_vertices: int | None = None) -> MeshLaplacian:
+def _concrete_faces(faces) -> np.ndarray:
+    try:
+        return np.asarray(faces)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        raise TypeError("faces must be concrete (a NumPy/JAX array, not traced); build "
+                        "mesh_laplacian(faces) outside jit, or pass static_args=('faces',) "
+                        "to optax.inject_hyperparams") from None
+
+
+def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=None) -> MeshLaplacian:
     """Builds the combinatorial Laplacian ``L = D - A`` of a triangle mesh.
 
     Args:
       faces: ``(F, 3)`` integer array of vertex indices (concrete, not traced).
       num_vertices: number of vertices ``V``; default ``faces.max() + 1``.
+      weld_positions: optional ``(V, 3)`` vertex positions; vertices at exactly the
+        same position (the duplicates a renderer keeps at UV or normal seams) are
+        merged for the Laplacian, the normals and the filters, so that a seam does
+        not open. Use it with :func:`weld_gradients` first in the chain (the
+        aliases add it).
 
     Returns:
       A :class:`MeshLaplacian`, to pass as ``faces`` to the mesh transforms so the
@@ -142,12 +139,7 @@ def mesh_laplacian(faces, num_vertices: int | None = None) -> MeshLaplacian:
     """
     if isinstance(faces, MeshLaplacian):
         return faces
-    try:
-        f = np.asarray(faces)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        raise TypeError("faces must be concrete (a NumPy/JAX array, not traced); build "
-                        "mesh_laplacian(faces) outside jit, or pass static_args=('faces',) "
-                        "to optax.inject_hyperparams") from None
+    f = _concrete_faces(faces)
     if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
         raise ValueError(f"faces must have shape (F, 3) with F >= 1 (triangles), got {f.shape}")
     if not np.issubdtype(f.dtype, np.integer):
@@ -158,8 +150,18 @@ def mesh_laplacian(faces, num_vertices: int | None = None) -> MeshLaplacian:
     if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < int(f.max()) + 1:
         raise ValueError(f"num_vertices must be an int > max(faces) = {int(f.max())}, got {num_vertices!r}")
     n = int(n)
+    index = first = None
+    if weld_positions is not None:
+        pos = np.asarray(weld_positions)
+        if pos.shape != (n, 3):
+            raise ValueError(f"weld_positions must have shape (V, 3) = ({n}, 3), got {pos.shape}")
+        _, first, index = np.unique(pos, axis=0, return_index=True, return_inverse=True)
+        index = index.reshape(-1)
+        f = index[f]
+        n = len(first)
     if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])):
-        raise ValueError("faces contains a degenerate triangle (a repeated vertex index)")
+        raise ValueError("faces contains a degenerate triangle (a repeated vertex index"
+                         + (", after welding equal positions)" if index is not None else ")"))
     edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     # An interior edge appears in two faces; the Laplacian counts it once.
     edges = np.unique(np.sort(edges, axis=1), axis=0)
@@ -172,54 +174,174 @@ def mesh_laplacian(faces, num_vertices: int | None = None) -> MeshLaplacian:
     width = max(int(degree.max()), 1)
     neighbors = np.full((n, width), n, dtype=np.int32)
     neighbors[src, np.arange(len(src)) - start[src]] = dst
+    as_index = (lambda a: None if a is None else jnp.asarray(a, jnp.int32))  # noqa: E731
     return MeshLaplacian(jnp.asarray(neighbors), jnp.asarray(degree, jnp.float32),
-                         jnp.asarray(f, jnp.int32))
+                         jnp.asarray(f, jnp.int32), as_index(index), as_index(first))
 
 
-def _matvec(mesh: MeshLaplacian, lambda_, x):
-    """``(I + lambda L) x`` for ``x`` of shape ``(V, C)``."""
+def _merge(mesh: MeshLaplacian, x):
+    """A field on the input vertices -> the merged vertices (copies hold equal values)."""
+    return x if mesh.first is None else x[mesh.first]
+
+
+def _spread(mesh: MeshLaplacian, x):
+    """A field on the merged vertices -> every input vertex (copies get the same value)."""
+    return x if mesh.index is None else x[mesh.index]
+
+
+def _matvec(neighbors, degree, lambda_, x):
+    """``(I + lambda L) x`` for ``x`` of shape ``(U, C)``."""
     padded = jnp.concatenate([x, jnp.zeros((1, x.shape[1]), x.dtype)])
     # One row gather per neighbour slot, summed: XLA:CPU runs this 5-10x faster
-    # than gathering the (V, D, C) block and reducing it (measured at 10k vertices).
-    neighbour_sum = padded[mesh.neighbors[:, 0]]
-    for j in range(1, mesh.neighbors.shape[1]):
-        neighbour_sum = neighbour_sum + padded[mesh.neighbors[:, j]]
-    return x + lambda_ * (mesh.degree.astype(x.dtype)[:, None] * x - neighbour_sum)
+    # than gathering the (U, D, C) block and reducing it.
+    neighbour_sum = padded[neighbors[:, 0]]
+    for j in range(1, neighbors.shape[1]):
+        neighbour_sum = neighbour_sum + padded[neighbors[:, j]]
+    return x + lambda_ * (degree.astype(x.dtype)[:, None] * x - neighbour_sum)
 
 
-@jax.jit
-def _solve(neighbors, degree, b, lambda_, tol, maxiter):
-    # One compilation per shape, shared by every transform and eager call
-    # (cg's while_loop would otherwise be retraced for each new closure).
-    mesh = MeshLaplacian(neighbors, degree, jnp.zeros((0, 3), jnp.int32))
-    dtype = b.dtype
+class _Cholesky:
+    """Host-side sparse Cholesky factors of ``I + lambda L`` (CHOLMOD through cholespy).
+
+    One per mesh (see :func:`_host_cholesky`), with the factors of the last few lambda
+    values, so a schedule over a few values does not refactorise every step.
+    """
+
+    MAX_FACTORS = 4
+
+    def __init__(self, neighbors: np.ndarray, degree: np.ndarray):
+        try:
+            import cholespy
+        except ImportError as e:
+            raise ImportError("solver='cholesky' needs cholespy: pip install "
+                              "'optax_bilateral[cholesky]' (or use solver='cg')") from e
+        self._cholespy = cholespy
+        u = len(degree)
+        rows = np.repeat(np.arange(u), neighbors.shape[1])
+        keep = neighbors.ravel() < u
+        diag = np.arange(u)
+        self._ii = np.concatenate([diag, rows[keep]]).astype(np.int32)
+        self._jj = np.concatenate([diag, neighbors.ravel()[keep]]).astype(np.int32)
+        self._degree = np.asarray(degree, np.float64)
+        self._off = int(keep.sum())
+        self._factors: collections.OrderedDict = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def factor(self, lam: float):
+        with self._lock:
+            if lam in self._factors:
+                self._factors.move_to_end(lam)
+                return self._factors[lam]
+            values = np.concatenate([1.0 + lam * self._degree, np.full(self._off, -lam)])
+            fac = self._cholespy.CholeskySolverD(len(self._degree), self._ii, self._jj, values,
+                                                 self._cholespy.MatrixType.COO)
+            self._factors[lam] = fac
+            while len(self._factors) > self.MAX_FACTORS:
+                self._factors.popitem(last=False)
+            return fac
+
+    def solve(self, b: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """``b``: ``(*batch, U, C)``; ``lam``: ``(*batch)`` (vmap broadcasts both)."""
+        b, lam = np.asarray(b), np.asarray(lam, np.float64)
+        batch = b.shape[:-2]
+        flat_b = b.reshape((-1,) + b.shape[-2:])
+        flat_lam = np.broadcast_to(lam, batch).reshape(-1)
+        out = np.empty(flat_b.shape, b.dtype)
+        for value in np.unique(flat_lam):
+            which = np.nonzero(flat_lam == value)[0]
+            # All batch members with this lambda as the columns of one solve.
+            rhs = (flat_b[which[0]] if len(which) == 1
+                   else np.concatenate(list(flat_b[which]), axis=1))
+            rhs = np.require(rhs, np.float64, ["C", "W"])  # cholespy takes writable C arrays
+            x = np.empty_like(rhs)
+            self.factor(float(value)).solve(rhs, x)
+            out[which] = np.stack(np.split(x, len(which), axis=1))
+        return out.reshape(b.shape)
+
+
+_HOSTS: "collections.OrderedDict[bytes, _Cholesky]" = collections.OrderedDict()
+_HOSTS_LOCK = threading.Lock()
+
+
+def _host_cholesky(mesh: MeshLaplacian) -> _Cholesky:
+    """The factor cache of this mesh's Laplacian (shared by every transform built on it)."""
+    try:
+        nb = np.asarray(mesh.neighbors)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        raise TypeError("solver='cholesky' needs a concrete MeshLaplacian (built outside jit)") from None
+    key = hashlib.blake2b(nb.tobytes() + str(nb.shape).encode(), digest_size=16).digest()
+    with _HOSTS_LOCK:
+        if key not in _HOSTS:
+            _HOSTS[key] = _Cholesky(nb, np.asarray(mesh.degree))
+            while len(_HOSTS) > 8:
+                _HOSTS.popitem(last=False)
+        _HOSTS.move_to_end(key)
+        return _HOSTS[key]
+
+
+def _solve(host, neighbors, degree, b, lambda_, tol, maxiter, x0):
+    """``(I + lambda L)^-1 b`` for ``b`` of shape ``(U, C)``; ``host`` None means CG."""
+    matvec = lambda v: _matvec(neighbors, degree, lambda_, v)  # noqa: E731
+    if host is not None:
+        def solve(_, rhs):
+            return jax.pure_callback(host.solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                                     rhs, lambda_, vmap_method="broadcast_all")
+        return lax.custom_linear_solve(matvec, b, solve, symmetric=True)
     scale = jnp.sqrt(jnp.sum(b * b, axis=0))
     scale = jnp.where(scale > 0, scale, 1.0)
-    inv_diag = (1.0 / (1.0 + lambda_ * degree.astype(dtype)))[:, None]
+    inv_diag = (1.0 / (1.0 + lambda_ * degree.astype(b.dtype)))[:, None]
     b = b / scale
-    # Start from the Jacobi guess rather than zeros: a constant x0 makes XLA
-    # constant-fold the first matvec's gathers, which takes seconds at 166k vertices.
-    x, _ = jax.scipy.sparse.linalg.cg(
-        lambda v: _matvec(mesh, lambda_, v), b, x0=inv_diag * b, tol=tol, atol=0.0,
-        maxiter=maxiter, M=lambda r: inv_diag * r)
+    # The Jacobi guess rather than zeros (a constant x0 makes XLA constant-fold the
+    # first matvec's gathers, seconds at 166k vertices), or the previous solution.
+    guess = inv_diag * b
+    if x0 is not None:
+        guess = jnp.where(jnp.any(x0 != 0), x0 / scale, guess)  # all zeros: the first step
+    x, _ = jax.scipy.sparse.linalg.cg(matvec, b, x0=guess, tol=tol, atol=0.0, maxiter=maxiter,
+                                      M=lambda r: inv_diag * r)
     return x * scale
 
 
-def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, tol: float = DEFAULT_TOL,
-                    maxiter: int = DEFAULT_MAXITER):
-    """Solves ``(I + lambda L) x = b`` with Jacobi-preconditioned CG (Large Steps' "smooth").
+# One compilation per shape and solver, shared by every transform and eager call.
+_solve_jit = jax.jit(_solve, static_argnums=0)
+
+
+def _check_solver_name(solver):
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+
+
+def _host_for(mesh, solver):
+    _check_solver_name(solver)
+    return _host_cholesky(mesh) if solver == "cholesky" else None
+
+
+def _solve_merged(mesh, host, b, lambda_, tol, maxiter, x0=None):
+    """Solves on the merged vertices; ``b`` and ``x0`` are ``(U, C)``."""
+    dtype = b.dtype
+    return _solve_jit(host, mesh.neighbors, mesh.degree, b, jnp.asarray(lambda_, dtype),
+                      jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32), x0)
+
+
+def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, solver: str = "cg",
+                    tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER, x0=None):
+    """Solves ``(I + lambda L) x = b`` (Large Steps' "smooth").
 
     Args:
       mesh: a :class:`MeshLaplacian`.
-      b: ``(V,)`` or ``(V, C)`` right-hand sides (one system per column).
-      lambda_: smoothing weight ``>= 0``; may be traced.
-      tol: relative residual per column (columns are scaled to unit norm first,
-        which the linear solve does not notice, and share one Krylov iteration).
-      maxiter: iteration cap.
+      b: ``(V,)`` or ``(V, C)`` right-hand sides (one system per column). On a welded
+        mesh the copies of a vertex must hold equal values (one is read).
+      lambda_: smoothing weight ``>= 0``; may be traced (with ``"cholesky"``, each new
+        value is factorised on the host, the last four are kept).
+      solver: ``"cg"`` (Jacobi-preconditioned CG, columns scaled to unit norm share
+        one Krylov iteration) or ``"cholesky"`` (needs ``cholespy``).
+      tol: CG relative residual per column.
+      maxiter: CG iteration cap.
+      x0: optional CG starting point with the shape of ``b`` (e.g. the last solution).
 
     Returns:
       ``x`` with the shape and dtype of ``b``.
     """
+    host = _host_for(mesh, solver)
     b = jnp.asarray(b)
     if b.ndim not in (1, 2) or b.shape[0] != mesh.num_vertices:
         raise ValueError(f"b must have shape (V,) or (V, C) with V = {mesh.num_vertices}, "
@@ -227,9 +349,15 @@ def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, tol: float = DEFAULT_TOL
     squeeze = b.ndim == 1
     if squeeze:
         b = b[:, None]
+        x0 = None if x0 is None else jnp.asarray(x0)[:, None]
     dtype = b.dtype if jnp.issubdtype(b.dtype, jnp.floating) else jnp.float32
-    x = _solve(mesh.neighbors, mesh.degree, b.astype(dtype), jnp.asarray(lambda_, dtype),
-               jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32))
+    b = b.astype(dtype)
+    if x0 is not None:
+        x0 = jnp.asarray(x0, dtype)
+        if x0.shape != b.shape:
+            raise ValueError(f"x0 must have the shape of b, {b.shape}, got {x0.shape}")
+        x0 = _merge(mesh, x0)
+    x = _spread(mesh, _solve_merged(mesh, host, _merge(mesh, b), lambda_, tol, maxiter, x0))
     return x[:, 0] if squeeze else x
 
 
@@ -237,32 +365,60 @@ def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, tol: float = DEFAULT_TOL
 # Normals, directions and the bilateral filter
 
 
-def vertex_normals(vertices, faces):
-    """Area-weighted unit vertex normals (the guide of the bilateral filter).
+def _unit(x):
+    norm = jnp.sqrt(jnp.sum(x * x, axis=-1, keepdims=True))
+    return x / jnp.where(norm > 0, norm, 1.0)
+
+
+def vertex_normals(vertices, faces, weighting: str = "area"):
+    """Unit vertex normals (the guide of the bilateral filter).
 
     Args:
       vertices: ``(V, 3)`` positions.
       faces: ``(F, 3)`` int triangles (counter-clockwise seen from outside) or a
-        :class:`MeshLaplacian`.
+        :class:`MeshLaplacian` (then ``vertices`` are the input vertices, seams included).
+      weighting: how face normals are averaged: ``"area"`` (by face area),
+        ``"uniform"`` (unit face normals, unweighted: what the authors' code computes,
+        up to ``O(1/F)``; docs/mesh.md) or ``"angle"`` (by the corner angles).
     """
-    f = faces.faces if isinstance(faces, MeshLaplacian) else jnp.asarray(faces)
+    if weighting not in NORMALS:
+        raise ValueError(f"weighting (normals) must be one of {NORMALS}, got {weighting!r}")
     vertices = jnp.asarray(vertices)
-    a, b, c = vertices[f[:, 0]], vertices[f[:, 1]], vertices[f[:, 2]]
-    face_n = jnp.cross(b - a, c - a)  # length = twice the area: area weighting for free
+    if isinstance(faces, MeshLaplacian):
+        f, mesh = faces.faces, faces
+        vertices = _merge(mesh, vertices)
+    else:
+        f, mesh = jnp.asarray(faces), None
+    corners = [vertices[f[:, k]] for k in range(3)]
+    face_n = jnp.cross(corners[1] - corners[0], corners[2] - corners[0])  # |.| = twice the area
+    if weighting != "area":
+        face_n = _unit(face_n)
     n = jnp.zeros_like(vertices)
     for k in range(3):
-        n = n.at[f[:, k]].add(face_n)
-    norm = jnp.sqrt(jnp.sum(n * n, axis=-1, keepdims=True))
-    return n / jnp.where(norm > 0, norm, 1.0)
+        w = face_n
+        if weighting == "angle":
+            e0 = corners[(k + 1) % 3] - corners[k]
+            e1 = corners[(k + 2) % 3] - corners[k]
+            angle = jnp.arctan2(jnp.linalg.norm(jnp.cross(e0, e1), axis=-1), jnp.sum(e0 * e1, -1))
+            w = face_n * angle[:, None]
+        n = n.at[f[:, k]].add(w)
+    n = _unit(n)
+    return n if mesh is None else _spread(mesh, n)
 
 
-def sphere_directions(num: int = DEFAULT_DIRECTIONS, seed: int = 0) -> np.ndarray:
+def sphere_directions(num: int = DEFAULT_DIRECTIONS, seed: int = 0, *, lloyd: bool = True) -> np.ndarray:
     """``num`` quasi-random unit vectors: scrambled Sobol points mapped to the sphere.
 
     ``(u1, u2) -> (sqrt(1-z^2) cos 2 pi u1, sqrt(1-z^2) sin 2 pi u1, z)`` with
-    ``z = 1 - 2 u2`` preserves area, so uniform points stay uniform. Imports
-    ``scipy.stats.qmc`` lazily (SciPy is not a dependency of the library; pass
-    explicit directions to the transforms to avoid it).
+    ``z = 1 - 2 u2`` preserves area, so uniform points stay uniform. With
+    ``lloyd=True`` (default) the points are first relaxed by SciPy's Lloyd step, as
+    the authors' ``Sobol(d=2, scramble=True, optimization="lloyd", seed=0)``: for
+    ``num=32, seed=0`` these are their directions. A non-power-of-two ``num`` takes
+    the first ``num`` of the next power of two. Imports ``scipy.stats.qmc`` (SciPy is
+    not a dependency of the library; pass explicit directions to avoid it).
+
+    Returns:
+      ``(num, 3)`` float64.
     """
     if isinstance(num, bool) or not isinstance(num, numbers.Integral) or num < 1:
         raise ValueError(f"num (number of sphere directions) must be a positive int, got {num!r}")
@@ -271,25 +427,24 @@ def sphere_directions(num: int = DEFAULT_DIRECTIONS, seed: int = 0) -> np.ndarra
     except ImportError as e:  # pragma: no cover - scipy is in the experiments extra
         raise ImportError("sphere_directions needs scipy (scipy.stats.qmc); install scipy or "
                           "pass directions= as a (K, 3) array of unit vectors") from e
-    sampler = qmc.Sobol(d=2, scramble=True, seed=seed)
-    m = math.ceil(math.log2(num))
-    u = sampler.random_base2(m)[:num]  # a power-of-two prefix keeps the balance
+    sampler = qmc.Sobol(d=2, scramble=True, seed=seed, optimization="lloyd" if lloyd else None)
+    u = sampler.random_base2(math.ceil(math.log2(num)))[:num]  # a power-of-two prefix keeps the balance
     z = 1.0 - 2.0 * u[:, 1]
     r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
     phi = 2.0 * np.pi * u[:, 0]
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1).astype(np.float32)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
 
 
-def _as_directions(directions) -> jax.Array:
+def _as_directions(directions) -> np.ndarray:
     if isinstance(directions, numbers.Integral) and not isinstance(directions, bool):
-        return jnp.asarray(sphere_directions(int(directions)))
-    d = np.asarray(directions, dtype=np.float32)
+        return sphere_directions(int(directions))
+    d = np.asarray(directions, dtype=np.float64)
     if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
         raise ValueError(f"directions must be an int (number of Sobol directions) or a (K, 3) "
                          f"array of unit vectors, got shape {d.shape}")
     if not np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4):
         raise ValueError("directions must be unit vectors")
-    return jnp.asarray(d)
+    return d
 
 
 def _is_concrete_inf(x) -> bool:
@@ -299,72 +454,100 @@ def _is_concrete_inf(x) -> bool:
         return False
 
 
-@jax.jit
-def _bilateral(neighbors, degree, x, n, s, lambda_, sigma_d, tol, maxiter):
-    """Splat (w_k * x, w_k), diffuse with one solve, slice with w_k, divide."""
-    w = jnp.exp((n @ s.T - 1.0) / sigma_d)  # (V, K)
+def _vmf(n, s, sigma):
+    """``exp((max(n . s, -1) - 1) / sigma)``: the authors' clamp, shifted into (0, 1]."""
+    return jnp.exp((jnp.maximum(n @ s.T, -1.0) - 1.0) / sigma)
+
+
+def _bilateral(host, neighbors, degree, x, n, s, lambda_, sigma_d, sigma_phi, tol, maxiter, x0):
+    """Splat (w_k * x, w_k), diffuse with one solve, slice with phi_k, divide.
+
+    Returns the filtered ``(U, C)`` field and the diffused ``(U, K (C + 1))`` columns.
+    """
+    w = _vmf(n, s, sigma_d)  # (U, K)
+    phi = _vmf(n, s, sigma_phi)
     num_v, num_dirs, channels = x.shape[0], w.shape[1], x.shape[1]
     splat = jnp.concatenate([w[:, :, None] * x[:, None, :], w[:, :, None]], axis=2)
-    diffused = _solve(neighbors, degree, splat.reshape(num_v, num_dirs * (channels + 1)),
-                      lambda_, tol, maxiter).reshape(num_v, num_dirs, channels + 1)
-    sliced = jnp.einsum("vk,vkc->vc", w, diffused)
+    flat = _solve(host, neighbors, degree, splat.reshape(num_v, num_dirs * (channels + 1)),
+                  lambda_, tol, maxiter, x0)
+    sliced = jnp.einsum("vk,vkc->vc", phi, flat.reshape(num_v, num_dirs, channels + 1))
     num, den = sliced[:, :channels], sliced[:, channels:]
     ok = den > jnp.finfo(x.dtype).tiny
-    return jnp.where(ok, num / jnp.where(ok, den, 1.0), x)
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), x), flat
+
+
+_bilateral_jit = jax.jit(_bilateral, static_argnums=0)
+
+
+def _bilateral_fields(fields, normals, mesh, host, directions, lambda_, sigma_d, sigma_phi, tol,
+                      maxiter, x0):
+    """The operator B on a list of ``(V, C_i)`` fields; returns (fields, diffused columns)."""
+    widths = [x.shape[1] for x in fields]
+    splits = np.cumsum(widths)[:-1].tolist()
+    x = _merge(mesh, jnp.concatenate(fields, axis=1))
+    dtype = x.dtype
+    if _is_concrete_inf(sigma_d):
+        # Every splat weight is 1: the slice weights cancel and B = M^-1.
+        out = _solve_merged(mesh, host, x, lambda_, tol, maxiter, x0)
+        flat = out
+    else:
+        out, flat = _bilateral_jit(host, mesh.neighbors, mesh.degree, x,
+                                   jnp.asarray(_merge(mesh, jnp.asarray(normals)), dtype),
+                                   jnp.asarray(directions, dtype), jnp.asarray(lambda_, dtype),
+                                   jnp.asarray(sigma_d, dtype), jnp.asarray(sigma_phi, dtype),
+                                   jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32), x0)
+    return jnp.split(_spread(mesh, out), splits, axis=1), flat
 
 
 def bilateral_normal_filter(fields: Sequence[Any], normals, mesh: MeshLaplacian, *,
                             lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D,
-                            directions=DEFAULT_DIRECTIONS, tol: float = DEFAULT_TOL,
+                            sigma_phi=DEFAULT_SIGMA_PHI, directions=DEFAULT_DIRECTIONS,
+                            solver: str = "cg", tol: float = DEFAULT_TOL,
                             maxiter: int = DEFAULT_MAXITER) -> list:
     """Applies the paper's mesh cross-bilateral operator ``B`` to every field.
 
-    ``(B x)_i = sum_k w_k(i) [M^-1 (w_k * x)]_i / sum_k w_k(i) [M^-1 w_k]_i`` with
-    ``M = I + lambda L`` and ``w_k(i) = exp((n_i . s_k - 1) / sigma_d)`` (see the
-    module docstring). All fields go through the same solves, so e.g. Adam's
-    ``m`` and ``v`` get the same row-stochastic, non-negative operator (supplement
-    §1.3). ``sigma_d = inf`` (concrete) skips the directions: ``B = M^-1``.
-    Vertices whose denominator underflows (``sigma_d`` far below the spacing of the
-    directions) keep their input value, i.e. that row of ``B`` is the identity.
+    ``(B x)_i = sum_k phi_k(i) [M^-1 (w_k * x)]_i / sum_k phi_k(i) [M^-1 w_k]_i`` with
+    ``M = I + lambda L``, splat weights ``w_k(i) = exp((max(n_i . s_k, -1) - 1) / sigma_d)``
+    and slice weights ``phi_k(i)``, the same with ``sigma_phi`` (the authors' code;
+    module docstring). All fields go through the same solves, so e.g. Adam's ``m``
+    and ``v`` get the same row-stochastic, non-negative operator (supplement §1.3).
+    ``sigma_d = inf`` (concrete) skips the directions: ``B = M^-1``. Vertices whose
+    denominator underflows (a sigma far below the spacing of the directions) keep
+    their input value, i.e. that row of ``B`` is the identity.
 
     Args:
       fields: sequence of ``(V, C_i)`` arrays.
       normals: ``(V, 3)`` unit vertex normals (the guide).
       mesh: a :class:`MeshLaplacian`.
       lambda_: smoothing weight ``>= 0`` (may be traced).
-      sigma_d: data-term width ``> 0``, ``inf`` for Large Steps (may be traced).
+      sigma_d: splat width ``> 0``, ``inf`` for Large Steps (may be traced).
+      sigma_phi: slice width ``> 0`` (may be traced; ``inf``: unweighted slice).
       directions: int (that many Sobol directions, built with SciPy) or ``(K, 3)``.
-      tol, maxiter: CG settings (:func:`smoothing_solve`).
+      solver, tol, maxiter: see :func:`smoothing_solve`.
 
     Returns:
       A list with the filtered fields.
     """
+    host = _host_for(mesh, solver)
     fields = [jnp.asarray(x) for x in fields]
     for x in fields:
         if x.ndim != 2 or x.shape[0] != mesh.num_vertices:
             raise ValueError(f"every field must have shape (V, C) with V = {mesh.num_vertices}, "
                              f"got {x.shape}")
-    widths = [x.shape[1] for x in fields]
-    splits = np.cumsum(widths)[:-1].tolist()
-    x = jnp.concatenate(fields, axis=1)
-    if _is_concrete_inf(sigma_d):
-        return jnp.split(smoothing_solve(mesh, x, lambda_, tol=tol, maxiter=maxiter), splits, axis=1)
-    s = directions if isinstance(directions, jax.Array) else _as_directions(directions)
-    dtype = x.dtype
-    out = _bilateral(mesh.neighbors, mesh.degree, x, jnp.asarray(normals, dtype), s.astype(dtype),
-                     jnp.asarray(lambda_, dtype), jnp.asarray(sigma_d, dtype),
-                     jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32))
-    return jnp.split(out, splits, axis=1)
+    s = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
+    out, _ = _bilateral_fields(fields, normals, mesh, host, s, lambda_, sigma_d, sigma_phi, tol,
+                               maxiter, None)
+    return out
 
 
 # ----------------------------------------------------------------------------
-# Argument checks
+# Argument checks and numerics
 
 
 def _concrete_float(x):
     try:
         return float(np.asarray(x))
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError, TypeError):
         return None
 
 
@@ -374,10 +557,10 @@ def _check_lambda(lambda_):
         raise ValueError(f"lambda_ (Laplacian smoothing weight) must be finite and >= 0, got {v}")
 
 
-def _check_sigma(sigma_d):
-    v = _concrete_float(sigma_d)
+def _check_sigma(sigma, name="sigma_d"):
+    v = _concrete_float(sigma)
     if v is not None and not v > 0.0:
-        raise ValueError(f"sigma_d must be > 0 (inf gives Large Steps), got {v}")
+        raise ValueError(f"{name} must be > 0 (inf turns its weights off), got {v}")
 
 
 def _check_unit(x, name):
@@ -386,7 +569,21 @@ def _check_unit(x, name):
         raise ValueError(f"{name} must be in [0, 1), got {v}")
 
 
-def _check_solver(tol, maxiter):
+def _check_choice(value, name, choices):
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+
+
+def _check_normals(normals):
+    if not callable(normals):
+        _check_choice(normals, "normals", NORMALS)
+
+
+def _check_solver(solver, tol, maxiter, warm_start=False):
+    _check_solver_name(solver)
+    if warm_start and solver != "cg":
+        raise ValueError(f"warm_start starts the CG from the last solution; it does not apply to "
+                         f"solver={solver!r} (a direct solve)")
     # Concrete values only: optax.inject_hyperparams may pass them as (traced) arrays.
     t = _concrete_float(tol)
     if t is not None and not t > 0:
@@ -407,13 +604,79 @@ def _safe_increment(count):
     return jnp.where(count < jnp.iinfo(jnp.int32).max, count + 1, count).astype(jnp.int32)
 
 
+# Below this 1 - b, float32 keeps fewer than 10 bits of 1 - b in b itself.
+_NEAR_ONE = 2.0 ** -14
+
+
+def _one_minus(b):
+    """``1 - b``, in float64 when ``b`` is concrete (keeps its digits for b near 1)."""
+    v = _concrete_float(b)
+    return 1 - b if v is None else float(1.0 - np.float64(np.asarray(b)))
+
+
+def _bias_correction(b, count, dtype):
+    """Adam's ``1 - b^t`` in ``dtype``; ``-expm1(t log1p(-(1 - b)))`` for ``b`` within
+    ``2^-14`` of 1, where ``1 - b^t`` would lose its digits (or be 0 when ``b`` rounds
+    to 1 in float32). A traced ``b`` chooses at run time."""
+    t = count.astype(dtype)
+    a = _one_minus(b)
+    if _concrete_float(b) is not None:
+        if a < _NEAR_ONE:
+            return -jnp.expm1(t * jnp.log1p(jnp.asarray(-a, dtype)))
+        return 1 - jnp.asarray(b, dtype) ** t
+    a = jnp.asarray(a, dtype)
+    near = a < _NEAR_ONE
+    exact = -jnp.expm1(t * jnp.log1p(-jnp.where(near, a, 0)))
+    return jnp.where(near, exact, 1 - jnp.asarray(b, dtype) ** t)
+
+
 # ----------------------------------------------------------------------------
 # Transforms
 
 
-def laplacian_smoothing(faces, lambda_=DEFAULT_LAMBDA, *, tol: float = DEFAULT_TOL,
-                        maxiter: int = DEFAULT_MAXITER) -> optax.GradientTransformation:
-    """Large Steps' smoothing ``g -> (I + lambda L)^-1 g`` on every ``(V, C)`` leaf (stateless).
+class SmoothingState(NamedTuple):
+    """State of the mesh smoothing transforms: the last solutions, or None (no warm start)."""
+
+    count: jax.Array
+    x0: Any
+
+
+def _smoothing_init(warm_start: bool, columns: Callable[[Any], int]):
+    def init_fn(params):
+        if not warm_start:
+            return SmoothingState(jnp.zeros([], jnp.int32), None)
+        return SmoothingState(jnp.zeros([], jnp.int32), jax.tree.map(
+            lambda p: jnp.zeros((p.shape[0], columns(p)), p.dtype), params))
+    return init_fn
+
+
+def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
+    """Sums the gradients of a welded vertex's copies and gives every copy the sum.
+
+    ``x = x_merged[index]`` (copies of a seam vertex) gives
+    ``df/dx_merged = sum of the copies' df/dx``: the gradient of the merged vertex.
+    Identity for a mesh built without ``weld_positions``. The mesh aliases put it
+    first; a hand-built chain needs it before the first smoothing.
+    """
+    mesh = mesh_laplacian(faces)
+
+    def update_fn(updates, state, params=None, **extra_args):
+        del params, extra_args
+        if mesh.index is None:
+            return updates, state
+
+        def weld(g):
+            _check_leaf(g, mesh, "weld_gradients")
+            return _spread(mesh, jax.ops.segment_sum(g, mesh.index, num_segments=mesh.num_merged))
+        return jax.tree.map(weld, updates), state
+
+    return optax.GradientTransformationExtraArgs(lambda params: optax.EmptyState(), update_fn)
+
+
+def laplacian_smoothing(faces, lambda_=DEFAULT_LAMBDA, *, solver: str = "cg",
+                        tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
+                        warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
+    """Large Steps' smoothing ``g -> (I + lambda L)^-1 g`` on every ``(V, C)`` leaf.
 
     Used before the moments it is the prefilter ``A`` (eq. 1), the gradient of the
     reparameterisation ``u = (I + lambda L) x``; used after ``scale_by_uniform_adam``
@@ -422,53 +685,122 @@ def laplacian_smoothing(faces, lambda_=DEFAULT_LAMBDA, *, tol: float = DEFAULT_T
     Args:
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian` (built once).
       lambda_: smoothing weight ``>= 0``; may be traced / injected.
-      tol, maxiter: CG settings.
+      solver, tol, maxiter: see :func:`smoothing_solve`.
+      warm_start: keep the last solution in the state and start the CG there.
     """
     mesh = mesh_laplacian(faces)
     _check_lambda(lambda_)
-    _check_solver(tol, maxiter)
+    _check_solver(solver, tol, maxiter, warm_start)
+    host = _host_for(mesh, solver)
+    warm_start = bool(warm_start)
+
+    def update_fn(updates, state, params=None, **extra_args):
+        del params, extra_args
+        leaves, treedef = jax.tree.flatten(updates)
+        starts = treedef.flatten_up_to(state.x0) if warm_start else [None] * len(leaves)
+        out, sols = [], []
+        for x, x0 in zip(leaves, starts):
+            _check_leaf(x, mesh, "laplacian_smoothing")
+            sol = _solve_merged(mesh, host, _merge(mesh, x), lambda_, tol, maxiter,
+                                None if x0 is None else _merge(mesh, x0))
+            sols.append(_spread(mesh, sol))
+            out.append(sols[-1].astype(x.dtype))
+        new = SmoothingState(_safe_increment(state.count),
+                             jax.tree.unflatten(treedef, sols) if warm_start else None)
+        return jax.tree.unflatten(treedef, out), new
+
+    return optax.GradientTransformationExtraArgs(_smoothing_init(warm_start, lambda p: p.shape[1]),
+                                                 update_fn)
+
+
+def _normals_fn(normals, mesh):
+    if callable(normals):
+        return normals
+    return lambda x: vertex_normals(x, mesh, normals)
+
+
+def bilateral_smoothing(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, *,
+                        sigma_phi=DEFAULT_SIGMA_PHI, directions=DEFAULT_DIRECTIONS,
+                        normals="area", solver: str = "cg", tol: float = DEFAULT_TOL,
+                        maxiter: int = DEFAULT_MAXITER, warm_start: bool = False
+                        ) -> optax.GradientTransformationExtraArgs:
+    """The bilateral normal filter ``g -> B g`` on every ``(V, 3)`` leaf (the authors'
+    ``prefilter="bilateral"``), guided by the normals of ``params``.
+
+    Args: as :func:`mesh_postfilter`. ``update`` needs ``params``.
+    """
+    mesh = mesh_laplacian(faces)
+    _check_lambda(lambda_)
+    _check_sigma(sigma_d)
+    _check_sigma(sigma_phi, "sigma_phi")
+    _check_solver(solver, tol, maxiter, warm_start)
+    _check_normals(normals)
+    host = _host_for(mesh, solver)
+    dirs = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
+    normals_of = _normals_fn(normals, mesh)
+    warm_start = bool(warm_start)
+    width = (lambda p: p.shape[1] if dirs is None else len(dirs) * (p.shape[1] + 1))  # noqa: E731
+
+    def update_fn(updates, state, params=None, **extra_args):
+        del extra_args
+        if params is None:
+            raise ValueError("bilateral_smoothing needs params (the vertex positions) to compute "
+                             "the normals that guide the filter: call update(updates, state, params)")
+        leaves, treedef = jax.tree.flatten(updates)
+        xs = treedef.flatten_up_to(params)
+        starts = treedef.flatten_up_to(state.x0) if warm_start else [None] * len(leaves)
+        out, sols = [], []
+        for g, x, x0 in zip(leaves, xs, starts):
+            _check_leaf(x, mesh, "bilateral_smoothing params", channels=3)
+            _check_leaf(g, mesh, "bilateral_smoothing updates")
+            (gf,), flat = _bilateral_fields([g], normals_of(x), mesh, host, dirs, lambda_, sigma_d,
+                                            sigma_phi, tol, maxiter, x0)
+            sols.append(flat)
+            out.append(gf.astype(g.dtype))
+        new = SmoothingState(_safe_increment(state.count),
+                             jax.tree.unflatten(treedef, sols) if warm_start else None)
+        return jax.tree.unflatten(treedef, out), new
 
     def init_fn(params):
-        del params
-        return optax.EmptyState()
+        # The diffused columns live on the merged vertices.
+        if not warm_start:
+            return SmoothingState(jnp.zeros([], jnp.int32), None)
+        return SmoothingState(jnp.zeros([], jnp.int32), jax.tree.map(
+            lambda p: jnp.zeros((mesh.num_merged, width(p)), p.dtype), params))
 
-    def update_fn(updates, state, params=None):
-        del params
-        leaves, treedef = jax.tree.flatten(updates)
-        for x in leaves:
-            _check_leaf(x, mesh, "laplacian_smoothing")
-        out = [smoothing_solve(mesh, x, lambda_, tol=tol, maxiter=maxiter).astype(x.dtype)
-               for x in leaves]
-        return jax.tree.unflatten(treedef, out), state
-
-    return optax.GradientTransformation(init_fn, update_fn)
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
 class ScaleByUniformAdamState(NamedTuple):
-    """Moments of :func:`scale_by_uniform_adam` and :func:`mesh_postfilter`."""
+    """Moments of :func:`scale_by_uniform_adam`."""
 
     count: jax.Array
     mu: Any
     nu: Any
 
 
-def _moments(updates, state, b1, b2):
-    mu = jax.tree.map(lambda g, m: b1 * m + (1 - b1) * g, updates, state.mu)
-    nu = jax.tree.map(lambda g, v: b2 * v + (1 - b2) * g * g, updates, state.nu)
-    count = _safe_increment(state.count)
-    t = count.astype(jnp.float32)
-    c1 = 1 - jnp.asarray(b1, jnp.float32) ** t
-    c2 = 1 - jnp.asarray(b2, jnp.float32) ** t
-    return count, mu, nu, c1, c2
+class MeshPostfilterState(NamedTuple):
+    """State of :func:`mesh_postfilter`: the *unfiltered* moments and, with
+    ``warm_start``, the last solutions of the filter's solves (else None)."""
+
+    count: jax.Array
+    mu: Any
+    nu: Any
+    x0: Any = None
 
 
-def _init_moments(params):
-    zeros = lambda p: jnp.zeros_like(p)  # noqa: E731
-    return ScaleByUniformAdamState(jnp.zeros([], jnp.int32), jax.tree.map(zeros, params),
-                                   jax.tree.map(zeros, params))
+def _moments(updates, mu, nu, count, b1, b2):
+    a1, a2 = _one_minus(b1), _one_minus(b2)
+    mu = jax.tree.map(lambda g, m: b1 * m + a1 * g, updates, mu)
+    nu = jax.tree.map(lambda g, v: b2 * v + a2 * g * g, updates, nu)
+    return _safe_increment(count), mu, nu
 
 
-def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransformation:
+def _zeros_like_tree(params):
+    return jax.tree.map(jnp.zeros_like, params)
+
+
+def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransformationExtraArgs:
     """Large Steps' ``AdamUniform``: Adam with one second moment per leaf.
 
         m_t = b1 m_{t-1} + (1-b1) g_t,   v_t = b2 v_{t-1} + (1-b2) g_t^2
@@ -481,27 +813,34 @@ def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransform
     _check_unit(b1, "b1")
     _check_unit(b2, "b2")
 
-    def update_fn(updates, state, params=None):
-        del params
-        count, mu, nu, c1, c2 = _moments(updates, state, b1, b2)
-        out = jax.tree.map(
-            lambda m, v: ((m / c1.astype(m.dtype))
-                          / (jnp.sqrt(jnp.max(v) / c2.astype(v.dtype)) + eps)).astype(m.dtype),
-            mu, nu)
-        return out, ScaleByUniformAdamState(count, mu, nu)
+    def init_fn(params):
+        return ScaleByUniformAdamState(jnp.zeros([], jnp.int32), _zeros_like_tree(params),
+                                       _zeros_like_tree(params))
 
-    return optax.GradientTransformation(_init_moments, update_fn)
+    def update_fn(updates, state, params=None, **extra_args):
+        del params, extra_args
+        count, mu, nu = _moments(updates, state.mu, state.nu, state.count, b1, b2)
+
+        def step(m, v):
+            c1, c2 = _bias_correction(b1, count, m.dtype), _bias_correction(b2, count, v.dtype)
+            return ((m / c1) / (jnp.sqrt(jnp.max(v) / c2) + eps)).astype(m.dtype)
+
+        return jax.tree.map(step, mu, nu), ScaleByUniformAdamState(count, mu, nu)
+
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
 def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0.9, b2=0.999,
-                    eps=1e-8, *, second_moment: str = "uniform", directions=DEFAULT_DIRECTIONS,
-                    tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER
-                    ) -> optax.GradientTransformationExtraArgs:
+                    eps=1e-8, *, sigma_phi=DEFAULT_SIGMA_PHI, postfilter_v: str = "uniform",
+                    directions=DEFAULT_DIRECTIONS, normals="area", solver: str = "cg",
+                    tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
+                    warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
     """Adam moments with the bilateral normal postfilter ``B`` (supplement eqs. 6-10).
 
         m_t, v_t = EMAs of the incoming (prefiltered) gradient   (eqs. 2, 4; unfiltered in the state)
-        "uniform":  Delta_t = B m^_t / (sqrt(max_k v^_t,k) + eps)
-        "filtered": Delta_t = B m^_t / (sqrt(B v^_t) + eps)       (same B for m and v, §1.3)
+        "uniform":   Delta_t = B m^_t / (sqrt(max_k v^_t,k) + eps)
+        "bilateral": Delta_t = B m^_t / (sqrt(B v^_t) + eps)       (same B for m and v, §1.3)
+        "smooth":    Delta_t = B m^_t / (sqrt(M^-1 v^_t) + eps)    (the authors' option; not bounded)
 
     ``B`` is :func:`bilateral_normal_filter` with the guide ``n`` = the vertex
     normals of ``params`` (the current positions; "cross-bilateral"). With
@@ -509,13 +848,20 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
 
     Args:
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian`.
-      lambda_: smoothing weight of ``M = I + lambda L`` (may be traced).
-      sigma_d: data-term width on normals (``> 0``, ``inf`` = Large Steps; may be traced).
+      lambda_: smoothing weight of ``M = I + lambda L`` (may be traced). The authors'
+        ``compute_matrix(alpha=lambda/(1+lambda))`` is ``M / (1 + lambda)``
+        (docs/mesh.md maps the two).
+      sigma_d: splat width on normals (``> 0``, ``inf`` = Large Steps; may be traced).
       b1, b2, eps: Adam's decay rates and epsilon (Large Steps uses 0.9, 0.999).
-      second_moment: ``"uniform"`` (max over the leaf, as Large Steps) or ``"filtered"``.
-      directions: int number of Sobol sphere directions (needs SciPy when built) or a
-        ``(K, 3)`` array of unit vectors.
-      tol, maxiter: CG settings.
+      sigma_phi: slice width (the authors' 0.4 by default; may be traced).
+      postfilter_v: ``"uniform"`` (max over the leaf, as Large Steps), ``"bilateral"``
+        (``B v``) or ``"smooth"`` (``M^-1 v``).
+      directions: int number of Sobol sphere directions (the authors' Lloyd-relaxed
+        set; needs SciPy when built) or a ``(K, 3)`` array of unit vectors.
+      normals: ``"area"``, ``"uniform"`` (the authors'), ``"angle"`` (see
+        :func:`vertex_normals`) or a callable ``positions -> (V, 3) unit normals``.
+      solver, tol, maxiter: see :func:`smoothing_solve`.
+      warm_start: keep the last solutions in the state and start the CG there.
 
     ``update(updates, state, params)`` needs ``params``: a pytree of ``(V, 3)``
     vertex-position leaves of this mesh (the updates have the same structure).
@@ -523,45 +869,81 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
     mesh = mesh_laplacian(faces)
     _check_lambda(lambda_)
     _check_sigma(sigma_d)
+    _check_sigma(sigma_phi, "sigma_phi")
     _check_unit(b1, "b1")
     _check_unit(b2, "b2")
-    _check_solver(tol, maxiter)
-    if second_moment not in ("uniform", "filtered"):
-        raise ValueError(f"second_moment must be 'uniform' or 'filtered', got {second_moment!r}")
+    _check_solver(solver, tol, maxiter, warm_start)
+    _check_choice(postfilter_v, "postfilter_v", POSTFILTERS_V)
+    _check_normals(normals)
+    host = _host_for(mesh, solver)
     dirs = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
+    normals_of = _normals_fn(normals, mesh)
+    warm_start = bool(warm_start)
+    k = 1 if dirs is None else len(dirs)
+
+    def widths(p):
+        """Columns of the solves that a leaf needs: B on m (and v), then M^-1 v."""
+        c = p.shape[1]
+        if postfilter_v == "bilateral":
+            return ((2 * c + (0 if dirs is None else 1)) * k,)
+        bil = ((c + (0 if dirs is None else 1)) * k,)
+        return bil + ((c,) if postfilter_v == "smooth" else ())
+
+    def init_fn(params):
+        x0 = None
+        if warm_start:
+            x0 = jax.tree.map(lambda p: tuple(jnp.zeros((mesh.num_merged, w), p.dtype)
+                                              for w in widths(p)), params)
+        return MeshPostfilterState(jnp.zeros([], jnp.int32), _zeros_like_tree(params),
+                                   _zeros_like_tree(params), x0)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
         if params is None:
             raise ValueError("mesh_postfilter needs params (the vertex positions) to compute "
                              "the normals that guide the filter: call update(updates, state, params)")
-        count, mu, nu, c1, c2 = _moments(updates, state, b1, b2)
-
-        def step(m, v, x):
+        count, mu, nu = _moments(updates, state.mu, state.nu, state.count, b1, b2)
+        flat_m, treedef = jax.tree.flatten(mu)
+        flat_v = treedef.flatten_up_to(nu)
+        flat_x = treedef.flatten_up_to(params)
+        flat_x0 = treedef.flatten_up_to(state.x0) if warm_start else [None] * len(flat_m)
+        outs, sols = [], []
+        for m, v, x, x0 in zip(flat_m, flat_v, flat_x, flat_x0):
             _check_leaf(x, mesh, "mesh_postfilter params", channels=3)
             _check_leaf(m, mesh, "mesh_postfilter updates")
-            m_hat = m / c1.astype(m.dtype)
-            v_hat = v / c2.astype(v.dtype)
-            normals = vertex_normals(x, mesh)
-            kw = dict(lambda_=lambda_, sigma_d=sigma_d, directions=dirs, tol=tol, maxiter=maxiter)
-            if second_moment == "uniform":
-                (m_f,) = bilateral_normal_filter([m_hat], normals, mesh, **kw)
-                denom = jnp.sqrt(jnp.max(v_hat)) + eps
+            c1, c2 = _bias_correction(b1, count, m.dtype), _bias_correction(b2, count, v.dtype)
+            m_hat, v_hat = m / c1, v / c2
+            normals_x = normals_of(x)
+            kw = dict(mesh=mesh, host=host, directions=dirs, lambda_=lambda_, sigma_d=sigma_d,
+                      sigma_phi=sigma_phi, tol=tol, maxiter=maxiter)
+            first = None if x0 is None else x0[0]
+            if postfilter_v == "bilateral":
+                (m_f, v_f), flat = _bilateral_fields([m_hat, v_hat], normals_x, x0=first, **kw)
+                leaf_sols = (flat,)
             else:
-                m_f, v_f = bilateral_normal_filter([m_hat, v_hat], normals, mesh, **kw)
-                # B is non-negative, so B v >= 0 up to the CG tolerance; clip its round-off.
-                denom = jnp.sqrt(jnp.maximum(v_f, 0.0)) + eps
-            return (m_f / denom).astype(m.dtype)
+                (m_f,), flat = _bilateral_fields([m_hat], normals_x, x0=first, **kw)
+                leaf_sols = (flat,)
+                if postfilter_v == "uniform":
+                    v_f = jnp.max(v_hat)
+                else:
+                    v_s = _solve_merged(mesh, host, _merge(mesh, v_hat), lambda_, tol, maxiter,
+                                        None if x0 is None else x0[1])
+                    leaf_sols += (v_s,)
+                    v_f = _spread(mesh, v_s)
+            # B and M^-1 are non-negative, so v_f >= 0 up to the solver; clip its round-off.
+            denom = jnp.sqrt(jnp.maximum(v_f, 0.0)) + eps
+            outs.append((m_f / denom).astype(m.dtype))
+            sols.append(leaf_sols)
+        x0_new = jax.tree.unflatten(treedef, sols) if warm_start else None
+        return (jax.tree.unflatten(treedef, outs),
+                MeshPostfilterState(count, mu, nu, x0_new))
 
-        out = jax.tree.map(step, mu, nu, params)
-        return out, ScaleByUniformAdamState(count, mu, nu)
-
-    return optax.GradientTransformationExtraArgs(_init_moments, update_fn)
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
 def large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, b1=0.9, b2=0.999, eps=1e-8, *,
-                tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER
-                ) -> optax.GradientTransformationExtraArgs:
+                solver: str = "cg", tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
+                warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
     """Large Steps in Inverse Rendering of Geometry (Nicolet et al. 2021) on vertex positions.
 
         x <- x - lr M^-1 AdamUniform(M^-1 g),    M = I + lambda L
@@ -572,43 +954,57 @@ def large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, b1=0.9, b2=0.999, 
 
     Args:
       learning_rate: float or optax schedule.
-      faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian`.
+      faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian` (welded seams: see
+        :func:`mesh_laplacian`).
       lambda_: smoothing weight (may be traced / injected).
       b1, b2, eps: ``AdamUniform``'s parameters.
-      tol, maxiter: CG settings.
+      solver, tol, maxiter, warm_start: see :func:`laplacian_smoothing`.
     """
     mesh = mesh_laplacian(faces)
+    kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
     return optax.chain(
-        laplacian_smoothing(mesh, lambda_, tol=tol, maxiter=maxiter),
+        weld_gradients(mesh),
+        laplacian_smoothing(mesh, lambda_, **kw),
         scale_by_uniform_adam(b1, b2, eps),
-        laplacian_smoothing(mesh, lambda_, tol=tol, maxiter=maxiter),
+        laplacian_smoothing(mesh, lambda_, **kw),
         optax.scale_by_learning_rate(learning_rate),
     )
 
 
 def bilateral_large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D,
-                          b1=0.9, b2=0.999, eps=1e-8, *, second_moment: str = "uniform",
-                          directions=DEFAULT_DIRECTIONS, tol: float = DEFAULT_TOL,
-                          maxiter: int = DEFAULT_MAXITER) -> optax.GradientTransformationExtraArgs:
+                          b1=0.9, b2=0.999, eps=1e-8, *, sigma_phi=DEFAULT_SIGMA_PHI,
+                          prefilter: str = "smooth", postfilter_v: str = "uniform",
+                          directions=DEFAULT_DIRECTIONS, normals="area", solver: str = "cg",
+                          tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
+                          warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
     """The paper's mesh optimizer: Large Steps with a cross-bilateral postfilter on normals.
 
         g~ = M^-1 g,   m, v = EMAs of g~
-        x <- x - lr B m^ / (sqrt(max v^) + eps)            ("uniform", default)
-        x <- x - lr B m^ / (sqrt(B v^) + eps)              ("filtered")
+        x <- x - lr B m^ / (sqrt(max v^) + eps)            (postfilter_v="uniform", default)
+        x <- x - lr B m^ / (sqrt(B v^) + eps)              ("bilateral")
+        x <- x - lr B m^ / (sqrt(M^-1 v^) + eps)           ("smooth")
 
     ``B`` diffuses with ``M^-1 = (I + lambda L)^-1`` but not across normals that
-    differ (von Mises-Fisher data term of width ``sigma_d``, see
-    :func:`bilateral_normal_filter`). ``sigma_d -> inf`` gives :func:`large_steps`.
-    ``update`` needs ``params`` (the vertex positions give the normals).
+    differ (von Mises-Fisher splat of width ``sigma_d`` and slice of width
+    ``sigma_phi``, see :func:`bilateral_normal_filter`). ``sigma_d -> inf`` gives
+    :func:`large_steps`. ``prefilter``: ``"smooth"`` (``M^-1 g``, default),
+    ``"bilateral"`` (``B g``) or ``"off"``. ``update`` needs ``params`` (the vertex
+    positions give the normals).
 
-    With ``optax.inject_hyperparams`` (to schedule ``lambda_``, ``sigma_d`` or the
-    learning rate) pass a :class:`MeshLaplacian` as ``faces``, or list ``"faces"``
-    (and ``"directions"`` if it is an array) in ``static_args``.
+    With ``optax.inject_hyperparams`` (to schedule ``lambda_``, ``sigma_d``,
+    ``sigma_phi`` or the learning rate) pass a :class:`MeshLaplacian` as ``faces``, or
+    list ``"faces"`` (and ``"directions"`` if it is an array) in ``static_args``.
     """
     mesh = mesh_laplacian(faces)
-    return optax.chain(
-        laplacian_smoothing(mesh, lambda_, tol=tol, maxiter=maxiter),
-        mesh_postfilter(mesh, lambda_, sigma_d, b1, b2, eps, second_moment=second_moment,
-                        directions=directions, tol=tol, maxiter=maxiter),
-        optax.scale_by_learning_rate(learning_rate),
-    )
+    _check_choice(prefilter, "prefilter", PREFILTERS)
+    kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
+    bil = dict(sigma_phi=sigma_phi, directions=directions, normals=normals)
+    parts = [weld_gradients(mesh)]
+    if prefilter == "smooth":
+        parts.append(laplacian_smoothing(mesh, lambda_, **kw))
+    elif prefilter == "bilateral":
+        parts.append(bilateral_smoothing(mesh, lambda_, sigma_d, **bil, **kw))
+    parts += [mesh_postfilter(mesh, lambda_, sigma_d, b1, b2, eps, postfilter_v=postfilter_v,
+                              **bil, **kw),
+              optax.scale_by_learning_rate(learning_rate)]
+    return optax.chain(*parts)

@@ -158,9 +158,9 @@ class Scene(NamedTuple):
 def make_scene(num_views: int = 16, resolution: int = 64, extent: float = 1.2,
                cube_half: float = 0.55, views_per_iteration: int = 2, seed: int = 1) -> Scene:
     """Cameras on quasi-random directions (scrambled Sobol, ``scipy.stats.qmc``)."""
-    from optax_bilateral._src.mesh import sphere_directions
+    from optax_bilateral.mesh import sphere_directions
 
-    d = sphere_directions(num_views, seed=seed).astype(np.float64)
+    d = sphere_directions(num_views, seed=seed, lloyd=False)
     helper = np.where(np.abs(d[:, 2:3]) < 0.9, [[0, 0, 1.0]], [[1.0, 0, 0]])
     right = np.cross(helper, d)
     right /= np.linalg.norm(right, axis=1, keepdims=True)
