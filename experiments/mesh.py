@@ -337,7 +337,7 @@ def run_overhead(args) -> dict:
                           "fast": FAST,
                           "resolution": res, "views_per_iteration": 2, "repeats": repeats,
                           "quick": args.quick, "devices": str(jax.devices())}}
-    (out / "overhead.json").write_text(json.dumps(common._jsonable(result), indent=2) + "\n")
+    (out / "overhead.json").write_text(json.dumps(common.jsonable(result), indent=2) + "\n")
     md = ("# Per-iteration time, Large Steps vs ours (supplement Table 2 analogue)\n\n"
           f"Median of {repeats} interleaved repeats; an iteration = render 2 views at {res}^2 "
           "(NumPy visibility + JAX gradient) + optimizer update. lambda=19, sigma_d=0.5, "

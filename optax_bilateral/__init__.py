@@ -5,7 +5,7 @@ for Inverse Rendering". SIGGRAPH Asia 2024.
 """
 
 from optax_bilateral._src.alias import bilateral_adam
-from optax_bilateral._src.sharded import atrous_bilateral
+from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.leaves import default_spatial_axes
 from optax_bilateral._src.state_io import load_state, save_state
 from optax_bilateral._src.transforms import (

@@ -1,4 +1,4 @@
-"""Independent, slow float64 NumPy loop implementation of METHOD.md's a-trous filter.
+"""Independent, slow float64 NumPy loop implementation of the a-trous filter of docs/method.md.
 
 Written straight from the formula, point by point, with no vectorisation and no
 weight sharing, so that it shares no code or tricks with the library.

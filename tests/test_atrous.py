@@ -1,4 +1,4 @@
-"""The a-trous cross-bilateral filter against METHOD.md's definition and its properties."""
+"""The a-trous cross-bilateral filter against docs/method.md's definition and its properties."""
 
 import math
 
@@ -239,9 +239,9 @@ def test_bad_input_errors_name_the_argument():
 @pytest.mark.parametrize("shape", [(3, 4, 128), (3, 512)])
 def test_full_mode_pitch_column_is_off_the_grid(shape):
     # Outer strides of 2 KiB and 4 KiB (powers of two) get a zero column appended in
-    # full mode (atrous._pitch); it must change nothing: same result as the reference,
+    # full mode (atrous.pitch_columns); it must change nothing: same result as the reference,
     # with and without a mask, and (2-D) finite guide gradients along the last column.
-    assert atrous._pitch(shape, separable=False) == 1
+    assert atrous.pitch_columns(shape, separable=False) == 1
     rng = np.random.default_rng(12)
     x = rng.normal(size=shape + (2,)).astype(np.float32)
     g = _quantised_guide(rng, shape, 1)
@@ -264,7 +264,7 @@ def test_full_mode_pitch_column_is_off_the_grid(shape):
 
 
 def test_pitch_rule():
-    p = atrous._pitch
+    p = atrous.pitch_columns
     assert p((64, 64, 64), False) == 1 and p((512, 512), False) == 1
     assert p((64, 64, 64), True) == 0                       # separable: not measured faster
     assert p((48, 48, 48), False) == 0 and p((96, 96, 96), False) == 0   # 9 KiB, 36 KiB
@@ -275,7 +275,7 @@ def test_pitch_rule():
 @pytest.mark.parametrize("gch", [1, 2])
 def test_full_3d_pairs_handed_over_between_levels_match_reference(gch):
     # Full 3-D mode computes the weights of offsets shared by consecutive levels once
-    # (atrous._handover_order): three levels, so a level both takes over and hands over.
+    # (atrous's handover order): three levels, so a level both takes over and hands over.
     rng = np.random.default_rng(11)
     x = rng.normal(size=(9, 6, 7, 2)).astype(np.float32)
     g = _quantised_guide(rng, (9, 6, 7), gch)

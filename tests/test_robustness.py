@@ -528,7 +528,7 @@ def test_meta_gradient_wrt_sigma_d_and_learning_rate_is_finite_and_correct():
 
 def test_huge_guide_differences_with_huge_sigma_d():
     # The squared guide distance would overflow float32 above ~1.8e19; the filter rescales
-    # the guide and sigma_d by a power of two first (atrous.rescale_guide).
+    # the guide and sigma_d by a power of two first (bilateral.rescale_guide).
     x = jnp.asarray([0.0, 1.0])
     for gv in (1e18, 1e20):            # guide distance 2e18 (fine) and 2e20 (d^2 = inf)
         out = ob.atrous_bilateral(x, jnp.asarray([gv, -gv]), sigma_d=1e30, levels=1, spatial_axes=(0,))
@@ -556,7 +556,7 @@ def test_guide_scale_invariance_up_to_float_max(scale):
 
 def test_one_channel_guide_at_float_max_needs_no_rescale():
     # One guide channel takes the distance |a - b| without a square or a rescaling pass;
-    # |a - b| = 6e38 would overflow float32 unless halved (atrous._pair_weights).
+    # |a - b| = 6e38 would overflow float32 unless halved (the one-channel distance in atrous._pair_weights).
     x = jnp.asarray([0.0, 1.0])
     out = ob.atrous_bilateral(x, jnp.asarray([3e38, -3e38], jnp.float32), sigma_d=1e38, levels=1,
                               spatial_axes=(0,))

@@ -288,6 +288,32 @@ def test_finite_gradients_build_no_observation_mask(prefilter):
 # --- Interop ------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("kind", ["bilateral_adam", "prefilter + postfilter", "memoryless"])
+def test_eager_update_compiles_nothing_after_the_first_call(kind):
+    """Without jax.jit around it, an update must reuse its compiled programs (it recompiled a
+    lax.cond every call: 1-3 s per step); and it equals the jitted update."""
+    from experiments.common import CompileCounter
+    opt = {"bilateral_adam": ob.bilateral_adam(0.1, levels=2),
+           "prefilter + postfilter": ob.bilateral_adam(0.1, levels=2, prefilter=True),
+           "memoryless": ob.postfilter(0.0, 0.0, levels=2)}[kind]
+    theta = jax.random.uniform(KEY, (32, 32, 3))
+    state = opt.init(theta)
+    u, state = opt.update(_grads(0, theta), state, theta)
+    states, eager = [state], []
+    with CompileCounter() as compiles:
+        for i in range(1, 4):
+            u, state = opt.update(_grads(i, theta), state, theta)
+            jax.block_until_ready(u)
+            assert compiles.count == 0, f"call {i + 1} compiled {compiles.count} program(s)"
+            eager.append(u)
+            states.append(state)
+    jitted = jax.jit(opt.update)
+    for i, u in enumerate(eager, start=1):
+        u_jit, _ = jitted(_grads(i, theta), states[i - 1], theta)
+        # The same formula; eagerly, the ops around the per-leaf step fuse differently.
+        np.testing.assert_allclose(np.asarray(u), np.asarray(u_jit), rtol=1e-6, atol=1e-7)
+
+
 def test_chain_with_other_transforms_and_jit_of_the_whole_step():
     theta = jnp.full((16, 16, 3), 0.5)
     # A piecewise-constant target: what an edge-stopping filter is built to recover.
@@ -381,7 +407,7 @@ def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kin
     # The transforms leave unobserved texels out of the sums with a NaN guide there (one
     # program for both branches of their lax.cond); at observed texels that must equal
     # atrous_bilateral's mask. An integer guide has no NaN: it falls back to the mask.
-    from optax_bilateral._src import leaves as lv, transforms as tr
+    from optax_bilateral._src import step
     k1, k2, k3 = jax.random.split(KEY, 3)
     m = jax.random.normal(k1, (9, 7, 3))
     v = m * m
@@ -389,9 +415,11 @@ def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kin
              "channels": jax.random.uniform(k2, (9, 7, 2)),
              "integer": jax.random.randint(k2, (9, 7), 0, 3)}[guide_kind]
     obs = jax.random.uniform(k3, (9, 7)) > 0.3
-    spec = lv.LeafSpec(axes=(0, 1), levels=2, sigma_d=0.2)
-    assert (tr._nan_guide(guide, obs, spec) is None) == (guide_kind == "integer")
-    out = tr._filter((m, v), guide, spec, separable, obs)
+    assert (step.nan_guide_at(guide, obs, (0, 1)) is None) == (guide_kind == "integer")
+    rule = step.LeafRule(stage="postfilter", axes=(0, 1), levels=2, separable=separable,
+                         self_guided=False, log_guide=False, mask_unobserved=False, limit=1.0,
+                         guard_sigma=False, constants=(("sigma_d", 0.2),))
+    out = step.filter_fields(rule, (m, v), guide, {}, obs)
     ref = atrous_bilateral((m, v), guide, sigma_d=0.2, levels=2, spatial_axes=(0, 1),
                            separable=separable, mask=obs)
     sel = np.asarray(obs)

@@ -7,13 +7,13 @@ A setting is given once for all leaves, or as a pytree *prefix* of the parameter
 from __future__ import annotations
 
 import numbers
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Union
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from optax_bilateral._src import atrous
+from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
 
@@ -120,11 +120,11 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels) -> list[LeafSpec]:
         if len(ax) > nd:
             raise ValueError(f"spatial_axes={ax} asks for {len(ax)} spatial axes but parameter "
                              f"leaf {name} has shape {np.shape(leaf)} ({nd} dimension(s))")
-        ax = atrous.normalize_axes(ax, nd, name=f"spatial_axes (for leaf {name}, shape {np.shape(leaf)})")
-        lev = atrous.check_levels(lev, name=f"levels (for leaf {name})")
+        ax = normalize_axes(ax, nd, name=f"spatial_axes (for leaf {name}, shape {np.shape(leaf)})")
+        lev = check_levels(lev, name=f"levels (for leaf {name})")
         if sig is None:
             raise ValueError(f"sigma_d is None for leaf {name}; pass a number (inf for a low-pass)")
-        atrous.check_sigma_d(sig, name=f"sigma_d (for leaf {name})")
+        check_sigma_d(sig, name=f"sigma_d (for leaf {name})")
         if ax and lev > 0:
             dt = jnp.result_type(leaf)
             if not jnp.issubdtype(dt, jnp.floating):
@@ -165,15 +165,15 @@ def check_params(params, *, spatial_axes, sigma_d, levels, guide, transform: str
         shapes = jax.eval_shape(guide, params)
         g_list = broadcast_prefix(shapes, params, lambda x: x is None or hasattr(x, "shape"),
                                   "the guide callable's result")
-        for leaf, name, spec, gd in zip(leaves, names, specs, g_list):
+        for leaf, name, spec, leaf_guide in zip(leaves, names, specs, g_list):
             if not spec.axes:
                 continue
-            if gd is None:
+            if leaf_guide is None:
                 raise ValueError(f"guide returned None for params leaf {name}, which is filtered "
                                  f"(spatial axes {spec.axes}); return an array for it or give it "
                                  "spatial_axes=()")
             want = tuple(np.shape(leaf)[a] for a in spec.axes)
-            got = _guide_spatial_shape(gd.shape, np.shape(leaf), spec.axes, name)
+            got = _guide_spatial_shape(leaf_guide.shape, np.shape(leaf), spec.axes, name)
             if got != want:
                 raise ValueError(f"guide for params leaf {name} has spatial shape {got} but the leaf "
                                  f"has {want} along spatial_axes {spec.axes}: the guide must cover "
@@ -181,7 +181,10 @@ def check_params(params, *, spatial_axes, sigma_d, levels, guide, transform: str
     return specs
 
 
-GuideSpec = Any  # "params" | "self" | callable params -> guide pytree (prefix)
+# "params" | "self" | a callable params -> guide pytree (a prefix of the parameters).
+GuideSetting = Union[str, Callable[[Any], Any]]
+# None (the default rule) | a tuple of ints | a pytree prefix of tuples | a callable leaf -> axes.
+SpatialAxesSetting = Any
 
 
 def check_guide(guide) -> None:
@@ -217,24 +220,3 @@ def log_transform(x):
     x = jnp.asarray(x)
     x = x.astype(jnp.promote_types(x.dtype, jnp.float32))
     return jnp.log(jnp.abs(x) + LOG_GUIDE_EPS)
-
-
-def texel_mask(ok, axes: tuple[int, ...]):
-    """Reduces an elementwise boolean to the spatial grid (a texel is ok iff all its channels are).
-
-    Returned in ``axes`` order, the layout ``atrous_bilateral``'s ``mask`` expects.
-    """
-    chan = tuple(a for a in range(ok.ndim) if a not in axes)
-    m = jnp.all(ok, axis=chan) if chan else ok
-    srt = sorted(axes)
-    return jnp.transpose(m, [srt.index(a) for a in axes]) if len(axes) > 1 else m
-
-
-def expand_mask(mask, ndim: int, axes: tuple[int, ...]):
-    """Inverse of :func:`texel_mask`'s layout: broadcastable against the leaf."""
-    srt = sorted(axes)
-    m = jnp.transpose(mask, [axes.index(a) for a in srt]) if len(axes) > 1 else mask
-    shape = [1] * ndim
-    for k, a in enumerate(srt):
-        shape[a] = m.shape[k]
-    return m.reshape(shape)

@@ -17,12 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from optax_bilateral._src.leaves import leaf_names
+
 _FORMAT = "optax_bilateral.state/1"
-
-
-def _names(tree) -> list[str]:
-    paths = jax.tree_util.tree_flatten_with_path(tree)[0]
-    return [jax.tree_util.keystr(p) or "(the root)" for p, _ in paths]
 
 
 def _raw(x) -> np.ndarray:
@@ -44,7 +41,7 @@ def save_state(path, state) -> None:
     leaves = jax.tree.leaves(state)
     arrays = {f"leaf_{i:05d}": _raw(x) for i, x in enumerate(leaves)}
     arrays["__format__"] = np.asarray(_FORMAT)
-    arrays["__paths__"] = np.asarray(_names(state) or [""], dtype=str)
+    arrays["__paths__"] = np.asarray(leaf_names(state) or [""], dtype=str)
     arrays["__dtypes__"] = np.asarray([str(np.asarray(x).dtype) for x in leaves] or [""], dtype=str)
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
@@ -76,7 +73,7 @@ def load_state(path, like):
         or dtypes differ from ``like``'s (a different optimizer or parameters).
     """
     leaves, treedef = jax.tree.flatten(like)
-    names = _names(like)
+    names = leaf_names(like)
     with np.load(os.fspath(path), allow_pickle=False) as data:
         if "__format__" not in data or str(data["__format__"]) != _FORMAT:
             raise ValueError(f"{path} is not an optimizer state written by save_state")
