@@ -6,7 +6,7 @@ for Inverse Rendering". SIGGRAPH Asia 2024.
 
 from optax_bilateral._src.alias import bilateral_adam
 from optax_bilateral._src.filter import atrous_bilateral
-from optax_bilateral._src.leaves import default_spatial_axes
+from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
 from optax_bilateral._src.state_io import load_state, save_state
 from optax_bilateral._src.transforms import (
     DEFAULT_SIGMA_D,
@@ -24,12 +24,14 @@ __version__ = "0.1.0"
 
 __all__ = (
     "DEFAULT_SIGMA_D",
+    "LeafRuleWarning",
     "PostfilterState",
     "PrefilterState",
     "ScaleByAdamState",
     "atrous_bilateral",
     "bilateral_adam",
     "default_spatial_axes",
+    "filtered_axes",
     "load_state",
     "mesh",
     "postfilter",

@@ -86,6 +86,8 @@ def describe(module) -> list[str]:
             lines.append(f"{full}: module")
         elif isinstance(obj, type) and hasattr(obj, "_fields"):
             lines.append(f"{full}: NamedTuple({', '.join(obj._fields)})")
+        elif isinstance(obj, type) and issubclass(obj, Warning):
+            lines.append(f"{full}: {', '.join(b.__name__ for b in obj.__bases__)} subclass")
         elif isinstance(obj, type):
             lines.append(f"{full}: class{inspect.signature(obj)}")
         elif callable(obj):

@@ -1,5 +1,7 @@
 """The Optax transforms: Adam equivalence, the paper's equations, composition and interop."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -159,11 +161,69 @@ def test_postfilter_step_is_bounded_supplement_1_3(seed, sigma_d, b1, levels, se
 
 
 def test_default_leaf_rule():
-    assert ob.default_spatial_axes(jnp.zeros(())) == ()
-    assert ob.default_spatial_axes(jnp.zeros((5,))) == ()
-    assert ob.default_spatial_axes(jnp.zeros((5, 4))) == (0, 1)
-    assert ob.default_spatial_axes(jnp.zeros((5, 4, 3))) == (0, 1)
-    assert ob.default_spatial_axes(jnp.zeros((5, 4, 3, 2))) == (0, 1, 2)
+    rule = lambda *shape: ob.default_spatial_axes(jnp.zeros(shape))
+    assert rule() == () and rule(5) == ()
+    assert rule(16, 12, 3) == (0, 1) and rule(5, 6, 4) == (0, 1)      # (H, W, C): textures
+    assert rule(16, 12) == (0, 1)                                      # (H, W), both sides > 4
+    assert rule(4, 8) == () and rule(8, 4) == ()                       # weight matrices
+    assert rule(3, 16, 16) == ()                                       # (C, H, W)
+    assert rule(16, 16, 16) == ()                                      # scalar (D, H, W) volume
+    assert rule(8, 9, 10, 1) == (0, 1, 2)                              # (D, H, W, C) volume
+    assert rule(4, 16, 16, 3) == ()                                    # a batch of 4 textures
+    assert rule(3, 3, 16, 32) == ()                                    # a conv kernel
+
+
+@pytest.mark.parametrize("shape,axes,advice", [
+    ((4, 8), (), "spatial_axes=(0, 1)"),
+    ((8, 4), (), "spatial_axes=(0, 1)"),
+    ((24, 20), (0, 1), "spatial_axes=()"),
+    ((3, 16, 16), (), "spatial_axes=(1, 2)"),
+    ((16, 16, 16), (), "spatial_axes=(0, 1, 2)"),
+    ((16, 8, 8, 3), (0, 1, 2), "spatial_axes=(1, 2)"),
+])
+def test_ambiguous_leaves_warn_once_naming_the_leaf_and_the_setting(shape, axes, advice):
+    name = "leaf_" + "x".join(map(str, shape))
+    params = {name: jnp.zeros(shape), "tex": jnp.zeros((8, 8, 3)), "b": jnp.zeros(4)}
+    assert ob.filtered_axes(params) == {f"['{name}']": axes, "['tex']": (0, 1), "['b']": ()}
+    opt = ob.bilateral_adam(0.1, levels=1)
+    with pytest.warns(ob.LeafRuleWarning) as record:
+        opt.init(params)
+    assert len(record) == 1                   # the texture and the vector are no guess
+    text = str(record[0].message)
+    assert f"['{name}']" in text and str(shape) in text and advice in text
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ob.LeafRuleWarning)
+        opt.init(params)                      # once per leaf and process
+        # An explicit setting is no guess either.
+        ob.bilateral_adam(0.1, levels=1, spatial_axes={name: axes, "tex": (0, 1), "b": ()}).init(
+            {**params, name: jnp.ones(shape)})
+
+
+def test_filtered_axes_resolves_prefixes_callables_and_levels():
+    params = {"a": jnp.zeros((3, 8, 8)), "b": jnp.zeros((8, 8, 3)), "c": jnp.zeros(())}
+    assert ob.filtered_axes(params, spatial_axes={"a": (1, 2), "b": None, "c": ()}) == {
+        "['a']": (1, 2), "['b']": (0, 1), "['c']": ()}
+    assert ob.filtered_axes(params, spatial_axes=lambda x: (1, 2) if x.shape[:1] == (3,) else ()) \
+        == {"['a']": (1, 2), "['b']": (), "['c']": ()}
+    assert ob.filtered_axes(params, levels={"a": 0, "b": 2, "c": 0}) == {
+        "['a']": (), "['b']": (0, 1), "['c']": ()}
+
+
+@pytest.mark.parametrize("make", [lambda: ob.bilateral_adam(0.1), lambda: ob.prefilter(),
+                                  lambda: ob.scale_by_adam(),
+                                  lambda: ob.bilateral_adam(0.1, levels=0)])
+def test_complex_parameters_are_refused_with_a_message_that_says_complex(make):
+    # Refused rather than supported: the filter's weights and the bounded step (supplement
+    # 1.3) are defined for real fields; the message says how to optimise such a leaf.
+    params = {"tex": jnp.zeros((8, 8, 2), jnp.complex64), "s": jnp.zeros(())}
+    with pytest.raises(TypeError, match=r"\['tex'\] is complex \(complex64\).*real and imaginary"):
+        make().init(params)
+    with pytest.raises(TypeError, match="complex"):
+        ob.atrous_bilateral(jnp.zeros((8, 8), jnp.complex64), jnp.zeros((8, 8)), sigma_d=0.1,
+                            levels=1, spatial_axes=(0, 1))
+    with pytest.raises(TypeError, match="guide is complex"):
+        ob.atrous_bilateral(jnp.zeros((8, 8)), jnp.zeros((8, 8), jnp.complex64), sigma_d=0.1,
+                            levels=1, spatial_axes=(0, 1))
 
 
 def test_mixed_pytree_filters_the_texture_and_adams_the_scalar():

@@ -140,7 +140,10 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
         raise ValueError("fields must be an array or a non-empty tuple of arrays")
     fields = tuple(jnp.asarray(f) for f in fields)
     for i, f in enumerate(fields):
-        if not jnp.issubdtype(f.dtype, jnp.inexact):
+        if jnp.issubdtype(f.dtype, jnp.complexfloating):
+            raise TypeError(f"fields[{i}] is complex ({f.dtype}); filter its real and imaginary "
+                            "parts as two channels of a real field")
+        if not jnp.issubdtype(f.dtype, jnp.floating):
             raise TypeError(f"fields[{i}] must have a floating dtype, got {f.dtype}")
     axes0 = normalize_axes(spatial_axes, fields[0].ndim)
     if not axes0:
@@ -156,6 +159,9 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
         field_axes.append(axes)
 
     guide = jnp.asarray(guide)
+    if jnp.issubdtype(guide.dtype, jnp.complexfloating):
+        raise TypeError(f"guide is complex ({guide.dtype}); pass its real and imaginary parts as "
+                        "two channels of a real guide (the distance is then |gamma_p - gamma_q|)")
     if guide.ndim == len(axes0) and guide_axes is None:
         g_axes = tuple(range(guide.ndim))
     else:

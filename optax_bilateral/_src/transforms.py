@@ -106,6 +106,9 @@ def scale_by_adam(b1: jax.typing.ArrayLike = 0.9, b2: jax.typing.ArrayLike = 0.9
     mu_dtype = check_mu_dtype(mu_dtype)
 
     def init_fn(params):
+        for leaf, name in zip(jax.tree.leaves(params), leaves.leaf_names(params)):
+            leaves.check_real_floating(leaf, name, "scale_by_adam keeps Adam moments for every "
+                                       "leaf, which needs real floating point parameters")
         mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
         nu = jax.tree.map(jnp.zeros_like, params)
         return ScaleByAdamState(count=jnp.zeros([], jnp.int32), mu=mu, nu=nu)
