@@ -25,11 +25,6 @@ from optax_bilateral._src.validation import is_concrete
 NEAR_ONE = 2.0**-14
 
 
-def safe_increment(count: jax.Array) -> jax.Array:
-    max_int = jnp.iinfo(jnp.int32).max
-    return jnp.where(count < max_int, count + 1, max_int).astype(jnp.int32)
-
-
 def one_minus(b: Any) -> Any:
     """``1 - b``, in float64 when ``b`` is a concrete number (keeps its digits for b near 1)."""
     if is_concrete(b):

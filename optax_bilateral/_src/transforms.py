@@ -117,7 +117,7 @@ def scale_by_adam(b1: jax.typing.ArrayLike = 0.9, b2: jax.typing.ArrayLike = 0.9
         del params, extra_args
         mu = jax.tree.map(lambda g, m: (1 - b1) * g + b1 * m, updates, state.mu)
         nu = jax.tree.map(lambda g, v: (1 - b2) * (g ** 2) + b2 * v, updates, state.nu)
-        count_inc = numerics.safe_increment(state.count)
+        count_inc = optax.safe_increment(state.count)
         c1 = 1 - b1 ** count_inc
         c2 = 1 - b2 ** count_inc
         new = jax.tree.map(
@@ -300,7 +300,7 @@ def postfilter(b1: jax.typing.ArrayLike = 0.2, b2: jax.typing.ArrayLike | None =
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
         memoryless = state.mu is None
-        count_inc = numerics.safe_increment(state.count)
+        count_inc = optax.safe_increment(state.count)
         specs = leaves.leaf_specs(updates, spatial_axes=spatial_axes, sigma_d=sigma_d,
                                   levels=levels)
         guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "postfilter")
