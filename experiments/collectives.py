@@ -9,12 +9,27 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
-_DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2,
-                "s32": 4, "u32": 4, "f32": 4, "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16}
+_DTYPE_BYTES = {
+    "pred": 1,
+    "s8": 1,
+    "u8": 1,
+    "s16": 2,
+    "u16": 2,
+    "f16": 2,
+    "bf16": 2,
+    "s32": 4,
+    "u32": 4,
+    "f32": 4,
+    "s64": 8,
+    "u64": 8,
+    "f64": 8,
+    "c64": 8,
+    "c128": 16,
+}
 _SHAPE = re.compile(r"\b(pred|bf16|c64|c128|[suf]\d+)\[([\d,]*)\]")
 _HEADER = re.compile(r"^(ENTRY\s+)?%?([\w.\-]+)\s*\(.*\)\s*->.*\{\s*$")
 _INSTR = re.compile(r"^\s*(?:ROOT\s+)?%?[\w.\-]+\s*=\s*(.*?)\s([a-z][\w\-]*)\((.*)$")
@@ -89,11 +104,11 @@ def collective_stats(hlo: str, branch: int | None = -1) -> dict:
                 acc[k]["max_bytes"] = max(acc[k]["max_bytes"], other[k]["max_bytes"])
 
         for op, shape, rest in comps.get(name, []):
-            kind = op[:-len("-start")] if op.endswith("-start") else op
+            kind = op[: -len("-start")] if op.endswith("-start") else op
             if kind in COLLECTIVES and not op.endswith("-done"):
                 b = shape_bytes(shape)
                 if op.endswith("-start"):
-                    b //= 2                               # an async start's shape is (in, out)
+                    b //= 2  # an async start's shape is (in, out)
                 if kind == "collective-permute":
                     pairs = re.search(r"source_target_pairs=\{(.*?)\}\}", rest)
                     moved = b * (len(re.findall(r"\{\d+,\d+", pairs.group(0))) if pairs else 1)
@@ -102,7 +117,7 @@ def collective_stats(hlo: str, branch: int | None = -1) -> dict:
                     share = (g - 1) / g if g else 0.0
                     moved = devices * b * share * (2 if kind == "all-reduce" else 1)
                 acc[kind]["count"] += 1
-                acc[kind]["bytes"] += int(round(moved))
+                acc[kind]["bytes"] += round(moved)
                 acc[kind]["max_bytes"] = max(acc[kind]["max_bytes"], b)
             for key in ("calls", "to_apply", "body", "condition"):
                 for mm in re.finditer(key + r"=%?([\w.\-]+)", rest):
@@ -155,8 +170,15 @@ def _remote_points(shape, blocks, radii, clip: bool = True) -> int:
     return total
 
 
-def halo_bytes(shape: Sequence[int], blocks: Sequence[int], levels: int, fields: int,
-               guide: int, separable: bool = True, itemsize: int = 4) -> dict:
+def halo_bytes(
+    shape: Sequence[int],
+    blocks: Sequence[int],
+    levels: int,
+    fields: int,
+    guide: int,
+    separable: bool = True,
+    itemsize: int = 4,
+) -> dict:
     """Halo volumes (bytes, summed over devices) of one filter call on a split grid.
 
     A level of stride ``s`` reads up to ``r = 2 s`` points away (less on short axes):
@@ -172,19 +194,23 @@ def halo_bytes(shape: Sequence[int], blocks: Sequence[int], levels: int, fields:
     """
     shape, blocks = tuple(shape), tuple(blocks)
     n = len(shape)
-    radii_by_level = [[_radius(shape[k], 2 ** i) for k in range(n)] for i in range(levels)]
+    radii_by_level = [[_radius(shape[k], 2**i) for k in range(n)] for i in range(levels)]
     widest = [max([r[k] for r in radii_by_level] + [0]) for k in range(n)]
 
     def along(k, r):
         return [r if j == k else 0 for j in range(n)]
 
-    per_level = sum(_remote_points(shape, blocks, along(k, r[k])) for r in radii_by_level
-                    for k in range(n))
+    per_level = sum(
+        _remote_points(shape, blocks, along(k, r[k])) for r in radii_by_level for k in range(n)
+    )
     out = {"per_level": per_level * (fields + guide) * itemsize}
     for name, clip in (("minimum", True), ("box", False)):
         if separable:
-            f = sum(_remote_points(shape, blocks, along(k, r[k]), clip)
-                    for r in radii_by_level for k in range(n))
+            f = sum(
+                _remote_points(shape, blocks, along(k, r[k]), clip)
+                for r in radii_by_level
+                for k in range(n)
+            )
             g = sum(_remote_points(shape, blocks, along(k, widest[k]), clip) for k in range(n))
         else:
             f = sum(_remote_points(shape, blocks, r, clip) for r in radii_by_level)

@@ -61,8 +61,9 @@ COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 def config_id(kind, separable, guide, mask, dtype) -> str:
-    return "-".join([kind, "sep" if separable else "full", guide, "mask" if mask else "nomask",
-                     dtype])
+    return "-".join(
+        [kind, "sep" if separable else "full", guide, "mask" if mask else "nomask", dtype]
+    )
 
 
 ALL = [config_id(*c) for c in itertools.product(KINDS, SEPARABLE, GUIDES, MASKS, DTYPES)]
@@ -86,7 +87,7 @@ def covering_subset() -> list[str]:
     chosen = [("postfilter", True, "params", False, "float32")]
     todo -= pairs(chosen[0])
     while todo:
-        best = max(rows, key=lambda r: len(pairs(r) & todo))   # first best: deterministic
+        best = max(rows, key=lambda r: len(pairs(r) & todo))  # first best: deterministic
         chosen.append(best)
         todo -= pairs(best)
     return [config_id(*r) for r in chosen]
@@ -98,8 +99,13 @@ def _guide(p):
 
 
 def optimizer(kind, separable, guide, mask):
-    kw = dict(sigma_d=SIGMA_D, levels=LEVELS, separable=separable, spatial_axes=SPATIAL_AXES,
-              mask_unobserved=mask)
+    kw = dict(
+        sigma_d=SIGMA_D,
+        levels=LEVELS,
+        separable=separable,
+        spatial_axes=SPATIAL_AXES,
+        mask_unobserved=mask,
+    )
     if guide == "callable":
         kw.update(guide=_guide, log_guide=True)
     else:
@@ -115,15 +121,19 @@ def optimizer(kind, separable, guide, mask):
 
 def params(dtype):
     k = jax.random.PRNGKey(20)
-    return {"tex": (0.1 + jax.random.uniform(k, (6, 7, 2))).astype(dtype),
-            "plane": jax.random.uniform(jax.random.fold_in(k, 1), (5, 4)).astype(dtype),
-            "s": jnp.asarray(0.5, dtype)}
+    return {
+        "tex": (0.1 + jax.random.uniform(k, (6, 7, 2))).astype(dtype),
+        "plane": jax.random.uniform(jax.random.fold_in(k, 1), (5, 4)).astype(dtype),
+        "s": jnp.asarray(0.5, dtype),
+    }
 
 
 def gradients(variant, step, like):
     key = jax.random.fold_in(jax.random.PRNGKey(21), step)
-    g = {k: jax.random.normal(jax.random.fold_in(key, i), np.shape(v), jnp.float32)
-         for i, (k, v) in enumerate(sorted(like.items()))}
+    g = {
+        k: jax.random.normal(jax.random.fold_in(key, i), np.shape(v), jnp.float32)
+        for i, (k, v) in enumerate(sorted(like.items()))
+    }
     if variant == "nan_texel":
         g["tex"] = g["tex"].at[2, 3, 1].set(jnp.nan)
         g["plane"] = g["plane"].at[1, 2].set(jnp.nan)
@@ -143,8 +153,11 @@ def run(cid: str) -> dict[str, np.ndarray]:
     opt = optimizer(kind, separable, guide, mask)
     p = params(jnp.dtype(dtype))
     state = opt.init(p)
-    update = jax.jit(opt.update).lower(gradients("finite", 0, p), state, p).compile(
-        compiler_options=COMPILER_OPTIONS)
+    update = (
+        jax.jit(opt.update)
+        .lower(gradients("finite", 0, p), state, p)
+        .compile(compiler_options=COMPILER_OPTIONS)
+    )
     out = {}
     for variant in VARIANTS:
         state = opt.init(p)
@@ -165,6 +178,7 @@ def digest(x: np.ndarray) -> str:
 
 def toolchain() -> str:
     import jaxlib
+
     return f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
 
 
@@ -179,8 +193,9 @@ def record(path=PATH) -> None:
             if cid in subset:
                 arrays[f"{cid}/{variant}"] = x
         print(f"[{i + 1}/{len(ALL)}] {cid} {time.time() - t:.1f} s", flush=True)
-    np.savez_compressed(path, toolchain=np.asarray(toolchain()), digests=np.asarray(digests),
-                        **arrays)
+    np.savez_compressed(
+        path, toolchain=np.asarray(toolchain()), digests=np.asarray(digests), **arrays
+    )
 
 
 def check(path=PATH) -> int:

@@ -37,9 +37,9 @@ HLO_CASES = {
 
 def normalise_hlo(text: str) -> str:
     """The lowered module's text without what a refactoring may change but XLA ignores."""
-    text = re.sub(r"\s*loc\((?:[^()]|\([^()]*\))*\)", "", text)          # source locations
+    text = re.sub(r"\s*loc\((?:[^()]|\([^()]*\))*\)", "", text)  # source locations
     text = re.sub(r"#loc\d*\s*=.*\n", "", text)
-    text = re.sub(r"jax\.(?:result|arg)_info = \"[^\"]*\",?\s*", "", text)      # pytree paths
+    text = re.sub(r"jax\.(?:result|arg)_info = \"[^\"]*\",?\s*", "", text)  # pytree paths
     text = re.sub(r"\s*\{\s*\}", "", text)
     text = re.sub(r"^module @\S+", "module", text, flags=re.M)
     names: dict[str, str] = {}
@@ -69,6 +69,7 @@ def hlo_hash(shape, separable: bool) -> str:
 def toolchain() -> str:
     import jax
     import jaxlib
+
     return f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
 
 
@@ -106,7 +107,8 @@ def api_lines() -> list[str]:
 
 if __name__ == "__main__":
     API_PATH.write_text("\n".join(api_lines()) + "\n")
-    HLO_PATH.write_text(json.dumps({"toolchain": toolchain(), "hashes": hlo_hashes()}, indent=1)
-                        + "\n")
+    HLO_PATH.write_text(
+        json.dumps({"toolchain": toolchain(), "hashes": hlo_hashes()}, indent=1) + "\n"
+    )
     print(API_PATH.read_text())
     print(HLO_PATH.read_text())

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -41,8 +41,14 @@ def plane_shape(spatial_shape: Sequence[int]) -> tuple[int, ...]:
     return _view(spatial_shape, spatial_shape[0])
 
 
-def filter_planes(x: jax.Array, g: jax.Array, valid: jax.Array | None, sigma: jax.Array,
-                  levels: int, separable: bool) -> jax.Array:
+def filter_planes(
+    x: jax.Array,
+    g: jax.Array,
+    valid: jax.Array | None,
+    sigma: jax.Array,
+    levels: int,
+    separable: bool,
+) -> jax.Array:
     """All levels on planar arrays.
 
     Args:
@@ -55,7 +61,7 @@ def filter_planes(x: jax.Array, g: jax.Array, valid: jax.Array | None, sigma: ja
     Returns:
       The filtered fields, (C, *S).
     """
-    if g.shape[0] > 1:                                  # one channel: see _pair_weights
+    if g.shape[0] > 1:  # one channel: see _pair_weights
         g, sigma = rescale_guide(g, sigma)
     return _filter_planar(x, g, valid, sigma, levels, separable)
 
@@ -96,7 +102,7 @@ def _coord(shape: Sequence[int], rows: int, k: int) -> jax.Array:
     if len(shape) >= 2 and k == len(shape) - 1:
         return lax.broadcasted_iota(jnp.int32, view, 1)
     r = lax.broadcasted_iota(jnp.int32, view, 0)
-    r = r // math.prod(shape[k + 1:-1]) if k + 1 < len(shape) - 1 else r
+    r = r // math.prod(shape[k + 1 : -1]) if k + 1 < len(shape) - 1 else r
     return r if k == 0 else r % shape[k]
 
 
@@ -149,10 +155,10 @@ class _Grid:
 
     def flat(self, off: Sequence[int]) -> int:
         # > 0 for every offset used (first non-zero component positive, |o_k| < n_k).
-        return sum(o * math.prod(self.shape[k + 1:]) for k, o in enumerate(off))
+        return sum(o * math.prod(self.shape[k + 1 :]) for k, o in enumerate(off))
 
     def halo(self, off: Sequence[int]) -> int:
-        return -(-self.flat(off) // self.row)          # rows spanned: ceil(flat / row)
+        return -(-self.flat(off) // self.row)  # rows spanned: ceil(flat / row)
 
 
 def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int) -> jax.Array:
@@ -177,16 +183,19 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int) -> j
     else:
         d2 = channel_sq_dist(a, b)
     i = _coord(grid.shape, rows, 0) - h
-    keep = (i >= 0) & (i < grid.n0 - off[0])             # p and p + off both on the grid
+    keep = (i >= 0) & (i < grid.n0 - off[0])  # p and p + off both on the grid
     inner = _inner_ok(off, grid, rows)
     if inner is not None:
         keep = keep & inner
-    if grid.padded:                                      # p itself in a pitch column
+    if grid.padded:  # p itself in a pitch column
         keep = keep & (_coord(grid.shape, rows, len(grid.shape) - 1) < grid.bounds[-1])
     if vpad is not None:
-        keep = (keep & (_window(vpad, start, rows, grid.shape)[0] > 0)
-                & (_window(vpad, start + f, rows, grid.shape)[0] > 0))
-    return weight(d2, sigma_d, keep, is_dist=one).reshape(1, -1)    # (1, L): read by _window only
+        keep = (
+            keep
+            & (_window(vpad, start, rows, grid.shape)[0] > 0)
+            & (_window(vpad, start + f, rows, grid.shape)[0] > 0)
+        )
+    return weight(d2, sigma_d, keep, is_dist=one).reshape(1, -1)  # (1, L): read by _window only
 
 
 def _opaque_one(a: jax.Array) -> jax.Array:
@@ -229,20 +238,22 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights, parts=None) -> jax.Array:
     dep = _after(x)
     # Chunks of at most _CHUNK pairs, none across the ends of ``parts``.
     starts, a = [], 0
-    for length in (parts or [len(pairs)]):
+    for length in parts or [len(pairs)]:
         starts += range(a, a + length, _CHUNK)
         a += length
     stops = dict(zip(starts, starts[1:] + [len(pairs)]))
     ends = {b - 1 for b in stops.values()}
     for k, (off, tap) in enumerate(pairs):
         if k in stops:
-            chunk = weights([o for o, _ in pairs[k:stops[k]]], dep)
+            chunk = weights([o for o, _ in pairs[k : stops[k]]], dep)
         e, h = chunk[off]
         f = grid.flat(off)
         w_plus = tap * read(e, h * row)[0]
         w_minus = tap * read(e, h * row - f)[0]
-        for inner, term in ((tuple(off[1:]), w_plus * read(xpad, r * row + f)),
-                            (tuple(-o for o in off[1:]), w_minus * read(xpad, r * row - f))):
+        for inner, term in (
+            (tuple(off[1:]), w_plus * read(xpad, r * row + f)),
+            (tuple(-o for o in off[1:]), w_minus * read(xpad, r * row - f)),
+        ):
             groups[inner] = term if inner not in groups else groups[inner] + term
         den = den + w_plus + w_minus
         if k in ends and k + 1 < len(pairs):
@@ -279,9 +290,15 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool) -> jax.Arra
         if valid is not None:
             valid = jnp.pad(valid.reshape(-1, shape[-1]), ((0, 0), (0, pitch)))
     grid = _Grid(g.shape[1:], last=shape[-1])
-    lead = max([grid.halo(off) for i in range(levels)
-                for pairs, _ in level_passes(shape, 2 ** i, separable)
-                for off, _ in pairs] or [0])
+    lead = max(
+        [
+            grid.halo(off)
+            for i in range(levels)
+            for pairs, _ in level_passes(shape, 2**i, separable)
+            for off, _ in pairs
+        ]
+        or [0]
+    )
     # Zero rows in front for the weights' halo, and behind for the reads p + off.
     gpad = _pad_rows(g, lead, lead, grid.shape)
     vpad = None if valid is None else _pad_rows(valid[None], lead, lead, grid.shape)
@@ -298,22 +315,23 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool) -> jax.Arra
         new = [o for o in offs if o not in cache]
         if new:
             h = max(grid.halo(o) for o in new)
-            stack = jnp.concatenate([_pair_weights(grid, gpad, vpad, lead, sigma + dep, o, h)
-                                     for o in new])
+            stack = jnp.concatenate(
+                [_pair_weights(grid, gpad, vpad, lead, sigma + dep, o, h) for o in new]
+            )
             for j, o in enumerate(new):
-                cache[o] = (stack[j:j + 1], h)
+                cache[o] = (stack[j : j + 1], h)
         return {o: cache[o] for o in offs}
 
     for i in range(levels):
-        for pairs, h0 in level_passes(shape, 2 ** i, separable):
+        for pairs, h0 in level_passes(shape, 2**i, separable):
             parts = None
             if not separable and len(grid.shape) >= 3:
-                pairs, parts = _handover_order(pairs, 2 ** i, i > 0, i + 1 < levels)
+                pairs, parts = _handover_order(pairs, 2**i, i > 0, i + 1 < levels)
             elif not separable:
-                cache.clear()        # 2-D full mode recomputes them (see _handover_order)
+                cache.clear()  # 2-D full mode recomputes them (see _handover_order)
             x = _pass(grid, x, pairs, h0, valid, weights, parts)
     x = x.reshape(x.shape[:1] + grid.shape)
-    return x[..., :shape[-1]] if pitch else x
+    return x[..., : shape[-1]] if pitch else x
 
 
 def pitch_columns(shape: Sequence[int], separable: bool, itemsize: int = 4) -> int:

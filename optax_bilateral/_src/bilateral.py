@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Sequence
+from collections.abc import Sequence
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -27,8 +28,9 @@ TAPS = (3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0)
 Pair = tuple[tuple[int, ...], float]
 
 
-def weight(d2: jax.Array, sigma_d: jax.Array, keep: jax.Array | None = None, *,
-           is_dist: bool = False) -> jax.Array:
+def weight(
+    d2: jax.Array, sigma_d: jax.Array, keep: jax.Array | None = None, *, is_dist: bool = False
+) -> jax.Array:
     """exp(-sqrt(d2) / sigma_d), with equal guides weighing 1 for every sigma_d.
 
     With ``is_dist``, ``d2`` already is the distance (one guide channel: ``|a - b|``).
@@ -44,11 +46,11 @@ def weight(d2: jax.Array, sigma_d: jax.Array, keep: jax.Array | None = None, *,
     dist = jnp.where(pos, d2, 1.0) if is_dist else jnp.sqrt(jnp.where(pos, d2, 1.0))
     s_pos = sigma_d > 0
     s_safe = jnp.where(s_pos, sigma_d, 1.0)
-    arg = dist * (-1.0 / s_safe)                          # one scalar divide, not one per element
-    arg = jnp.where(s_pos, arg, -jnp.inf)                 # sigma_d = 0: unequal guides get 0
-    arg = jnp.where(jnp.isposinf(sigma_d), 0.0, arg)      # inf/inf would be NaN
-    arg = jnp.where(pos, arg, 0.0)                        # equal guides: 1 for any sigma_d
-    drop = jnp.isnan(d2)                                  # a non-finite guide is nobody's neighbour
+    arg = dist * (-1.0 / s_safe)  # one scalar divide, not one per element
+    arg = jnp.where(s_pos, arg, -jnp.inf)  # sigma_d = 0: unequal guides get 0
+    arg = jnp.where(jnp.isposinf(sigma_d), 0.0, arg)  # inf/inf would be NaN
+    arg = jnp.where(pos, arg, 0.0)  # equal guides: 1 for any sigma_d
+    drop = jnp.isnan(d2)  # a non-finite guide is nobody's neighbour
     if keep is not None:
         drop = drop | ~keep
     return jnp.exp(jnp.where(drop, -jnp.inf, arg))
@@ -69,7 +71,7 @@ def rescale_guide(g: jax.Array, sigma: jax.Array) -> tuple[jax.Array, jax.Array]
     limit = jnp.finfo(g.dtype).maxexp // 2 - 8
     a = jnp.abs(g)
     m = lax.stop_gradient(jnp.max(jnp.where(jnp.isfinite(a), a, 0)))
-    _, e = jnp.frexp(m)                                   # m < 2^e
+    _, e = jnp.frexp(m)  # m < 2^e
     k = jnp.maximum(e - limit, 0)
     inv = jnp.ldexp(jnp.ones((), g.dtype), -k)
     return g * inv, sigma * inv.astype(sigma.dtype)
@@ -79,11 +81,13 @@ def channel_sq_dist(a: jax.Array, b: jax.Array) -> jax.Array:
     """sum_c (a[c] - b[c])**2 over the leading (channel) axis."""
     if a.shape[0] <= 16:
         # Unrolled: XLA's CPU reduce over a short leading axis is far slower than adds.
-        return sum(jnp.square(a[c] - b[c]) for c in range(a.shape[0]))
+        return cast(jax.Array, sum(jnp.square(a[c] - b[c]) for c in range(a.shape[0])))
     return jnp.sum(jnp.square(a - b), axis=0)
 
 
-def level_passes(shape: Sequence[int], stride: int, separable: bool) -> list[tuple[list[Pair], float]]:
+def level_passes(
+    shape: Sequence[int], stride: int, separable: bool
+) -> list[tuple[list[Pair], float]]:
     """The passes of one level: each a list of (offset, tap) pairs, one per pair of
     opposite offsets, and the centre tap ``h0``.
 
@@ -107,7 +111,7 @@ def level_passes(shape: Sequence[int], stride: int, separable: bool) -> list[tup
     pairs = []
     for d in itertools.product(range(-2, 3), repeat=n):
         nz = [c for c in d if c != 0]
-        if not nz or nz[0] < 0:                            # keep one of each +d / -d
+        if not nz or nz[0] < 0:  # keep one of each +d / -d
             continue
         if any(abs(c) * stride >= s for c, s in zip(d, shape)):
             continue

@@ -13,7 +13,8 @@ backend plugs in at :func:`_filter_jit`.
 from __future__ import annotations
 
 import functools
-from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, Sequence, Union
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +25,7 @@ from optax_bilateral._src.validation import check_levels, check_sigma_d, normali
 if TYPE_CHECKING:
     from jaxtyping import Array, ArrayLike, Bool, Float
 
-    Fields = Union[Float[Array, "..."], Sequence[Float[Array, "..."]]]
+    Fields = Float[Array, "..."] | Sequence[Float[Array, "..."]]
     Mask = Bool[ArrayLike, "*spatial"]
 else:
     Fields = Any
@@ -38,16 +39,30 @@ class Kernel(Protocol):
         """The shape each channel's plane is laid out in."""
         ...
 
-    def filter_planes(self, x: jax.Array, g: jax.Array, valid: jax.Array | None,
-                      sigma: jax.Array, levels: int, separable: bool) -> jax.Array:
+    def filter_planes(
+        self,
+        x: jax.Array,
+        g: jax.Array,
+        valid: jax.Array | None,
+        sigma: jax.Array,
+        levels: int,
+        separable: bool,
+    ) -> jax.Array:
         """All levels: x (C, *plane), g (G, *spatial), valid (*spatial) or None -> (C, *spatial)."""
         ...
 
 
-def atrous_bilateral(fields: Fields, guide: jax.typing.ArrayLike, *, sigma_d: jax.typing.ArrayLike,
-                     levels: int, spatial_axes: Sequence[int], separable: bool = True,
-                     mask: Mask | None = None,
-                     guide_axes: Sequence[int] | None = None) -> Fields:
+def atrous_bilateral(
+    fields: Fields,
+    guide: jax.typing.ArrayLike,
+    *,
+    sigma_d: jax.typing.ArrayLike,
+    levels: int,
+    spatial_axes: Sequence[int],
+    separable: bool = True,
+    mask: Mask | None = None,
+    guide_axes: Sequence[int] | None = None,
+) -> Fields:
     r"""A-trous cross-bilateral filter of one or more fields with one set of weights.
 
     ``out = B_{F-1} ... B_1 B_0 x``, where level ``i`` (stride ``2**i``) is
@@ -115,18 +130,26 @@ def atrous_bilateral(fields: Fields, guide: jax.typing.ArrayLike, *, sigma_d: ja
     if isinstance(guide_axes, list):
         guide_axes = tuple(guide_axes)
     if levels == 0 and mask is None:
-        return fields                                   # the identity, without a copy
-    return _filter_jit(fields, guide, sigma_d, mask, levels=levels, spatial_axes=spatial_axes,
-                       separable=bool(separable), guide_axes=guide_axes)
+        return fields  # the identity, without a copy
+    return _filter_jit(
+        fields,
+        guide,
+        sigma_d,
+        mask,
+        levels=levels,
+        spatial_axes=spatial_axes,
+        separable=bool(separable),
+        guide_axes=guide_axes,
+    )
 
 
 class _Plan(NamedTuple):
     """The checked arguments: fields as a tuple, normalised axes, the spatial shape."""
 
-    single: bool                       # fields was one array, not a tuple
+    single: bool  # fields was one array, not a tuple
     fields: tuple[jax.Array, ...]
     field_axes: tuple[tuple[int, ...], ...]
-    shape: tuple[int, ...]             # the spatial shape, in spatial_axes order
+    shape: tuple[int, ...]  # the spatial shape, in spatial_axes order
     guide: jax.Array
     guide_axes: tuple[int, ...]
     mask: jax.Array | None
@@ -141,8 +164,10 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
     fields = tuple(jnp.asarray(f) for f in fields)
     for i, f in enumerate(fields):
         if jnp.issubdtype(f.dtype, jnp.complexfloating):
-            raise TypeError(f"fields[{i}] is complex ({f.dtype}); filter its real and imaginary "
-                            "parts as two channels of a real field")
+            raise TypeError(
+                f"fields[{i}] is complex ({f.dtype}); filter its real and imaginary "
+                "parts as two channels of a real field"
+            )
         if not jnp.issubdtype(f.dtype, jnp.floating):
             raise TypeError(f"fields[{i}] must have a floating dtype, got {f.dtype}")
     axes0 = normalize_axes(spatial_axes, fields[0].ndim)
@@ -154,24 +179,32 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
         axes = normalize_axes(spatial_axes, f.ndim, name=f"spatial_axes (for fields[{i}])")
         shp = tuple(f.shape[a] for a in axes)
         if shp != shape:
-            raise ValueError(f"fields[{i}] has spatial shape {shp} along {tuple(spatial_axes)}, "
-                             f"but fields[0] has {shape}")
+            raise ValueError(
+                f"fields[{i}] has spatial shape {shp} along {tuple(spatial_axes)}, "
+                f"but fields[0] has {shape}"
+            )
         field_axes.append(axes)
 
     guide = jnp.asarray(guide)
     if jnp.issubdtype(guide.dtype, jnp.complexfloating):
-        raise TypeError(f"guide is complex ({guide.dtype}); pass its real and imaginary parts as "
-                        "two channels of a real guide (the distance is then |gamma_p - gamma_q|)")
+        raise TypeError(
+            f"guide is complex ({guide.dtype}); pass its real and imaginary parts as "
+            "two channels of a real guide (the distance is then |gamma_p - gamma_q|)"
+        )
     if guide.ndim == len(axes0) and guide_axes is None:
         g_axes = tuple(range(guide.ndim))
     else:
-        g_axes = normalize_axes(spatial_axes if guide_axes is None else guide_axes, guide.ndim,
-                                name="guide_axes" if guide_axes is not None else
-                                "spatial_axes (applied to the guide)")
+        g_axes = normalize_axes(
+            spatial_axes if guide_axes is None else guide_axes,
+            guide.ndim,
+            name="guide_axes" if guide_axes is not None else "spatial_axes (applied to the guide)",
+        )
     g_shape = tuple(guide.shape[a] for a in g_axes)
     if g_shape != shape:
-        raise ValueError(f"guide has spatial shape {g_shape} but the fields have {shape}: "
-                         "the guide must cover the same grid")
+        raise ValueError(
+            f"guide has spatial shape {g_shape} but the fields have {shape}: "
+            "the guide must cover the same grid"
+        )
     if mask is not None:
         mask = jnp.asarray(mask)
         if mask.shape != shape:
@@ -184,25 +217,51 @@ def _filter_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable
     """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
     traced."""
     plan = _plan(fields, guide, mask, spatial_axes, guide_axes)
-    if levels == 0:                                     # only a mask to apply
-        out = tuple(jnp.where(layout.expand_mask(plan.mask, f.ndim, ax), f, 0).astype(f.dtype)
-                    for f, ax in zip(plan.fields, plan.field_axes))
+    if levels == 0:  # only a mask to apply (the front door returns early without one)
+        mask = plan.mask
+        assert mask is not None
+        out = tuple(
+            jnp.where(layout.expand_mask(mask, f.ndim, ax), f, 0).astype(f.dtype)
+            for f, ax in zip(plan.fields, plan.field_axes)
+        )
     else:
-        filter_blocks = functools.partial(_filter_blocks, field_axes=plan.field_axes,
-                                          guide_axes=plan.guide_axes, levels=levels,
-                                          separable=separable)
+        filter_blocks = functools.partial(
+            _filter_blocks,
+            field_axes=plan.field_axes,
+            guide_axes=plan.guide_axes,
+            levels=levels,
+            separable=separable,
+        )
         part = sharded.spatial_partition(plan.fields[0], plan.field_axes[0])
         if part is None:
             out = filter_blocks(plan.fields, plan.guide, plan.mask, sigma_d, atrous)
         else:
-            out = sharded.filter_sharded(filter_blocks, part, plan.fields, plan.field_axes,
-                                         plan.shape, plan.guide, plan.guide_axes, plan.mask,
-                                         sigma_d)
+            out = sharded.filter_sharded(
+                filter_blocks,
+                part,
+                plan.fields,
+                plan.field_axes,
+                plan.shape,
+                plan.guide,
+                plan.guide_axes,
+                plan.mask,
+                sigma_d,
+            )
     return out[0] if plan.single else out
 
 
-def _filter_blocks(fields, guide, mask, sigma_d, kernel: Kernel, *, field_axes, guide_axes,
-                   levels: int, separable: bool) -> tuple[jax.Array, ...]:
+def _filter_blocks(
+    fields,
+    guide,
+    mask,
+    sigma_d,
+    kernel: Kernel,
+    *,
+    field_axes,
+    guide_axes,
+    levels: int,
+    separable: bool,
+) -> tuple[jax.Array, ...]:
     """Planar layout in, ``kernel``, layout out: on the whole grid, or on one device's block."""
     compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
     shape = tuple(fields[0].shape[a] for a in field_axes[0])

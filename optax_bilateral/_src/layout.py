@@ -10,7 +10,8 @@
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -21,12 +22,16 @@ class Restore(NamedTuple):
     """How one field leaves the planar layout."""
 
     dtype: Any
-    perm: tuple[int, ...]          # the transpose that made it planar
+    perm: tuple[int, ...]  # the transpose that made it planar
     channel_shape: tuple[int, ...]
 
 
-def to_planes(fields: Sequence[jax.Array], field_axes: Sequence[tuple[int, ...]], compute: Any,
-              plane_shape: tuple[int, ...]) -> tuple[jax.Array, list[Restore]]:
+def to_planes(
+    fields: Sequence[jax.Array],
+    field_axes: Sequence[tuple[int, ...]],
+    compute: Any,
+    plane_shape: tuple[int, ...],
+) -> tuple[jax.Array, list[Restore]]:
     """Stacks ``fields`` (spatial axes ``field_axes``) into one ``(C, *plane_shape)`` array."""
     planes, restore = [], []
     for f, axes in zip(fields, field_axes):
@@ -38,23 +43,25 @@ def to_planes(fields: Sequence[jax.Array], field_axes: Sequence[tuple[int, ...]]
     return x, restore
 
 
-def guide_planes(guide: jax.Array, guide_axes: tuple[int, ...], compute: Any,
-                 spatial_shape: tuple[int, ...]) -> jax.Array:
+def guide_planes(
+    guide: jax.Array, guide_axes: tuple[int, ...], compute: Any, spatial_shape: tuple[int, ...]
+) -> jax.Array:
     """The guide as ``(G, *spatial_shape)``: its channels first, in the compute dtype."""
     chan = tuple(a for a in range(guide.ndim) if a not in guide_axes)
     g = jnp.transpose(guide, chan + guide_axes).astype(compute)
     return g.reshape((-1,) + tuple(spatial_shape))
 
 
-def from_planes(x: jax.Array, restore: Sequence[Restore],
-                spatial_shape: tuple[int, ...]) -> tuple[jax.Array, ...]:
+def from_planes(
+    x: jax.Array, restore: Sequence[Restore], spatial_shape: tuple[int, ...]
+) -> tuple[jax.Array, ...]:
     """Inverse of :func:`to_planes`; ``x`` is ``(C, *spatial_shape)``."""
     outs, start = [], 0
     for r in restore:
         c = math.prod(r.channel_shape)
-        piece = x[start:start + c].reshape(r.channel_shape + tuple(spatial_shape))
+        piece = x[start : start + c].reshape(r.channel_shape + tuple(spatial_shape))
         start += c
-        outs.append(jnp.transpose(piece, np.argsort(r.perm)).astype(r.dtype))
+        outs.append(jnp.transpose(piece, [int(a) for a in np.argsort(r.perm)]).astype(r.dtype))
     return tuple(outs)
 
 

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numbers
 import warnings
-from typing import Any, Callable, NamedTuple, Union
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,7 +20,7 @@ from optax_bilateral._src.validation import check_levels, check_sigma_d, normali
 LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
 
 # "params" | "self" | a callable params -> guide pytree (a prefix of the parameters).
-GuideSetting = Union[str, Callable[[Any], Any]]
+GuideSetting = str | Callable[[Any], Any]
 # None (the default rule) | a tuple of ints | a pytree prefix of tuples | a callable leaf -> axes.
 SpatialAxesSetting = Any
 
@@ -67,24 +68,35 @@ def _default_rule(shape: tuple[int, ...]) -> tuple[tuple[int, ...], str | None]:
         axes = tuple(range(nd - 1))
         if nd == 3:
             return axes, None
-        return axes, (f"filtered along {axes} as a volume with {shape[-1]} channel(s); if axis 0 "
-                      f"is a batch of separate problems, pass spatial_axes={axes[1:]} or vmap "
-                      "the optimizer")
+        return axes, (
+            f"filtered along {axes} as a volume with {shape[-1]} channel(s); if axis 0 "
+            f"is a batch of separate problems, pass spatial_axes={axes[1:]} or vmap "
+            "the optimizer"
+        )
     if nd == 2:
         if all(long):
-            return (0, 1), ("filtered along (0, 1) as a one-channel grid; if it is a weight "
-                            "matrix, pass spatial_axes=() for it")
-        return (), ("not filtered: a side of at most 4 makes no grid; pass spatial_axes=(0, 1) "
-                    "to filter it")
+            return (0, 1), (
+                "filtered along (0, 1) as a one-channel grid; if it is a weight "
+                "matrix, pass spatial_axes=() for it"
+            )
+        return (), (
+            "not filtered: a side of at most 4 makes no grid; pass spatial_axes=(0, 1) to filter it"
+        )
     if shape[0] <= MAX_CHANNELS and all(long[1:]):
-        return (), (f"not filtered: it looks channels-first (C, H, W); pass "
-                    f"spatial_axes={tuple(range(1, nd))} to filter it")
+        return (), (
+            f"not filtered: it looks channels-first (C, H, W); pass "
+            f"spatial_axes={tuple(range(1, nd))} to filter it"
+        )
     if all(long):
-        return (), (f"not filtered: its last axis is too long for channels; pass "
-                    f"spatial_axes={tuple(range(nd))} for a one-channel grid (a scalar volume) "
-                    f"or {tuple(range(nd - 1))} for a channels-last grid")
-    return (), ("not filtered: no layout with at most 4 channels and longer sides; pass "
-                "spatial_axes for it to filter it")
+        return (), (
+            f"not filtered: its last axis is too long for channels; pass "
+            f"spatial_axes={tuple(range(nd))} for a one-channel grid (a scalar volume) "
+            f"or {tuple(range(nd - 1))} for a channels-last grid"
+        )
+    return (), (
+        "not filtered: no layout with at most 4 channels and longer sides; pass "
+        "spatial_axes for it to filter it"
+    )
 
 
 _WARNED: set = set()
@@ -99,7 +111,9 @@ def _warn_guess(name: str, shape: tuple[int, ...], note: str) -> None:
         f"optax_bilateral's default leaf rule guessed for params leaf {name} of shape {shape}: "
         f"{note}. Passing spatial_axes explicitly (a tuple, a pytree prefix of tuples or a "
         "callable) silences this; optax_bilateral.filtered_axes(params) lists every leaf's axes.",
-        LeafRuleWarning, stacklevel=6)
+        LeafRuleWarning,
+        stacklevel=6,
+    )
 
 
 class _Box:
@@ -112,14 +126,23 @@ class _Box:
 
 
 def _is_axes_atom(x) -> bool:
-    return (x is None or callable(x) or isinstance(x, numbers.Integral)
-            or (isinstance(x, (tuple, list))
-                and all(isinstance(a, numbers.Integral) and not isinstance(a, bool) for a in x)))
+    return (
+        x is None
+        or callable(x)
+        or isinstance(x, numbers.Integral)
+        or (
+            isinstance(x, (tuple, list))
+            and all(isinstance(a, numbers.Integral) and not isinstance(a, bool) for a in x)
+        )
+    )
 
 
 def _is_scalar_atom(x) -> bool:
-    return x is None or isinstance(x, (numbers.Number, np.ndarray, jax.Array, np.generic)) \
+    return (
+        x is None
+        or isinstance(x, (numbers.Number, np.ndarray, jax.Array, np.generic))
         or hasattr(x, "dtype")
+    )
 
 
 def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) -> list:
@@ -129,11 +152,13 @@ def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) ->
         return [prefix] * n
     try:
         boxed = jax.tree.map(
-            lambda p, sub: jax.tree.map(lambda _: _Box(p), sub), prefix, tree, is_leaf=is_atom)
+            lambda p, sub: jax.tree.map(lambda _: _Box(p), sub), prefix, tree, is_leaf=is_atom
+        )
     except (ValueError, TypeError) as e:
         raise ValueError(
             f"{name} must be a single value or a pytree prefix of the parameters "
-            f"(one value per subtree); its structure does not match: {e}") from None
+            f"(one value per subtree); its structure does not match: {e}"
+        ) from None
     values = [b.value for b in jax.tree.leaves(boxed, is_leaf=lambda x: isinstance(x, _Box))]
     if len(values) != n:
         raise ValueError(f"{name}: expected one value per parameter leaf ({n}), got {len(values)}")
@@ -143,7 +168,7 @@ def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) ->
 class LeafSpec(NamedTuple):
     """Static per-leaf filter settings plus the (possibly traced) sigma_d."""
 
-    axes: tuple[int, ...]   # () means "not filtered"
+    axes: tuple[int, ...]  # () means "not filtered"
     levels: int
     sigma_d: Any
 
@@ -155,14 +180,17 @@ def leaf_names(tree) -> list[str]:
 
 
 def check_spatial_axes_setting(spatial_axes) -> None:
-    """Construction-time check of ``spatial_axes`` (ranges need the leaves: see :func:`leaf_specs`)."""
+    """Construction-time check of ``spatial_axes`` (its ranges need the leaves: see
+    :func:`leaf_specs`)."""
     atoms = jax.tree.leaves(spatial_axes, is_leaf=_is_axes_atom)
     for ax in atoms:
         if ax is None or callable(ax):
             continue
         if not _is_axes_atom(ax):
-            raise TypeError(f"spatial_axes must be None, a tuple of ints, a pytree prefix of such "
-                            f"tuples or a callable leaf -> axes; found {ax!r}")
+            raise TypeError(
+                f"spatial_axes must be None, a tuple of ints, a pytree prefix of such "
+                f"tuples or a callable leaf -> axes; found {ax!r}"
+            )
         ax = (ax,) if isinstance(ax, numbers.Integral) else tuple(ax)
         if len(set(ax)) != len(ax):
             raise ValueError(f"spatial_axes={ax} repeats an axis")
@@ -179,8 +207,10 @@ def _resolve_axes(leaf: Any, setting: Any, name: str, warn: bool) -> tuple[int, 
     ax = tuple(setting) if isinstance(setting, (tuple, list)) else (setting,)
     nd = np.ndim(leaf)
     if len(ax) > nd:
-        raise ValueError(f"spatial_axes={ax} asks for {len(ax)} spatial axes but parameter "
-                         f"leaf {name} has shape {np.shape(leaf)} ({nd} dimension(s))")
+        raise ValueError(
+            f"spatial_axes={ax} asks for {len(ax)} spatial axes but parameter "
+            f"leaf {name} has shape {np.shape(leaf)} ({nd} dimension(s))"
+        )
     return normalize_axes(ax, nd, name=f"spatial_axes (for leaf {name}, shape {np.shape(leaf)})")
 
 
@@ -200,8 +230,11 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
             raise ValueError(f"sigma_d is None for leaf {name}; pass a number (inf for a low-pass)")
         check_sigma_d(sig, name=f"sigma_d (for leaf {name})")
         if ax and lev > 0:
-            check_real_floating(leaf, name, "filtered leaves must be real floating point "
-                                "(integer parameters have no gradient)")
+            check_real_floating(
+                leaf,
+                name,
+                "filtered leaves must be real floating point (integer parameters have no gradient)",
+            )
         specs.append(LeafSpec(ax if lev > 0 else (), lev, sig))
     return specs
 
@@ -215,13 +248,15 @@ def check_real_floating(leaf: Any, name: str, why: str) -> None:
             "parameters only (the filter's weights and the bounded step are defined for real "
             "fields). Optimise its real and imaginary parts as channels (e.g. "
             "jnp.stack([z.real, z.imag], axis=-1), so that one set of weights filters both), "
-            "or give it to another optimizer with optax.multi_transform")
+            "or give it to another optimizer with optax.multi_transform"
+        )
     if not jnp.issubdtype(dt, jnp.floating):
         raise TypeError(f"params leaf {name} has dtype {dt}; {why}")
 
 
-def filtered_axes(params: Any, *, spatial_axes: SpatialAxesSetting = None,
-                  levels: Any = 5) -> dict[str, tuple[int, ...]]:
+def filtered_axes(
+    params: Any, *, spatial_axes: SpatialAxesSetting = None, levels: Any = 5
+) -> dict[str, tuple[int, ...]]:
     """The spatial axes each leaf of ``params`` is filtered along, ``()`` for none.
 
     Resolves ``spatial_axes`` and ``levels`` (as given to the transforms; ``None`` is the
@@ -245,74 +280,99 @@ def _guide_spatial_shape(guide_shape, leaf_shape, axes, name):
     if len(guide_shape) == len(axes):
         return tuple(guide_shape)
     if len(guide_shape) < len(axes) or any(a >= len(guide_shape) for a in axes):
-        raise ValueError(f"guide for params leaf {name} has shape {tuple(guide_shape)}, which "
-                         f"lacks the spatial axes {axes} of the leaf (shape {tuple(leaf_shape)})")
+        raise ValueError(
+            f"guide for params leaf {name} has shape {tuple(guide_shape)}, which "
+            f"lacks the spatial axes {axes} of the leaf (shape {tuple(leaf_shape)})"
+        )
     return tuple(guide_shape[a] for a in axes)
 
 
-def check_params(params, *, spatial_axes, sigma_d, levels, guide, transform: str,
-                 all_leaves: bool) -> list[LeafSpec]:
+def check_params(
+    params, *, spatial_axes, sigma_d, levels, guide, transform: str, all_leaves: bool
+) -> list[LeafSpec]:
     """Init-time checks: leaf dtypes and dimensions, the settings per leaf, the guide's shapes.
 
     ``all_leaves``: every leaf must be floating point (it has moments), not only the
     filtered ones.
     """
-    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels,
-                       warn=True)
+    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels, warn=True)
     names = leaf_names(params)
     leaves = jax.tree.leaves(params)
     if all_leaves:
         for leaf, name in zip(leaves, names):
-            check_real_floating(leaf, name, f"{transform} keeps Adam moments for every leaf, which "
-                                "needs real floating point parameters (exclude other leaves with "
-                                "optax.multi_transform)")
+            check_real_floating(
+                leaf,
+                name,
+                f"{transform} keeps Adam moments for every leaf, which "
+                "needs real floating point parameters (exclude other leaves with "
+                "optax.multi_transform)",
+            )
     if callable(guide) and guide not in ("params", "self") and any(s.axes for s in specs):
         shapes = jax.eval_shape(guide, params)
-        g_list = broadcast_prefix(shapes, params, lambda x: x is None or hasattr(x, "shape"),
-                                  "the guide callable's result")
+        g_list = broadcast_prefix(
+            shapes,
+            params,
+            lambda x: x is None or hasattr(x, "shape"),
+            "the guide callable's result",
+        )
         for leaf, name, spec, leaf_guide in zip(leaves, names, specs, g_list):
             if not spec.axes:
                 continue
             if leaf_guide is None:
-                raise ValueError(f"guide returned None for params leaf {name}, which is filtered "
-                                 f"(spatial axes {spec.axes}); return an array for it or give it "
-                                 "spatial_axes=()")
+                raise ValueError(
+                    f"guide returned None for params leaf {name}, which is filtered "
+                    f"(spatial axes {spec.axes}); return an array for it or give it "
+                    "spatial_axes=()"
+                )
             want = tuple(np.shape(leaf)[a] for a in spec.axes)
             got = _guide_spatial_shape(leaf_guide.shape, np.shape(leaf), spec.axes, name)
             if got != want:
-                raise ValueError(f"guide for params leaf {name} has spatial shape {got} but the leaf "
-                                 f"has {want} along spatial_axes {spec.axes}: the guide must cover "
-                                 "the same grid")
+                raise ValueError(
+                    f"guide for params leaf {name} has spatial shape {got} but the leaf "
+                    f"has {want} along spatial_axes {spec.axes}: the guide must cover "
+                    "the same grid"
+                )
     return specs
-
-
 
 
 def check_guide(guide) -> None:
     if not (guide in ("params", "self") or callable(guide)):
-        raise ValueError(f"guide must be 'params', 'self' or a callable params -> guide pytree, "
-                         f"got {guide!r}")
+        raise ValueError(
+            f"guide must be 'params', 'self' or a callable params -> guide pytree, got {guide!r}"
+        )
 
 
-def guide_leaves(guide, params, tree, specs: list[LeafSpec], log_guide: bool, transform: str) -> list:
+def guide_leaves(
+    guide, params, tree, specs: list[LeafSpec], log_guide: bool, transform: str
+) -> list:
     """The guide array for every leaf (None where the leaf is not filtered or guide='self')."""
     if guide == "self" or not any(s.axes for s in specs):
         return [None] * len(specs)
     if params is None:
-        raise ValueError(f"{transform} uses guide={guide!r}, which needs the current parameters: "
-                         f"call update(updates, state, params=params)")
+        raise ValueError(
+            f"{transform} uses guide={guide!r}, which needs the current parameters: "
+            f"call update(updates, state, params=params)"
+        )
     if guide == "params":
         g = jax.tree.leaves(params)
         if len(g) != len(specs):
-            raise ValueError(f"params has {len(g)} leaves but the updates have {len(specs)}; "
-                             "they must have the same structure")
+            raise ValueError(
+                f"params has {len(g)} leaves but the updates have {len(specs)}; "
+                "they must have the same structure"
+            )
     else:
-        g = broadcast_prefix(guide(params), tree, lambda x: x is None or hasattr(x, "shape"),
-                             "the guide callable's result")
+        g = broadcast_prefix(
+            guide(params),
+            tree,
+            lambda x: x is None or hasattr(x, "shape"),
+            "the guide callable's result",
+        )
         for x, s, name in zip(g, specs, leaf_names(tree)):
             if x is None and s.axes:
-                raise ValueError(f"guide returned None for leaf {name}, which is filtered; return "
-                                 "an array for it or give it spatial_axes=()")
+                raise ValueError(
+                    f"guide returned None for leaf {name}, which is filtered; return "
+                    "an array for it or give it spatial_axes=()"
+                )
     return [log_transform(x) if (log_guide and x is not None) else x for x in g]
 
 

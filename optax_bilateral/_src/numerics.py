@@ -65,8 +65,9 @@ _bias_correction_const = jax.jit(_bias_correction, static_argnames=("b",), inlin
 _bias_correction_traced = jax.jit(_bias_correction, inline=True)
 
 
-def moment_limit(grad_dtype: Any, compute_dtype: Any, mu_dtype: Any = None,
-                 nu_dtype: Any = None) -> float:
+def moment_limit(
+    grad_dtype: Any, compute_dtype: Any, mu_dtype: Any = None, nu_dtype: Any = None
+) -> float:
     """Largest |g| the moment update accepts: ``g^2 <= max/2`` where ``v`` is stored and
     computed, ``|g| <= max/2`` where ``m`` is, and finite in ``g``'s own dtype (so that the
     check ``|g| <= limit`` also rejects inf). Without moment buffers (memoryless), the
@@ -82,12 +83,15 @@ def moment_limit(grad_dtype: Any, compute_dtype: Any, mu_dtype: Any = None,
 def prefilter_limit(grad_dtype: Any) -> float:
     """Largest |g| the prefilter accepts: ``|A g| <= max |g|`` in exact arithmetic, and the
     margin of 4 keeps the float sums finite too."""
-    return min(float(jnp.finfo(jnp.promote_types(grad_dtype, jnp.float32)).max) / 4,
-               float(jnp.finfo(grad_dtype).max))
+    return min(
+        float(jnp.finfo(jnp.promote_types(grad_dtype, jnp.float32)).max) / 4,
+        float(jnp.finfo(grad_dtype).max),
+    )
 
 
-def safe_step(m_f: jax.Array, v_f: jax.Array, c1: jax.Array, c2: jax.Array, eps: Any,
-              eps_root: Any) -> jax.Array:
+def safe_step(
+    m_f: jax.Array, v_f: jax.Array, c1: jax.Array, c2: jax.Array, eps: Any, eps_root: Any
+) -> jax.Array:
     """``(m_f/c1) / (sqrt(v_f/c2 + eps_root) + eps)``, with 0 where the denominator is 0.
 
     Same values as the plain expression wherever that is finite. ``sqrt`` gets

@@ -32,13 +32,14 @@ door's per-block function (planar layout, :class:`HaloKernel`, back) on every de
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, NamedTuple, Optional, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.sharding import AxisType, NamedSharding, PartitionSpec
+from jax.sharding import AbstractMesh, AxisType, Mesh, NamedSharding, PartitionSpec
 
 from optax_bilateral._src.bilateral import channel_sq_dist, level_passes, rescale_guide, weight
 from optax_bilateral._src.validation import normalize_axes
@@ -51,8 +52,8 @@ class Partition(NamedTuple):
     order; ``()`` = not split), major to minor as in a ``PartitionSpec`` entry.
     """
 
-    mesh: object        # jax.sharding.Mesh or AbstractMesh
-    names: tuple        # tuple[tuple[str, ...], ...]
+    mesh: Mesh | AbstractMesh
+    names: tuple[tuple[str, ...], ...]
 
     def shards(self, k: int) -> int:
         return math.prod(self.mesh.shape[a] for a in self.names[k])
@@ -78,7 +79,7 @@ def _spec_of(x):
     return s.mesh, entries
 
 
-def spatial_partition(field, spatial_axes) -> Optional[Partition]:
+def spatial_partition(field, spatial_axes) -> Partition | None:
     """How ``field``'s spatial axes are split over explicit mesh axes.
 
     None if ``field`` has no explicitly sharded axis at all (then the single-device
@@ -101,10 +102,10 @@ def spatial_partition(field, spatial_axes) -> Optional[Partition]:
 
 
 class _Axis(NamedTuple):
-    names: tuple   # mesh axes splitting this spatial axis; () = not split
-    n: int         # number of blocks
-    local: int     # block size L
-    size: int      # global size N
+    names: tuple  # mesh axes splitting this spatial axis; () = not split
+    n: int  # number of blocks
+    local: int  # block size L
+    size: int  # global size N
 
 
 def _slice_axis(x, axis, start, stop):
@@ -127,17 +128,24 @@ def _exchange(x, axis: int, geo: _Axis, width: int):
     lows, highs = [], []
     for j in range(1, -(-width // L) + 1):
         take = min(L, width - (j - 1) * L)
-        if j >= n:                                      # no block that far: all off the grid
+        if j >= n:  # no block that far: all off the grid
             shape = list(x.shape)
             shape[axis] = take
             lows.insert(0, jnp.zeros(shape, x.dtype))
             highs.append(jnp.zeros(shape, x.dtype))
             continue
         # Block b sends its last `take` points up to b + j and its first `take` down to b - j.
-        lows.insert(0, lax.ppermute(_slice_axis(x, axis, L - take, L), geo.names,
-                                    [(b, b + j) for b in range(n - j)]))
-        highs.append(lax.ppermute(_slice_axis(x, axis, 0, take), geo.names,
-                                  [(b, b - j) for b in range(j, n)]))
+        lows.insert(
+            0,
+            lax.ppermute(
+                _slice_axis(x, axis, L - take, L), geo.names, [(b, b + j) for b in range(n - j)]
+            ),
+        )
+        highs.append(
+            lax.ppermute(
+                _slice_axis(x, axis, 0, take), geo.names, [(b, b - j) for b in range(j, n)]
+            )
+        )
     return jnp.concatenate(lows + [x] + highs, axis=axis)
 
 
@@ -159,6 +167,7 @@ def _inside(widths, geo):
         shape[k] = e.shape[0]
         ok = ok.reshape(shape)
         out = ok if out is None else out & ok
+    assert out is not None, "a block has at least one spatial axis"
     return jnp.broadcast_to(out, tuple(g.local + 2 * w for w, g in zip(widths, geo)))
 
 
@@ -190,8 +199,9 @@ def _local_pass(x, g_ext, gw, valid, sigma, pairs, h0, geo):
         span = [m + abs(o) for m, o in zip(L, off)]
         p0 = [g + a for g, a in zip(gw, lo)]
         q0 = [a + o for a, o in zip(p0, off)]
-        weights.append(tap * weight(
-            channel_sq_dist(_at(g_ext, p0, span, 1), _at(g_ext, q0, span, 1)), sigma))
+        weights.append(
+            tap * weight(channel_sq_dist(_at(g_ext, p0, span, 1), _at(g_ext, q0, span, 1)), sigma)
+        )
     # Materialise the weights and the extended block: without this XLA fuses the
     # weight arithmetic into the per-channel sums and redoes it for every channel.
     weights, x_ext = lax.optimization_barrier((weights, x_ext))
@@ -228,20 +238,29 @@ class HaloKernel:
 
     def __init__(self, geo: Sequence[_Axis], shape: tuple[int, ...]):
         self.geo = tuple(geo)
-        self.shape = shape          # the global spatial shape
+        self.shape = shape  # the global spatial shape
 
     def plane_shape(self, spatial_shape: Sequence[int]) -> tuple[int, ...]:
         return tuple(spatial_shape)
 
-    def filter_planes(self, x: jax.Array, g: jax.Array, valid: jax.Array | None,
-                      sigma: jax.Array, levels: int, separable: bool) -> jax.Array:
+    def filter_planes(
+        self,
+        x: jax.Array,
+        g: jax.Array,
+        valid: jax.Array | None,
+        sigma: jax.Array,
+        levels: int,
+        separable: bool,
+    ) -> jax.Array:
         geo, shape = self.geo, self.shape
-        passes = [p for i in range(levels) for p in level_passes(shape, 2 ** i, separable)]
+        passes = [p for i in range(levels) for p in level_passes(shape, 2**i, separable)]
         # The guide's halo along each axis: the widest offset any pass reads.
-        g_halo = [max([abs(off[k]) for pairs, _ in passes for off, _ in pairs] + [0])
-                  for k in range(len(shape))]
+        g_halo = [
+            max([abs(off[k]) for pairs, _ in passes for off, _ in pairs] + [0])
+            for k in range(len(shape))
+        ]
         if valid is not None:
-            g = jnp.where(valid > 0, g, jnp.nan)         # masked points are nobody's neighbour
+            g = jnp.where(valid > 0, g, jnp.nan)  # masked points are nobody's neighbour
         # The guide with halos, fetched once per halo pattern (per axis when separable).
         cache = {}
 
@@ -267,10 +286,17 @@ class HaloKernel:
 BlockFn = Callable[..., tuple]
 
 
-def filter_sharded(filter_blocks: BlockFn, part: Partition, fields: Sequence[jax.Array],
-                   field_axes: Sequence[tuple[int, ...]], shape: tuple[int, ...],
-                   guide: jax.Array, guide_axes: tuple[int, ...], mask: jax.Array | None,
-                   sigma_d: Any) -> tuple[jax.Array, ...]:
+def filter_sharded(
+    filter_blocks: BlockFn,
+    part: Partition,
+    fields: Sequence[jax.Array],
+    field_axes: Sequence[tuple[int, ...]],
+    shape: tuple[int, ...],
+    guide: jax.Array,
+    guide_axes: tuple[int, ...],
+    mask: jax.Array | None,
+    sigma_d: Any,
+) -> tuple[jax.Array, ...]:
     """``filter_blocks(fields, guide, mask, sigma_d, kernel)`` run per device on its block,
     with a :class:`HaloKernel`; returns the fields with the input's shardings.
 
@@ -282,7 +308,7 @@ def filter_sharded(filter_blocks: BlockFn, part: Partition, fields: Sequence[jax
     specs = []
     for f, axes in zip(fields, field_axes):
         own = _spec_of(f)
-        entries = [()] * f.ndim
+        entries: list[tuple[str, ...]] = [()] * f.ndim
         for a in range(f.ndim):
             if a in axes:
                 entries[a] = part.names[axes.index(a)]
@@ -290,7 +316,7 @@ def filter_sharded(filter_blocks: BlockFn, part: Partition, fields: Sequence[jax
                 entries[a] = tuple(n for n in own[1][a] if n not in used)
         specs.append(tuple(entries))
     fields = tuple(_reshard(f, mesh, e) for f, e in zip(fields, specs))
-    g_entries = [()] * guide.ndim
+    g_entries: list[tuple[str, ...]] = [()] * guide.ndim
     for k, a in enumerate(guide_axes):
         g_entries[a] = part.names[k]
     guide = _reshard(guide, mesh, g_entries)
@@ -300,8 +326,10 @@ def filter_sharded(filter_blocks: BlockFn, part: Partition, fields: Sequence[jax
     if has_mask:
         args.append(_reshard(mask, mesh, part.names))
         in_specs.append(_spec(part.names))
-    geo = tuple(_Axis(part.names[k], part.shards(k), shape[k] // part.shards(k), shape[k])
-                for k in range(len(shape)))
+    geo = tuple(
+        _Axis(part.names[k], part.shards(k), shape[k] // part.shards(k), shape[k])
+        for k in range(len(shape))
+    )
     kernel = HaloKernel(geo, shape)
     n = len(fields)
 
@@ -309,5 +337,6 @@ def filter_sharded(filter_blocks: BlockFn, part: Partition, fields: Sequence[jax
         m = local[n + 1] if has_mask else None
         return filter_blocks(local[:n], local[n], m, sigma, kernel)
 
-    return jax.shard_map(body, mesh=mesh, in_specs=tuple(in_specs),
-                         out_specs=tuple(_spec(e) for e in specs))(*args)
+    return jax.shard_map(
+        body, mesh=mesh, in_specs=tuple(in_specs), out_specs=tuple(_spec(e) for e in specs)
+    )(*args)

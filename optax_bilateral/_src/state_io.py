@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -31,7 +32,7 @@ def _raw(x) -> np.ndarray:
     return a.view(np.dtype(f"u{a.dtype.itemsize}"))
 
 
-def save_state(path, state) -> None:
+def save_state(path: str | os.PathLike, state: Any) -> None:
     """Writes ``state`` (any pytree of arrays) to ``path`` as an uncompressed ``.npz``.
 
     The file is written next to ``path`` and moved into place, so an interrupted
@@ -48,7 +49,7 @@ def save_state(path, state) -> None:
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp_state_", suffix=".npz")
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            np.savez(f, **arrays)  # pyright: ignore[reportArgumentType]  (names, not options)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -56,7 +57,7 @@ def save_state(path, state) -> None:
         raise
 
 
-def load_state(path, like):
+def load_state(path: str | os.PathLike, like: Any) -> Any:
     """Reads a state written by :func:`save_state` into the structure of ``like``.
 
     Args:
@@ -86,7 +87,8 @@ def load_state(path, like):
             raise ValueError(
                 f"the state in {path} has {n_saved} leaves, but like has {len(leaves)}; they must "
                 f"come from the same optimizer and parameters (only in like: {missing}, only in "
-                f"the file: {extra})")
+                f"the file: {extra})"
+            )
         out = []
         for i, (x, name, dt) in enumerate(zip(leaves, names, saved_dtypes)):
             want = jnp.dtype(x.dtype if hasattr(x, "dtype") else jnp.result_type(x))
@@ -94,7 +96,9 @@ def load_state(path, like):
                 raise ValueError(f"state leaf {name} was saved as {dt}, but like has {want}")
             raw = data[f"leaf_{i:05d}"]
             if raw.shape != tuple(np.shape(x)):
-                raise ValueError(f"state leaf {name} was saved with shape {raw.shape}, but like has "
-                                 f"{tuple(np.shape(x))}")
+                raise ValueError(
+                    f"state leaf {name} was saved with shape {raw.shape}, but like has "
+                    f"{tuple(np.shape(x))}"
+                )
             out.append(jnp.asarray(raw.view(want)))
     return jax.tree.unflatten(treedef, out)

@@ -17,14 +17,14 @@ Where later options plug in: a ``sigma_d`` computed from the data belongs in
 :func:`_sigma` (it sees the leaf's fields and guide); a per-texel blend of filtered
 and unfiltered moments, ``filter_m``/``filter_v`` switches or a "uniform" second
 moment in :func:`_filtered_moments`; a guide that changes per level in the kernels
-(:mod:`optax_bilateral._src.atrous`, ``filter_planes``).
+(:mod:`optax_bilateral._src.atrous`, ``filter_planes``). docs/design.md has the details.
 """
 
 from __future__ import annotations
 
 import functools
 from numbers import Real
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,23 +34,23 @@ from optax_bilateral._src import layout, numerics
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.leaves import log_transform
 
-Moments = Optional[tuple[jax.Array, jax.Array]]
+Moments = tuple[jax.Array, jax.Array] | None
 
 
 class LeafRule(NamedTuple):
     """The static settings of one leaf's step (hashable: the compiled step's cache key)."""
 
-    stage: str                          # "prefilter" or "postfilter"
-    axes: tuple[int, ...]               # spatial axes; () = not filtered
+    stage: str  # "prefilter" or "postfilter"
+    axes: tuple[int, ...]  # spatial axes; () = not filtered
     levels: int
     separable: bool
-    self_guided: bool                   # guide="self": each field guides itself
+    self_guided: bool  # guide="self": each field guides itself
     log_guide: bool
-    mask_unobserved: bool               # all-zero texels are unobserved too
-    limit: float                        # |g| beyond it (or non-finite) takes the masked path
-    guard_sigma: bool                   # sigma_d is traced: NaN update if negative or NaN
-    compute_dtype: Any = None           # postfilter: the moments' arithmetic dtype
-    constants: tuple = ()               # ((name, number), ...): hyperparameters known now
+    mask_unobserved: bool  # all-zero texels are unobserved too
+    limit: float  # |g| beyond it (or non-finite) takes the masked path
+    guard_sigma: bool  # sigma_d is traced: NaN update if negative or NaN
+    compute_dtype: Any = None  # postfilter: the moments' arithmetic dtype
+    constants: tuple = ()  # ((name, number), ...): hyperparameters known now
 
 
 def split_numbers(**values: Any) -> tuple[tuple, dict]:
@@ -62,8 +62,9 @@ def split_numbers(**values: Any) -> tuple[tuple, dict]:
 
 
 @functools.partial(jax.jit, static_argnames=("rule",), inline=True)
-def leaf_step(g: jax.Array, guide: jax.Array | None, moments: Moments, hyper: dict, *,
-              rule: LeafRule) -> tuple[jax.Array, Moments]:
+def leaf_step(
+    g: jax.Array, guide: jax.Array | None, moments: Moments, hyper: dict, *, rule: LeafRule
+) -> tuple[jax.Array, Moments]:
     """One leaf's output and (postfilter) new moments.
 
     Args:
@@ -99,8 +100,12 @@ def leaf_step(g: jax.Array, guide: jax.Array | None, moments: Moments, hyper: di
 def _when_clean(rule, g, plain, masked, operands):
     """``plain`` when every entry of ``g`` is finite and within the limit, else ``masked``
     (only one of them runs)."""
-    return lax.cond(jnp.all(jnp.abs(g) <= rule.limit), functools.partial(plain, rule),
-                    functools.partial(masked, rule), operands)
+    return lax.cond(
+        jnp.all(jnp.abs(g) <= rule.limit),
+        functools.partial(plain, rule),
+        functools.partial(masked, rule),
+        operands,
+    )
 
 
 def _guarded(rule, out, hyper):
@@ -208,7 +213,7 @@ def _step(rule, m_f, v_f, hyper):
     return numerics.safe_step(m_f, v_f, num("c1"), num("c2"), num("eps"), num("eps_root"))
 
 
-def filter_fields(rule, fields, guide, hyper, observed):
+def filter_fields(rule, fields, guide, hyper, observed) -> Any:
     """The leaf's filter of ``fields`` (an array or a tuple); ``observed`` (texels, in
     ``rule.axes`` order) or None.
 
@@ -216,8 +221,10 @@ def filter_fields(rule, fields, guide, hyper, observed):
     """
     if rule.self_guided:
         many = isinstance(fields, tuple)
-        out = tuple(_filter(rule, f, log_transform(f) if rule.log_guide else f, hyper, observed)
-                    for f in (fields if many else (fields,)))
+        out = tuple(
+            _filter(rule, f, log_transform(f) if rule.log_guide else f, hyper, observed)
+            for f in (fields if many else (fields,))
+        )
         return out if many else out[0]
     return _filter(rule, fields, guide, hyper, observed)
 
@@ -233,8 +240,15 @@ def _filter(rule, fields, guide, hyper, observed):
         nan_guide = nan_guide_at(guide, observed, rule.axes)
         if nan_guide is not None:
             guide, observed = nan_guide, None
-    return atrous_bilateral(fields, guide, sigma_d=_sigma(rule, hyper), levels=rule.levels,
-                            spatial_axes=rule.axes, separable=rule.separable, mask=observed)
+    return atrous_bilateral(
+        fields,
+        guide,
+        sigma_d=_sigma(rule, hyper),
+        levels=rule.levels,
+        spatial_axes=rule.axes,
+        separable=rule.separable,
+        mask=observed,
+    )
 
 
 def nan_guide_at(guide, observed, axes):

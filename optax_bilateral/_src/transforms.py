@@ -49,7 +49,7 @@ them, README.md, "Robustness", has the full table):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, NamedTuple, Optional
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -87,9 +87,14 @@ class ScaleByAdamState(NamedTuple):
     nu: optax.Updates
 
 
-def scale_by_adam(b1: jax.typing.ArrayLike = 0.9, b2: jax.typing.ArrayLike = 0.999,
-                  eps: jax.typing.ArrayLike = 1e-8, eps_root: jax.typing.ArrayLike = 0.0, *,
-                  mu_dtype: Any = None) -> optax.GradientTransformationExtraArgs:
+def scale_by_adam(
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
+    eps_root: jax.typing.ArrayLike = 0.0,
+    *,
+    mu_dtype: Any = None,
+) -> optax.GradientTransformationExtraArgs:
     r"""Adam's scaling, numerically identical to :func:`optax.scale_by_adam`.
 
     .. math::
@@ -107,8 +112,12 @@ def scale_by_adam(b1: jax.typing.ArrayLike = 0.9, b2: jax.typing.ArrayLike = 0.9
 
     def init_fn(params):
         for leaf, name in zip(jax.tree.leaves(params), leaves.leaf_names(params)):
-            leaves.check_real_floating(leaf, name, "scale_by_adam keeps Adam moments for every "
-                                       "leaf, which needs real floating point parameters")
+            leaves.check_real_floating(
+                leaf,
+                name,
+                "scale_by_adam keeps Adam moments for every "
+                "leaf, which needs real floating point parameters",
+            )
         mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
         nu = jax.tree.map(jnp.zeros_like, params)
         return ScaleByAdamState(count=jnp.zeros([], jnp.int32), mu=mu, nu=nu)
@@ -116,13 +125,17 @@ def scale_by_adam(b1: jax.typing.ArrayLike = 0.9, b2: jax.typing.ArrayLike = 0.9
     def update_fn(updates, state, params=None, **extra_args):
         del params, extra_args
         mu = jax.tree.map(lambda g, m: (1 - b1) * g + b1 * m, updates, state.mu)
-        nu = jax.tree.map(lambda g, v: (1 - b2) * (g ** 2) + b2 * v, updates, state.nu)
-        count_inc = optax.safe_increment(state.count)
-        c1 = 1 - b1 ** count_inc
-        c2 = 1 - b2 ** count_inc
+        nu = jax.tree.map(lambda g, v: (1 - b2) * (g**2) + b2 * v, updates, state.nu)
+        count_inc = jnp.asarray(optax.safe_increment(state.count))
+        c1 = jnp.asarray(1 - b1**count_inc)
+        c2 = jnp.asarray(1 - b2**count_inc)
         new = jax.tree.map(
-            lambda m, v: (m / c1.astype(m.dtype)) / (jnp.sqrt(v / c2.astype(v.dtype) + eps_root) + eps),
-            mu, nu)
+            lambda m, v: (
+                (m / c1.astype(m.dtype)) / (jnp.sqrt(v / c2.astype(v.dtype) + eps_root) + eps)
+            ),
+            mu,
+            nu,
+        )
         mu = jax.tree.map(lambda m, old: m.astype(old.dtype), mu, state.mu)
         nu = jax.tree.map(lambda v, old: v.astype(old.dtype), nu, state.nu)
         return new, ScaleByAdamState(count=count_inc, mu=mu, nu=nu)
@@ -138,10 +151,16 @@ class PrefilterState(NamedTuple):
     """:func:`prefilter` is stateless."""
 
 
-def prefilter(sigma_d: Any = DEFAULT_SIGMA_D, levels: Any = 5, *, separable: bool = True,
-              guide: GuideSetting = "params", log_guide: bool = False,
-              spatial_axes: SpatialAxesSetting = None, mask_unobserved: bool = False
-              ) -> optax.GradientTransformationExtraArgs:
+def prefilter(
+    sigma_d: Any = DEFAULT_SIGMA_D,
+    levels: Any = 5,
+    *,
+    separable: bool = True,
+    guide: GuideSetting = "params",
+    log_guide: bool = False,
+    spatial_axes: SpatialAxesSetting = None,
+    mask_unobserved: bool = False,
+) -> optax.GradientTransformationExtraArgs:
     r"""Spatial prefilter of the gradient, :math:`\tilde g_t = A_t g_t` (supplement eq. 1).
 
     ``A_t`` is the a-trous cross-bilateral filter (:func:`atrous_bilateral`) guided
@@ -175,14 +194,22 @@ def prefilter(sigma_d: Any = DEFAULT_SIGMA_D, levels: Any = 5, *, separable: boo
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        leaves.check_params(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels,
-                            guide=guide, transform="prefilter", all_leaves=False)
+        leaves.check_params(
+            params,
+            spatial_axes=spatial_axes,
+            sigma_d=sigma_d,
+            levels=levels,
+            guide=guide,
+            transform="prefilter",
+            all_leaves=False,
+        )
         return PrefilterState()
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
-        specs = leaves.leaf_specs(updates, spatial_axes=spatial_axes, sigma_d=sigma_d,
-                                  levels=levels)
+        specs = leaves.leaf_specs(
+            updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels
+        )
         guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "prefilter")
         flat, treedef = jax.tree.flatten(updates)
         out = []
@@ -191,11 +218,18 @@ def prefilter(sigma_d: Any = DEFAULT_SIGMA_D, levels: Any = 5, *, separable: boo
                 out.append(g)
                 continue
             constants, traced = split_numbers(sigma_d=spec.sigma_d)
-            rule = LeafRule(stage="prefilter", axes=spec.axes, levels=spec.levels,
-                            separable=separable, self_guided=guide == "self", log_guide=log_guide,
-                            mask_unobserved=mask_unobserved,
-                            limit=numerics.prefilter_limit(g.dtype),
-                            guard_sigma=not is_concrete(spec.sigma_d), constants=constants)
+            rule = LeafRule(
+                stage="prefilter",
+                axes=spec.axes,
+                levels=spec.levels,
+                separable=separable,
+                self_guided=guide == "self",
+                log_guide=log_guide,
+                mask_unobserved=mask_unobserved,
+                limit=numerics.prefilter_limit(g.dtype),
+                guard_sigma=not is_concrete(spec.sigma_d),
+                constants=constants,
+            )
             out.append(leaf_step(g, leaf_guide, None, traced, rule=rule)[0])
         return jax.tree.unflatten(treedef, out), state
 
@@ -229,22 +263,32 @@ class PostfilterState(NamedTuple):
     """
 
     count: jax.Array  # shape=(), int32
-    mu: Optional[optax.Updates]
-    nu: Optional[optax.Updates]
+    mu: optax.Updates | None
+    nu: optax.Updates | None
 
 
-def postfilter(b1: jax.typing.ArrayLike = 0.2, b2: jax.typing.ArrayLike | None = None,
-               eps: jax.typing.ArrayLike = 1e-8, *, sigma_d: Any = DEFAULT_SIGMA_D,
-               levels: Any = 5, separable: bool = True, guide: GuideSetting = "params",
-               log_guide: bool = False, spatial_axes: SpatialAxesSetting = None,
-               mask_unobserved: bool = False, eps_root: jax.typing.ArrayLike = 0.0,
-               mu_dtype: Any = None) -> optax.GradientTransformationExtraArgs:
+def postfilter(
+    b1: jax.typing.ArrayLike = 0.2,
+    b2: jax.typing.ArrayLike | None = None,
+    eps: jax.typing.ArrayLike = 1e-8,
+    *,
+    sigma_d: Any = DEFAULT_SIGMA_D,
+    levels: Any = 5,
+    separable: bool = True,
+    guide: GuideSetting = "params",
+    log_guide: bool = False,
+    spatial_axes: SpatialAxesSetting = None,
+    mask_unobserved: bool = False,
+    eps_root: jax.typing.ArrayLike = 0.0,
+    mu_dtype: Any = None,
+) -> optax.GradientTransformationExtraArgs:
     r"""Adam whose moments are filtered in space after the temporal averages.
 
     .. math::
         m_t = \beta_1 m_{t-1} + (1-\beta_1) g_t, \qquad v_t = \beta_2 v_{t-1} + (1-\beta_2) g_t^2
 
-        \Delta_t = \frac{B_t m_t / (1-\beta_1^t)}{\sqrt{B_t v_t / (1-\beta_2^t) + \epsilon_{root}} + \epsilon}
+        \Delta_t = \frac{B_t m_t / (1-\beta_1^t)}
+                        {\sqrt{B_t v_t / (1-\beta_2^t) + \epsilon_{root}} + \epsilon}
 
     (supplement eqs. 6-11 with bias correction; alone it is eq. 14, after
     :func:`prefilter` eq. 11). ``B_t`` is one a-trous cross-bilateral operator
@@ -288,8 +332,15 @@ def postfilter(b1: jax.typing.ArrayLike = 0.2, b2: jax.typing.ArrayLike | None =
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        leaves.check_params(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels,
-                            guide=guide, transform="postfilter", all_leaves=True)
+        leaves.check_params(
+            params,
+            spatial_axes=spatial_axes,
+            sigma_d=sigma_d,
+            levels=levels,
+            guide=guide,
+            transform="postfilter",
+            all_leaves=True,
+        )
         count = jnp.zeros([], jnp.int32)
         if is_zero(b1) and is_zero(b2):
             return PostfilterState(count=count, mu=None, nu=None)
@@ -300,9 +351,10 @@ def postfilter(b1: jax.typing.ArrayLike = 0.2, b2: jax.typing.ArrayLike | None =
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
         memoryless = state.mu is None
-        count_inc = optax.safe_increment(state.count)
-        specs = leaves.leaf_specs(updates, spatial_axes=spatial_axes, sigma_d=sigma_d,
-                                  levels=levels)
+        count_inc = jnp.asarray(optax.safe_increment(state.count))
+        specs = leaves.leaf_specs(
+            updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels
+        )
         guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "postfilter")
         flat, treedef = jax.tree.flatten(updates)
         if memoryless:
@@ -316,32 +368,50 @@ def postfilter(b1: jax.typing.ArrayLike = 0.2, b2: jax.typing.ArrayLike | None =
 
         outs, new_mu, new_nu = [], [], []
         for g, leaf_guide, spec, m_old, v_old in zip(flat, guides, specs, mus, nus):
+            moments = None if m_old is None or v_old is None else (m_old, v_old)
             # Moments are updated in at least float32 and stored back in their own dtype.
-            stored = [] if memoryless else [m_old, v_old]
+            stored = [] if moments is None else list(moments)
             compute_dtype = jnp.promote_types(jnp.result_type(g, *stored), jnp.float32)
-            if memoryless:
+            if moments is None:
                 limit = numerics.moment_limit(g.dtype, compute_dtype)
             else:
-                limit = numerics.moment_limit(g.dtype, compute_dtype, m_old.dtype, v_old.dtype)
+                limit = numerics.moment_limit(
+                    g.dtype, compute_dtype, moments[0].dtype, moments[1].dtype
+                )
             constants, traced = split_numbers(
-                sigma_d=spec.sigma_d, b1=b1, b2=b2, one_minus_b1=one_minus_b1,
-                one_minus_b2=one_minus_b2, eps=eps, eps_root=eps_root)
-            rule = LeafRule(stage="postfilter", axes=spec.axes, levels=spec.levels,
-                            separable=separable, self_guided=guide == "self", log_guide=log_guide,
-                            mask_unobserved=mask_unobserved, limit=limit,
-                            guard_sigma=not is_concrete(spec.sigma_d),
-                            compute_dtype=compute_dtype, constants=constants)
-            d, moments = leaf_step(g, leaf_guide, None if memoryless else (m_old, v_old),
-                                   dict(traced, c1=c1, c2=c2), rule=rule)
+                sigma_d=spec.sigma_d,
+                b1=b1,
+                b2=b2,
+                one_minus_b1=one_minus_b1,
+                one_minus_b2=one_minus_b2,
+                eps=eps,
+                eps_root=eps_root,
+            )
+            rule = LeafRule(
+                stage="postfilter",
+                axes=spec.axes,
+                levels=spec.levels,
+                separable=separable,
+                self_guided=guide == "self",
+                log_guide=log_guide,
+                mask_unobserved=mask_unobserved,
+                limit=limit,
+                guard_sigma=not is_concrete(spec.sigma_d),
+                compute_dtype=compute_dtype,
+                constants=constants,
+            )
+            d, new = leaf_step(g, leaf_guide, moments, dict(traced, c1=c1, c2=c2), rule=rule)
             outs.append(d)
-            if not memoryless:
-                new_mu.append(moments[0])
-                new_nu.append(moments[1])
+            if new is not None:
+                new_mu.append(new[0])
+                new_nu.append(new[1])
 
         new_state = PostfilterState(
             count=count_inc,
             mu=None if memoryless else jax.tree.unflatten(treedef, new_mu),
-            nu=None if memoryless else jax.tree.unflatten(treedef, new_nu))
+            nu=None if memoryless else jax.tree.unflatten(treedef, new_nu),
+        )
         return jax.tree.unflatten(treedef, outs), new_state
 
-    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
+    # optax's OptState alias admits no None fields (the memoryless state has them).
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)  # pyright: ignore[reportArgumentType]

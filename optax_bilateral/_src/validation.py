@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import Any
+from typing import Any, cast
 
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -33,6 +34,7 @@ def check_sigma_d(sigma_d: Any, name: str = "sigma_d") -> None:
         isinstance(sigma_d, numbers.Real) or hasattr(sigma_d, "dtype")
     ):
         raise TypeError(f"{name} must be a real scalar (float, inf allowed), got {sigma_d!r}")
+    sigma_d = cast(Any, sigma_d)  # a number or an array: told apart by attribute below
     if hasattr(sigma_d, "shape") and np.shape(sigma_d) != ():
         raise ValueError(f"{name} must be a scalar, got an array of shape {np.shape(sigma_d)}")
     if hasattr(sigma_d, "dtype") and not jnp.issubdtype(sigma_d.dtype, jnp.number):
@@ -59,6 +61,7 @@ def check_levels(levels: Any, name: str = "levels") -> int:
         raise TypeError(
             f"{name} must be a non-negative int (the number of a-trous levels F), got {levels!r}"
         )
+    levels = cast(Any, levels)  # an int or an array: told apart by attribute below
     if hasattr(levels, "dtype") and (
         np.shape(levels) != () or not jnp.issubdtype(levels.dtype, jnp.integer)
     ):
