@@ -11,6 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from reference import atrous_reference
 
+import optax_bilateral as ob
 from optax_bilateral import atrous_bilateral
 from optax_bilateral._src import atrous
 
@@ -390,3 +391,23 @@ def test_full_3d_pairs_handed_over_between_levels_match_reference(gch):
     np.testing.assert_allclose(
         np.asarray(out), atrous_reference(x, g, 0.35, 3, False), rtol=RTOL, atol=1e-6
     )
+
+
+def test_atrous_bilateral_is_defined_once_and_help_shows_its_docstring():
+    import pathlib
+    import pydoc
+
+    root = pathlib.Path(ob.__file__).parent
+    defs = [p for p in root.rglob("*.py") if "def atrous_bilateral(" in p.read_text()]
+    assert [p.name for p in defs] == ["filter.py"]
+    text = pydoc.render_doc(ob.atrous_bilateral, renderer=pydoc.plaintext)
+    for part in (
+        "A-trous cross-bilateral filter",
+        "Args:",
+        "guide_axes:",
+        "Returns:",
+        "Raises:",
+        "explicit* mesh axes",
+        "Example::",
+    ):
+        assert part in text, part

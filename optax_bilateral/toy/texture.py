@@ -300,7 +300,7 @@ def _sun_frame(s):
     return e1, e2
 
 
-def _weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False):
+def sample_weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False):
     """Per-sample estimates ``f L cos / p`` for uniforms ``u1, u2`` (broadcast against ``alpha``).
 
     The mixture density uses ``stop_gradient(alpha)``: the derivative flows only
@@ -364,7 +364,7 @@ def estimate(alpha, scene: TextureScene, u) -> jax.Array:
 
     Differentiable in ``alpha`` (unbiased derivative, see the module docstring).
     """
-    return jnp.mean(_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0)
+    return jnp.mean(sample_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0)
 
 
 def _check(alpha, scene, spp, name="spp"):
@@ -393,7 +393,7 @@ def _render_split_bwd(res, ct):
     alpha, scene, u_grad, u_primal = res
     # Each pixel depends on its own texel only, so the VJP is ct * dI/d alpha, texel-wise;
     # dI/d alpha = mean(w * d log f / d alpha) equals jax.grad of estimate() (tested).
-    _, dw = _weights(alpha, scene, u_grad[..., 0], u_grad[..., 1], with_score=True)
+    _, dw = sample_weights(alpha, scene, u_grad[..., 0], u_grad[..., 1], with_score=True)
     zeros = jax.tree_util.tree_map(jnp.zeros_like, (scene, u_primal, u_grad))
     return (ct * jnp.mean(dw, axis=0),) + zeros
 
@@ -444,7 +444,7 @@ def render_reference(
 def _reference(alpha, scene, points, shift):
     def body(acc, pts):
         u = jnp.mod(pts + shift, 1.0)
-        return acc + jnp.sum(_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0), None
+        return acc + jnp.sum(sample_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0), None
 
     total, _ = jax.lax.scan(body, jnp.zeros(scene.shape, jnp.float32), points)
     return total / (points.shape[0] * points.shape[1])
