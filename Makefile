@@ -58,9 +58,10 @@ demo: $(VENV)/.installed
 	$(PY) -m experiments.texture
 
 # pytest exits 5 when it collects no tests; that must fail CI, and it does (non-zero).
-# Two workers (the CI machine has 2 cores); hypothesis explores with its "ci" profile.
+# Two workers (the CI machine has 2 cores), a file per worker (module fixtures and the
+# sharding tests' child process run once); hypothesis explores with its "ci" profile.
 test: $(VENV)/.installed-dev
-	OPTAX_BILATERAL_QUICK=1 HYPOTHESIS_PROFILE=ci $(PY) -m pytest -q -n 2
+	OPTAX_BILATERAL_QUICK=1 HYPOTHESIS_PROFILE=ci $(PY) -m pytest -q -n 2 --dist loadfile
 
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check $(LINT_PATHS)
