@@ -80,7 +80,7 @@ def optimizer(lib, levels: int, separable: bool, log_guide: bool):
 
 def arrays(shape):
     """(params, grad) of ``shape`` (``HxW``: one 2-D leaf) with positive params."""
-    params, grad = bm._arrays(shape if len(shape) > 2 else shape + (1,))
+    params, grad = bm.update_arrays(shape if len(shape) > 2 else shape + (1,))
     if len(shape) == 2:
         params, grad = params[..., 0], grad[..., 0]
     return abs(params) + 0.05, grad                 # positive: the log guide is defined
@@ -96,7 +96,7 @@ def compare(old_lib, shape, levels: int, separable: bool, log_guide: bool, repea
     fns = {}
     for k, opt in opts.items():
         prog = bm.update_program(opt)
-        fns[k] = (prog, (grad, bm._warm_state(opt, params, grad), params))
+        fns[k] = (prog, (grad, bm.warm_state(opt, params, grad), params))
     rows = []
     for rep in range(repeats):
         r = bm.interleaved(fns, rounds, inner, desc=f"repeat {rep + 1}/{repeats}")
@@ -106,7 +106,7 @@ def compare(old_lib, shape, levels: int, separable: bool, log_guide: bool, repea
                      "new x adam": ms["new"] / ms["adam"], "new / old": ms["new"] / ms["old"],
                      "new / old (paired)": common.paired_ratio(
                          {k: v["samples"] for k, v in r.items()}, "new", "old")})
-        print(" | ".join(f"{k} {bm._fmt(v)}" for k, v in rows[-1].items()), flush=True)
+        print(" | ".join(f"{k} {common.fmt(v)}" for k, v in rows[-1].items()), flush=True)
     return rows
 
 
@@ -142,8 +142,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                "jax": jax.__version__}
     md = (f"new (working tree) vs old ({args.rev}), shape {args.shape}, F={args.levels}, "
           f"{'full' if args.full else 'separable'}\n\n"
-          + bm._md([{k: bm._fmt(v) for k, v in r.items()} for r in rows]))
-    bm._write(args.out, "ab_update", summary, md)
+          + common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]))
+    common.write_results(args.out, "ab_update", summary, md)
     print(f"new / old, median over repeats: {summary['new / old (median)']:.3f}")
     return summary
 

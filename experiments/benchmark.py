@@ -31,7 +31,6 @@ check that the script runs; its numbers mean nothing.
 from __future__ import annotations
 
 import json
-import math
 import os
 import pathlib
 import platform
@@ -100,31 +99,13 @@ def machine() -> dict:
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
 
 
-def _md(rows: Sequence[Mapping], columns: Sequence[str] | None = None) -> str:
-    return common.markdown_table(rows, columns)
-
-
-def _fmt(x, digits=3):
-    if isinstance(x, float):
-        if not math.isfinite(x):
-            return str(x)
-        return f"{x:.{digits}g}"
-    return x
-
-
-def _write(out: pathlib.Path, name: str, data: dict, md: str) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(common._jsonable(data), indent=1) + "\n")
-    (out / f"{name}.md").write_text(md + "\n")
-
-
 # --------------------------------------------------------------------------- update programs
 
 B1 = 0.2                       # the paper's grid runs (bilateral_adam's default)
 B2 = 1 - (1 - B1) ** 2
 
 
-def _arrays(shape, seed=0, dtype=jnp.float32):
+def update_arrays(shape, seed=0, dtype=jnp.float32):
     """Parameters with edges (a guide worth following), a noisy gradient, Adam state."""
     k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
     idx = np.indices(shape[:-1]).sum(0)
@@ -167,7 +148,7 @@ def _program(kind: str, levels: int = 5, separable: bool = True):
     return _UPDATES[key]
 
 
-def _warm_state(opt, params, grad, steps=2):
+def warm_state(opt, params, grad, steps=2):
     """A state after a couple of updates (non-zero moments, count > 0)."""
     state = opt.init(params)
     up = _program_of(opt)
@@ -183,11 +164,11 @@ def update_only(shapes: Mapping[str, tuple], variants: Sequence[tuple], rounds: 
     """Update-only time of each variant against ``optax.adam`` on the same arrays."""
     rows = []
     for name, shape in shapes.items():
-        params, grad = _arrays(shape)
+        params, grad = update_arrays(shape)
         fns = {}
         for label, kind, levels, separable in variants:
             opt, prog = _program(kind, levels, separable)
-            fns[label] = (prog, (grad, _warm_state(opt, params, grad), params))
+            fns[label] = (prog, (grad, warm_state(opt, params, grad), params))
         res = interleaved(fns, rounds, inner, desc=f"update {name}")
         samples = {k: v["samples"] for k, v in res.items()}
         adam = res["adam"]["median"]
@@ -242,7 +223,7 @@ def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[
         methods[f"Ours (F = {f})"] = ("cross-bilateral", texp.dataclasses.replace(cfg, levels=f))
     for name, (m, c) in methods.items():
         opt = texp.make_optimizer(m, c)
-        state = texp._set_hyperparams(opt.init(prob.init), hp[m])
+        state = texp.set_hyperparams(opt.init(prob.init), hp[m])
         for kind in TEXTURE_STEP_KINDS:
             steps[(name, kind)] = (prob.step_fn(opt, fused=kind == "fused"), (prob.init, state))
     for k, (fn, carry) in steps.items():                 # compile, and move off the start
@@ -309,13 +290,13 @@ def overhead(out: pathlib.Path, quick: bool) -> dict:
     vol_rows = [] if quick else volume_iterations(quick, repeats=7, steps=5, levels=lv)
     data = {"update_only": upd, "texture": tex_rows, "volume": vol_rows}
     md = ["### Update only (`bilateral_adam(...).update` vs `optax.adam(...).update`, same arrays)", "",
-          _md([{k: _fmt(v) for k, v in r.items()} for r in upd]), "",
+          common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in upd]), "",
           "### Per iteration (render + gradient + update), texture experiment defaults", "",
-          _md([{k: _fmt(v) for k, v in r.items()} for r in tex_rows]), "",
+          common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in tex_rows]), "",
           "### Per iteration (render + gradient + update), volume experiment", "",
-          _md([{k: _fmt(v) for k, v in r.items()} for r in vol_rows])]
+          common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in vol_rows])]
     md = "\n".join(md)
-    _write(out, "overhead", data, md)
+    common.write_results(out, "overhead", data, md)
     return {"data": data, "md": md}
 
 
@@ -402,7 +383,7 @@ def texture_runs(quick: bool, levels: Sequence[int], iterations: int | None) -> 
             log_guide=True, separable=separable, mu_dtype=mu)
         runs.append(("cross-bilateral", f, separable, mu, opt, hp))
     for method, f, separable, mu, opt, h in runs:
-        state = texp._set_hyperparams(opt.init(prob.init), h)
+        state = texp.set_hyperparams(opt.init(prob.init), h)
         name = method if f is None else (f"F={f} {'separable' if separable else 'full'}"
                                          f"{' bf16 m' if mu is not None else ''}")
         tr = common.run_method(name, prob.step_fn(opt), (prob.init, state), cfg.iterations,
@@ -427,10 +408,10 @@ def accuracy(out: pathlib.Path, quick: bool) -> dict:
     _plot_accuracy(flt, out / "accuracy.png")
     md = "\n".join([
         f"### Filter time and error vs the full float64 filter ({data['filter_grid']})", "",
-        _md([{k: _fmt(v) for k, v in r.items()} for r in flt]), "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in flt]), "",
         "### Texture experiment, cross-bilateral (its default hyperparameters), final error", "",
-        _md([{k: _fmt(v) for k, v in r.items()} for r in runs])])
-    _write(out, "accuracy", data, md)
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in runs])])
+    common.write_results(out, "accuracy", data, md)
     return {"data": data, "md": md}
 
 
@@ -479,11 +460,11 @@ def scaling(out: pathlib.Path, quick: bool) -> dict:
     rows = []
     for dim, shapes in grids.items():
         for shape in shapes:
-            params, grad = _arrays(shape)
+            params, grad = update_arrays(shape)
             fns, peaks = {}, {}
             for label, kind in (("adam", "adam"), (ours, "ours")):
                 opt, prog = _program(kind, f_main)
-                state = _warm_state(opt, params, grad, steps=1)
+                state = warm_state(opt, params, grad, steps=1)
                 peaks[label] = _peak_bytes(prog.lower(grad, state, params).compile())
                 fns[label] = (prog, (grad, state, params))
             res = interleaved(fns, rounds, desc=f"scaling {shape}")
@@ -496,11 +477,11 @@ def scaling(out: pathlib.Path, quick: bool) -> dict:
                              "peak MB (XLA plan)": peaks[label] / 1e6,
                              "x adam": res[label]["median"] / res["adam"]["median"]})
             del fns
-    params, grad = _arrays(f_grid)
+    params, grad = update_arrays(f_grid)
     fns, peaks = {}, {}
     for f in fs:
         opt, prog = _program("ours", f)
-        state = _warm_state(opt, params, grad, steps=1)
+        state = warm_state(opt, params, grad, steps=1)
         peaks[f] = _peak_bytes(prog.lower(grad, state, params).compile())
         fns[f] = (prog, (grad, state, params))
     res = interleaved(fns, rounds, desc="scaling F")
@@ -525,10 +506,10 @@ def scaling(out: pathlib.Path, quick: bool) -> dict:
     data = {"rows": rows, "loglog_slopes": slopes}
     md = "\n".join([
         f"### Separable F = {f_main} update vs optax.adam, time and XLA's planned peak memory", "",
-        _md([{k: _fmt(v) for k, v in r.items()} for r in rows]), "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]), "",
         "Log-log slopes against the number of elements (1 = linear):", "",
-        _md([{"fit": k, "slope": _fmt(v)} for k, v in slopes.items()])])
-    _write(out, "scaling", data, md)
+        common.markdown_table([{"fit": k, "slope": common.fmt(v)} for k, v in slopes.items()])])
+    common.write_results(out, "scaling", data, md)
     return {"data": data, "md": md}
 
 
@@ -556,7 +537,7 @@ def _plot_scaling(rows, path, ours):
 
 # --------------------------------------------------------------------------- (d) compile
 
-def _temp_mb(compiled) -> float:
+def temp_mb(compiled) -> float:
     """XLA's planned temporary memory of a compiled program, in MiB (NaN if not reported).
 
     On CPU this is one allocation per call; above glibc's largest mmap threshold (32 MiB)
@@ -576,7 +557,7 @@ def compile_times(out: pathlib.Path, quick: bool) -> dict:
                  ("volume 64^3x1", (64, 64, 64, 1), 5, False)]
     rows = []
     for name, shape, f, separable in tqdm(cases, desc="compile", leave=False):
-        params, grad = _arrays(shape)
+        params, grad = update_arrays(shape)
         for label, opt in (("adam", _opt("adam")), (f"ours F={f} {'separable' if separable else 'full'}",
                                                     _opt("ours", f, separable))):
             if label == "adam" and any(r["grid"] == name and r["method"] == "adam" for r in rows):
@@ -589,33 +570,77 @@ def compile_times(out: pathlib.Path, quick: bool) -> dict:
             compiled = lowered.compile()
             t2 = time.perf_counter()
             rows.append({"grid": name, "method": label, "trace + lower s": t1 - t0,
-                         "compile s": t2 - t1, "temp MB": _temp_mb(compiled)})
+                         "compile s": t2 - t1, "temp MB": temp_mb(compiled)})
     # No recompilation: steps (count changes) and a traced sigma_d schedule.
     shape = (8, 8, 3) if quick else (128, 128, 3)
-    params, grad = _arrays(shape)
+    params, grad = update_arrays(shape)
     sched = optax.exponential_decay(0.2, transition_steps=1, decay_rate=0.8)
     opt = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels",))(
         learning_rate=optax.linear_schedule(1e-2, 1e-3, 10), sigma_d=sched, levels=1 if quick else 3)
-    step = jax.jit(lambda g, s, p: opt.update(g, s, p))
+
+    @jax.jit
+    def step(g, s, p):
+        upd, s = opt.update(g, s, p)
+        return optax.apply_updates(p, upd), s
+
     state = opt.init(params)
-    sigmas = []
-    for i in range(8):
-        upd, state = step(grad * (1 + 0.1 * i), state, params)
-        sigmas.append(float(state.hyperparams["sigma_d"]))
-        params = optax.apply_updates(params, upd)
-    check = {"steps": 8, "compiled programs (jit cache size)": int(step._cache_size()),
-             "sigma_d seen by the steps": sigmas,
-             "no recompilation": int(step._cache_size()) == 1}
-    data = {"rows": rows, "recompile_check": check}
+    grads = [grad * (1 + 0.1 * i) for i in range(8)]
+    states = []
+    with common.CompileCounter() as compiles:      # the first step compiles, no other may
+        for g in grads:
+            params, state = step(g, state, params)
+            states.append(state)
+    sigmas = [float(s.hyperparams["sigma_d"]) for s in states]
+    check = {"steps": 8, "compiled programs": compiles.count,
+             "sigma_d seen by the steps": sigmas, "no recompilation": compiles.count == 1}
+    eager = eager_updates(quick)
+    data = {"rows": rows, "recompile_check": check, "eager": eager}
     md = "\n".join([
         "### Compile time of one update step (jit(opt.update), cold), and its planned temporary memory", "",
-        _md([{k: _fmt(v) for k, v in r.items()} for r in rows]), "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]), "",
         f"Recompilation check: `optax.inject_hyperparams(bilateral_adam, static_args=(\"levels\",))` "
         f"with a decaying sigma_d schedule and a learning-rate schedule, {check['steps']} steps on "
-        f"{'x'.join(map(str, shape))}: {check['compiled programs (jit cache size)']} compiled "
-        f"program(s) (sigma_d went {sigmas[0]:.3g} -> {sigmas[-1]:.3g})."])
-    _write(out, "compile", data, md)
+        f"{'x'.join(map(str, shape))}: {check['compiled programs']} compiled "
+        f"program(s) (sigma_d went {sigmas[0]:.3g} -> {sigmas[-1]:.3g}).", "",
+        f"### Eager updates (no jax.jit around `update`), after the first call, "
+        f"{eager[0]['grid']}", "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in eager])])
+    common.write_results(out, "compile", data, md)
     return {"data": data, "md": md}
+
+
+EAGER_LIMIT_MS = 100.0
+
+
+def eager_updates(quick: bool, calls: int = 7) -> list[dict]:
+    """Updates called eagerly (no ``jax.jit``), as notebooks and eager optax wrappers call
+    them: milliseconds per call after the first, and XLA compilations during those calls
+    (0: every program is cached; one per call would mean a recompilation every step)."""
+    shape = (16, 16, 3) if quick else (32, 32, 3)
+    params, grad = update_arrays(shape)
+    opts = {"adam": optax.adam(1e-2, b1=B1, b2=B2),
+            "bilateral_adam": ob.bilateral_adam(1e-2),
+            "prefilter + postfilter": ob.bilateral_adam(1e-2, prefilter=True),
+            "memoryless postfilter": optax.chain(ob.postfilter(0.0, 0.0),
+                                                 optax.scale_by_learning_rate(1e-2))}
+    rows = []
+    for name, opt in opts.items():
+        state = opt.init(params)
+        upd, state = opt.update(grad, state, params)      # the first call compiles
+        jax.block_until_ready(upd)
+        times = []
+        with common.CompileCounter() as compiles:
+            for _ in range(calls):
+                t0 = time.perf_counter()
+                upd, state = opt.update(grad, state, params)
+                jax.block_until_ready(upd)
+                times.append(time.perf_counter() - t0)
+        ms = 1e3 * float(np.median(times))
+        rows.append({"grid": "x".join(map(str, shape)), "method": name, "calls": calls,
+                     "eager ms (median)": ms, "eager ms (max)": 1e3 * max(times),
+                     "compilations": compiles.count, "limit ms": EAGER_LIMIT_MS,
+                     "met": bool(ms <= EAGER_LIMIT_MS and compiles.count == 0)})
+    return rows
 
 
 # --------------------------------------------------------------------------- targets
@@ -707,7 +732,7 @@ def repeated_targets(out: pathlib.Path, quick: bool, processes: int) -> list[dic
 
 def _targets_md(rows: Sequence[Mapping]) -> str:
     cols = ["target", "measured", "min", "max", "limit", "unit", "met", "met in"]
-    return _md([{k: _fmt(r.get(k, "")) for k in cols} for r in rows], cols)
+    return common.markdown_table([{k: common.fmt(r.get(k, "")) for k in cols} for r in rows], cols)
 
 
 # --------------------------------------------------------------------------- main
@@ -731,7 +756,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         data = target_measurements(quick)
         data["targets"] = targets(data)
         data["machine"] = machine()
-        _write(args.out, "measurements", data, _targets_md(data["targets"]))
+        common.write_results(args.out, "measurements", data, _targets_md(data["targets"]))
         return data
     only = [s.strip() for s in args.only.split(",") if s.strip()]
     bad = [s for s in only if s not in SECTIONS]
@@ -762,12 +787,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
             checked = targets(results["overhead"]["data"])
             note = "From this process's overhead section (one process; see `--processes`)."
         results["targets"] = {"data": checked, "md": note + "\n\n" + _targets_md(checked)}
-        _write(out, "targets", checked, results["targets"]["md"])
+        common.write_results(out, "targets", checked, results["targets"]["md"])
         md += ["## targets", "", results["targets"]["md"], ""]
     for s in only:
         md += [f"## {s}", "", results[s]["md"], ""]
     (out / "summary.md").write_text("\n".join(md))
-    (out / "machine.json").write_text(json.dumps(common._jsonable(info), indent=1) + "\n")
+    (out / "machine.json").write_text(json.dumps(common.jsonable(info), indent=1) + "\n")
     return {"machine": info, **{s: r["data"] for s, r in results.items()}}
 
 

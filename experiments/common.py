@@ -300,7 +300,7 @@ def summary_entry(trace: Trace, metric_keys: Mapping[str, str] | None = None) ->
     if trace.timed_seconds_per_iteration is not None:
         entry["measured_seconds_per_iteration"] = trace.measured_seconds_per_iteration
     entry["iterations"] = int(trace.iterations[-1])
-    entry["hyperparameters"] = _jsonable(trace.hyperparameters)
+    entry["hyperparameters"] = jsonable(trace.hyperparameters)
     return entry
 
 
@@ -316,7 +316,7 @@ def write_summary(out_dir: str | os.PathLike, methods: Mapping[str, dict], **ext
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "summary.json"
-    path.write_text(json.dumps(_jsonable({"methods": dict(methods), **extra}), indent=2) + "\n")
+    path.write_text(json.dumps(jsonable({"methods": dict(methods), **extra}), indent=2) + "\n")
     return path
 
 
@@ -381,14 +381,14 @@ def plot_all_curves(traces: Mapping[str, Trace], out_dir: str | os.PathLike,
             for m in metrics for x in ("iteration", "time")]
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
     """Converts numpy / jax scalars and arrays, tuples and inf to plain JSON values."""
     if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, (np.ndarray, jax.Array)):
-        return _jsonable(np.asarray(obj).tolist())
+        return jsonable(np.asarray(obj).tolist())
     if isinstance(obj, (np.floating, float)):
         v = float(obj)
         # JSON has no inf/nan; a string keeps sigma_d=inf readable and the file valid.
@@ -398,3 +398,49 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, np.bool_):
         return bool(obj)
     return obj
+
+
+def fmt(x: Any, digits: int = 3) -> Any:
+    """A float with ``digits`` significant digits for a Markdown table; other values as they are."""
+    if isinstance(x, float):
+        if not math.isfinite(x):
+            return str(x)
+        return f"{x:.{digits}g}"
+    return x
+
+
+def write_results(out: pathlib.Path, name: str, data: Mapping, md: str) -> None:
+    """``out/<name>.json`` (``data``) and ``out/<name>.md`` (``md``)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(jsonable(data), indent=1) + "\n")
+    (out / f"{name}.md").write_text(md + "\n")
+
+
+class CompileCounter:
+    """Counts XLA compilations while active: ``with CompileCounter() as c: ...; c.count``.
+
+    Listens to JAX's ``/jax/core/compile/backend_compile_duration`` event (one per
+    program handed to XLA), so cache hits do not count.
+    """
+
+    _active: list = []
+    _registered = False
+    EVENT = "/jax/core/compile/backend_compile_duration"
+
+    def __enter__(self) -> "CompileCounter":
+        if not CompileCounter._registered:
+            jax.monitoring.register_event_duration_secs_listener(CompileCounter._listen)
+            CompileCounter._registered = True
+        self.count = 0
+        CompileCounter._active.append(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        CompileCounter._active.remove(self)
+
+    @staticmethod
+    def _listen(event: str, duration: float, **kwargs) -> None:
+        if event == CompileCounter.EVENT:
+            for counter in CompileCounter._active:
+                counter.count += 1
+

@@ -367,7 +367,7 @@ def run_overhead(args) -> dict:
                           "methods": {k: dict(v[2], optimizer=v[0]) for k, v in OVERHEAD_METHODS.items()},
                           "resolution": res, "views_per_iteration": 2, "repeats": repeats,
                           "quick": args.quick, "devices": str(jax.devices())}}
-    (out / "overhead.json").write_text(json.dumps(common._jsonable(result), indent=2) + "\n")
+    (out / "overhead.json").write_text(json.dumps(common.jsonable(result), indent=2) + "\n")
     short = [{"vertices": r["vertices"], **{k: r[f"{k}_iteration_ms"] for k in OVERHEAD_METHODS}}
              for r in rows]
     upd_rows = [{"vertices": r["vertices"], **{k: r[f"{k}_update_ms"] for k in OVERHEAD_METHODS},

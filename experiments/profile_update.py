@@ -28,7 +28,6 @@ import tempfile
 from typing import Sequence
 
 import jax
-import numpy as np
 import optax
 
 import optax_bilateral as ob
@@ -76,7 +75,7 @@ def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int,
     progs = {}
     for k, opt in opts.items():
         prog = bm.update_program(opt)
-        state = bm._warm_state(opt, params, grad)
+        state = bm.warm_state(opt, params, grad)
         progs[k] = (prog, (grad, state, params))
     wall = bm.interleaved(progs, rounds, 3, desc="untraced")
     out = {"shape": list(shape), "levels": levels, "separable": separable,
@@ -91,7 +90,7 @@ def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int,
             "traced kernel ms per call": 1e-3 * total,
             "kernels compiled": len(names),
             "kernels run per call": sum(v["kernels per call"] for v in fams.values()),
-            "temp MB": bm._temp_mb(compiled),
+            "temp MB": bm.temp_mb(compiled),
             "families": {f: dict(v, share=v["us per call"] / total if total else float("nan"))
                          for f, v in sorted(fams.items(), key=lambda kv: -kv[1]["us per call"])},
         }
@@ -102,13 +101,13 @@ def markdown(result: dict) -> str:
     head = (f"update kernels, shape {'x'.join(map(str, result['shape']))}, F={result['levels']}, "
             f"{'separable' if result['separable'] else 'full'}"
             f"{', log guide' if result['log_guide'] else ''}, {result['calls']} traced calls\n\n")
-    summary = [{"program": k, **{c: bm._fmt(v[c]) for c in (
+    summary = [{"program": k, **{c: common.fmt(v[c]) for c in (
         "untraced ms (median)", "traced kernel ms per call", "kernels run per call", "temp MB")}}
         for k, v in result["programs"].items()]
-    rows = [{"program": k, "kernel family": f, "kernels per call": bm._fmt(v["kernels per call"]),
-             "us per call (traced)": bm._fmt(v["us per call"]), "share": f"{100 * v['share']:.0f}%"}
+    rows = [{"program": k, "kernel family": f, "kernels per call": common.fmt(v["kernels per call"]),
+             "us per call (traced)": common.fmt(v["us per call"]), "share": f"{100 * v['share']:.0f}%"}
             for k, p in result["programs"].items() for f, v in p["families"].items()]
-    return head + bm._md(summary) + "\n\n" + bm._md(rows)
+    return head + common.markdown_table(summary) + "\n\n" + common.markdown_table(rows)
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -130,7 +129,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     result = profile(shape, args.levels, not args.full, args.log_guide, args.calls, args.rounds)
     result["jax"] = jax.__version__
     md = markdown(result)
-    bm._write(args.out, "profile", result, md)
+    common.write_results(args.out, "profile", result, md)
     print(md)
     return result
 

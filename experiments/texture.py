@@ -203,7 +203,7 @@ class Problem:
         return evaluate
 
 
-def _set_hyperparams(state, hp: dict):
+def set_hyperparams(state, hp: dict):
     for k, v in hp.items():
         state.hyperparams[k] = jnp.asarray(v, state.hyperparams[k].dtype)
     return state
@@ -231,7 +231,7 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
         traces[method] = []
         for hp in cfg.sweeps[method]:
             run_id = _run_id(method, hp)
-            state = _set_hyperparams(opt.init(prob.init), hp)
+            state = set_hyperparams(opt.init(prob.init), hp)
             tr = common.run_method(
                 run_id, step, (prob.init, state), cfg.iterations,
                 evaluate=prob.evaluate(run_id), evaluate_every=cfg.iterations,

@@ -79,7 +79,7 @@ def run(quick: bool, out) -> dict:
                           "b1": cfg.b1_filtered, "learning_rate": 0.02, "sigma_d": 0.1,
                           "log_guide": True, "target": cfg.target, "quick": quick}}
     out.mkdir(parents=True, exist_ok=True)
-    (out / "eps.json").write_text(json.dumps(common._jsonable(result), indent=2) + "\n")
+    (out / "eps.json").write_text(json.dumps(common.jsonable(result), indent=2) + "\n")
     md = (f"# Adam eps on the texture experiment ({cfg.size}^2, {cfg.iterations} iterations, "
           "cross-bilateral, sigma_d 0.1, log guide, lr 0.02)\n\n## Final parameter error\n\n"
           + common.markdown_table([{"run": k, **v} for k, v in finals.items()], floatfmt=".6g")

@@ -4,9 +4,12 @@ Chang, Yang, Belhe, Ramamoorthi, Li. "Spatiotemporal Bilateral Gradient Filterin
 for Inverse Rendering". SIGGRAPH Asia 2024.
 """
 
+from importlib.metadata import PackageNotFoundError, version
+
+from optax_bilateral import mesh
 from optax_bilateral._src.alias import bilateral_adam
-from optax_bilateral._src.sharded import atrous_bilateral
-from optax_bilateral._src.leaves import default_spatial_axes
+from optax_bilateral._src.filter import atrous_bilateral
+from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
 from optax_bilateral._src.state_io import load_state, save_state
 from optax_bilateral._src.transforms import (
     DEFAULT_SIGMA_D,
@@ -18,18 +21,21 @@ from optax_bilateral._src.transforms import (
     scale_by_adam,
 )
 
-from optax_bilateral import mesh  # noqa: E402  (triangle meshes: optax_bilateral.mesh)
-
-__version__ = "0.1.0"
+try:
+    __version__ = version("optax_bilateral")  # written once, in pyproject.toml
+except PackageNotFoundError:  # a source tree that is not installed
+    __version__ = "unknown"
 
 __all__ = (
     "DEFAULT_SIGMA_D",
+    "LeafRuleWarning",
     "PostfilterState",
     "PrefilterState",
     "ScaleByAdamState",
     "atrous_bilateral",
     "bilateral_adam",
     "default_spatial_axes",
+    "filtered_axes",
     "load_state",
     "mesh",
     "postfilter",

@@ -1,4 +1,4 @@
-"""Independent, slow float64 NumPy loop implementation of METHOD.md's a-trous filter.
+"""Independent, slow float64 NumPy loop implementation of the a-trous filter of docs/method.md.
 
 Written straight from the formula, point by point, with no vectorisation and no
 weight sharing, so that it shares no code or tricks with the library.
@@ -14,7 +14,7 @@ H = np.array([1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16])
 def data_weight(gp, gq, sigma_d):
     dist = np.sqrt(np.sum((np.asarray(gp, np.float64) - np.asarray(gq, np.float64)) ** 2))
     if dist == 0:
-        return 1.0            # equal guides weigh 1 for any sigma_d (0/0 treated as 0)
+        return 1.0  # equal guides weigh 1 for any sigma_d (0/0 treated as 0)
     if sigma_d == 0:
         return 0.0
     return float(np.exp(-dist / sigma_d))
@@ -29,7 +29,7 @@ def atrous_reference(x, guide, sigma_d, levels, separable, mask=None):
     valid = np.ones(shape, bool) if mask is None else np.asarray(mask, bool)
     x = np.where(valid[..., None], x, 0.0)
     for level in range(levels):
-        stride = 2 ** level
+        stride = 2**level
         groups = [[k] for k in range(n)] if separable else [list(range(n))]
         for axes in groups:
             out = np.zeros_like(x)
@@ -41,7 +41,7 @@ def atrous_reference(x, guide, sigma_d, levels, separable, mask=None):
                     for a, dd in zip(axes, d):
                         q[a] += stride * dd
                     if any(c < 0 or c >= m for c, m in zip(q, shape)):
-                        continue      # outside the grid: skipped, the rest renormalised
+                        continue  # outside the grid: skipped, the rest renormalised
                     q = tuple(q)
                     if not valid[q]:
                         continue

@@ -45,8 +45,12 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
 
     # (d) a sigma_d schedule and changing step counts reuse one compiled program.
     check = result["compile"]["recompile_check"]
-    assert check["no recompilation"] and check["compiled programs (jit cache size)"] == 1
+    assert check["no recompilation"] and check["compiled programs"] == 1
     assert check["sigma_d seen by the steps"][0] > check["sigma_d seen by the steps"][-1]
+    # Eager updates after the first call compile nothing.
+    eager = {r["method"]: r for r in result["compile"]["eager"]}
+    assert set(eager) == {"adam", "bilateral_adam", "prefilter + postfilter", "memoryless postfilter"}
+    assert all(r["compilations"] == 0 and r["eager ms (median)"] > 0 for r in eager.values())
 
 
 def test_unknown_section_is_a_clear_error(tmp_path):

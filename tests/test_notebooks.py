@@ -1,7 +1,7 @@
 """The notebooks: stripped in git, in sync with their sources, and they run at the quick size.
 
 Each notebook is executed with nbclient in a fresh kernel whose working directory
-is ``notebooks/`` (as nbmake and Jupyter would), with ``OPTAX_BILATERAL_QUICK=1``.
+is ``notebooks/`` (as Jupyter would), with ``OPTAX_BILATERAL_QUICK=1``.
 A notebook fails the test if any cell raises, including the checks written into
 the notebooks themselves (the memoryless postfilter equals ``B g / sqrt(B g^2)``
 and keeps no buffers; the jointly filtered steps respect the bound of supplement

@@ -43,7 +43,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
 
     import optax_bilateral as ob
     from experiments import bench_sharding as bench
-    from optax_bilateral._src import atrous, sharded
+    from experiments import collectives
 
     assert jax.device_count() == 8, jax.device_count()
     records = []
@@ -72,7 +72,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         return worst
 
     def stats(compiled):
-        return bench.collective_stats(compiled.as_text(), branch=None)   # worst branch
+        return collectives.collective_stats(compiled.as_text(), branch=None)   # worst branch
 
     key = jax.random.PRNGKey(0)
 
@@ -98,14 +98,14 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         mask = (jax.random.uniform(jax.random.fold_in(k, 3), shape) > 0.2) if use_mask else None
         axes = tuple(range(len(shape)))
         kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep)
-        ref = atrous.atrous_bilateral((m, v), guide, mask=mask, **kw)
+        ref = ob.atrous_bilateral((m, v), guide, mask=mask, **kw)
         sh = NamedSharding(mesh, spec)
         args = [jax.device_put(a, sh) for a in (m, v, guide)]
         margs = [jax.device_put(mask, NamedSharding(mesh, P(*tuple(spec)[:len(shape)])))] \
             if use_mask else [None]
         kw_s = dict(kw, sigma_d=kw["sigma_d"] * scale)
         args[2] = args[2] * scale
-        fn = jax.jit(lambda m, v, g, mk: sharded.atrous_bilateral((m, v), g, mask=mk, **kw_s))
+        fn = jax.jit(lambda m, v, g, mk: ob.atrous_bilateral((m, v), g, mask=mk, **kw_s))
         compiled = fn.lower(*args, *margs).compile()
         out = compiled(*args, *margs)
         st = stats(compiled)
@@ -114,7 +114,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             if e is not None:
                 blocks[a] = mesh.shape[e]
         # Fields per level plus the guide once at the widest radius: what must move.
-        halo = bench.halo_bytes(shape, blocks, levels, fields=5, guide=3, separable=sep)
+        halo = collectives.halo_bytes(shape, blocks, levels, fields=5, guide=3, separable=sep)
         emit(check="filter", case=f"{shape} {mshape} {spec} F={levels} "
                                    f"{'sep' if sep else 'full'}{' mask' if use_mask else ''}"
                                    f"{f' guide x{scale:g}' if scale != 1 else ''}",

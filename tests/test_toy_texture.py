@@ -203,7 +203,7 @@ def test_closed_form_score_matches_autodiff(scene):
     alpha = jnp.asarray(ALPHAS)
     u = jax.random.uniform(jax.random.PRNGKey(5), (8,) + ALPHAS.shape + (2,))
     auto = jax.jit(jax.grad(lambda a: jnp.sum(T.estimate(a, scene, u))))(alpha)
-    _, dw = jax.jit(lambda a: T._weights(a, scene, u[..., 0], u[..., 1], with_score=True))(alpha)
+    _, dw = jax.jit(lambda a: T.sample_weights(a, scene, u[..., 0], u[..., 1], with_score=True))(alpha)
     np.testing.assert_allclose(np.asarray(jnp.mean(dw, 0)), np.asarray(auto),
                                rtol=1e-4, atol=1e-6)
 

@@ -39,7 +39,7 @@ import optax
 from IPython.display import Markdown, display
 
 import optax_bilateral as ob
-from experiments import notebook_utils as nu
+import notebook_utils as nu
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK

@@ -2,16 +2,35 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
+import jax
 import optax
 
 from optax_bilateral._src import transforms
 
+if TYPE_CHECKING:
+    from optax_bilateral._src.leaves import GuideSetting, SpatialAxesSetting
 
-def bilateral_adam(learning_rate, b1=0.2, b2=None, eps=1e-8, *,
-                   sigma_d=transforms.DEFAULT_SIGMA_D, levels=5, prefilter=False, postfilter=True,
-                   separable=True, guide="params", log_guide=False, spatial_axes=None,
-                   mask_unobserved=False, eps_root=0.0, mu_dtype=None
-                   ) -> optax.GradientTransformationExtraArgs:
+
+def bilateral_adam(
+    learning_rate: optax.ScalarOrSchedule,
+    b1: jax.typing.ArrayLike = 0.2,
+    b2: jax.typing.ArrayLike | None = None,
+    eps: jax.typing.ArrayLike = 1e-8,
+    *,
+    sigma_d: Any = transforms.DEFAULT_SIGMA_D,
+    levels: Any = 5,
+    prefilter: bool = False,
+    postfilter: bool = True,
+    separable: bool = True,
+    guide: GuideSetting = "params",
+    log_guide: bool = False,
+    spatial_axes: SpatialAxesSetting = None,
+    mask_unobserved: bool = False,
+    eps_root: jax.typing.ArrayLike = 0.0,
+    mu_dtype: Any = None,
+) -> optax.GradientTransformationExtraArgs:
     r"""Adam with spatiotemporal cross-bilateral gradient filtering (Chang et al. 2024).
 
     .. math::
@@ -48,21 +67,56 @@ def bilateral_adam(learning_rate, b1=0.2, b2=None, eps=1e-8, *,
       sigma_d, levels, separable, guide, log_guide, spatial_axes, mask_unobserved:
         see :func:`postfilter`.
       prefilter, postfilter: which spatial filters to apply.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp, optax, optax_bilateral as ob
+        >>> params = {"tex": jnp.full((32, 32, 3), 0.5)}
+        >>> opt = ob.bilateral_adam(learning_rate=0.05, sigma_d=0.1, levels=3)
+        >>> state = opt.init(params)
+        >>> loss = lambda p: jnp.mean((p["tex"] - 0.2) ** 2)
+        >>> grads = jax.grad(loss)(params)
+        >>> updates, state = opt.update(grads, state, params)   # params: the guide
+        >>> params = optax.apply_updates(params, updates)
     """
     if b2 is None:
         b2 = 1 - (1 - b1) ** 2
     parts = []
-    common = dict(sigma_d=sigma_d, levels=levels, separable=separable, guide=guide,
-                  log_guide=log_guide, spatial_axes=spatial_axes)
+    common: dict[str, Any] = dict(
+        sigma_d=sigma_d,
+        levels=levels,
+        separable=separable,
+        guide=guide,
+        log_guide=log_guide,
+        spatial_axes=spatial_axes,
+    )
     if prefilter:
         parts.append(transforms.prefilter(mask_unobserved=mask_unobserved, **common))
     if postfilter:
-        parts.append(transforms.postfilter(b1, b2, eps, mask_unobserved=mask_unobserved,
-                                           eps_root=eps_root, mu_dtype=mu_dtype, **common))
+        parts.append(
+            transforms.postfilter(
+                b1,
+                b2,
+                eps,
+                mask_unobserved=mask_unobserved,
+                eps_root=eps_root,
+                mu_dtype=mu_dtype,
+                **common,
+            )
+        )
     else:
         # Unfiltered Adam, with the postfilter's non-finite and overflow policies.
-        parts.append(transforms.postfilter(b1, b2, eps, levels=0, mask_unobserved=mask_unobserved,
-                                           eps_root=eps_root, mu_dtype=mu_dtype,
-                                           spatial_axes=spatial_axes))
+        parts.append(
+            transforms.postfilter(
+                b1,
+                b2,
+                eps,
+                levels=0,
+                mask_unobserved=mask_unobserved,
+                eps_root=eps_root,
+                mu_dtype=mu_dtype,
+                spatial_axes=spatial_axes,
+            )
+        )
     parts.append(optax.scale_by_learning_rate(learning_rate))
     return optax.chain(*parts)

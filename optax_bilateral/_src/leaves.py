@@ -7,31 +7,113 @@ A setting is given once for all leaves, or as a pytree *prefix* of the parameter
 from __future__ import annotations
 
 import numbers
-from typing import Any, Callable, NamedTuple
+import warnings
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from optax_bilateral._src import atrous
+from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
 
+# "params" | "self" | a callable params -> guide pytree (a prefix of the parameters).
+GuideSetting = str | Callable[[Any], Any]
+# None (the default rule) | a tuple of ints | a pytree prefix of tuples | a callable leaf -> axes.
+SpatialAxesSetting = Any
 
-def default_spatial_axes(leaf) -> tuple[int, ...]:
-    """The default leaf rule.
+
+# A channels-last leaf has at most this many channels, and every other axis is longer.
+MAX_CHANNELS = 4
+
+
+class LeafRuleWarning(UserWarning):
+    """The default leaf rule had to guess a leaf's layout (see :func:`default_spatial_axes`)."""
+
+
+def default_spatial_axes(leaf: Any) -> tuple[int, ...]:
+    """The default leaf rule: the spatial axes of a leaf when ``spatial_axes=None``.
+
+    Only layouts that read one way only are filtered silently:
 
     * 0-D and 1-D leaves (scalars, vectors): ``()``, not filtered (plain Adam);
-    * 2-D leaves ``(H, W)``: both axes spatial;
-    * N-D leaves, N >= 3: all but the last axis spatial (channels-last:
-      ``(H, W, C)`` textures, ``(D, H, W, C)`` volumes).
+    * ``(H, W, C)`` with ``C <= 4`` and ``H, W > 4``: ``(0, 1)`` (a texture).
+
+    Every other leaf with two or more axes could be more than one thing; the rule
+    decides as below, and the transforms' ``init`` warns once per such leaf
+    (:class:`LeafRuleWarning`), naming it and the ``spatial_axes`` to pass:
+
+    * ``(H, W)``, both > 4: ``(0, 1)`` (a one-channel grid, or a weight matrix?);
+      a side <= 4: ``()``;
+    * ``(D, H, W, C)`` and beyond, ``C <= 4``, every other side > 4: all but the last
+      axis (a volume, or a batch of textures?);
+    * ``(C, H, W)`` with ``C <= 4``: ``()`` (channels-first: pass ``(1, 2)``);
+    * every side > 4, last > 4: ``()`` (a scalar volume ``(D, H, W)``, or many channels?);
+    * anything else: ``()``.
+
+    :func:`optax_bilateral.filtered_axes` lists what the rule gives for every leaf.
     """
-    nd = np.ndim(leaf)
+    return _default_rule(np.shape(leaf))[0]
+
+
+def _default_rule(shape: tuple[int, ...]) -> tuple[tuple[int, ...], str | None]:
+    """(spatial axes, why it is a guess) for a leaf of ``shape``; None when it is not one."""
+    nd = len(shape)
     if nd <= 1:
-        return ()
+        return (), None
+    long = [n > MAX_CHANNELS for n in shape]
+    if nd >= 3 and shape[-1] <= MAX_CHANNELS and all(long[:-1]):
+        axes = tuple(range(nd - 1))
+        if nd == 3:
+            return axes, None
+        return axes, (
+            f"filtered along {axes} as a volume with {shape[-1]} channel(s); if axis 0 "
+            f"is a batch of separate problems, pass spatial_axes={axes[1:]} or vmap "
+            "the optimizer"
+        )
     if nd == 2:
-        return (0, 1)
-    return tuple(range(nd - 1))
+        if all(long):
+            return (0, 1), (
+                "filtered along (0, 1) as a one-channel grid; if it is a weight "
+                "matrix, pass spatial_axes=() for it"
+            )
+        return (), (
+            "not filtered: a side of at most 4 makes no grid; pass spatial_axes=(0, 1) to filter it"
+        )
+    if shape[0] <= MAX_CHANNELS and all(long[1:]):
+        return (), (
+            f"not filtered: it looks channels-first (C, H, W); pass "
+            f"spatial_axes={tuple(range(1, nd))} to filter it"
+        )
+    if all(long):
+        return (), (
+            f"not filtered: its last axis is too long for channels; pass "
+            f"spatial_axes={tuple(range(nd))} for a one-channel grid (a scalar volume) "
+            f"or {tuple(range(nd - 1))} for a channels-last grid"
+        )
+    return (), (
+        "not filtered: no layout with at most 4 channels and longer sides; pass "
+        "spatial_axes for it to filter it"
+    )
+
+
+_WARNED: set = set()
+
+
+def _warn_guess(name: str, shape: tuple[int, ...], note: str) -> None:
+    """Warns once per process for each (leaf, shape)."""
+    if (name, shape) in _WARNED:
+        return
+    _WARNED.add((name, shape))
+    warnings.warn(
+        f"optax_bilateral's default leaf rule guessed for params leaf {name} of shape {shape}: "
+        f"{note}. Passing spatial_axes explicitly (a tuple, a pytree prefix of tuples or a "
+        "callable) silences this; optax_bilateral.filtered_axes(params) lists every leaf's axes.",
+        LeafRuleWarning,
+        stacklevel=6,
+    )
 
 
 class _Box:
@@ -44,14 +126,23 @@ class _Box:
 
 
 def _is_axes_atom(x) -> bool:
-    return (x is None or callable(x) or isinstance(x, numbers.Integral)
-            or (isinstance(x, (tuple, list))
-                and all(isinstance(a, numbers.Integral) and not isinstance(a, bool) for a in x)))
+    return (
+        x is None
+        or callable(x)
+        or isinstance(x, numbers.Integral)
+        or (
+            isinstance(x, (tuple, list))
+            and all(isinstance(a, numbers.Integral) and not isinstance(a, bool) for a in x)
+        )
+    )
 
 
 def _is_scalar_atom(x) -> bool:
-    return x is None or isinstance(x, (numbers.Number, np.ndarray, jax.Array, np.generic)) \
+    return (
+        x is None
+        or isinstance(x, (numbers.Number, np.ndarray, jax.Array, np.generic))
         or hasattr(x, "dtype")
+    )
 
 
 def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) -> list:
@@ -61,11 +152,13 @@ def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) ->
         return [prefix] * n
     try:
         boxed = jax.tree.map(
-            lambda p, sub: jax.tree.map(lambda _: _Box(p), sub), prefix, tree, is_leaf=is_atom)
+            lambda p, sub: jax.tree.map(lambda _: _Box(p), sub), prefix, tree, is_leaf=is_atom
+        )
     except (ValueError, TypeError) as e:
         raise ValueError(
             f"{name} must be a single value or a pytree prefix of the parameters "
-            f"(one value per subtree); its structure does not match: {e}") from None
+            f"(one value per subtree); its structure does not match: {e}"
+        ) from None
     values = [b.value for b in jax.tree.leaves(boxed, is_leaf=lambda x: isinstance(x, _Box))]
     if len(values) != n:
         raise ValueError(f"{name}: expected one value per parameter leaf ({n}), got {len(values)}")
@@ -75,7 +168,7 @@ def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) ->
 class LeafSpec(NamedTuple):
     """Static per-leaf filter settings plus the (possibly traced) sigma_d."""
 
-    axes: tuple[int, ...]   # () means "not filtered"
+    axes: tuple[int, ...]  # () means "not filtered"
     levels: int
     sigma_d: Any
 
@@ -87,51 +180,99 @@ def leaf_names(tree) -> list[str]:
 
 
 def check_spatial_axes_setting(spatial_axes) -> None:
-    """Construction-time check of ``spatial_axes`` (ranges need the leaves: see :func:`leaf_specs`)."""
+    """Construction-time check of ``spatial_axes`` (its ranges need the leaves: see
+    :func:`leaf_specs`)."""
     atoms = jax.tree.leaves(spatial_axes, is_leaf=_is_axes_atom)
     for ax in atoms:
         if ax is None or callable(ax):
             continue
         if not _is_axes_atom(ax):
-            raise TypeError(f"spatial_axes must be None, a tuple of ints, a pytree prefix of such "
-                            f"tuples or a callable leaf -> axes; found {ax!r}")
+            raise TypeError(
+                f"spatial_axes must be None, a tuple of ints, a pytree prefix of such "
+                f"tuples or a callable leaf -> axes; found {ax!r}"
+            )
         ax = (ax,) if isinstance(ax, numbers.Integral) else tuple(ax)
         if len(set(ax)) != len(ax):
             raise ValueError(f"spatial_axes={ax} repeats an axis")
 
 
-def leaf_specs(tree, *, spatial_axes, sigma_d, levels) -> list[LeafSpec]:
-    """Resolves spatial axes, levels and sigma_d for every leaf of ``tree``."""
+def _resolve_axes(leaf: Any, setting: Any, name: str, warn: bool) -> tuple[int, ...]:
+    """The leaf's spatial axes from its ``spatial_axes`` setting (None: the default rule)."""
+    if callable(setting):
+        setting = setting(leaf)
+    if setting is None:
+        setting, note = _default_rule(np.shape(leaf))
+        if note is not None and warn:
+            _warn_guess(name, tuple(np.shape(leaf)), note)
+    ax = tuple(setting) if isinstance(setting, (tuple, list)) else (setting,)
+    nd = np.ndim(leaf)
+    if len(ax) > nd:
+        raise ValueError(
+            f"spatial_axes={ax} asks for {len(ax)} spatial axes but parameter "
+            f"leaf {name} has shape {np.shape(leaf)} ({nd} dimension(s))"
+        )
+    return normalize_axes(ax, nd, name=f"spatial_axes (for leaf {name}, shape {np.shape(leaf)})")
+
+
+def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> list[LeafSpec]:
+    """Resolves spatial axes, levels and sigma_d for every leaf of ``tree``; ``warn``: warn
+    where the default leaf rule guessed."""
     leaves = jax.tree.leaves(tree)
     names = leaf_names(tree)
     axes_list = broadcast_prefix(spatial_axes, tree, _is_axes_atom, "spatial_axes")
     sigma_list = broadcast_prefix(sigma_d, tree, _is_scalar_atom, "sigma_d")
     levels_list = broadcast_prefix(levels, tree, _is_scalar_atom, "levels")
     specs = []
-    for i, (leaf, ax, sig, lev) in enumerate(zip(leaves, axes_list, sigma_list, levels_list)):
-        name = names[i]
-        if ax is None:
-            ax = default_spatial_axes(leaf)
-        elif callable(ax):
-            ax = ax(leaf)
-            ax = default_spatial_axes(leaf) if ax is None else ax
-        ax = tuple(ax) if isinstance(ax, (tuple, list)) else (ax,)
-        nd = np.ndim(leaf)
-        if len(ax) > nd:
-            raise ValueError(f"spatial_axes={ax} asks for {len(ax)} spatial axes but parameter "
-                             f"leaf {name} has shape {np.shape(leaf)} ({nd} dimension(s))")
-        ax = atrous.normalize_axes(ax, nd, name=f"spatial_axes (for leaf {name}, shape {np.shape(leaf)})")
-        lev = atrous.check_levels(lev, name=f"levels (for leaf {name})")
+    for leaf, name, ax, sig, lev in zip(leaves, names, axes_list, sigma_list, levels_list):
+        lev = check_levels(lev, name=f"levels (for leaf {name})")
+        ax = _resolve_axes(leaf, ax, name, warn and lev > 0)
         if sig is None:
             raise ValueError(f"sigma_d is None for leaf {name}; pass a number (inf for a low-pass)")
-        atrous.check_sigma_d(sig, name=f"sigma_d (for leaf {name})")
+        check_sigma_d(sig, name=f"sigma_d (for leaf {name})")
         if ax and lev > 0:
-            dt = jnp.result_type(leaf)
-            if not jnp.issubdtype(dt, jnp.floating):
-                raise TypeError(f"params leaf {name} has dtype {dt}; filtered leaves must be "
-                                "floating point (integer parameters have no gradient)")
+            check_real_floating(
+                leaf,
+                name,
+                "filtered leaves must be real floating point (integer parameters have no gradient)",
+            )
         specs.append(LeafSpec(ax if lev > 0 else (), lev, sig))
     return specs
+
+
+def check_real_floating(leaf: Any, name: str, why: str) -> None:
+    """Raises for a leaf that is not real floating point; a complex one is named as such."""
+    dt = jnp.result_type(leaf)
+    if jnp.issubdtype(dt, jnp.complexfloating):
+        raise TypeError(
+            f"params leaf {name} is complex ({dt}); optax_bilateral's transforms take real "
+            "parameters only (the filter's weights and the bounded step are defined for real "
+            "fields). Optimise its real and imaginary parts as channels (e.g. "
+            "jnp.stack([z.real, z.imag], axis=-1), so that one set of weights filters both), "
+            "or give it to another optimizer with optax.multi_transform"
+        )
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise TypeError(f"params leaf {name} has dtype {dt}; {why}")
+
+
+def filtered_axes(
+    params: Any, *, spatial_axes: SpatialAxesSetting = None, levels: Any = 5
+) -> dict[str, tuple[int, ...]]:
+    """The spatial axes each leaf of ``params`` is filtered along, ``()`` for none.
+
+    Resolves ``spatial_axes`` and ``levels`` (as given to the transforms; ``None`` is the
+    default leaf rule, :func:`default_spatial_axes`) without building an optimizer.
+
+    Returns:
+      ``{leaf path: axes}``, e.g. ``{"['tex']": (0, 1), "['w']": ()}``.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> ob.filtered_axes({"tex": jnp.zeros((64, 64, 3)), "light": jnp.zeros(())})
+        {"['light']": (), "['tex']": (0, 1)}
+    """
+    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=0.0, levels=levels)
+    return {name: spec.axes for name, spec in zip(leaf_names(params), specs)}
 
 
 def _guide_spatial_shape(guide_shape, leaf_shape, axes, name):
@@ -139,76 +280,99 @@ def _guide_spatial_shape(guide_shape, leaf_shape, axes, name):
     if len(guide_shape) == len(axes):
         return tuple(guide_shape)
     if len(guide_shape) < len(axes) or any(a >= len(guide_shape) for a in axes):
-        raise ValueError(f"guide for params leaf {name} has shape {tuple(guide_shape)}, which "
-                         f"lacks the spatial axes {axes} of the leaf (shape {tuple(leaf_shape)})")
+        raise ValueError(
+            f"guide for params leaf {name} has shape {tuple(guide_shape)}, which "
+            f"lacks the spatial axes {axes} of the leaf (shape {tuple(leaf_shape)})"
+        )
     return tuple(guide_shape[a] for a in axes)
 
 
-def check_params(params, *, spatial_axes, sigma_d, levels, guide, transform: str,
-                 all_leaves: bool) -> list[LeafSpec]:
+def check_params(
+    params, *, spatial_axes, sigma_d, levels, guide, transform: str, all_leaves: bool
+) -> list[LeafSpec]:
     """Init-time checks: leaf dtypes and dimensions, the settings per leaf, the guide's shapes.
 
     ``all_leaves``: every leaf must be floating point (it has moments), not only the
     filtered ones.
     """
-    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels)
+    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels, warn=True)
     names = leaf_names(params)
     leaves = jax.tree.leaves(params)
     if all_leaves:
         for leaf, name in zip(leaves, names):
-            dt = jnp.result_type(leaf)
-            if not jnp.issubdtype(dt, jnp.floating):
-                raise TypeError(f"params leaf {name} has dtype {dt}; {transform} keeps Adam moments "
-                                "for every leaf, which needs real floating point parameters "
-                                "(exclude other leaves with optax.multi_transform)")
+            check_real_floating(
+                leaf,
+                name,
+                f"{transform} keeps Adam moments for every leaf, which "
+                "needs real floating point parameters (exclude other leaves with "
+                "optax.multi_transform)",
+            )
     if callable(guide) and guide not in ("params", "self") and any(s.axes for s in specs):
         shapes = jax.eval_shape(guide, params)
-        g_list = broadcast_prefix(shapes, params, lambda x: x is None or hasattr(x, "shape"),
-                                  "the guide callable's result")
-        for leaf, name, spec, gd in zip(leaves, names, specs, g_list):
+        g_list = broadcast_prefix(
+            shapes,
+            params,
+            lambda x: x is None or hasattr(x, "shape"),
+            "the guide callable's result",
+        )
+        for leaf, name, spec, leaf_guide in zip(leaves, names, specs, g_list):
             if not spec.axes:
                 continue
-            if gd is None:
-                raise ValueError(f"guide returned None for params leaf {name}, which is filtered "
-                                 f"(spatial axes {spec.axes}); return an array for it or give it "
-                                 "spatial_axes=()")
+            if leaf_guide is None:
+                raise ValueError(
+                    f"guide returned None for params leaf {name}, which is filtered "
+                    f"(spatial axes {spec.axes}); return an array for it or give it "
+                    "spatial_axes=()"
+                )
             want = tuple(np.shape(leaf)[a] for a in spec.axes)
-            got = _guide_spatial_shape(gd.shape, np.shape(leaf), spec.axes, name)
+            got = _guide_spatial_shape(leaf_guide.shape, np.shape(leaf), spec.axes, name)
             if got != want:
-                raise ValueError(f"guide for params leaf {name} has spatial shape {got} but the leaf "
-                                 f"has {want} along spatial_axes {spec.axes}: the guide must cover "
-                                 "the same grid")
+                raise ValueError(
+                    f"guide for params leaf {name} has spatial shape {got} but the leaf "
+                    f"has {want} along spatial_axes {spec.axes}: the guide must cover "
+                    "the same grid"
+                )
     return specs
-
-
-GuideSpec = Any  # "params" | "self" | callable params -> guide pytree (prefix)
 
 
 def check_guide(guide) -> None:
     if not (guide in ("params", "self") or callable(guide)):
-        raise ValueError(f"guide must be 'params', 'self' or a callable params -> guide pytree, "
-                         f"got {guide!r}")
+        raise ValueError(
+            f"guide must be 'params', 'self' or a callable params -> guide pytree, got {guide!r}"
+        )
 
 
-def guide_leaves(guide, params, tree, specs: list[LeafSpec], log_guide: bool, transform: str) -> list:
+def guide_leaves(
+    guide, params, tree, specs: list[LeafSpec], log_guide: bool, transform: str
+) -> list:
     """The guide array for every leaf (None where the leaf is not filtered or guide='self')."""
     if guide == "self" or not any(s.axes for s in specs):
         return [None] * len(specs)
     if params is None:
-        raise ValueError(f"{transform} uses guide={guide!r}, which needs the current parameters: "
-                         f"call update(updates, state, params=params)")
+        raise ValueError(
+            f"{transform} uses guide={guide!r}, which needs the current parameters: "
+            f"call update(updates, state, params=params)"
+        )
     if guide == "params":
         g = jax.tree.leaves(params)
         if len(g) != len(specs):
-            raise ValueError(f"params has {len(g)} leaves but the updates have {len(specs)}; "
-                             "they must have the same structure")
+            raise ValueError(
+                f"params has {len(g)} leaves but the updates have {len(specs)}; "
+                "they must have the same structure"
+            )
     else:
-        g = broadcast_prefix(guide(params), tree, lambda x: x is None or hasattr(x, "shape"),
-                             "the guide callable's result")
+        g = broadcast_prefix(
+            guide(params),
+            tree,
+            lambda x: x is None or hasattr(x, "shape"),
+            "the guide callable's result",
+        )
         for x, s, name in zip(g, specs, leaf_names(tree)):
             if x is None and s.axes:
-                raise ValueError(f"guide returned None for leaf {name}, which is filtered; return "
-                                 "an array for it or give it spatial_axes=()")
+                raise ValueError(
+                    f"guide returned None for leaf {name}, which is filtered; return "
+                    "an array for it or give it spatial_axes=()"
+                )
     return [log_transform(x) if (log_guide and x is not None) else x for x in g]
 
 
@@ -217,24 +381,3 @@ def log_transform(x):
     x = jnp.asarray(x)
     x = x.astype(jnp.promote_types(x.dtype, jnp.float32))
     return jnp.log(jnp.abs(x) + LOG_GUIDE_EPS)
-
-
-def texel_mask(ok, axes: tuple[int, ...]):
-    """Reduces an elementwise boolean to the spatial grid (a texel is ok iff all its channels are).
-
-    Returned in ``axes`` order, the layout ``atrous_bilateral``'s ``mask`` expects.
-    """
-    chan = tuple(a for a in range(ok.ndim) if a not in axes)
-    m = jnp.all(ok, axis=chan) if chan else ok
-    srt = sorted(axes)
-    return jnp.transpose(m, [srt.index(a) for a in axes]) if len(axes) > 1 else m
-
-
-def expand_mask(mask, ndim: int, axes: tuple[int, ...]):
-    """Inverse of :func:`texel_mask`'s layout: broadcastable against the leaf."""
-    srt = sorted(axes)
-    m = jnp.transpose(mask, [axes.index(a) for a in srt]) if len(axes) > 1 else mask
-    shape = [1] * ndim
-    for k, a in enumerate(srt):
-        shape[a] = m.shape[k]
-    return m.reshape(shape)

@@ -12,17 +12,15 @@ from __future__ import annotations
 
 import os
 import tempfile
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from optax_bilateral._src.leaves import leaf_names
+
 _FORMAT = "optax_bilateral.state/1"
-
-
-def _names(tree) -> list[str]:
-    paths = jax.tree_util.tree_flatten_with_path(tree)[0]
-    return [jax.tree_util.keystr(p) or "(the root)" for p, _ in paths]
 
 
 def _raw(x) -> np.ndarray:
@@ -34,7 +32,7 @@ def _raw(x) -> np.ndarray:
     return a.view(np.dtype(f"u{a.dtype.itemsize}"))
 
 
-def save_state(path, state) -> None:
+def save_state(path: str | os.PathLike, state: Any) -> None:
     """Writes ``state`` (any pytree of arrays) to ``path`` as an uncompressed ``.npz``.
 
     The file is written next to ``path`` and moved into place, so an interrupted
@@ -44,14 +42,14 @@ def save_state(path, state) -> None:
     leaves = jax.tree.leaves(state)
     arrays = {f"leaf_{i:05d}": _raw(x) for i, x in enumerate(leaves)}
     arrays["__format__"] = np.asarray(_FORMAT)
-    arrays["__paths__"] = np.asarray(_names(state) or [""], dtype=str)
+    arrays["__paths__"] = np.asarray(leaf_names(state) or [""], dtype=str)
     arrays["__dtypes__"] = np.asarray([str(np.asarray(x).dtype) for x in leaves] or [""], dtype=str)
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp_state_", suffix=".npz")
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            np.savez(f, **arrays)  # pyright: ignore[reportArgumentType]  (names, not options)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -59,7 +57,7 @@ def save_state(path, state) -> None:
         raise
 
 
-def load_state(path, like):
+def load_state(path: str | os.PathLike, like: Any) -> Any:
     """Reads a state written by :func:`save_state` into the structure of ``like``.
 
     Args:
@@ -76,7 +74,7 @@ def load_state(path, like):
         or dtypes differ from ``like``'s (a different optimizer or parameters).
     """
     leaves, treedef = jax.tree.flatten(like)
-    names = _names(like)
+    names = leaf_names(like)
     with np.load(os.fspath(path), allow_pickle=False) as data:
         if "__format__" not in data or str(data["__format__"]) != _FORMAT:
             raise ValueError(f"{path} is not an optimizer state written by save_state")
@@ -89,7 +87,8 @@ def load_state(path, like):
             raise ValueError(
                 f"the state in {path} has {n_saved} leaves, but like has {len(leaves)}; they must "
                 f"come from the same optimizer and parameters (only in like: {missing}, only in "
-                f"the file: {extra})")
+                f"the file: {extra})"
+            )
         out = []
         for i, (x, name, dt) in enumerate(zip(leaves, names, saved_dtypes)):
             want = jnp.dtype(x.dtype if hasattr(x, "dtype") else jnp.result_type(x))
@@ -97,7 +96,9 @@ def load_state(path, like):
                 raise ValueError(f"state leaf {name} was saved as {dt}, but like has {want}")
             raw = data[f"leaf_{i:05d}"]
             if raw.shape != tuple(np.shape(x)):
-                raise ValueError(f"state leaf {name} was saved with shape {raw.shape}, but like has "
-                                 f"{tuple(np.shape(x))}")
+                raise ValueError(
+                    f"state leaf {name} was saved with shape {raw.shape}, but like has "
+                    f"{tuple(np.shape(x))}"
+                )
             out.append(jnp.asarray(raw.view(want)))
     return jax.tree.unflatten(treedef, out)

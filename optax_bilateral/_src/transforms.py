@@ -16,6 +16,9 @@ applied afresh each step and never accumulates). A transform placed after
 into ``B m / sqrt(B v)``; so the postfilter is Adam with a filter between the
 moment update and the step.
 
+Every leaf goes through one step shared by both filters
+(:func:`optax_bilateral._src.step.leaf_step`).
+
 Non-finite gradients: a texel whose gradient has a NaN or Inf in any channel is
 treated as *unobserved* for that step, as ``mask_unobserved`` treats all-zero
 texels: it is left out of every filter sum, its moments are kept, and its
@@ -24,7 +27,8 @@ footprint or into the optimizer state. ``scale_by_adam`` stays identical to
 ``optax.scale_by_adam`` and does not do this (``bilateral_adam`` therefore uses
 ``postfilter`` with ``levels=0`` for its unfiltered Adam path).
 
-Numerical extremes (``postfilter``; README.md, "Robustness", has the full table):
+Numerical extremes (``postfilter``; :mod:`optax_bilateral._src.numerics` implements
+them, README.md, "Robustness", has the full table):
 
 * Finite gradients are clipped to ``+-G`` before the moment update, with ``G``
   the largest magnitude whose square still fits the second moment's dtype
@@ -45,103 +49,30 @@ Numerical extremes (``postfilter``; README.md, "Robustness", has the full table)
 
 from __future__ import annotations
 
-import math
-from typing import Any, NamedTuple, Optional
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
-from jax import lax
 
-from optax_bilateral._src import atrous, leaves as lv, sharded
+from optax_bilateral._src import leaves, numerics
+from optax_bilateral._src.step import LeafRule, leaf_step, split_numbers
+from optax_bilateral._src.validation import (
+    check_decay,
+    check_levels,
+    check_mu_dtype,
+    check_nonnegative,
+    check_sigma_d,
+    is_concrete,
+    is_zero,
+)
+
+if TYPE_CHECKING:
+    from optax_bilateral._src.leaves import GuideSetting, SpatialAxesSetting
 
 # Chosen for parameters in a unit range (albedo, roughness, density) and for
 # log-domain guides: a guide step of 0.1 weighs e^-1, a step of 0.5 weighs e^-5.
 DEFAULT_SIGMA_D = 0.1
-
-
-def _safe_increment(count):
-    max_int = jnp.iinfo(jnp.int32).max
-    return jnp.where(count < max_int, count + 1, max_int).astype(jnp.int32)
-
-
-def _check_unit(x, name):
-    """Raises for a concrete decay rate outside [0, 1)."""
-    if x is None or not atrous._is_concrete(x):
-        return
-    v = float(np.asarray(x))
-    if not 0.0 <= v < 1.0:
-        raise ValueError(f"{name} must be in [0, 1), got {v}")
-
-
-def _check_nonneg(x, name):
-    if x is None or not atrous._is_concrete(x):
-        return
-    v = float(np.asarray(x))
-    if not v >= 0.0:
-        raise ValueError(f"{name} must be >= 0, got {v}")
-
-
-def _one_minus(b):
-    """``1 - b``, in float64 when ``b`` is a concrete number (keeps its digits for b near 1)."""
-    if atrous._is_concrete(b):
-        return float(1.0 - np.float64(np.asarray(b)))
-    return 1 - b
-
-
-# Below this 1 - b, float32 keeps fewer than 10 bits of 1 - b in b itself.
-_NEAR_ONE = 2.0 ** -14
-
-
-def _bias_correction(b, count):
-    """Adam's ``1 - b^t``.
-
-    Written as optax writes it, except for ``b`` within ``2^-14`` of 1: there
-    ``-expm1(t log1p(-(1 - b)))``, which keeps its digits (``1 - b^t`` has an
-    absolute error of float32's eps, 3% of ``1 - b`` at ``b = 0.999999``). For a
-    concrete ``b``, ``1 - b`` is taken in float64, so ``b`` that rounds to 1 in
-    float32 still works (``1 - b^t`` would be 0 and the step 0/0); a traced ``b``
-    has float32's precision, so pass such ``b`` as a number, not a hyperparameter.
-    """
-    t = count.astype(jnp.float32)
-    a = _one_minus(b)
-    if atrous._is_concrete(b):
-        if a < _NEAR_ONE:
-            return -jnp.expm1(t * jnp.log1p(jnp.float32(-a)))
-        return 1 - b ** count
-    # Traced b: choose at run time; the unused branch gets a safe a (finite derivatives).
-    near = a < _NEAR_ONE
-    exact = -jnp.expm1(t * jnp.log1p(-jnp.where(near, a, 0)))
-    return jnp.where(near, exact, 1 - b ** count)
-
-
-def _grad_limit(*dtypes) -> float:
-    """Largest |g| whose moments fit every dtype: g^2 <= max/2 for v, |g| <= max/2 for m."""
-    limits = [math.sqrt(float(jnp.finfo(dtypes[0]).max) / 2)]
-    limits += [float(jnp.finfo(d).max) / 2 for d in dtypes[1:]]
-    return min(limits)
-
-
-def _safe_step(m_f, v_f, c1, c2, eps, eps_root):
-    """``(m_f/c1) / (sqrt(v_f/c2 + eps_root) + eps)``, with 0 where the denominator is 0.
-
-    Same values as the plain expression wherever that is finite. ``sqrt`` gets
-    derivative 0 at 0: ``B v = 0`` means no gradient reached the footprint, which
-    stays so under small changes of the hyperparameters (true derivative 0),
-    and ``sqrt'(0) = inf`` times a zero cotangent would make meta-gradients NaN.
-    """
-    v_hat = v_f / c2.astype(v_f.dtype) + eps_root
-    pos = v_hat > 0
-    den = jnp.where(pos, jnp.sqrt(jnp.where(pos, v_hat, 1)), 0) + eps
-    ok = den > 0
-    return jnp.where(ok, (m_f / c1.astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
-
-
-def _sigma_guard(sigma_d):
-    """1 for a valid sigma_d, NaN for a negative or NaN one (traced values cannot raise)."""
-    s = jnp.asarray(sigma_d, jnp.float32)
-    return jnp.where((s >= 0), 1.0, jnp.nan)
 
 
 # ----------------------------------------------------------------------------------------
@@ -156,8 +87,14 @@ class ScaleByAdamState(NamedTuple):
     nu: optax.Updates
 
 
-def scale_by_adam(b1=0.9, b2=0.999, eps=1e-8, eps_root=0.0, *, mu_dtype=None
-                  ) -> optax.GradientTransformationExtraArgs:
+def scale_by_adam(
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
+    eps_root: jax.typing.ArrayLike = 0.0,
+    *,
+    mu_dtype: Any = None,
+) -> optax.GradientTransformationExtraArgs:
     r"""Adam's scaling, numerically identical to :func:`optax.scale_by_adam`.
 
     .. math::
@@ -168,12 +105,19 @@ def scale_by_adam(b1=0.9, b2=0.999, eps=1e-8, eps_root=0.0, *, mu_dtype=None
     (supplement eq. 12). Chained after :func:`prefilter` it is eq. 13. With
     ``b1 = b2 = 0`` it is ``sign(g)`` up to ``eps`` (eq. 15).
     """
-    _check_unit(b1, "b1")
-    _check_unit(b2, "b2")
-    _check_nonneg(eps, "eps")
-    mu_dtype = _check_mu_dtype(mu_dtype)
+    check_decay(b1, "b1")
+    check_decay(b2, "b2")
+    check_nonnegative(eps, "eps")
+    mu_dtype = check_mu_dtype(mu_dtype)
 
     def init_fn(params):
+        for leaf, name in zip(jax.tree.leaves(params), leaves.leaf_names(params)):
+            leaves.check_real_floating(
+                leaf,
+                name,
+                "scale_by_adam keeps Adam moments for every "
+                "leaf, which needs real floating point parameters",
+            )
         mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
         nu = jax.tree.map(jnp.zeros_like, params)
         return ScaleByAdamState(count=jnp.zeros([], jnp.int32), mu=mu, nu=nu)
@@ -181,90 +125,22 @@ def scale_by_adam(b1=0.9, b2=0.999, eps=1e-8, eps_root=0.0, *, mu_dtype=None
     def update_fn(updates, state, params=None, **extra_args):
         del params, extra_args
         mu = jax.tree.map(lambda g, m: (1 - b1) * g + b1 * m, updates, state.mu)
-        nu = jax.tree.map(lambda g, v: (1 - b2) * (g ** 2) + b2 * v, updates, state.nu)
-        count_inc = _safe_increment(state.count)
-        c1 = 1 - b1 ** count_inc
-        c2 = 1 - b2 ** count_inc
+        nu = jax.tree.map(lambda g, v: (1 - b2) * (g**2) + b2 * v, updates, state.nu)
+        count_inc = jnp.asarray(optax.safe_increment(state.count))
+        c1 = jnp.asarray(1 - b1**count_inc)
+        c2 = jnp.asarray(1 - b2**count_inc)
         new = jax.tree.map(
-            lambda m, v: (m / c1.astype(m.dtype)) / (jnp.sqrt(v / c2.astype(v.dtype) + eps_root) + eps),
-            mu, nu)
+            lambda m, v: (
+                (m / c1.astype(m.dtype)) / (jnp.sqrt(v / c2.astype(v.dtype) + eps_root) + eps)
+            ),
+            mu,
+            nu,
+        )
         mu = jax.tree.map(lambda m, old: m.astype(old.dtype), mu, state.mu)
         nu = jax.tree.map(lambda v, old: v.astype(old.dtype), nu, state.nu)
         return new, ScaleByAdamState(count=count_inc, mu=mu, nu=nu)
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
-
-
-# ----------------------------------------------------------------------------------------
-# Filtering one leaf
-
-
-def _observed(g, axes, mask_zero: bool):
-    """Texel-level mask of observed entries (finite, and not all-zero if ``mask_zero``)."""
-    ok = jnp.isfinite(g)
-    m = lv.texel_mask(ok, axes)
-    if mask_zero:
-        m = m & ~lv.texel_mask(g == 0, axes)
-    return m
-
-
-def _filter(fields, guide, spec: lv.LeafSpec, separable: bool, mask):
-    """The leaf's filter; ``mask`` (observed texels, in ``spec.axes`` order) or None.
-
-    Unobserved texels are left out of every sum. The filter is told so by a NaN guide
-    there (``atrous._weight`` gives a pair with a non-finite guide weight 0), not by its
-    ``mask``: the masked filter carries validity planes through every pass, which made
-    the masked branch of ``_with_mask``'s ``lax.cond`` the program's largest, and XLA
-    allocates the largest branch's temporaries on every call (full 2-D update,
-    512x512x3: 42.9 MiB, the unmasked branch 28.5 MiB; above glibc's 32 MiB mmap
-    threshold every call page-faults them, BENCHMARKS.md "Two speeds"). The outputs
-    at unobserved texels are then their own inputs, not 0; every caller discards them,
-    and their inputs must be finite (0 * inf would leak into the neighbours' sums).
-    """
-    if mask is not None:
-        nan_guide = _nan_guide(guide, mask, spec)
-        if nan_guide is not None:
-            guide, mask = nan_guide, None
-    # sharded.atrous_bilateral is the single-device filter unless the fields' spatial axes
-    # are split over explicit mesh axes (then: per-device blocks with halo exchange).
-    return sharded.atrous_bilateral(fields, guide, sigma_d=spec.sigma_d, levels=spec.levels,
-                                    spatial_axes=spec.axes, separable=separable, mask=mask)
-
-
-def _nan_guide(guide, mask, spec: lv.LeafSpec):
-    """``guide`` with NaN at the texels where ``mask`` is False, or None if its layout is
-    neither the spatial grid nor a leaf's (then the filter's own ``mask`` is used)."""
-    guide = jnp.asarray(guide)
-    if not jnp.issubdtype(guide.dtype, jnp.floating):
-        return None
-    if guide.shape == mask.shape:
-        m = mask
-    elif guide.ndim > max(spec.axes) and tuple(guide.shape[a] for a in spec.axes) == mask.shape:
-        m = lv.expand_mask(mask, guide.ndim, spec.axes)
-    else:
-        return None
-    return jnp.where(m, guide, jnp.nan)
-
-
-def _filter_self(fields, spec, separable, mask, log_guide):
-    """guide='self': every field guides itself (each gets its own weights)."""
-    out = []
-    for f in fields:
-        gd = lv.log_transform(f) if log_guide else f
-        out.append(_filter(f, gd, spec, separable, mask))
-    return tuple(out)
-
-
-def _with_mask(fn_fast, fn_masked, g, lim, operands):
-    """Runs ``fn_fast`` when every entry of ``g`` is finite and within ``+-lim``, else
-    ``fn_masked`` (which masks and clips); only one branch executes.
-
-    The fast branch is the plain formula, compiled exactly as before the clip existed.
-    """
-    # (jnp.max(jnp.abs(g)) <= lim, one reduction instead of a compare and two, measured
-    # 2-D update -1..-5% but 3-D 64^3 separable +8..17%: not used.)
-    return lax.cond(jnp.all(jnp.abs(g) <= lim), lambda ops: fn_fast(ops),
-                    lambda ops: fn_masked(ops), operands)
 
 
 # ----------------------------------------------------------------------------------------
@@ -275,9 +151,16 @@ class PrefilterState(NamedTuple):
     """:func:`prefilter` is stateless."""
 
 
-def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="params",
-              log_guide=False, spatial_axes=None, mask_unobserved=False
-              ) -> optax.GradientTransformationExtraArgs:
+def prefilter(
+    sigma_d: Any = DEFAULT_SIGMA_D,
+    levels: Any = 5,
+    *,
+    separable: bool = True,
+    guide: GuideSetting = "params",
+    log_guide: bool = False,
+    spatial_axes: SpatialAxesSetting = None,
+    mask_unobserved: bool = False,
+) -> optax.GradientTransformationExtraArgs:
     r"""Spatial prefilter of the gradient, :math:`\tilde g_t = A_t g_t` (supplement eq. 1).
 
     ``A_t`` is the a-trous cross-bilateral filter (:func:`atrous_bilateral`) guided
@@ -304,64 +187,56 @@ def prefilter(sigma_d=DEFAULT_SIGMA_D, levels=5, *, separable=True, guide="param
         the sums (see :func:`postfilter`).
 
     Gradients beyond a quarter of the float maximum are clipped first, so the
-    sums cannot overflow (the module docstring lists the numerical policies).
+    sums cannot overflow (README.md, "Robustness", lists the numerical policies).
     """
-    lv.check_guide(guide)
+    leaves.check_guide(guide)
     _static_checks(sigma_d, levels, spatial_axes)
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        lv.check_params(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels,
-                        guide=guide, transform="prefilter", all_leaves=False)
+        leaves.check_params(
+            params,
+            spatial_axes=spatial_axes,
+            sigma_d=sigma_d,
+            levels=levels,
+            guide=guide,
+            transform="prefilter",
+            all_leaves=False,
+        )
         return PrefilterState()
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
-        specs = lv.leaf_specs(updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels)
-        guides = lv.guide_leaves(guide, params, updates, specs, log_guide, "prefilter")
+        specs = leaves.leaf_specs(
+            updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels
+        )
+        guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "prefilter")
         flat, treedef = jax.tree.flatten(updates)
         out = []
-        for g, gd, spec in zip(flat, guides, specs):
+        for g, leaf_guide, spec in zip(flat, guides, specs):
             if not spec.axes:
                 out.append(g)
                 continue
-            # |A g| <= max|g| in exact arithmetic; the margin keeps the float sums finite too.
-            lim = min(float(jnp.finfo(jnp.promote_types(g.dtype, jnp.float32)).max) / 4,
-                      float(jnp.finfo(g.dtype).max))
-
-            def fast(ops, spec=spec):
-                g, gd = ops
-                if guide == "self":
-                    return _filter_self((g,), spec, separable, None, log_guide)[0]
-                return _filter(g, gd, spec, separable, None)
-
-            def masked(ops, spec=spec, lim=lim):
-                g, gd = ops
-                # Inside the branch: built only when the branch runs (a cond's closed-over
-                # values are computed before it, on every step).
-                observed = _observed(g, spec.axes, mask_unobserved)
-                obs = lv.expand_mask(observed, g.ndim, spec.axes)
-                g0 = jnp.clip(jnp.where(obs, g, 0), -lim, lim)
-                if guide == "self":
-                    out = _filter_self((g0,), spec, separable, observed, log_guide)[0]
-                else:
-                    out = _filter(g0, gd, spec, separable, observed)
-                # Unobserved texels pass through as they came, so a later stage still sees them.
-                return jnp.where(obs, out, g)
-
-            if mask_unobserved:
-                res = masked((g, gd))
-            else:
-                res = _with_mask(fast, masked, g, lim, (g, gd))
-            if not atrous._is_concrete(spec.sigma_d):
-                res = res * _sigma_guard(spec.sigma_d).astype(res.dtype)
-            out.append(res)
+            constants, traced = split_numbers(sigma_d=spec.sigma_d)
+            rule = LeafRule(
+                stage="prefilter",
+                axes=spec.axes,
+                levels=spec.levels,
+                separable=separable,
+                self_guided=guide == "self",
+                log_guide=log_guide,
+                mask_unobserved=mask_unobserved,
+                limit=numerics.prefilter_limit(g.dtype),
+                guard_sigma=not is_concrete(spec.sigma_d),
+                constants=constants,
+            )
+            out.append(leaf_step(g, leaf_guide, None, traced, rule=rule)[0])
         return jax.tree.unflatten(treedef, out), state
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def _static_checks(sigma_d, levels, spatial_axes):
+def _static_checks(sigma_d, levels, spatial_axes) -> None:
     """Construction-time checks of the settings that need no parameters.
 
     Plain values and the values inside a pytree prefix are checked here; what
@@ -370,11 +245,11 @@ def _static_checks(sigma_d, levels, spatial_axes):
     for sig in jax.tree.leaves(sigma_d, is_leaf=lambda x: x is None):
         if sig is None:
             raise ValueError("sigma_d must be a number >= 0 (inf for a low-pass), got None")
-        atrous.check_sigma_d(sig)
+        check_sigma_d(sig)
     for lev in jax.tree.leaves(levels):
-        if not (hasattr(lev, "shape") and not atrous._is_concrete(lev)):  # traced: update says how
-            atrous.check_levels(lev)
-    lv.check_spatial_axes_setting(spatial_axes)
+        if not (hasattr(lev, "shape") and not is_concrete(lev)):  # traced: update says how
+            check_levels(lev)
+    leaves.check_spatial_axes_setting(spatial_axes)
 
 
 # ----------------------------------------------------------------------------------------
@@ -388,23 +263,32 @@ class PostfilterState(NamedTuple):
     """
 
     count: jax.Array  # shape=(), int32
-    mu: Optional[optax.Updates]
-    nu: Optional[optax.Updates]
+    mu: optax.Updates | None
+    nu: optax.Updates | None
 
 
-def _is_zero(x) -> bool:
-    return x is not None and atrous._is_concrete(x) and float(np.asarray(x)) == 0.0
-
-
-def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, separable=True,
-               guide="params", log_guide=False, spatial_axes=None, mask_unobserved=False,
-               eps_root=0.0, mu_dtype=None) -> optax.GradientTransformationExtraArgs:
+def postfilter(
+    b1: jax.typing.ArrayLike = 0.2,
+    b2: jax.typing.ArrayLike | None = None,
+    eps: jax.typing.ArrayLike = 1e-8,
+    *,
+    sigma_d: Any = DEFAULT_SIGMA_D,
+    levels: Any = 5,
+    separable: bool = True,
+    guide: GuideSetting = "params",
+    log_guide: bool = False,
+    spatial_axes: SpatialAxesSetting = None,
+    mask_unobserved: bool = False,
+    eps_root: jax.typing.ArrayLike = 0.0,
+    mu_dtype: Any = None,
+) -> optax.GradientTransformationExtraArgs:
     r"""Adam whose moments are filtered in space after the temporal averages.
 
     .. math::
         m_t = \beta_1 m_{t-1} + (1-\beta_1) g_t, \qquad v_t = \beta_2 v_{t-1} + (1-\beta_2) g_t^2
 
-        \Delta_t = \frac{B_t m_t / (1-\beta_1^t)}{\sqrt{B_t v_t / (1-\beta_2^t) + \epsilon_{root}} + \epsilon}
+        \Delta_t = \frac{B_t m_t / (1-\beta_1^t)}
+                        {\sqrt{B_t v_t / (1-\beta_2^t) + \epsilon_{root}} + \epsilon}
 
     (supplement eqs. 6-11 with bias correction; alone it is eq. 14, after
     :func:`prefilter` eq. 11). ``B_t`` is one a-trous cross-bilateral operator
@@ -434,24 +318,31 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
 
     Finite gradients are clipped to the largest magnitude whose square fits the
     second moment's dtype (1.3e19 for float32, 181 for float16), and a zero
-    denominator gives a zero step; the module docstring lists these policies.
+    denominator gives a zero step; README.md, "Robustness", lists these policies.
     """
     if b2 is None:
         b2 = 1 - (1 - b1) ** 2
-    _check_unit(b1, "b1")
-    _check_unit(b2, "b2")
-    _check_nonneg(eps, "eps")
-    _check_nonneg(eps_root, "eps_root")
-    lv.check_guide(guide)
+    check_decay(b1, "b1")
+    check_decay(b2, "b2")
+    check_nonnegative(eps, "eps")
+    check_nonnegative(eps_root, "eps_root")
+    leaves.check_guide(guide)
     _static_checks(sigma_d, levels, spatial_axes)
-    mu_dtype = _check_mu_dtype(mu_dtype)
+    mu_dtype = check_mu_dtype(mu_dtype)
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        lv.check_params(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels,
-                        guide=guide, transform="postfilter", all_leaves=True)
+        leaves.check_params(
+            params,
+            spatial_axes=spatial_axes,
+            sigma_d=sigma_d,
+            levels=levels,
+            guide=guide,
+            transform="postfilter",
+            all_leaves=True,
+        )
         count = jnp.zeros([], jnp.int32)
-        if _is_zero(b1) and _is_zero(b2):
+        if is_zero(b1) and is_zero(b2):
             return PostfilterState(count=count, mu=None, nu=None)
         mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
         nu = jax.tree.map(jnp.zeros_like, params)
@@ -460,105 +351,67 @@ def postfilter(b1=0.2, b2=None, eps=1e-8, *, sigma_d=DEFAULT_SIGMA_D, levels=5, 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
         memoryless = state.mu is None
-        count_inc = _safe_increment(state.count)
-        specs = lv.leaf_specs(updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels)
-        guides = lv.guide_leaves(guide, params, updates, specs, log_guide, "postfilter")
+        count_inc = jnp.asarray(optax.safe_increment(state.count))
+        specs = leaves.leaf_specs(
+            updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels
+        )
+        guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "postfilter")
         flat, treedef = jax.tree.flatten(updates)
         if memoryless:
             mus = nus = [None] * len(flat)
         else:
             mus = treedef.flatten_up_to(state.mu)
             nus = treedef.flatten_up_to(state.nu)
-        c1 = _bias_correction(b1, count_inc)
-        c2 = _bias_correction(b2, count_inc)
-        a1, a2 = _one_minus(b1), _one_minus(b2)
+        c1 = numerics.bias_correction(b1, count_inc)
+        c2 = numerics.bias_correction(b2, count_inc)
+        one_minus_b1, one_minus_b2 = numerics.one_minus(b1), numerics.one_minus(b2)
 
         outs, new_mu, new_nu = [], [], []
-        for g, gd, spec, m_old, v_old in zip(flat, guides, specs, mus, nus):
+        for g, leaf_guide, spec, m_old, v_old in zip(flat, guides, specs, mus, nus):
+            moments = None if m_old is None or v_old is None else (m_old, v_old)
             # Moments are updated in at least float32 and stored back in their own dtype.
-            ct = jnp.promote_types(
-                jnp.result_type(g, *([] if memoryless else [m_old, v_old])), jnp.float32)
-            # Clip so that v = g^2 (and m) cannot overflow where they are stored.
-            lim = min(_grad_limit(ct) if memoryless else _grad_limit(v_old.dtype, m_old.dtype, ct),
-                      float(jnp.finfo(g.dtype).max))  # finite in g's dtype: |g| <= lim rejects inf
-
-            def moments(g, m_old, v_old, ct=ct, lim=None):
-                g = g.astype(ct) if lim is None else jnp.clip(g.astype(ct), -lim, lim)
-                if memoryless:
-                    return g, g * g
-                m = a1 * g + b1 * m_old.astype(ct)
-                v = a2 * (g ** 2) + b2 * v_old.astype(ct)
-                return m, v
-
-            def step(m_f, v_f):
-                return _safe_step(m_f, v_f, c1, c2, eps, eps_root)
-
-            def filt(m, v, mask, spec=spec, gd=gd):
-                if not spec.axes:
-                    return m, v
-                if guide == "self":
-                    return _filter_self((m, v), spec, separable, mask, log_guide)
-                return _filter((m, v), gd, spec, separable, mask)
-
-            def observed_masks(g, spec=spec):
-                if spec.axes:
-                    observed = _observed(g, spec.axes, mask_unobserved)
-                    return observed, lv.expand_mask(observed, g.ndim, spec.axes)
-                obs_full = jnp.isfinite(g)
-                if mask_unobserved:
-                    obs_full = obs_full & (g != 0)
-                return obs_full, obs_full
-
-            def fast(ops, filt=filt, moments=moments, step=step):
-                g, m_old, v_old = ops
-                m, v = moments(g, m_old, v_old)
-                mf, vf = filt(m, v, None)
-                return step(mf, vf).astype(g.dtype), m, v
-
-            def masked(ops, filt=filt, moments=moments, step=step, observed_masks=observed_masks,
-                       spec=spec, ct=ct, lim=lim):
-                g, m_old, v_old = ops
-                # Inside the branch: built only when the branch runs (a cond's closed-over
-                # values are computed before it, on every step).
-                observed, obs_full = observed_masks(g)
-                g0 = jnp.where(obs_full, g, 0)
-                m, v = moments(g0, m_old, v_old, lim=lim)
-                if not memoryless:
-                    m = jnp.where(obs_full, m, m_old.astype(ct))
-                    v = jnp.where(obs_full, v, v_old.astype(ct))
-                mf, vf = filt(m, v, observed if spec.axes else None)
-                d = jnp.where(obs_full, step(mf, vf), 0)
-                return d.astype(g.dtype), m, v
-
-            ops = (g, m_old, v_old)
-            if mask_unobserved:
-                d, m, v = masked(ops)
+            stored = [] if moments is None else list(moments)
+            compute_dtype = jnp.promote_types(jnp.result_type(g, *stored), jnp.float32)
+            if moments is None:
+                limit = numerics.moment_limit(g.dtype, compute_dtype)
             else:
-                d, m, v = _with_mask(fast, masked, g, lim, ops)
-            if spec.axes and not atrous._is_concrete(spec.sigma_d):
-                d = d * _sigma_guard(spec.sigma_d).astype(d.dtype)
+                limit = numerics.moment_limit(
+                    g.dtype, compute_dtype, moments[0].dtype, moments[1].dtype
+                )
+            constants, traced = split_numbers(
+                sigma_d=spec.sigma_d,
+                b1=b1,
+                b2=b2,
+                one_minus_b1=one_minus_b1,
+                one_minus_b2=one_minus_b2,
+                eps=eps,
+                eps_root=eps_root,
+            )
+            rule = LeafRule(
+                stage="postfilter",
+                axes=spec.axes,
+                levels=spec.levels,
+                separable=separable,
+                self_guided=guide == "self",
+                log_guide=log_guide,
+                mask_unobserved=mask_unobserved,
+                limit=limit,
+                guard_sigma=not is_concrete(spec.sigma_d),
+                compute_dtype=compute_dtype,
+                constants=constants,
+            )
+            d, new = leaf_step(g, leaf_guide, moments, dict(traced, c1=c1, c2=c2), rule=rule)
             outs.append(d)
-            if not memoryless:
-                new_mu.append(m.astype(m_old.dtype))
-                new_nu.append(v.astype(v_old.dtype))
+            if new is not None:
+                new_mu.append(new[0])
+                new_nu.append(new[1])
 
         new_state = PostfilterState(
             count=count_inc,
             mu=None if memoryless else jax.tree.unflatten(treedef, new_mu),
-            nu=None if memoryless else jax.tree.unflatten(treedef, new_nu))
+            nu=None if memoryless else jax.tree.unflatten(treedef, new_nu),
+        )
         return jax.tree.unflatten(treedef, outs), new_state
 
-    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
-
-
-def _check_mu_dtype(mu_dtype):
-    if mu_dtype is None:
-        return None
-    try:
-        dt = jnp.dtype(mu_dtype)
-    except TypeError:
-        raise TypeError(f"mu_dtype must be a floating dtype (e.g. jnp.float32) or None, "
-                        f"got {mu_dtype!r}") from None
-    if not jnp.issubdtype(dt, jnp.floating):
-        raise TypeError(f"mu_dtype must be a floating dtype (e.g. jnp.float32) or None, got {dt}")
-    return dt
+    # optax's OptState alias admits no None fields (the memoryless state has them).
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)  # pyright: ignore[reportArgumentType]

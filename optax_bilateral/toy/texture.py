@@ -95,6 +95,7 @@ class TextureScene(NamedTuple):
 
 # ----------------------------------------------------------------------------- scene
 
+
 def camera_directions(size: int | tuple[int, int], camera_position=CAMERA_POSITION) -> np.ndarray:
     """``(H, W, 3)`` unit vectors from each texel centre of the plane towards the camera.
 
@@ -104,8 +105,10 @@ def camera_directions(size: int | tuple[int, int], camera_position=CAMERA_POSITI
     h, w = _size(size)
     cam = np.asarray(camera_position, np.float64)
     if cam.shape != (3,) or not cam[2] > 0:
-        raise ValueError(f"camera_position must be (x, y, z) with z > 0 (above the plane), "
-                         f"got {camera_position!r}")
+        raise ValueError(
+            f"camera_position must be (x, y, z) with z > 0 (above the plane), "
+            f"got {camera_position!r}"
+        )
     y = 1.0 - (np.arange(h) + 0.5) * 2.0 / h
     x = -1.0 + (np.arange(w) + 0.5) * 2.0 / w
     p = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.zeros((h, 1))), axis=-1)
@@ -139,11 +142,11 @@ def environment_map(size: int = 1024) -> np.ndarray:
     u = -1.0 + (np.arange(size) + 0.5) * 2.0 / size
     v = 1.0 - (np.arange(size) + 0.5) * 2.0 / size
     uu, vv = np.meshgrid(u, v)
-    rho2 = np.minimum(uu * uu + vv * vv, 1.0)          # outside the disc: the horizon
+    rho2 = np.minimum(uu * uu + vv * vv, 1.0)  # outside the disc: the horizon
     z = (1.0 - rho2) / (1.0 + rho2)
     elev = np.degrees(np.arcsin(z))
     azim = np.degrees(np.arctan2(vv, uu))
-    photo = color.rgb2gray(data.coffee())              # (400, 600): rows = elevation, cols = azimuth
+    photo = color.rgb2gray(data.coffee())  # (400, 600): rows = elevation, cols = azimuth
     ph, pw = photo.shape
     rows = (90.0 - elev) / 90.0 * ph - 0.5
     cols = azim / 180.0 * pw - 0.5
@@ -151,14 +154,21 @@ def environment_map(size: int = 1024) -> np.ndarray:
     env = np.where(azim >= 0.0, 0.02 + 0.28 * sampled, 0.02 + 0.08 * z)
     # Lamps: (azimuth, elevation, half-width, half-height) in degrees; 0.5-degree soft edges.
     for az, el, hw, hh in ((62.0, 52.0, 4.0, 3.0), (118.0, 30.0, 3.0, 5.0)):
-        box = special.expit((hw - np.abs(azim - az)) / 0.5) * special.expit((hh - np.abs(elev - el)) / 0.5)
+        box = special.expit((hw - np.abs(azim - az)) / 0.5) * special.expit(
+            (hh - np.abs(elev - el)) / 0.5
+        )
         env = env + 3.0 * box
     return env.astype(np.float32)
 
 
-def make_scene(size: int | tuple[int, int] = 512, *, env_size: int = 1024,
-               camera_position=CAMERA_POSITION, sun_width: float = 0.06,
-               sun_power: float = 3.0) -> TextureScene:
+def make_scene(
+    size: int | tuple[int, int] = 512,
+    *,
+    env_size: int = 1024,
+    camera_position=CAMERA_POSITION,
+    sun_width: float = 0.06,
+    sun_power: float = 3.0,
+) -> TextureScene:
     """The default texture scene at ``size`` texels (an int or ``(H, W)``).
 
     The sun is centred on :func:`mirror_direction`; ``sun_width`` (radians) must
@@ -166,18 +176,24 @@ def make_scene(size: int | tuple[int, int] = 512, *, env_size: int = 1024,
     monotone (the default camera spreads them by +-0.047 rad).
     """
     if not sun_width > 0 or not sun_power >= 0:
-        raise ValueError(f"sun_width must be > 0 and sun_power >= 0, got {sun_width!r}, {sun_power!r}")
-    return TextureScene(wo=jnp.asarray(camera_directions(size, camera_position)),
-                        env=jnp.asarray(environment_map(env_size)),
-                        sun_dir=jnp.asarray(mirror_direction(camera_position), jnp.float32),
-                        sun_width=jnp.asarray(sun_width, jnp.float32),
-                        sun_power=jnp.asarray(sun_power, jnp.float32))
+        raise ValueError(
+            f"sun_width must be > 0 and sun_power >= 0, got {sun_width!r}, {sun_power!r}"
+        )
+    return TextureScene(
+        wo=jnp.asarray(camera_directions(size, camera_position)),
+        env=jnp.asarray(environment_map(env_size)),
+        sun_dir=jnp.asarray(mirror_direction(camera_position), jnp.float32),
+        sun_width=jnp.asarray(sun_width, jnp.float32),
+        sun_power=jnp.asarray(sun_power, jnp.float32),
+    )
 
 
 # ----------------------------------------------------------------------------- targets
 
+
 def _resize(img: np.ndarray, size) -> np.ndarray:
     from skimage import transform
+
     h, w = _size(size)
     if img.shape == (h, w):
         return img
@@ -190,8 +206,9 @@ def roughness_from_unit(u, lo: float = ALPHA_MIN, hi: float = ALPHA_MAX):
     return lo * (hi / lo) ** u
 
 
-def target_roughness(name: str = "camera", size: int | tuple[int, int] = 512,
-                     seed: int = 0) -> np.ndarray:
+def target_roughness(
+    name: str = "camera", size: int | tuple[int, int] = 512, seed: int = 0
+) -> np.ndarray:
     """A target roughness texture in ``[ALPHA_MIN, ALPHA_MAX]`` (float32, ``(H, W)``).
 
     * ``"camera"``: piecewise smooth. ``skimage.data.camera`` after total-variation
@@ -219,6 +236,7 @@ def target_roughness(name: str = "camera", size: int | tuple[int, int] = 512,
 
 # ----------------------------------------------------------------------------- BRDF
 
+
 def ggx_d(tan2_h, cos_h, alpha):
     """GGX normal distribution ``alpha^2 / (pi cos^4 (alpha^2 + tan^2)^2)``.
 
@@ -237,14 +255,21 @@ def smith_g1(cos_t, alpha):
 
 
 def sun_pdf(cos_b, width):
-    """Solid-angle density of sun sampling, ``b / (2 pi (1 - c^2 + b^2 c^2)^{3/2})`` for ``c > 0``."""
+    """Solid-angle density of sun sampling, ``b / (2 pi (1 - c^2 + b^2 c^2)^{3/2})``
+    for ``c > 0``."""
     c2 = cos_b * cos_b
-    return jnp.where(cos_b > 0, width / (2 * jnp.pi) * jax.lax.rsqrt(
-        jnp.maximum(1.0 - c2 + width * width * c2, 1e-30)) ** 3, 0.0)
+    return jnp.where(
+        cos_b > 0,
+        width
+        / (2 * jnp.pi)
+        * jax.lax.rsqrt(jnp.maximum(1.0 - c2 + width * width * c2, 1e-30)) ** 3,
+        0.0,
+    )
 
 
 def lookup_env(env, x, y, z):
-    """Bilinear lookup of the paraboloid-mapped ``env`` at unit directions ``(x, y, z)``, ``z >= 0``.
+    """Bilinear lookup of the paraboloid-mapped ``env`` at unit directions ``(x, y, z)``,
+    ``z >= 0``.
 
     Direction ``w`` maps to ``(x, y) / (1 + z)`` in the unit disc (no trigonometry);
     ``env[r, c]`` covers ``u = -1 + (c + 1/2) 2/N`` (x), ``v = 1 - (r + 1/2) 2/N`` (y).
@@ -268,12 +293,14 @@ def lookup_env(env, x, y, z):
 
 def _sun_frame(s):
     """Two unit vectors completing the sun direction ``s`` to an orthonormal frame."""
-    e1 = jnp.array([s[1], -s[0], 0.0]) / jnp.sqrt(s[0] ** 2 + s[1] ** 2)   # the sun is never at the zenith
+    e1 = jnp.array([s[1], -s[0], 0.0]) / jnp.sqrt(
+        s[0] ** 2 + s[1] ** 2
+    )  # the sun is never at the zenith
     e2 = jnp.cross(s, e1)
     return e1, e2
 
 
-def _weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False):
+def sample_weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False):
     """Per-sample estimates ``f L cos / p`` for uniforms ``u1, u2`` (broadcast against ``alpha``).
 
     The mixture density uses ``stop_gradient(alpha)``: the derivative flows only
@@ -286,7 +313,7 @@ def _weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False):
     wo, s, b = scene.wo, scene.sun_dir, scene.sun_width
     a0 = jax.lax.stop_gradient(alpha)
     ox, oy, oz = wo[..., 0], wo[..., 1], wo[..., 2]
-    q = a0 / (a0 + 0.5 * b)                               # sun sampling pays off for wide lobes
+    q = a0 / (a0 + 0.5 * b)  # sun sampling pays off for wide lobes
     use_sun = u1 < q
     v = jnp.where(use_sun, u1 / q, (u1 - q) / (1.0 - q))  # reuse u1 after picking the technique
     cphi, sphi = jnp.cos(2.0 * jnp.pi * u2), jnp.sin(2.0 * jnp.pi * u2)
@@ -306,7 +333,7 @@ def _weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False):
     iz = jnp.where(use_sun, tz * tn, gz)
 
     # Evaluate f, both densities and L at w_i, whichever technique produced it.
-    mx, my, mz = ix + ox, iy + oy, iz + oz               # half vector, unnormalised
+    mx, my, mz = ix + ox, iy + oy, iz + oz  # half vector, unnormalised
     m2 = mx * mx + my * my + mz * mz
     ok = (iz > 1e-6) & (mz > 1e-6)
     mz_s = jnp.where(ok, mz, 1.0)
@@ -337,15 +364,18 @@ def estimate(alpha, scene: TextureScene, u) -> jax.Array:
 
     Differentiable in ``alpha`` (unbiased derivative, see the module docstring).
     """
-    return jnp.mean(_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0)
+    return jnp.mean(sample_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0)
 
 
 def _check(alpha, scene, spp, name="spp"):
     if not isinstance(scene, TextureScene):
-        raise TypeError(f"scene must be a TextureScene (see make_scene), got {type(scene).__name__}")
+        raise TypeError(
+            f"scene must be a TextureScene (see make_scene), got {type(scene).__name__}"
+        )
     if jnp.shape(alpha) != scene.shape:
-        raise ValueError(f"alpha must have the scene's texture shape {scene.shape}, "
-                         f"got {jnp.shape(alpha)}")
+        raise ValueError(
+            f"alpha must have the scene's texture shape {scene.shape}, got {jnp.shape(alpha)}"
+        )
     if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
         raise ValueError(f"{name} must be a positive int, got {spp!r}")
 
@@ -363,7 +393,7 @@ def _render_split_bwd(res, ct):
     alpha, scene, u_grad, u_primal = res
     # Each pixel depends on its own texel only, so the VJP is ct * dI/d alpha, texel-wise;
     # dI/d alpha = mean(w * d log f / d alpha) equals jax.grad of estimate() (tested).
-    _, dw = _weights(alpha, scene, u_grad[..., 0], u_grad[..., 1], with_score=True)
+    _, dw = sample_weights(alpha, scene, u_grad[..., 0], u_grad[..., 1], with_score=True)
     zeros = jax.tree_util.tree_map(jnp.zeros_like, (scene, u_primal, u_grad))
     return (ct * jnp.mean(dw, axis=0),) + zeros
 
@@ -389,8 +419,9 @@ def render(alpha, scene: TextureScene, key, spp: int = 1, spp_grad: int = 1) -> 
     return _render_split(alpha, scene, u_p, u_g)
 
 
-def render_reference(alpha, scene: TextureScene, spp: int = 1024, seed: int = 0,
-                     batch: int = 16) -> jax.Array:
+def render_reference(
+    alpha, scene: TextureScene, spp: int = 1024, seed: int = 0, batch: int = 16
+) -> jax.Array:
     """A low-noise image: ``spp`` scrambled-Sobol samples per pixel, each pixel's set shifted
     by its own uniform offset (mod 1), evaluated ``batch`` samples at a time.
 
@@ -401,7 +432,7 @@ def render_reference(alpha, scene: TextureScene, spp: int = 1024, seed: int = 0,
     from scipy.stats import qmc
 
     _check(alpha, scene, spp)
-    n = 1 << max(int(math.ceil(math.log2(spp))), 0)
+    n = 1 << max(math.ceil(math.log2(spp)), 0)
     batch = min(batch, n)
     points = qmc.Sobol(d=2, scramble=True, seed=seed).random(n).astype(np.float32)
     points = jnp.asarray(points.reshape(n // batch, batch, 1, 1, 2))
@@ -413,7 +444,8 @@ def render_reference(alpha, scene: TextureScene, spp: int = 1024, seed: int = 0,
 def _reference(alpha, scene, points, shift):
     def body(acc, pts):
         u = jnp.mod(pts + shift, 1.0)
-        return acc + jnp.sum(_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0), None
+        return acc + jnp.sum(sample_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0), None
+
     total, _ = jax.lax.scan(body, jnp.zeros(scene.shape, jnp.float32), points)
     return total / (points.shape[0] * points.shape[1])
 

@@ -76,7 +76,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Mapping
+from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -154,12 +154,21 @@ def camera_directions(n_views: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
 
 
-def make_scene(resolution: int = 32, n_views: int = 64, *, camera_distance: float = 2.2,
-               density_scale: float = 4.0, density_max: float = 1.0, n_scatter: int = 2,
-               truncation_probability: float = 1e-7,
-               sun_direction=(0.45, -0.35, 0.82), sun_radiance=(2.2, 2.0, 1.8),
-               sky_zenith=(0.25, 0.40, 0.75), sky_horizon=(0.75, 0.80, 0.85),
-               ground=(0.30, 0.25, 0.20)) -> VolumeScene:
+def make_scene(
+    resolution: int = 32,
+    n_views: int = 64,
+    *,
+    camera_distance: float = 2.2,
+    density_scale: float = 4.0,
+    density_max: float = 1.0,
+    n_scatter: int = 2,
+    truncation_probability: float = 1e-7,
+    sun_direction=(0.45, -0.35, 0.82),
+    sun_radiance=(2.2, 2.0, 1.8),
+    sky_zenith=(0.25, 0.40, 0.75),
+    sky_horizon=(0.75, 0.80, 0.85),
+    ground=(0.30, 0.25, 0.20),
+) -> VolumeScene:
     """Builds the scene: ``n_views`` cameras around the unit cube, a sun and a sky.
 
     Args:
@@ -177,14 +186,20 @@ def make_scene(resolution: int = 32, n_views: int = 64, *, camera_distance: floa
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"{name} must be a positive int, got {v!r}")
     if not camera_distance > math.sqrt(3.0) / 2.0:
-        raise ValueError(f"camera_distance must exceed sqrt(3)/2 (outside the cube), got {camera_distance}")
+        raise ValueError(
+            f"camera_distance must exceed sqrt(3)/2 (outside the cube), got {camera_distance}"
+        )
     if not (density_scale > 0 and density_max > 0):
-        raise ValueError(f"density_scale and density_max must be > 0, got {density_scale}, {density_max}")
+        raise ValueError(
+            f"density_scale and density_max must be > 0, got {density_scale}, {density_max}"
+        )
     if not 0 < truncation_probability < 1:
         raise ValueError(f"truncation_probability must be in (0, 1), got {truncation_probability}")
     sun = np.asarray(sun_direction, np.float64)
     if sun.shape != (3,) or np.any(sun == 0):
-        raise ValueError(f"sun_direction must be a 3-vector with non-zero components, got {sun_direction!r}")
+        raise ValueError(
+            f"sun_direction must be a 3-vector with non-zero components, got {sun_direction!r}"
+        )
     sun = sun / np.linalg.norm(sun)
 
     d = camera_directions(n_views)
@@ -199,14 +214,26 @@ def make_scene(resolution: int = 32, n_views: int = 64, *, camera_distance: floa
 
     majorant = density_scale * density_max
     cap = _poisson_cap(majorant * math.sqrt(3.0), truncation_probability)
-    f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
+    f32 = lambda a: np.asarray(a, np.float32)
     return VolumeScene(
-        resolution=int(resolution), origins=f32(origins), forward=f32(forward), right=f32(right),
-        up=f32(up), tan_half_fov=float(tan_half_fov), sun_direction=f32(sun),
-        sun_radiance=f32(sun_radiance), sky_zenith=f32(sky_zenith), sky_horizon=f32(sky_horizon),
-        ground=f32(ground), density_scale=float(density_scale), density_max=float(density_max),
-        n_track=cap, n_shadow=cap, n_scatter=int(n_scatter),
-        truncation_probability=float(truncation_probability))
+        resolution=int(resolution),
+        origins=f32(origins),
+        forward=f32(forward),
+        right=f32(right),
+        up=f32(up),
+        tan_half_fov=float(tan_half_fov),
+        sun_direction=f32(sun),
+        sun_radiance=f32(sun_radiance),
+        sky_zenith=f32(sky_zenith),
+        sky_horizon=f32(sky_horizon),
+        ground=f32(ground),
+        density_scale=float(density_scale),
+        density_max=float(density_max),
+        n_track=cap,
+        n_shadow=cap,
+        n_scatter=int(n_scatter),
+        truncation_probability=float(truncation_probability),
+    )
 
 
 # ------------------------------------------------------------------ volumes
@@ -257,8 +284,11 @@ def reference_volume(size: int = 64, *, checker_cells: int = 4) -> dict[str, np.
     """
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 2:
         raise ValueError(f"size must be an int >= 2, got {size!r}")
-    if isinstance(checker_cells, bool) or not isinstance(checker_cells, (int, np.integer)) \
-            or checker_cells < 1:
+    if (
+        isinstance(checker_cells, bool)
+        or not isinstance(checker_cells, (int, np.integer))
+        or checker_cells < 1
+    ):
         raise ValueError(f"checker_cells must be a positive int, got {checker_cells!r}")
     x, y, z = _voxel_centres((size,) * 3)
     base = np.zeros_like(x)
@@ -276,32 +306,44 @@ def reference_volume(size: int = 64, *, checker_cells: int = 4) -> dict[str, np.
     return {"density": density[..., None].astype(np.float32), "albedo": albedo.astype(np.float32)}
 
 
-def initial_volume(size: int = 64, *, density: float = 0.05, albedo: float = 0.5) -> dict[str, np.ndarray]:
+def initial_volume(
+    size: int = 64, *, density: float = 0.05, albedo: float = 0.5
+) -> dict[str, np.ndarray]:
     """A constant starting volume of the same structure as :func:`reference_volume`."""
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 2:
         raise ValueError(f"size must be an int >= 2, got {size!r}")
-    return {"density": np.full((size,) * 3 + (1,), density, np.float32),
-            "albedo": np.full((size,) * 3 + (3,), albedo, np.float32)}
+    return {
+        "density": np.full((size,) * 3 + (1,), density, np.float32),
+        "albedo": np.full((size,) * 3 + (3,), albedo, np.float32),
+    }
 
 
 def project(params: Params, scene: VolumeScene | None = None, *, density_max: float | None = None):
-    """Clips the parameters to the valid domain: ``0 <= density <= density_max``, ``0 <= albedo <= 1``."""
+    """Clips the parameters to the valid domain: ``0 <= density <= density_max``,
+    ``0 <= albedo <= 1``."""
     if density_max is None:
         density_max = 1.0 if scene is None else scene.density_max
     _check_params(params)
-    return {"density": jnp.clip(params["density"], 0.0, density_max),
-            "albedo": jnp.clip(params["albedo"], 0.0, 1.0)}
+    return {
+        "density": jnp.clip(params["density"], 0.0, density_max),
+        "albedo": jnp.clip(params["albedo"], 0.0, 1.0),
+    }
 
 
 def _check_params(params) -> None:
     if not isinstance(params, Mapping) or set(params) != {"density", "albedo"}:
-        raise TypeError("params must be a dict with exactly the keys 'density' and 'albedo', got "
-                        f"{type(params).__name__} with keys {sorted(params) if isinstance(params, Mapping) else '-'}")
+        raise TypeError(
+            "params must be a dict with exactly the keys 'density' and 'albedo', got "
+            f"{type(params).__name__} with keys "
+            f"{sorted(params) if isinstance(params, Mapping) else '-'}"
+        )
     d, a = np.shape(params["density"]), np.shape(params["albedo"])
     if len(d) != 4 or d[-1] != 1:
         raise ValueError(f"params['density'] must have shape (D, H, W, 1), got {d}")
     if a != d[:3] + (3,):
-        raise ValueError(f"params['albedo'] must have shape {d[:3] + (3,)} (the density's grid, RGB), got {a}")
+        raise ValueError(
+            f"params['albedo'] must have shape {d[:3] + (3,)} (the density's grid, RGB), got {a}"
+        )
 
 
 def param_errors(params: Params, target: Params) -> dict[str, jax.Array]:
@@ -323,17 +365,23 @@ def param_errors(params: Params, target: Params) -> dict[str, jax.Array]:
 
 def _stencil(shape, x: jax.Array) -> list[tuple[jax.Array, jax.Array]]:
     """The 8 (flat index, weight) pairs of the trilinear stencil at x (..., 3), clamp-to-edge."""
-    u = x * jnp.asarray(shape, x.dtype) - 0.5                   # voxel centres at integers
+    u = x * jnp.asarray(shape, x.dtype) - 0.5  # voxel centres at integers
     i0 = jnp.floor(u)
     f = u - i0
     i0 = i0.astype(jnp.int32)
     top = jnp.asarray(shape, jnp.int32) - 1
     lo, hi = jnp.clip(i0, 0, top), jnp.clip(i0 + 1, 0, top)
     strides = (shape[1] * shape[2], shape[2], 1)
-    per_axis = [((lo[..., a] * strides[a], 1.0 - f[..., a]), (hi[..., a] * strides[a], f[..., a]))
-                for a in range(3)]
-    return [(ix + iy + iz, wx * wy * wz)
-            for ix, wx in per_axis[0] for iy, wy in per_axis[1] for iz, wz in per_axis[2]]
+    per_axis = [
+        ((lo[..., a] * strides[a], 1.0 - f[..., a]), (hi[..., a] * strides[a], f[..., a]))
+        for a in range(3)
+    ]
+    return [
+        (ix + iy + iz, wx * wy * wz)
+        for ix, wx in per_axis[0]
+        for iy, wy in per_axis[1]
+        for iz, wz in per_axis[2]
+    ]
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -357,24 +405,32 @@ def _lookup_bwd(shape, res, ct):
     pairs = _stencil(shape, x)
     idx = jnp.stack([i for i, _ in pairs], axis=-1)
     upd = jnp.stack([w for _, w in pairs], axis=-1)[..., None] * ct[..., None, :]
-    grad = jnp.zeros(flat_shape, ct.dtype).at[idx.reshape(-1)].add(
-        upd.reshape(-1, flat_shape[-1]), mode="promise_in_bounds")
-    return grad, jnp.zeros_like(x)    # positions never depend on the parameters
+    grad = (
+        jnp.zeros(flat_shape, ct.dtype)
+        .at[idx.reshape(-1)]
+        .add(upd.reshape(-1, flat_shape[-1]), mode="promise_in_bounds")
+    )
+    return grad, jnp.zeros_like(x)  # positions never depend on the parameters
 
 
 _lookup.defvjp(_lookup_fwd, _lookup_bwd)
 
 
 def _trilinear(grid: jax.Array, x: jax.Array) -> jax.Array:
-    """Trilinear lookup, clamp-to-edge. grid: (D, H, W, C) at voxel centres; x: (..., 3) -> (..., C).
+    """Trilinear lookup, clamp-to-edge.
+
+    grid: (D, H, W, C) at voxel centres; x: (..., 3) -> (..., C).
 
     Differentiable in ``grid`` only (sample positions never depend on the parameters).
     """
-    return _lookup(tuple(grid.shape[:3]), grid.reshape(-1, grid.shape[-1]), jax.lax.stop_gradient(x))
+    return _lookup(
+        tuple(grid.shape[:3]), grid.reshape(-1, grid.shape[-1]), jax.lax.stop_gradient(x)
+    )
 
 
 def _cube_interval(o: jax.Array, d: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Entry distance (>= 0) and length of the ray's chord through the unit cube (0 if it misses)."""
+    """Entry distance (>= 0) and length of the ray's chord through the unit cube (0 if it
+    misses)."""
     d = jnp.where(jnp.abs(d) < 1e-12, 1e-12, d)
     inv = 1.0 / d
     ta, tb = -o * inv, (1.0 - o) * inv
@@ -396,6 +452,7 @@ def _prefix_products(f: jax.Array) -> jax.Array:
     ``jnp.prod`` of a masked broadcast cost ~10x the forward pass on CPU, and an
     unrolled loop compiled slowly.
     """
+
     def step(acc, fk):
         acc = acc * fk
         return acc, acc
@@ -408,7 +465,9 @@ def _prefix_products(f: jax.Array) -> jax.Array:
 def _background(scene: VolumeScene, d: jax.Array) -> jax.Array:
     """Sky above the horizon (zenith..horizon by elevation), ground below."""
     z = d[..., 2:3]
-    sky = scene.sky_horizon + (scene.sky_zenith - scene.sky_horizon) * jnp.sqrt(jnp.clip(z, 0.0, 1.0))
+    sky = scene.sky_horizon + (scene.sky_zenith - scene.sky_horizon) * jnp.sqrt(
+        jnp.clip(z, 0.0, 1.0)
+    )
     return jnp.where(z >= 0, sky, scene.ground)
 
 
@@ -427,32 +486,32 @@ def _radiance(params: Params, scene: VolumeScene, key, o: jax.Array, d: jax.Arra
     # One draw for all of a ray's random numbers (fewer RNG kernels to compile):
     # K camera gaps, M scattering offsets, Ks x M shadow gaps.
     u = jax.random.uniform(key, (k + m * (1 + ks), n_rays))
-    u_sc = u[k:k + m]                                                         # (M, R)
-    u_sh = u[k + m:].reshape(ks, m, n_rays)
+    u_sc = u[k : k + m]  # (M, R)
+    u_sh = u[k + m :].reshape(ks, m, n_rays)
 
     t0, length = _cube_interval(o, d)
     entry = o + t0[:, None] * d
 
     # Ratio tracking along the camera ray: points of a rate-mu Poisson process.
-    tc = jnp.cumsum(-jnp.log1p(-u[:k]), axis=0) / mu                        # (K, R) sorted
+    tc = jnp.cumsum(-jnp.log1p(-u[:k]), axis=0) / mu  # (K, R) sorted
     sig = scale * _trilinear(density, entry + tc[..., None] * d)[..., 0]
     factor = jnp.where(tc < length, 1.0 - sig / mu, 1.0)
-    prefix = _prefix_products(factor)                                        # (K + 1, R)
+    prefix = _prefix_products(factor)  # (K + 1, R)
     t_end = prefix[-1]
 
     # In-scattering at stratified distances, each with a shadow ray to the sun.
-    ts = (jnp.arange(m)[:, None] + u_sc) * (length / m)                       # (M, R)
+    ts = (jnp.arange(m)[:, None] + u_sc) * (length / m)  # (M, R)
     # Points are sorted, so T_hat(0, t_m) is the prefix product over the points before t_m
     # (a one-hot sum: its reverse mode is elementwise, unlike take_along_axis' scatter).
-    before = jnp.sum(tc[:, None, :] < ts, axis=0)                            # (M, R)
+    before = jnp.sum(tc[:, None, :] < ts, axis=0)  # (M, R)
     pick = jnp.arange(k + 1)[:, None, None] == before
-    t_cam = jnp.sum(jnp.where(pick, prefix[:, None, :], 0.0), axis=0)         # (M, R)
-    xs = jnp.clip(entry + ts[..., None] * d, 0.0, 1.0)                       # (M, R, 3)
+    t_cam = jnp.sum(jnp.where(pick, prefix[:, None, :], 0.0), axis=0)  # (M, R)
+    xs = jnp.clip(entry + ts[..., None] * d, 0.0, 1.0)  # (M, R, 3)
     local = _trilinear(grid4, xs)
-    sig_s = scale * local[..., :1] * local[..., 1:]                           # (M, R, 3)
+    sig_s = scale * local[..., :1] * local[..., 1:]  # (M, R, 3)
     sun = jnp.asarray(scene.sun_direction)
-    exit_len = _exit_distance(xs, sun)                                        # (M, R)
-    tsh = jnp.cumsum(-jnp.log1p(-u_sh), axis=0) / mu                          # (Ks, M, R)
+    exit_len = _exit_distance(xs, sun)  # (M, R)
+    tsh = jnp.cumsum(-jnp.log1p(-u_sh), axis=0) / mu  # (Ks, M, R)
     sig_sh = scale * _trilinear(density, xs + tsh[..., None] * sun)[..., 0]
     t_sun = _prefix_products(jnp.where(tsh < exit_len, 1.0 - sig_sh / mu, 1.0))[-1]
     inscatter = (length / m)[:, None] * jnp.sum((t_cam * t_sun)[..., None] * sig_s, axis=0)
@@ -460,14 +519,15 @@ def _radiance(params: Params, scene: VolumeScene, key, o: jax.Array, d: jax.Arra
 
 
 def _camera_rays(scene: VolumeScene, views: jax.Array, jitter: jax.Array | None):
-    """Rays of the given views: origins, directions (V, H, W, S, 3); jitter (V, H, W, S, 2) or None."""
+    """Rays of the given views: origins, directions (V, H, W, S, 3); jitter (V, H, W, S, 2)
+    or None."""
     n = scene.resolution
     pix = jnp.arange(n, dtype=jnp.float32)
     if jitter is None:
         jx = jy = jnp.full((1, 1, 1, 1), 0.5)
     else:
         jx, jy = jitter[..., 0], jitter[..., 1]
-    sx = ((pix[None, None, :, None] + jx) / n * 2.0 - 1.0) * scene.tan_half_fov     # (V, H, W, S)
+    sx = ((pix[None, None, :, None] + jx) / n * 2.0 - 1.0) * scene.tan_half_fov  # (V, H, W, S)
     sy = (1.0 - (pix[None, :, None, None] + jy) / n * 2.0) * scene.tan_half_fov
     fw = jnp.asarray(scene.forward)[views][:, None, None, None, :]
     rt = jnp.asarray(scene.right)[views][:, None, None, None, :]
@@ -481,15 +541,19 @@ def _camera_rays(scene: VolumeScene, views: jax.Array, jitter: jax.Array | None)
 def _check_views(scene: VolumeScene, views) -> jax.Array:
     views = jnp.asarray(views)
     if views.ndim != 1 or not jnp.issubdtype(views.dtype, jnp.integer):
-        raise ValueError(f"views must be a 1-D integer array of camera indices, got shape "
-                         f"{views.shape} and dtype {views.dtype}")
+        raise ValueError(
+            f"views must be a 1-D integer array of camera indices, got shape "
+            f"{views.shape} and dtype {views.dtype}"
+        )
     return views
 
 
 @functools.partial(jax.jit, static_argnames=("scene", "spp", "jitter"))
-def render(params: Params, scene: VolumeScene, key: jax.Array, views, spp: int = 1,
-           jitter: bool = True) -> jax.Array:
-    """Monte Carlo image estimate ``(len(views), resolution, resolution, 3)``: the mean of ``spp`` samples.
+def render(
+    params: Params, scene: VolumeScene, key: jax.Array, views, spp: int = 1, jitter: bool = True
+) -> jax.Array:
+    """Monte Carlo image estimate ``(len(views), resolution, resolution, 3)``: the mean of
+    ``spp`` samples.
 
     Each sample is one jittered ray through the pixel with the estimator of the
     module docstring; the same ``key`` gives the same image. ``jitter=False``
@@ -512,9 +576,17 @@ def render(params: Params, scene: VolumeScene, key: jax.Array, views, spp: int =
 
 
 @functools.partial(jax.jit, static_argnames=("scene", "spp", "batch", "jitter"))
-def render_mean(params: Params, scene: VolumeScene, key: jax.Array, views, spp: int = 256,
-                batch: int = 16, jitter: bool = True) -> jax.Array:
-    """A high-sample estimate: ``spp`` samples per pixel, rendered ``batch`` at a time (bounded memory).
+def render_mean(
+    params: Params,
+    scene: VolumeScene,
+    key: jax.Array,
+    views,
+    spp: int = 256,
+    batch: int = 16,
+    jitter: bool = True,
+) -> jax.Array:
+    """A high-sample estimate: ``spp`` samples per pixel, rendered ``batch`` at a time
+    (bounded memory).
 
     ``spp`` is rounded up to a multiple of ``batch``.
     """
@@ -532,8 +604,16 @@ def render_mean(params: Params, scene: VolumeScene, key: jax.Array, views, spp: 
 
 
 @functools.partial(jax.jit, static_argnames=("scene", "spp", "spp_grad", "jitter"))
-def loss_and_grad(params: Params, scene: VolumeScene, key: jax.Array, views, targets: jax.Array,
-                  spp: int = 1, spp_grad: int = 1, jitter: bool = True):
+def loss_and_grad(
+    params: Params,
+    scene: VolumeScene,
+    key: jax.Array,
+    views,
+    targets: jax.Array,
+    spp: int = 1,
+    spp_grad: int = 1,
+    jitter: bool = True,
+):
     """Noisy ``mean((I - I_ref)^2)`` over the given views, and an unbiased estimate of its gradient.
 
     The primal ``I_a`` uses ``spp`` samples from one half of ``key``; the
@@ -553,7 +633,9 @@ def loss_and_grad(params: Params, scene: VolumeScene, key: jax.Array, views, tar
     k_a, k_b = jax.random.split(key)
     image = render(params, scene, k_a, views, spp=spp, jitter=jitter)
     if targets.shape != image.shape:
-        raise ValueError(f"targets must have shape {image.shape} (views, H, W, RGB), got {targets.shape}")
+        raise ValueError(
+            f"targets must have shape {image.shape} (views, H, W, RGB), got {targets.shape}"
+        )
     residual = image - targets
     cot = 2.0 * residual / residual.size
     _, vjp = jax.vjp(lambda p: render(p, scene, k_b, views, spp=spp_grad, jitter=jitter), params)

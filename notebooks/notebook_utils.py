@@ -1,5 +1,7 @@
 """Helpers shared by the notebooks in ``notebooks/``: batched texture runs, step statistics, figures.
 
+Imported by the notebooks as ``notebook_utils`` (their working directory is ``notebooks/``).
+
 The notebooks compare many optimizer settings on the toy texture scene
 (:mod:`optax_bilateral.toy.texture`, the paper's Fig. 5 setting). On a CPU one
 XLA compilation of a render + filter step costs seconds, far more than a step
@@ -28,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import pathlib
+import sys
 import time
 from typing import Any, Callable, Mapping, Sequence
 
@@ -36,8 +39,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from experiments import common
 from optax_bilateral.toy import texture as tex
+
+# Only optax_bilateral is installed; experiments/ is imported from the repository.
+if str(pathlib.Path(__file__).resolve().parents[1]) not in sys.path:
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from experiments import common  # noqa: E402
 
 #: True when ``OPTAX_BILATERAL_QUICK=1`` (the test suite): notebooks then run at a small size.
 QUICK = common.quick_from_env()

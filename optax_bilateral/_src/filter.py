@@ -1,0 +1,280 @@
+"""The filter's front door: :func:`atrous_bilateral`.
+
+Checks the arguments and sets up the planar layout once, then hands the planes
+to a kernel: the single-device XLA-CPU kernel (:mod:`optax_bilateral._src.atrous`),
+or, when the fields' spatial axes are split over explicit mesh axes, the same
+per-block code run on every device with halo exchange
+(:mod:`optax_bilateral._src.sharded`).
+
+A kernel is anything with the two methods of :class:`Kernel`; a kernel for another
+backend plugs in at :func:`_filter_jit`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
+
+import jax
+import jax.numpy as jnp
+
+from optax_bilateral._src import atrous, layout, sharded
+from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
+
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Bool, Float
+
+    Fields = Float[Array, "..."] | Sequence[Float[Array, "..."]]
+    Mask = Bool[ArrayLike, "*spatial"]
+else:
+    Fields = Any
+    Mask = Any
+
+
+class Kernel(Protocol):
+    """What the front door needs from a kernel."""
+
+    def plane_shape(self, spatial_shape: Sequence[int]) -> tuple[int, ...]:
+        """The shape each channel's plane is laid out in."""
+        ...
+
+    def filter_planes(
+        self,
+        x: jax.Array,
+        g: jax.Array,
+        valid: jax.Array | None,
+        sigma: jax.Array,
+        levels: int,
+        separable: bool,
+    ) -> jax.Array:
+        """All levels: x (C, *plane), g (G, *spatial), valid (*spatial) or None -> (C, *spatial)."""
+        ...
+
+
+def atrous_bilateral(
+    fields: Fields,
+    guide: jax.typing.ArrayLike,
+    *,
+    sigma_d: jax.typing.ArrayLike,
+    levels: int,
+    spatial_axes: Sequence[int],
+    separable: bool = True,
+    mask: Mask | None = None,
+    guide_axes: Sequence[int] | None = None,
+) -> Fields:
+    r"""A-trous cross-bilateral filter of one or more fields with one set of weights.
+
+    ``out = B_{F-1} ... B_1 B_0 x``, where level ``i`` (stride ``2**i``) is
+
+    .. math::
+        (B_i x)[p] = \frac{\sum_q w_i(p,q)\, x[q]}{\sum_q w_i(p,q)}, \quad
+        w_i(p,q) = \prod_k h[d_k]\; e^{-\lVert \gamma[p]-\gamma[q] \rVert_2/\sigma_d},
+        \quad q = p + 2^i d,\ d \in \{-2..2\}^n
+
+    with B3-spline taps ``h = [1/16, 1/4, 3/8, 1/4, 1/16]`` (docs/method.md;
+    supplement eqs. 1, 6, 8). Each ``B_i`` is non-negative and row-stochastic.
+    Neighbours outside the grid are skipped and the remaining weights renormalised.
+
+    When the fields' spatial axes are split over *explicit* mesh axes (their type
+    carries the sharding), the filter runs per device with halo exchange and returns
+    fields with the input's shardings; the result equals the single-device filter
+    up to float rounding. Otherwise (one device, or an *auto* mesh, which XLA's
+    partitioner splits) it runs the single-device kernel.
+
+    Args:
+      fields: an array, or a tuple of arrays, with the same sizes along
+        ``spatial_axes``. All are filtered with the same weights (computed once per
+        pass), so Adam's ``m`` and ``v`` never get different operators.
+      guide: the edge-stopping image ``gamma``. Either an array with exactly the
+        spatial axes (its shape is the spatial shape), or an array whose axes
+        ``guide_axes`` (default: ``spatial_axes``) have the fields' spatial sizes;
+        the distance is the L2 norm over its remaining (channel) axes. A point whose
+        guide is NaN is nobody's neighbour.
+      sigma_d: the data term's scale (>= 0). ``0`` keeps only neighbours with an
+        equal guide; ``inf`` is a plain B-spline low-pass. May be traced.
+      levels: F, the number of a-trous levels (static int >= 0); ``0`` is the
+        identity. The footprint radius is ``2 (2**F - 1)``.
+      spatial_axes: the fields' spatial axes (any number, in pass order); the
+        other axes are channels that share the weights.
+      separable: if True, each level is one normalised 1-D pass of 5 taps per
+        spatial axis in the order given (cost 5n per level); if False, all 5**n
+        taps at once (the authors' kernels). The two differ across diagonal edges.
+      mask: optional boolean array of the spatial shape (in ``spatial_axes``
+        order); False entries are left out of every sum (neither read nor written:
+        their output is 0).
+      guide_axes: the guide's spatial axes, when it has channels and they differ
+        from ``spatial_axes``.
+
+    Returns:
+      The filtered fields, with the structure and dtypes of ``fields``. Sums are
+      accumulated in at least float32.
+
+    Raises:
+      ValueError, TypeError: naming the argument, for a negative or NaN ``sigma_d``,
+        a ``levels`` that is not a non-negative int, axes out of range or repeated,
+        fields, guide or mask whose spatial shapes disagree, non-floating fields.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> x = jnp.ones((8, 8, 3))
+        >>> y = ob.atrous_bilateral(x, x[..., 0], sigma_d=0.1, levels=2, spatial_axes=(0, 1))
+        >>> y.shape
+        (8, 8, 3)
+    """
+    levels = check_levels(levels)
+    check_sigma_d(sigma_d)
+    if isinstance(spatial_axes, list):
+        spatial_axes = tuple(spatial_axes)
+    if isinstance(guide_axes, list):
+        guide_axes = tuple(guide_axes)
+    if levels == 0 and mask is None:
+        return fields  # the identity, without a copy
+    return _filter_jit(
+        fields,
+        guide,
+        sigma_d,
+        mask,
+        levels=levels,
+        spatial_axes=spatial_axes,
+        separable=bool(separable),
+        guide_axes=guide_axes,
+    )
+
+
+class _Plan(NamedTuple):
+    """The checked arguments: fields as a tuple, normalised axes, the spatial shape."""
+
+    single: bool  # fields was one array, not a tuple
+    fields: tuple[jax.Array, ...]
+    field_axes: tuple[tuple[int, ...], ...]
+    shape: tuple[int, ...]  # the spatial shape, in spatial_axes order
+    guide: jax.Array
+    guide_axes: tuple[int, ...]
+    mask: jax.Array | None
+
+
+def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
+    """Every check of the arguments' shapes and dtypes (trace time, before any work)."""
+    single = not isinstance(fields, (tuple, list))
+    fields = (fields,) if single else tuple(fields)
+    if not fields:
+        raise ValueError("fields must be an array or a non-empty tuple of arrays")
+    fields = tuple(jnp.asarray(f) for f in fields)
+    for i, f in enumerate(fields):
+        if jnp.issubdtype(f.dtype, jnp.complexfloating):
+            raise TypeError(
+                f"fields[{i}] is complex ({f.dtype}); filter its real and imaginary "
+                "parts as two channels of a real field"
+            )
+        if not jnp.issubdtype(f.dtype, jnp.floating):
+            raise TypeError(f"fields[{i}] must have a floating dtype, got {f.dtype}")
+    axes0 = normalize_axes(spatial_axes, fields[0].ndim)
+    if not axes0:
+        raise ValueError("spatial_axes must name at least one axis")
+    shape = tuple(fields[0].shape[a] for a in axes0)
+    field_axes = []
+    for i, f in enumerate(fields):
+        axes = normalize_axes(spatial_axes, f.ndim, name=f"spatial_axes (for fields[{i}])")
+        shp = tuple(f.shape[a] for a in axes)
+        if shp != shape:
+            raise ValueError(
+                f"fields[{i}] has spatial shape {shp} along {tuple(spatial_axes)}, "
+                f"but fields[0] has {shape}"
+            )
+        field_axes.append(axes)
+
+    guide = jnp.asarray(guide)
+    if jnp.issubdtype(guide.dtype, jnp.complexfloating):
+        raise TypeError(
+            f"guide is complex ({guide.dtype}); pass its real and imaginary parts as "
+            "two channels of a real guide (the distance is then |gamma_p - gamma_q|)"
+        )
+    if guide.ndim == len(axes0) and guide_axes is None:
+        g_axes = tuple(range(guide.ndim))
+    else:
+        g_axes = normalize_axes(
+            spatial_axes if guide_axes is None else guide_axes,
+            guide.ndim,
+            name="guide_axes" if guide_axes is not None else "spatial_axes (applied to the guide)",
+        )
+    g_shape = tuple(guide.shape[a] for a in g_axes)
+    if g_shape != shape:
+        raise ValueError(
+            f"guide has spatial shape {g_shape} but the fields have {shape}: "
+            "the guide must cover the same grid"
+        )
+    if mask is not None:
+        mask = jnp.asarray(mask)
+        if mask.shape != shape:
+            raise ValueError(f"mask must have the spatial shape {shape}, got {mask.shape}")
+    return _Plan(single, fields, tuple(field_axes), shape, guide, g_axes, mask)
+
+
+@functools.partial(jax.jit, static_argnames=("levels", "spatial_axes", "separable", "guide_axes"))
+def _filter_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable, guide_axes):
+    """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
+    traced."""
+    plan = _plan(fields, guide, mask, spatial_axes, guide_axes)
+    if levels == 0:  # only a mask to apply (the front door returns early without one)
+        mask = plan.mask
+        assert mask is not None
+        out = tuple(
+            jnp.where(layout.expand_mask(mask, f.ndim, ax), f, 0).astype(f.dtype)
+            for f, ax in zip(plan.fields, plan.field_axes)
+        )
+    else:
+        filter_blocks = functools.partial(
+            _filter_blocks,
+            field_axes=plan.field_axes,
+            guide_axes=plan.guide_axes,
+            levels=levels,
+            separable=separable,
+        )
+        part = sharded.spatial_partition(plan.fields[0], plan.field_axes[0])
+        if part is None:
+            out = filter_blocks(plan.fields, plan.guide, plan.mask, sigma_d, atrous)
+        else:
+            out = sharded.filter_sharded(
+                filter_blocks,
+                part,
+                plan.fields,
+                plan.field_axes,
+                plan.shape,
+                plan.guide,
+                plan.guide_axes,
+                plan.mask,
+                sigma_d,
+            )
+    return out[0] if plan.single else out
+
+
+def _filter_blocks(
+    fields,
+    guide,
+    mask,
+    sigma_d,
+    kernel: Kernel,
+    *,
+    field_axes,
+    guide_axes,
+    levels: int,
+    separable: bool,
+) -> tuple[jax.Array, ...]:
+    """Planar layout in, ``kernel``, layout out: on the whole grid, or on one device's block."""
+    compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
+    shape = tuple(fields[0].shape[a] for a in field_axes[0])
+    # In the kernel's plane shape already: a reshape between the concatenation and the
+    # first pass would stop XLA fusing them.
+    x, restore = layout.to_planes(fields, field_axes, compute, kernel.plane_shape(shape))
+    g = layout.guide_planes(guide, guide_axes, compute, shape)
+    sigma = jnp.asarray(sigma_d, dtype=g.dtype)
+    valid = None
+    if mask is not None:
+        valid = mask.astype(compute)
+        x = jnp.where(mask.reshape(x.shape[1:]), x, 0)  # also drops NaN/Inf at masked entries
+    x = kernel.filter_planes(x, g, valid, sigma, levels, separable)
+    if mask is not None:
+        x = jnp.where(mask, x, 0)
+    return layout.from_planes(x, restore, shape)

@@ -1,0 +1,112 @@
+"""Numerical policies of the transforms, in one place (README.md, "Robustness").
+
+* Bias correction ``1 - b^t`` keeps its digits for ``b`` within ``2^-14`` of 1.
+* Gradients are clipped before the moment update so that ``m`` and ``v = g^2`` fit
+  their dtypes (:func:`moment_limit`), and before the prefilter so that its sums cannot
+  overflow (:func:`prefilter_limit`).
+* A zero denominator gives a zero step, with finite derivatives (:func:`safe_step`).
+* A traced ``sigma_d`` that is negative or NaN makes the update NaN (:func:`sigma_guard`).
+
+The step counter uses :func:`optax.safe_increment`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from optax_bilateral._src.validation import is_concrete
+
+# Below this 1 - b, float32 keeps fewer than 10 bits of 1 - b in b itself.
+NEAR_ONE = 2.0**-14
+
+
+def one_minus(b: Any) -> Any:
+    """``1 - b``, in float64 when ``b`` is a concrete number (keeps its digits for b near 1)."""
+    if is_concrete(b):
+        return float(1.0 - np.float64(np.asarray(b)))
+    return 1 - b
+
+
+def bias_correction(b: Any, count: jax.Array) -> jax.Array:
+    """Adam's ``1 - b^t``.
+
+    Written as optax writes it, except for ``b`` within ``2^-14`` of 1: there
+    ``-expm1(t log1p(-(1 - b)))``, which keeps its digits (``1 - b^t`` has an
+    absolute error of float32's eps, 3% of ``1 - b`` at ``b = 0.999999``). For a
+    concrete ``b``, ``1 - b`` is taken in float64, so ``b`` that rounds to 1 in
+    float32 still works (``1 - b^t`` would be 0 and the step 0/0); a traced ``b``
+    has float32's precision, so pass such ``b`` as a number, not a hyperparameter.
+    """
+    # Compiled once per b: eagerly, `b ** count` of a concrete count compiles per count.
+    if is_concrete(b):
+        return _bias_correction_const(count, b=float(np.asarray(b)))
+    return _bias_correction_traced(count, b)
+
+
+def _bias_correction(count, b):
+    t = count.astype(jnp.float32)
+    a = one_minus(b)
+    if is_concrete(b):
+        if a < NEAR_ONE:
+            return -jnp.expm1(t * jnp.log1p(jnp.float32(-a)))
+        return 1 - b**count
+    # Traced b: choose at run time; the unused branch gets a safe a (finite derivatives).
+    near = a < NEAR_ONE
+    exact = -jnp.expm1(t * jnp.log1p(-jnp.where(near, a, 0)))
+    return jnp.where(near, exact, 1 - b**count)
+
+
+_bias_correction_const = jax.jit(_bias_correction, static_argnames=("b",), inline=True)
+_bias_correction_traced = jax.jit(_bias_correction, inline=True)
+
+
+def moment_limit(
+    grad_dtype: Any, compute_dtype: Any, mu_dtype: Any = None, nu_dtype: Any = None
+) -> float:
+    """Largest |g| the moment update accepts: ``g^2 <= max/2`` where ``v`` is stored and
+    computed, ``|g| <= max/2`` where ``m`` is, and finite in ``g``'s own dtype (so that the
+    check ``|g| <= limit`` also rejects inf). Without moment buffers (memoryless), the
+    compute dtype alone."""
+    if nu_dtype is None:
+        limits = [math.sqrt(float(jnp.finfo(compute_dtype).max) / 2)]
+    else:
+        limits = [math.sqrt(float(jnp.finfo(nu_dtype).max) / 2)]
+        limits += [float(jnp.finfo(d).max) / 2 for d in (mu_dtype, compute_dtype)]
+    return min(min(limits), float(jnp.finfo(grad_dtype).max))
+
+
+def prefilter_limit(grad_dtype: Any) -> float:
+    """Largest |g| the prefilter accepts: ``|A g| <= max |g|`` in exact arithmetic, and the
+    margin of 4 keeps the float sums finite too."""
+    return min(
+        float(jnp.finfo(jnp.promote_types(grad_dtype, jnp.float32)).max) / 4,
+        float(jnp.finfo(grad_dtype).max),
+    )
+
+
+def safe_step(
+    m_f: jax.Array, v_f: jax.Array, c1: jax.Array, c2: jax.Array, eps: Any, eps_root: Any
+) -> jax.Array:
+    """``(m_f/c1) / (sqrt(v_f/c2 + eps_root) + eps)``, with 0 where the denominator is 0.
+
+    Same values as the plain expression wherever that is finite. ``sqrt`` gets
+    derivative 0 at 0: ``B v = 0`` means no gradient reached the footprint, which
+    stays so under small changes of the hyperparameters (true derivative 0),
+    and ``sqrt'(0) = inf`` times a zero cotangent would make meta-gradients NaN.
+    """
+    v_hat = v_f / c2.astype(v_f.dtype) + eps_root
+    pos = v_hat > 0
+    den = jnp.where(pos, jnp.sqrt(jnp.where(pos, v_hat, 1)), 0) + eps
+    ok = den > 0
+    return jnp.where(ok, (m_f / c1.astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
+
+
+def sigma_guard(sigma_d: Any) -> jax.Array:
+    """1 for a valid sigma_d, NaN for a negative or NaN one (traced values cannot raise)."""
+    s = jnp.asarray(sigma_d, jnp.float32)
+    return jnp.where((s >= 0), 1.0, jnp.nan)

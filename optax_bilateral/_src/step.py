@@ -1,0 +1,267 @@
+"""One leaf's step, shared by :func:`prefilter` and :func:`postfilter`.
+
+Both transforms run every parameter leaf through :func:`leaf_step`:
+
+    observe      which texels have a finite (and, with mask_unobserved, non-zero) gradient
+    moments      postfilter: m, v updated from the (clipped) gradient; unobserved keep theirs
+    filter       the a-trous filter of the fields (g, or m and v with one set of weights)
+    step         postfilter: the bias-corrected Adam step, 0 where unobserved
+
+When every gradient is finite and within the clip limit (the common case) a
+``lax.cond`` takes the plain formula; otherwise the masked one, which leaves
+unobserved texels out of the sums. The step is compiled once per :class:`LeafRule`
+(its static settings) and shape, also when the update runs eagerly, and inlined
+into an enclosing ``jit``.
+
+Where later options plug in: a ``sigma_d`` computed from the data belongs in
+:func:`_sigma` (it sees the leaf's fields and guide); a per-texel blend of filtered
+and unfiltered moments, ``filter_m``/``filter_v`` switches or a "uniform" second
+moment in :func:`_filtered_moments`; a guide that changes per level in the kernels
+(:mod:`optax_bilateral._src.atrous`, ``filter_planes``). docs/design.md has the details.
+"""
+
+from __future__ import annotations
+
+import functools
+from numbers import Real
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from optax_bilateral._src import layout, numerics
+from optax_bilateral._src.filter import atrous_bilateral
+from optax_bilateral._src.leaves import log_transform
+
+Moments = tuple[jax.Array, jax.Array] | None
+
+
+class LeafRule(NamedTuple):
+    """The static settings of one leaf's step (hashable: the compiled step's cache key)."""
+
+    stage: str  # "prefilter" or "postfilter"
+    axes: tuple[int, ...]  # spatial axes; () = not filtered
+    levels: int
+    separable: bool
+    self_guided: bool  # guide="self": each field guides itself
+    log_guide: bool
+    mask_unobserved: bool  # all-zero texels are unobserved too
+    limit: float  # |g| beyond it (or non-finite) takes the masked path
+    guard_sigma: bool  # sigma_d is traced: NaN update if negative or NaN
+    compute_dtype: Any = None  # postfilter: the moments' arithmetic dtype
+    constants: tuple = ()  # ((name, number), ...): hyperparameters known now
+
+
+def split_numbers(**values: Any) -> tuple[tuple, dict]:
+    """Hyperparameters that are Python (or NumPy) numbers stay constants of the compiled
+    step, exactly as written; arrays and tracers become its arguments."""
+    static = tuple((k, v) for k, v in values.items() if isinstance(v, Real))
+    dynamic = {k: v for k, v in values.items() if not isinstance(v, Real)}
+    return static, dynamic
+
+
+@functools.partial(jax.jit, static_argnames=("rule",), inline=True)
+def leaf_step(
+    g: jax.Array, guide: jax.Array | None, moments: Moments, hyper: dict, *, rule: LeafRule
+) -> tuple[jax.Array, Moments]:
+    """One leaf's output and (postfilter) new moments.
+
+    Args:
+      g: the leaf's gradient.
+      guide: its guide (None for ``guide="self"`` or an unfiltered leaf).
+      moments: the stored ``(m, v)``, or None (prefilter; memoryless postfilter).
+      hyper: the traced hyperparameters (those not in ``rule.constants``) and, for
+        the postfilter, the bias corrections ``c1``, ``c2``.
+      rule: the static settings.
+
+    Returns:
+      (the prefiltered gradient or the step, the new ``(m, v)`` in their stored dtypes
+      or None).
+    """
+    if rule.stage == "prefilter":
+        operands = (g, guide, hyper)
+        if rule.mask_unobserved:
+            out = _prefilter_masked(rule, operands)
+        else:
+            out = _when_clean(rule, g, _prefilter_plain, _prefilter_masked, operands)
+        return _guarded(rule, out, hyper), None
+    operands = (g, guide, moments, hyper)
+    if rule.mask_unobserved:
+        d, m, v = _postfilter_masked(rule, operands)
+    else:
+        d, m, v = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
+    d = _guarded(rule, d, hyper)
+    if moments is None:
+        return d, None
+    return d, (m.astype(moments[0].dtype), v.astype(moments[1].dtype))
+
+
+def _when_clean(rule, g, plain, masked, operands):
+    """``plain`` when every entry of ``g`` is finite and within the limit, else ``masked``
+    (only one of them runs)."""
+    return lax.cond(
+        jnp.all(jnp.abs(g) <= rule.limit),
+        functools.partial(plain, rule),
+        functools.partial(masked, rule),
+        operands,
+    )
+
+
+def _guarded(rule, out, hyper):
+    if rule.axes and rule.guard_sigma:
+        return out * numerics.sigma_guard(_sigma(rule, hyper)).astype(out.dtype)
+    return out
+
+
+def _number(rule, hyper, name):
+    """A hyperparameter: the constant if it is one (a Python number stays a literal of the
+    program, so it must not pass through the cond's operands), else the traced value."""
+    for key, value in rule.constants:
+        if key == name:
+            return value
+    return hyper[name]
+
+
+def _sigma(rule, hyper):
+    """The leaf's sigma_d."""
+    return _number(rule, hyper, "sigma_d")
+
+
+# ----------------------------------------------------------------------------------------
+# The two stages
+
+
+def _prefilter_plain(rule, operands):
+    g, guide, hyper = operands
+    return filter_fields(rule, g, guide, hyper, None)
+
+
+def _prefilter_masked(rule, operands):
+    g, guide, hyper = operands
+    # Built inside the branch: a cond's closed-over values would be computed every step.
+    observed = _observed(g, rule)
+    obs = layout.expand_mask(observed, g.ndim, rule.axes)
+    g0 = jnp.clip(jnp.where(obs, g, 0), -rule.limit, rule.limit)
+    out = filter_fields(rule, g0, guide, hyper, observed)
+    # Unobserved texels pass through as they came, so a later stage still sees them.
+    return jnp.where(obs, out, g)
+
+
+def _postfilter_plain(rule, operands):
+    g, guide, moments, hyper = operands
+    m, v = _moments(rule, g, moments, hyper, clip=False)
+    m_f, v_f = _filtered_moments(rule, m, v, guide, hyper, None)
+    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v
+
+
+def _postfilter_masked(rule, operands):
+    g, guide, moments, hyper = operands
+    # Built inside the branch: a cond's closed-over values would be computed every step.
+    if rule.axes:
+        observed = _observed(g, rule)
+        obs_full = layout.expand_mask(observed, g.ndim, rule.axes)
+    else:
+        observed = obs_full = jnp.isfinite(g)
+        if rule.mask_unobserved:
+            observed = obs_full = obs_full & (g != 0)
+    m, v = _moments(rule, jnp.where(obs_full, g, 0), moments, hyper, clip=True)
+    if moments is not None:
+        m = jnp.where(obs_full, m, moments[0].astype(rule.compute_dtype))
+        v = jnp.where(obs_full, v, moments[1].astype(rule.compute_dtype))
+    m_f, v_f = _filtered_moments(rule, m, v, guide, hyper, observed if rule.axes else None)
+    d = jnp.where(obs_full, _step(rule, m_f, v_f, hyper), 0)
+    return d.astype(g.dtype), m, v
+
+
+# ----------------------------------------------------------------------------------------
+# The parts
+
+
+def _observed(g, rule):
+    """Texel-level mask of observed entries (finite, and not all-zero if mask_unobserved)."""
+    m = layout.texel_mask(jnp.isfinite(g), rule.axes)
+    if rule.mask_unobserved:
+        m = m & ~layout.texel_mask(g == 0, rule.axes)
+    return m
+
+
+def _moments(rule, g, moments, hyper, *, clip: bool):
+    """(m, v) in the compute dtype, from ``g`` clipped to the limit if ``clip``; without
+    stored moments (memoryless) ``(g, g^2)``."""
+    g = g.astype(rule.compute_dtype)
+    if clip:
+        g = jnp.clip(g, -rule.limit, rule.limit)
+    if moments is None:
+        return g, g * g
+    m_old, v_old = moments
+    num = functools.partial(_number, rule, hyper)
+    m = num("one_minus_b1") * g + num("b1") * m_old.astype(rule.compute_dtype)
+    v = num("one_minus_b2") * (g**2) + num("b2") * v_old.astype(rule.compute_dtype)
+    return m, v
+
+
+def _filtered_moments(rule, m, v, guide, hyper, observed):
+    """B m and B v, with one set of weights (unfiltered where the leaf is not filtered)."""
+    if not rule.axes:
+        return m, v
+    return filter_fields(rule, (m, v), guide, hyper, observed)
+
+
+def _step(rule, m_f, v_f, hyper):
+    num = functools.partial(_number, rule, hyper)
+    return numerics.safe_step(m_f, v_f, num("c1"), num("c2"), num("eps"), num("eps_root"))
+
+
+def filter_fields(rule, fields, guide, hyper, observed) -> Any:
+    """The leaf's filter of ``fields`` (an array or a tuple); ``observed`` (texels, in
+    ``rule.axes`` order) or None.
+
+    With ``guide="self"`` every field guides itself, so each gets its own weights.
+    """
+    if rule.self_guided:
+        many = isinstance(fields, tuple)
+        out = tuple(
+            _filter(rule, f, log_transform(f) if rule.log_guide else f, hyper, observed)
+            for f in (fields if many else (fields,))
+        )
+        return out if many else out[0]
+    return _filter(rule, fields, guide, hyper, observed)
+
+
+def _filter(rule, fields, guide, hyper, observed):
+    """Unobserved texels are left out of every sum by a NaN guide there (a non-finite
+    guide weighs 0), not by the filter's ``mask``: then both branches of the step's cond
+    compile to the same filter, and XLA sizes its temporaries by the larger branch. The
+    outputs at unobserved texels are then their own inputs, not 0; every caller discards
+    them, and their inputs must be finite (0 * inf would leak into the neighbours' sums).
+    """
+    if observed is not None:
+        nan_guide = nan_guide_at(guide, observed, rule.axes)
+        if nan_guide is not None:
+            guide, observed = nan_guide, None
+    return atrous_bilateral(
+        fields,
+        guide,
+        sigma_d=_sigma(rule, hyper),
+        levels=rule.levels,
+        spatial_axes=rule.axes,
+        separable=rule.separable,
+        mask=observed,
+    )
+
+
+def nan_guide_at(guide, observed, axes):
+    """``guide`` with NaN at the texels where ``observed`` is False, or None if its layout is
+    neither the spatial grid nor a leaf's, or it cannot hold NaN (then the filter's own
+    ``mask`` is used)."""
+    guide = jnp.asarray(guide)
+    if not jnp.issubdtype(guide.dtype, jnp.floating):
+        return None
+    if guide.shape == observed.shape:
+        m = observed
+    elif guide.ndim > max(axes) and tuple(guide.shape[a] for a in axes) == observed.shape:
+        m = layout.expand_mask(observed, guide.ndim, axes)
+    else:
+        return None
+    return jnp.where(m, guide, jnp.nan)

@@ -1,0 +1,131 @@
+"""Argument checks shared by the filter and the transforms.
+
+Every check raises as early as the value can be seen: a concrete value at
+construction, a shape at ``init`` or at trace time. A traced value cannot raise;
+those are handled by the numerics policies (:mod:`optax_bilateral._src.numerics`).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Any, cast
+
+import jax
+import jax.core
+import jax.numpy as jnp
+import numpy as np
+
+
+def is_concrete(x: Any) -> bool:
+    """True if ``x`` holds a known value now (not a tracer under jit/grad/vmap)."""
+    if isinstance(x, jax.core.Tracer):
+        return False
+    try:
+        np.asarray(x)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return False
+    return True
+
+
+def check_sigma_d(sigma_d: Any, name: str = "sigma_d") -> None:
+    """Raises if a concrete ``sigma_d`` is negative, NaN or not a real scalar."""
+    if isinstance(sigma_d, bool) or not (
+        isinstance(sigma_d, numbers.Real) or hasattr(sigma_d, "dtype")
+    ):
+        raise TypeError(f"{name} must be a real scalar (float, inf allowed), got {sigma_d!r}")
+    sigma_d = cast(Any, sigma_d)  # a number or an array: told apart by attribute below
+    if hasattr(sigma_d, "shape") and np.shape(sigma_d) != ():
+        raise ValueError(f"{name} must be a scalar, got an array of shape {np.shape(sigma_d)}")
+    if hasattr(sigma_d, "dtype") and not jnp.issubdtype(sigma_d.dtype, jnp.number):
+        raise TypeError(f"{name} must be a real number, got dtype {sigma_d.dtype}")
+    if is_concrete(sigma_d):
+        value = float(np.asarray(sigma_d))
+        if math.isnan(value) or value < 0:
+            raise ValueError(
+                f"{name} must be >= 0 (0 keeps only equal-guide neighbours, "
+                f"inf is a plain low-pass), got {value}"
+            )
+
+
+def check_levels(levels: Any, name: str = "levels") -> int:
+    """Returns ``levels`` as a Python int, or raises a clear error."""
+    if hasattr(levels, "shape") and not is_concrete(levels):
+        raise TypeError(
+            f"{name} is static (it sets how many passes are compiled) but got a traced value. "
+            "With optax.inject_hyperparams, pass static_args=('levels',)."
+        )
+    if isinstance(levels, bool) or not isinstance(
+        levels, (numbers.Integral, np.ndarray, jax.Array)
+    ):
+        raise TypeError(
+            f"{name} must be a non-negative int (the number of a-trous levels F), got {levels!r}"
+        )
+    levels = cast(Any, levels)  # an int or an array: told apart by attribute below
+    if hasattr(levels, "dtype") and (
+        np.shape(levels) != () or not jnp.issubdtype(levels.dtype, jnp.integer)
+    ):
+        raise TypeError(f"{name} must be a non-negative int scalar, got {levels!r}")
+    levels = int(levels)
+    if levels < 0:
+        raise ValueError(f"{name} must be >= 0 (0 is the identity), got {levels}")
+    return levels
+
+
+def normalize_axes(spatial_axes: Any, ndim: int, name: str = "spatial_axes") -> tuple[int, ...]:
+    """Validates ``spatial_axes`` against an array of rank ``ndim``; returns non-negative axes."""
+    if isinstance(spatial_axes, numbers.Integral) and not isinstance(spatial_axes, bool):
+        spatial_axes = (spatial_axes,)
+    if not isinstance(spatial_axes, (tuple, list)) or not all(
+        isinstance(a, numbers.Integral) and not isinstance(a, bool) for a in spatial_axes
+    ):
+        raise TypeError(f"{name} must be a tuple of ints, got {spatial_axes!r}")
+    out = []
+    for a in spatial_axes:
+        if not -ndim <= a < ndim:
+            raise ValueError(
+                f"{name}={tuple(spatial_axes)} is out of range for an array "
+                f"with {ndim} dimension(s)"
+            )
+        out.append(int(a) % ndim)
+    if len(set(out)) != len(out):
+        raise ValueError(f"{name}={tuple(spatial_axes)} repeats an axis")
+    return tuple(out)
+
+
+def check_decay(x: Any, name: str) -> None:
+    """Raises for a concrete decay rate outside [0, 1)."""
+    if x is None or not is_concrete(x):
+        return
+    v = float(np.asarray(x))
+    if not 0.0 <= v < 1.0:
+        raise ValueError(f"{name} must be in [0, 1), got {v}")
+
+
+def check_nonnegative(x: Any, name: str) -> None:
+    """Raises for a concrete value that is negative or NaN."""
+    if x is None or not is_concrete(x):
+        return
+    v = float(np.asarray(x))
+    if not v >= 0.0:
+        raise ValueError(f"{name} must be >= 0, got {v}")
+
+
+def check_mu_dtype(mu_dtype: Any) -> jnp.dtype | None:
+    """``mu_dtype`` as a floating dtype, or None."""
+    if mu_dtype is None:
+        return None
+    try:
+        dt = jnp.dtype(mu_dtype)
+    except TypeError:
+        raise TypeError(
+            f"mu_dtype must be a floating dtype (e.g. jnp.float32) or None, got {mu_dtype!r}"
+        ) from None
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise TypeError(f"mu_dtype must be a floating dtype (e.g. jnp.float32) or None, got {dt}")
+    return dt
+
+
+def is_zero(x: Any) -> bool:
+    """True for a concrete value equal to 0 (a traced one may be anything)."""
+    return x is not None and is_concrete(x) and float(np.asarray(x)) == 0.0

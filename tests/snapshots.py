@@ -1,0 +1,114 @@
+"""Snapshots of what a refactoring must not change, and the script that records them.
+
+    .venv/bin/python tests/snapshots.py          # re-record both files below
+
+* ``tests/hlo_hashes.json``: a SHA-256 of the *lowered* (not compiled) program of
+  ``bilateral_adam``'s update on the benchmark's grids (512x512x3 and 64^3x1, F = 5,
+  separable and full), normalised so that only the computation counts: locations,
+  result names and the names of private functions (renamed in order of first use) are
+  dropped. Lowering takes seconds; compiling the full 64^3 update takes minutes.
+* ``tests/api_snapshot.txt``: ``__all__`` of ``optax_bilateral`` and
+  ``optax_bilateral.mesh``, one line per name with its signature (functions), its fields
+  (NamedTuples) or its value (constants).
+
+An intentional change re-records the file in the same commit and says why there.
+The HLO of one program differs between jax versions; the file records the version.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+import pathlib
+import re
+
+HERE = pathlib.Path(__file__).resolve().parent
+HLO_PATH = HERE / "hlo_hashes.json"
+API_PATH = HERE / "api_snapshot.txt"
+
+HLO_CASES = {
+    "512x512x3 F=5 separable": ((512, 512, 3), True),
+    "512x512x3 F=5 full": ((512, 512, 3), False),
+    "64x64x64x1 F=5 separable": ((64, 64, 64, 1), True),
+    "64x64x64x1 F=5 full": ((64, 64, 64, 1), False),
+}
+
+
+def normalise_hlo(text: str) -> str:
+    """The lowered module's text without what a refactoring may change but XLA ignores."""
+    text = re.sub(r"\s*loc\((?:[^()]|\([^()]*\))*\)", "", text)  # source locations
+    text = re.sub(r"#loc\d*\s*=.*\n", "", text)
+    text = re.sub(r"jax\.(?:result|arg)_info = \"[^\"]*\",?\s*", "", text)  # pytree paths
+    text = re.sub(r"\s*\{\s*\}", "", text)
+    text = re.sub(r"^module @\S+", "module", text, flags=re.M)
+    names: dict[str, str] = {}
+
+    def rename(m):
+        name = m.group(1)
+        if name == "main":
+            return "@main"
+        return "@" + names.setdefault(name, f"f{len(names)}")
+
+    return re.sub(r"@([\w.$\-]+)", rename, text)
+
+
+def hlo_hash(shape, separable: bool) -> str:
+    import jax
+    import jax.numpy as jnp
+
+    import optax_bilateral as ob
+
+    opt = ob.bilateral_adam(1e-2, levels=5, separable=separable)
+    p = jax.ShapeDtypeStruct(shape, jnp.float32)
+    state = jax.eval_shape(opt.init, p)
+    text = jax.jit(opt.update).lower(p, state, p).as_text()
+    return hashlib.sha256(normalise_hlo(text).encode()).hexdigest()
+
+
+def toolchain() -> str:
+    import jax
+    import jaxlib
+
+    return f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
+
+
+def hlo_hashes() -> dict[str, str]:
+    return {name: hlo_hash(*case) for name, case in HLO_CASES.items()}
+
+
+def describe(module) -> list[str]:
+    """One line per public name of ``module``."""
+    lines = []
+    for name in module.__all__:
+        obj = getattr(module, name)
+        full = f"{module.__name__}.{name}"
+        if inspect.ismodule(obj):
+            lines.append(f"{full}: module")
+        elif isinstance(obj, type) and hasattr(obj, "_fields"):
+            lines.append(f"{full}: NamedTuple({', '.join(obj._fields)})")
+        elif isinstance(obj, type) and issubclass(obj, Warning):
+            lines.append(f"{full}: {', '.join(b.__name__ for b in obj.__bases__)} subclass")
+        elif isinstance(obj, type):
+            lines.append(f"{full}: class{inspect.signature(obj)}")
+        elif callable(obj):
+            lines.append(f"{full}{inspect.signature(obj)}")
+        else:
+            lines.append(f"{full} = {obj!r}")
+    return lines
+
+
+def api_lines() -> list[str]:
+    import optax_bilateral
+    import optax_bilateral.mesh
+
+    return describe(optax_bilateral) + describe(optax_bilateral.mesh)
+
+
+if __name__ == "__main__":
+    API_PATH.write_text("\n".join(api_lines()) + "\n")
+    HLO_PATH.write_text(
+        json.dumps({"toolchain": toolchain(), "hashes": hlo_hashes()}, indent=1) + "\n"
+    )
+    print(API_PATH.read_text())
+    print(HLO_PATH.read_text())

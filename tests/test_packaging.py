@@ -1,0 +1,57 @@
+"""What is installed: only the library, typed, with its license and one version."""
+
+import importlib.metadata
+import pathlib
+import re
+import subprocess
+import sys
+import zipfile
+
+import optax_bilateral as ob
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _pyproject_version() -> str:
+    text = (ROOT / "pyproject.toml").read_text()
+    return re.search(r'^version = "([^"]+)"', text, re.M).group(1)
+
+
+def test_version_is_written_once_and_read_from_the_metadata():
+    assert ob.__version__ == importlib.metadata.version("optax_bilateral") == _pyproject_version()
+    written = [
+        p
+        for p in (ROOT / "optax_bilateral").rglob("*.py")
+        if re.search(r"__version__\s*=\s*['\"]\d", p.read_text())
+    ]
+    assert written == []
+
+
+def test_wheel_holds_only_the_library(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-q", "-w", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (wheel,) = tmp_path.glob("optax_bilateral-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    dist_info = f"optax_bilateral-{_pyproject_version()}.dist-info"
+    assert {n.split("/")[0] for n in names} == {"optax_bilateral", dist_info}
+    assert {
+        "optax_bilateral/py.typed",
+        "optax_bilateral/_src/filter.py",
+        "optax_bilateral/toy/texture.py",
+    } <= set(names)
+    assert any(n.startswith(dist_info) and n.endswith("LICENSE") for n in names)
+    metadata = zipfile.ZipFile(wheel).read(f"{dist_info}/METADATA").decode()
+    assert "License-Expression: Apache-2.0" in metadata
+    requires = re.findall(r"^Requires-Dist: ([\w\-]+)[^;\n]*$", metadata, re.M)
+    assert sorted(requires) == ["jax", "numpy", "optax"]  # extras aside
+
+
+def test_license_is_the_apache_2_text():
+    text = (ROOT / "LICENSE").read_text()
+    assert "Apache License" in text and "Version 2.0, January 2004" in text
+    assert "END OF TERMS AND CONDITIONS" in text
