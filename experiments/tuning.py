@@ -151,9 +151,10 @@ class Runner:
     """Runs one optimizer factory on one scene for any hyperparameter values and seeds.
 
     ``factory(**{name: value})`` builds the optimizer from traced scalars (one per
-    name in ``names``), so the update compiles once. Runs go in batches of
-    ``scene.batch`` (the last one padded); ``mode="map"`` applies the update run by
-    run with ``lax.map``, ``"vmap"`` vectorises it.
+    name in ``names``), so the update compiles once per batch size. Runs go in batches
+    of ``scene.batch``, a remainder in batches of a quarter of that (two compiled sizes;
+    the last batch padded); ``mode="map"`` applies the update run by run with
+    ``lax.map``, ``"vmap"`` vectorises it.
     """
 
     def __init__(self, scene: sc.Scene, factory: Callable[..., optax.GradientTransformation],
@@ -162,6 +163,7 @@ class Runner:
             raise ValueError(f"mode must be 'map' or 'vmap', got {mode!r}")
         self.scene, self.names = scene, tuple(names)
         self.batch = int(batch or scene.batch)
+        self.small_batch = max(1, self.batch // 4)
         self._grad, self._error = _grad_program(scene)
 
         def build(h):
@@ -185,14 +187,14 @@ class Runner:
         ``hypers[r]`` (values for ``names``) and ``seeds[r]``."""
         hypers = np.asarray(hypers, np.float32).reshape(len(seeds), len(self.names))
         seeds = np.asarray(seeds, np.int32)
-        scene, b = self.scene, self.batch
+        scene = self.scene
         n_seg = _segments(scene.iterations)
         every = scene.iterations // n_seg
         curves = []
-        for start in range(0, len(seeds), b):
+        for start, b in _chunks(len(seeds), self.batch, self.small_batch):
             h, s = hypers[start:start + b], seeds[start:start + b]
             real = len(s)
-            if real < b:  # pad with copies of the last run: one compiled shape
+            if real < b:  # pad with copies of the last run: a compiled shape
                 h = np.concatenate([h, np.repeat(h[-1:], b - real, 0)])
                 s = np.concatenate([s, np.repeat(s[-1:], b - real, 0)])
             h, s = jnp.asarray(h), jnp.asarray(s)
@@ -209,6 +211,21 @@ class Runner:
                 progress.update(real)
         curves = np.concatenate(curves, axis=0).astype(np.float64)
         return curves[:, -1], curves
+
+
+def _chunks(n: int, big: int, small: int) -> list[tuple[int, int]]:
+    """``(start, size)`` batches covering ``n`` runs: ``big`` ones, then the remainder in
+    ``small`` ones unless one more ``big`` batch wastes less."""
+    out, start = [], 0
+    while n - start >= big:
+        out.append((start, big))
+        start += big
+    rest = n - start
+    if rest and -(-rest // small) * small >= big:
+        out.append((start, big))
+    else:
+        out += [(start + k, small) for k in range(0, rest, small)]
+    return out
 
 
 def evaluate(scene: sc.Scene, make_optimizer: Callable[..., optax.GradientTransformation],
@@ -606,7 +623,9 @@ def _defaults_in_grid(scene: sc.Scene, s: Settings, grid: Result) -> Result | No
     the same learning-rate search), else None."""
     d = bilateral_defaults()
     sigma, levels = d["sigma_d"], d["levels"]
-    if isinstance(sigma, str) or levels not in _levels_that_matter(scene, s.levels_grid)[0]:
+    keep, same = _levels_that_matter(scene, s.levels_grid)
+    levels = same.get(levels, levels)    # an identity last level: the grid's lower levels
+    if isinstance(sigma, str) or levels not in keep:
         return None
     static = {"levels": levels, "log_guide": False}
     recs = [r for r in grid.records if r.static == static and r.hyper["sigma_d"] == sigma]

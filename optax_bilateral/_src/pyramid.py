@@ -30,6 +30,7 @@ samples along an axis of ``n``, so any grid size works.
 
 from __future__ import annotations
 
+import functools
 import numbers
 from typing import Any, NamedTuple, Sequence
 
@@ -85,6 +86,11 @@ def pyramid_reconstruct(coefficients: Sequence[Any], axes: Sequence[int]):
     coefficients = list(coefficients)
     if not coefficients:
         raise ValueError("coefficients must hold at least one level")
+    return _reconstruct(tuple(coefficients), tuple(int(a) for a in axes))
+
+
+@functools.partial(jax.jit, static_argnames=("axes",))
+def _reconstruct(coefficients, axes):
     out = coefficients[-1]
     for c in reversed(coefficients[:-1]):
         out = c + upsample(out, c.shape, axes)
@@ -96,6 +102,11 @@ def pyramid_transpose(grid, levels: int, axes: Sequence[int]) -> tuple:
 
     The exact transpose of :func:`pyramid_reconstruct` (``<P c, g> = <c, P^T g>``).
     """
+    return _transpose(grid, _check_levels(levels), tuple(int(a) for a in axes))
+
+
+@functools.partial(jax.jit, static_argnames=("levels", "axes"))
+def _transpose(grid, levels, axes):
     shapes = level_shapes(np.shape(grid), levels, axes)
     out = [grid]
     for fine, coarse in zip(shapes[:-1], shapes[1:]):
