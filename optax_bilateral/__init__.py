@@ -10,6 +10,7 @@ from optax_bilateral import mesh
 from optax_bilateral._src.alias import bilateral_adam
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
+from optax_bilateral._src.pyramid import LaplacianPyramidState, laplacian_pyramid, pyramid_adam
 from optax_bilateral._src.state_io import load_state, save_state
 from optax_bilateral._src.transforms import (
     DEFAULT_SIGMA_D,
@@ -28,6 +29,7 @@ except PackageNotFoundError:  # a source tree that is not installed
 
 __all__ = (
     "DEFAULT_SIGMA_D",
+    "LaplacianPyramidState",
     "LeafRuleWarning",
     "PostfilterState",
     "PrefilterState",
@@ -36,10 +38,12 @@ __all__ = (
     "bilateral_adam",
     "default_spatial_axes",
     "filtered_axes",
+    "laplacian_pyramid",
     "load_state",
     "mesh",
     "postfilter",
     "prefilter",
+    "pyramid_adam",
     "save_state",
     "scale_by_adam",
 )

@@ -1,0 +1,317 @@
+"""The problems of the tuning benchmark (:mod:`experiments.tuning`): grids recovered from noisy gradients.
+
+A :class:`Scene` is one inverse problem written as pure JAX functions, so that the
+benchmark can compile one program that runs many optimisers, hyperparameters and
+seeds at once:
+
+* ``grad(data, params, key)``: an unbiased, noisy gradient of the scene's loss at
+  ``params``; all randomness comes from ``key`` (iteration ``i`` of seed ``s`` uses
+  ``fold_in(key(s), i)``, so every method sees the same noise at the same iteration);
+* ``project(data, params)``: the parameters clipped to the valid domain (after every step);
+* ``error(data, params)``: the parameter error against the target (the benchmark's metric);
+* ``data``: the arrays these functions read (passed to the compiled program as arguments,
+  not baked into it as constants).
+
+Scenes (:data:`SCENES`; ``quick`` is the test-suite size):
+
+=====================  ==========================================================================
+``texture``            toy glossy plane (:mod:`optax_bilateral.toy.texture`), roughness texture,
+                       piecewise-smooth "camera" target, 1 spp / 1 spp gradients (paper Fig. 5)
+``texture_noise``      the same with the i.i.d. high-frequency "noise" target (supplement Fig. 4:
+                       spatial filtering is biased, Adam should win)
+``texture_low_noise``  the camera target with 4 spp / 4 spp (16x less gradient variance than
+                       1/1 near the optimum; Fig. 5's low-noise regime, where Adam catches up)
+``volume``             toy participating medium (:mod:`optax_bilateral.toy.volume`), two leaves:
+                       density (D, H, W, 1) and RGB albedo (D, H, W, 3), random views per step
+``signal1d``           a 1-D piecewise-smooth signal (stored ``(N, 1)``) seen through a Gaussian
+                       blur at a random 10% of samples per step, with fresh measurement noise
+``deblur``             128x128 piecewise-constant unit-range image, Gaussian blur, each step's loss
+                       on a random 5% pixel subset, 300 iterations (the problem of issue #17)
+``deblur_x100``        ``deblur`` with the image (and so the parameters) in [0, 100]: the same
+                       problem, so a scale-invariant method gives the same error; its error is
+                       reported in the units of ``deblur`` (divided by 100)
+=====================  ==========================================================================
+
+Errors: ``texture*``: mean ``|alpha - alpha_target|`` over texels (roughness units);
+``volume``: the mean of the density's mean absolute error and the target-density-weighted
+mean absolute albedo error (:func:`optax_bilateral.toy.volume.param_errors`);
+``signal1d``, ``deblur``: mean ``|x - x_target|``; ``deblur_x100``: that divided by 100.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Params = Any
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """One inverse problem of the benchmark (see the module docstring).
+
+    Attributes:
+      name: short identifier (``SCENES`` key).
+      description: one line for tables and plots.
+      init: the starting parameters (a pytree of arrays).
+      data: arrays the functions below read (targets, reference images, ...).
+      grad: ``(data, params, key) -> grads``, a noisy unbiased gradient.
+      project: ``(data, params) -> params`` in the valid domain.
+      error: ``(data, params) -> scalar`` parameter error.
+      iterations: steps of every run.
+      learning_rates: the first learning-rate grid of every method (the benchmark
+        extends it where the best value lies at an edge).
+      scale: the parameters' unit: the ``sigma_d`` grid of a linear guide is
+        multiplied by it (1 for unit-range parameters).
+      log_guide: the parameters are positive and span decades; the grid then also
+        covers ``log_guide=True`` (as the paper's texture runs).
+      error_name: what ``error`` measures, for tables.
+      config: JSON-able settings that identify the problem (the cache key).
+      batch: runs advanced together (their gradients in one vmapped program).
+    """
+
+    name: str
+    description: str
+    init: Params
+    data: Any
+    grad: Callable[[Any, Params, jax.Array], Params]
+    project: Callable[[Any, Params], Params]
+    error: Callable[[Any, Params], jax.Array]
+    iterations: int
+    learning_rates: tuple[float, ...]
+    scale: float = 1.0
+    log_guide: bool = False
+    error_name: str = "mean |theta - theta_target|"
+    config: dict = dataclasses.field(default_factory=dict)
+    batch: int = 24
+
+    def initial_error(self) -> float:
+        return float(self.error(self.data, self.init))
+
+
+def _around(lr: float) -> tuple[float, ...]:
+    """The first learning-rate grid: ``lr`` and a factor of 2 either side (the benchmark
+    extends it by factors of 2 where the best value lies at an edge)."""
+    return (lr / 2, lr, 2 * lr)
+
+
+# ----------------------------------------------------------------------------- texture
+
+
+def texture(quick: bool, target: str = "camera", spp: int = 1, spp_grad: int = 1,
+            name: str = "texture", description: str | None = None) -> Scene:
+    """The toy texture scene (:mod:`optax_bilateral.toy.texture`), seed 0, from a
+    constant roughness of 0.1."""
+    from optax_bilateral.toy import texture as tex
+
+    size, iterations = (32, 30) if quick else (64, 100)
+    reference_spp = 64 if quick else 256
+    target_alpha = jnp.asarray(tex.target_roughness(target, size, seed=0))
+    scene = tex.make_scene(size)
+    data = {"scene": scene, "target": target_alpha,
+            "reference": tex.render_reference(target_alpha, scene, reference_spp, seed=0)}
+
+    def grad(data, alpha, key):
+        def loss(a):
+            return tex.loss_fn(tex.render(a, data["scene"], key, spp, spp_grad), data["reference"])
+        return jax.grad(loss)(alpha)
+
+    return Scene(
+        name=name,
+        description=description or f"toy texture {size}^2, {target} target, {spp}/{spp_grad} spp",
+        init=jnp.full((size, size), 0.1, jnp.float32), data=data, grad=grad,
+        project=lambda data, a: jnp.clip(a, tex.ALPHA_MIN, tex.ALPHA_MAX),
+        error=lambda data, a: jnp.mean(jnp.abs(a - data["target"])),
+        iterations=iterations, learning_rates=_around(0.02), log_guide=True,
+        error_name="mean |alpha - alpha_target| (roughness)",
+        config=dict(kind="texture", size=size, target=target, spp=spp, spp_grad=spp_grad,
+                    reference_spp=reference_spp, init_alpha=0.1, iterations=iterations))
+
+
+# ----------------------------------------------------------------------------- volume
+
+
+def volume(quick: bool) -> Scene:
+    """The toy volume (:mod:`optax_bilateral.toy.volume`): density and albedo leaves."""
+    from optax_bilateral.toy import volume as vol
+
+    if quick:
+        cfg = dict(size=8, resolution=8, n_views=8, views_per_step=1, n_scatter=1, target_spp=16,
+                   iterations=20)
+    else:
+        cfg = dict(size=16, resolution=12, n_views=32, views_per_step=1, n_scatter=1,
+                   target_spp=64, iterations=120)
+    scene = vol.make_scene(resolution=cfg["resolution"], n_views=cfg["n_views"],
+                           n_scatter=cfg["n_scatter"])
+    target = {k: jnp.asarray(v) for k, v in vol.reference_volume(cfg["size"]).items()}
+    init = {k: jnp.asarray(v) for k, v in vol.initial_volume(cfg["size"]).items()}
+    views = jnp.arange(scene.n_views)
+    images = jnp.concatenate([
+        vol.render_mean(target, scene, jax.random.fold_in(jax.random.key(12345), i),
+                        views[i:i + 4], spp=cfg["target_spp"]) for i in range(0, scene.n_views, 4)])
+    b = cfg["views_per_step"]
+
+    def grad(data, params, key):
+        k_views, k_render = jax.random.split(key)
+        v = jax.random.choice(k_views, scene.n_views, (b,), replace=False)
+        return vol.loss_and_grad(params, scene, k_render, v, data["images"][v])[1]
+
+    return Scene(
+        name="volume",
+        description=(f"toy volume {cfg['size']}^3 (density + RGB albedo), {b} of "
+                     f"{cfg['n_views']} views of {cfg['resolution']}^2 px per step, 1/1 spp"),
+        init=init, data={"images": images, "target": target}, grad=grad,
+        project=lambda data, p: vol.project(p, scene),
+        error=lambda data, p: vol.param_errors(p, data["target"])["param_error"],
+        iterations=cfg["iterations"], learning_rates=_around(0.05),
+        error_name="(density MAE + density-weighted albedo MAE) / 2",
+        config=dict(kind="volume", **cfg))
+
+
+# ----------------------------------------------------------------------------- 1-D signal
+
+
+def piecewise_smooth_signal(n: int) -> np.ndarray:
+    """A unit-range 1-D test signal: a ramp, plateaus, an oscillation and a parabola, with jumps."""
+    t = (np.arange(n) + 0.5) / n
+    x = np.select(
+        [t < 0.2, t < 0.35, t < 0.6, t < 0.7, t < 0.9],
+        [0.2 + 3.0 * t, np.full_like(t, 0.85), 0.5 + 0.3 * np.sin(2 * np.pi * 6 * (t - 0.35)),
+         np.full_like(t, 0.1), 0.95 - 12.0 * (t - 0.8) ** 2],
+        0.4)
+    return x.astype(np.float32)
+
+
+def gaussian_kernel(sigma: float) -> np.ndarray:
+    """Normalised 1-D Gaussian taps of radius ``ceil(3 sigma)``."""
+    r = int(math.ceil(3 * sigma))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    return (k / k.sum()).astype(np.float32)
+
+
+def _blur_axis(x, k, axis):
+    """'same'-size convolution along ``axis`` with zero padding (a symmetric kernel: A = A^T).
+
+    A sum of shifted slices: XLA fuses it into one loop (its CPU convolution of many short
+    rows was ~20x slower here).
+    """
+    r = (k.shape[0] - 1) // 2
+    n = x.shape[axis]
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (r, r)
+    xp = jnp.pad(x, pad)
+    return sum(k[j] * jax.lax.slice_in_dim(xp, j, j + n, axis=axis) for j in range(k.shape[0]))
+
+
+def _masked_lsq_grad(blur, x, y, m):
+    """Gradient of ``sum(m (A x - y)^2) / sum(m)`` for a symmetric ``A`` (``blur``):
+    ``2 A (m (A x - y)) / sum(m)``, written out (autodiff's transposed slices were ~10x slower)."""
+    return 2.0 * blur(jnp.where(m, blur(x) - y, 0.0)) / jnp.maximum(jnp.sum(m), 1)
+
+
+def signal1d(quick: bool) -> Scene:
+    """1-D deconvolution from random 10% subsets with fresh measurement noise each step."""
+    n, iterations = (256, 40) if quick else (1024, 300)
+    blur_sigma, fraction, noise = 2.0, 0.1, 0.1
+    k = jnp.asarray(gaussian_kernel(blur_sigma))
+    x_t = jnp.asarray(piecewise_smooth_signal(n))[:, None]
+    y = _blur_axis(x_t, k, 0)
+
+    def grad(data, x, key):
+        k_mask, k_noise = jax.random.split(key)
+        m = jax.random.uniform(k_mask, x.shape) < fraction
+        obs = data["y"] + noise * jax.random.normal(k_noise, x.shape)
+        return _masked_lsq_grad(lambda v: _blur_axis(v, data["k"], 0), x, obs, m)
+
+    return Scene(
+        name="signal1d",
+        description=(f"1-D piecewise-smooth signal, {n} samples (N, 1), blur sigma {blur_sigma:g}, "
+                     f"{fraction:.0%} samples per step, noise {noise:g}"),
+        init=jnp.full((n, 1), 0.5, jnp.float32), data={"y": y, "k": k, "target": x_t}, grad=grad,
+        project=lambda data, x: jnp.clip(x, 0.0, 1.0),
+        error=lambda data, x: jnp.mean(jnp.abs(x - data["target"])),
+        iterations=iterations, learning_rates=_around(0.02),
+        config=dict(kind="signal1d", n=n, blur_sigma=blur_sigma, fraction=fraction, noise=noise,
+                    iterations=iterations, init=0.5))
+
+
+# ----------------------------------------------------------------------------- deblurring
+
+
+def shapes_image(size: int, seed: int = 0, n_shapes: int = 12) -> np.ndarray:
+    """A piecewise-constant unit-range image: rectangles and discs of random grey levels."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] + 0.5
+    img = np.full((size, size), rng.uniform(0.0, 1.0))
+    for _ in range(n_shapes):
+        value = rng.uniform(0.0, 1.0)
+        cy, cx = rng.uniform(0.1, 0.9, 2) * size
+        if rng.uniform() < 0.5:
+            hy, hx = rng.uniform(0.05, 0.2, 2) * size
+            inside = (np.abs(yy - cy) < hy) & (np.abs(xx - cx) < hx)
+        else:
+            inside = (yy - cy) ** 2 + (xx - cx) ** 2 < (rng.uniform(0.05, 0.18) * size) ** 2
+        img[inside] = value
+    img = (img - img.min()) / (img.max() - img.min())
+    return img.astype(np.float32)
+
+
+def _clip_to_scale(data, x):
+    return jnp.clip(x, 0.0, data["scale"])
+
+
+def _scaled_error(data, x):
+    return jnp.mean(jnp.abs(x - data["target"])) / data["scale"]
+
+
+def deblur(quick: bool, scale: float = 1.0) -> Scene:
+    """Deblurring from random 5% pixel subsets (issue #17's problem); ``scale`` multiplies the image."""
+    size, iterations = (32, 40) if quick else (128, 300)
+    blur_sigma, fraction, noise = 1.5, 0.05, 0.02
+    k = jnp.asarray(gaussian_kernel(blur_sigma))
+    x_t = jnp.asarray(shapes_image(size)) * scale
+    blur = lambda x, k: _blur_axis(_blur_axis(x, k, 0), k, 1)  # noqa: E731
+    # The blurred image with fixed (not per-step) measurement noise: the data of the problem.
+    y = blur(x_t, k) + scale * noise * jax.random.normal(jax.random.key(99), x_t.shape)
+
+    def grad(data, x, key):
+        m = jax.random.uniform(key, x.shape) < fraction
+        return _masked_lsq_grad(lambda v: blur(v, data["k"]), x, data["y"], m)
+
+    name = "deblur" if scale == 1.0 else f"deblur_x{scale:g}"
+    return Scene(
+        name=name,
+        description=(f"deblurring {size}^2 in [0, {scale:g}], blur sigma {blur_sigma:g}, "
+                     f"{fraction:.0%} pixels per step, noise {noise:g}"),
+        init=jnp.full((size, size), 0.5 * scale, jnp.float32),
+        # The scale is data, not a constant: both scales then share compiled programs.
+        data={"y": y, "k": k, "target": x_t, "scale": jnp.float32(scale)}, grad=grad,
+        project=_clip_to_scale, error=_scaled_error,
+        iterations=iterations, learning_rates=tuple(scale * lr for lr in _around(0.02)),
+        scale=scale,
+        error_name="mean |x - x_target|" + ("" if scale == 1.0 else f" / {scale:g}"),
+        config=dict(kind="deblur", size=size, blur_sigma=blur_sigma, fraction=fraction,
+                    noise=noise, scale=scale, iterations=iterations, init=0.5))
+
+
+SCENES: dict[str, Callable[[bool], Scene]] = {
+    "texture": lambda quick: texture(quick),
+    "texture_noise": lambda quick: texture(quick, target="noise", name="texture_noise"),
+    "texture_low_noise": lambda quick: texture(quick, spp=4, spp_grad=4, name="texture_low_noise"),
+    "volume": volume,
+    "signal1d": signal1d,
+    "deblur": lambda quick: deblur(quick),
+    "deblur_x100": lambda quick: deblur(quick, scale=100.0),
+}
+
+
+def make(name: str, quick: bool = False) -> Scene:
+    """The scene ``name`` (one of :data:`SCENES`)."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; choose from {sorted(SCENES)}")
+    return SCENES[name](quick)

@@ -1,0 +1,192 @@
+"""Laplacian-pyramid parameterisation as an optax transform (Weier et al. 2025).
+
+Weier et al., "Practical Inverse Rendering of Textured and Translucent
+Appearance" (SIGGRAPH 2025), optimise a texture as a Laplacian
+pyramid: coefficients ``c_0`` (full resolution), ``c_1`` (half), ...,
+``c_{K-1}`` (coarsest), with the grid their sum after upsampling,
+
+    theta = P c = c_0 + U(c_1 + U(c_2 + ... U(c_{K-1}))),
+
+and run Adam on the coefficients (all levels with one learning rate). ``P`` is
+linear and the loss depends on ``c`` only through ``theta``, so
+``df/dc = P^T df/dtheta`` and a step ``delta c`` moves the grid by ``P delta c``.
+Written on ``theta`` the method is the transform
+
+    g~_t = P^T g_t,   delta_t = inner(g~_t)  (in coefficient space),   update_t = P delta_t,
+
+with the inner optimiser's state (Adam's moments) held per coefficient. The
+step does not depend on ``c`` itself, so projecting ``theta`` onto a valid
+domain after the update (clipping) gives the same iterates as clipping the
+reconstructed grid and writing the difference back into the coefficients.
+This is how :func:`optax_bilateral.mesh.large_steps` writes a
+reparameterisation, too.
+
+``U`` doubles every spatial axis with linear interpolation on cell centres
+(output ``2i`` is ``0.75 c[i] + 0.25 c[i-1]``, ``2i+1`` is ``0.75 c[i] + 0.25
+c[i+1]``, edges clamped: the bilinear "tent" upsampling of the authors' code),
+then crops to the finer level's size; level ``k`` has ``ceil(n / 2^k)``
+samples along an axis of ``n``, so any grid size works.
+"""
+
+from __future__ import annotations
+
+import functools
+import numbers
+from typing import Any, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from optax_bilateral._src import leaves as lv
+
+
+def _check_levels(levels) -> int:
+    if isinstance(levels, bool) or not isinstance(levels, numbers.Integral) or levels < 1:
+        raise ValueError(f"levels must be an int >= 1 (1 = no pyramid: the inner optimiser "
+                         f"on the grid itself), got {levels!r}")
+    return int(levels)
+
+
+def level_shapes(shape: Sequence[int], levels: int, axes: Sequence[int]) -> list[tuple[int, ...]]:
+    """Shapes of the ``levels`` coefficient arrays of a grid of ``shape`` (finest first).
+
+    Level ``k`` has ``ceil(n / 2^k)`` samples along every spatial axis in ``axes``;
+    other axes (channels) keep their size.
+    """
+    levels = _check_levels(levels)
+    shapes = [tuple(int(n) for n in shape)]
+    for _ in range(levels - 1):
+        prev = shapes[-1]
+        shapes.append(tuple(-(-n // 2) if a in axes else n for a, n in enumerate(prev)))
+    return shapes
+
+
+def _upsample_axis(c, axis: int, size: int):
+    """Linear 2x upsampling on cell centres along ``axis`` (edges clamped), cropped to ``size``."""
+    c = jnp.moveaxis(c, axis, 0)
+    prev = jnp.concatenate([c[:1], c[:-1]], axis=0)
+    nxt = jnp.concatenate([c[1:], c[-1:]], axis=0)
+    even = 0.75 * c + 0.25 * prev
+    odd = 0.75 * c + 0.25 * nxt
+    out = jnp.stack([even, odd], axis=1).reshape((2 * c.shape[0],) + c.shape[1:])
+    return jnp.moveaxis(out[:size], 0, axis)
+
+
+def upsample(c, shape: Sequence[int], axes: Sequence[int]):
+    """``U``: one pyramid level ``c`` upsampled to the next finer level's ``shape``."""
+    for a in axes:
+        c = _upsample_axis(c, a, int(shape[a]))
+    return c
+
+
+def pyramid_reconstruct(coefficients: Sequence[Any], axes: Sequence[int]):
+    """``P c``: the grid of a Laplacian pyramid (finest level first), ``c_0 + U(c_1 + U(...))``."""
+    coefficients = list(coefficients)
+    if not coefficients:
+        raise ValueError("coefficients must hold at least one level")
+    return _reconstruct(tuple(coefficients), tuple(int(a) for a in axes))
+
+
+@functools.partial(jax.jit, static_argnames=("axes",))
+def _reconstruct(coefficients, axes):
+    out = coefficients[-1]
+    for c in reversed(coefficients[:-1]):
+        out = c + upsample(out, c.shape, axes)
+    return out
+
+
+def pyramid_transpose(grid, levels: int, axes: Sequence[int]) -> tuple:
+    """``P^T g``: a grid-shaped gradient mapped to the pyramid's coefficients (finest first).
+
+    The exact transpose of :func:`pyramid_reconstruct` (``<P c, g> = <c, P^T g>``).
+    """
+    return _transpose(grid, _check_levels(levels), tuple(int(a) for a in axes))
+
+
+@functools.partial(jax.jit, static_argnames=("levels", "axes"))
+def _transpose(grid, levels, axes):
+    shapes = level_shapes(np.shape(grid), levels, axes)
+    out = [grid]
+    for fine, coarse in zip(shapes[:-1], shapes[1:]):
+        up_t = jax.linear_transpose(lambda c, fine=fine: upsample(c, fine, axes),
+                                    jax.ShapeDtypeStruct(coarse, grid.dtype))
+        (g,) = up_t(out[-1])
+        out.append(g)
+    return tuple(out)
+
+
+class LaplacianPyramidState(NamedTuple):
+    """State of :func:`laplacian_pyramid`: the inner optimiser's state on the coefficients."""
+
+    inner_state: Any
+
+
+def _leaf_axes(tree, spatial_axes) -> list[tuple[int, ...]]:
+    """Spatial axes per leaf, by the library's leaf rule (``default_spatial_axes``)."""
+    specs = lv.leaf_specs(tree, spatial_axes=spatial_axes, sigma_d=0.0, levels=1)
+    return [s.axes for s in specs]
+
+
+def laplacian_pyramid(inner: optax.GradientTransformation, levels: int, *, spatial_axes=None
+                      ) -> optax.GradientTransformationExtraArgs:
+    r"""Runs ``inner`` on Laplacian-pyramid coefficients of every grid leaf (Weier et al. 2025).
+
+    .. math::
+        \tilde g_t = P^\top g_t, \qquad \Delta_t = \mathrm{inner}(\tilde g_t), \qquad
+        u_t = P \Delta_t
+
+    with ``P c = c_0 + U(c_1 + U(\dots c_{K-1}))`` (module docstring). Equivalent to
+    optimising the coefficients with ``inner`` while the loss sees their sum; the
+    inner state lives in coefficient space (one array per level and leaf). The
+    inner transform is called with ``params=None`` (the coefficients are never
+    formed), so it must not need parameter values (Adam, SGD, momentum do not).
+
+    Args:
+      inner: the optimiser of the coefficients (e.g. ``optax.adam(lr)``).
+      levels: ``K >= 1``, the number of pyramid levels (static); 1 is ``inner``
+        on the grid itself.
+      spatial_axes: which axes of each leaf are the grid, as in
+        :func:`optax_bilateral.postfilter` (``None``: the default leaf rule;
+        leaves with no spatial axes are passed to ``inner`` as they are).
+    """
+    levels = _check_levels(levels)
+    lv.check_spatial_axes_setting(spatial_axes)
+
+    def coefficients(tree):
+        flat, treedef = jax.tree.flatten(tree)
+        axes = _leaf_axes(tree, spatial_axes)
+        return [pyramid_transpose(x, levels, ax) if ax else (x,) for x, ax in zip(flat, axes)], \
+            treedef, axes
+
+    def init_fn(params):
+        flat = jax.tree.leaves(params)
+        zeros = [tuple(jnp.zeros(s, jnp.result_type(x))
+                       for s in (level_shapes(np.shape(x), levels, ax) if ax else [np.shape(x)]))
+                 for x, ax in zip(flat, _leaf_axes(params, spatial_axes))]
+        return LaplacianPyramidState(inner_state=inner.init(zeros))
+
+    def update_fn(updates, state, params=None, **extra_args):
+        del params
+        coeffs, treedef, axes = coefficients(updates)
+        steps, inner_state = optax.with_extra_args_support(inner).update(
+            coeffs, state.inner_state, None, **extra_args)
+        out = [pyramid_reconstruct(s, ax).astype(u.dtype) if ax else s[0].astype(u.dtype)
+               for s, ax, u in zip(steps, axes, jax.tree.leaves(updates))]
+        return jax.tree.unflatten(treedef, out), LaplacianPyramidState(inner_state=inner_state)
+
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
+
+
+def pyramid_adam(learning_rate, levels: int, b1=0.9, b2=0.999, eps=1e-8, *, spatial_axes=None
+                 ) -> optax.GradientTransformationExtraArgs:
+    """Adam on Laplacian-pyramid coefficients: ``laplacian_pyramid(optax.adam(...), levels)``.
+
+    Weier et al.'s texture parameterisation (SIGGRAPH 2025): one learning rate for
+    every level, Adam's defaults (Mitsuba's). ``learning_rate`` (a number or a
+    schedule) is traceable through
+    ``optax.inject_hyperparams(pyramid_adam, static_args=("levels",))``.
+    """
+    return laplacian_pyramid(optax.adam(learning_rate, b1=b1, b2=b2, eps=eps), levels,
+                             spatial_axes=spatial_axes)

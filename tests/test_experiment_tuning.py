@@ -1,0 +1,103 @@
+"""End to end: ``python -m experiments.tuning --quick`` writes a valid summary, table and figures,
+reuses its grid cache, and compares a plugged-in candidate."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from experiments import scenes as sc
+from experiments import tuning as T
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+METHODS = ("best_tuned", "auto", "defaults", "adam", "pyramid")
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tuning")
+    summary = T.main(["--quick", "--out", str(out)])
+    return out, summary
+
+
+def test_summary_has_every_scene_and_method_with_sane_numbers(quick_run):
+    out, _ = quick_run
+    data = json.loads((out / "summary.json").read_text())
+    assert set(data["scenes"]) == set(sc.SCENES)
+    for name, e in data["scenes"].items():
+        assert set(METHODS) <= set(e["methods"]), name
+        init = e["initial_error"]
+        assert math.isfinite(init) and init > 0
+        for m in METHODS:
+            err = e["methods"][m]["error"]
+            if m == "auto" and not data["auto_available"]:
+                assert err is None and "not available" in e["methods"][m]["note"]
+                continue
+            assert isinstance(err, float) and math.isfinite(err) and err >= 0, (name, m)
+            assert "learning_rate" in e["methods"][m]["hyperparameters"], (name, m)
+        # Optimisation helps: tuned Adam ends below the starting error on every scene.
+        assert e["methods"]["adam"]["error"] < init, name
+        # The best-tuned entry is the grid's best median.
+        medians = [r["median"] for r in e["grid"]["bilateral"]]
+        assert e["methods"]["best_tuned"]["error"] == min(medians), name
+
+
+def test_scaled_scene_is_the_same_problem(quick_run):
+    """deblur_x100 is deblur with every parameter (and the grids of lr, linear sigma_d) x100:
+    Adam and the best-tuned filter give the same errors (in deblur's units), up to float32
+    rounding and Adam's eps (1e-8 against sqrt(v) ~ 1e-3 here: relative 1e-5)."""
+    out, _ = quick_run
+    s = json.loads((out / "summary.json").read_text())["scenes"]
+    for m in ("adam", "best_tuned", "pyramid"):
+        a, b = s["deblur"]["methods"][m]["error"], s["deblur_x100"]["methods"][m]["error"]
+        assert b == pytest.approx(a, rel=2e-3), m
+
+
+def test_table_and_figures(quick_run):
+    out, summary = quick_run
+    table = (out / "table.md").read_text()
+    for name in sc.SCENES:
+        assert f"| {name} |" in table
+    if not summary["auto_available"]:
+        assert "not available" in table
+    for name in sc.SCENES:
+        assert (out / f"{name}.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_candidate_is_compared_and_grid_comes_from_the_cache(quick_run):
+    """A candidate equal to the defaults gets the defaults' error; the grids are not rerun."""
+    out, _ = quick_run
+    summary = T.main(["--quick", "--out", str(out), "--only-scenes", "signal1d",
+                      "--candidates", "same=experiments.tuning:defaults_factory"])
+    e = summary["scenes"]["signal1d"]
+    assert all(e["from_cache"][k] for k in ("bilateral", "adam", "pyramid"))
+    assert e["methods"]["same"]["error"] == pytest.approx(e["methods"]["defaults"]["error"],
+                                                          rel=1e-5)
+    cmp_ = e["comparisons"]["same"]
+    assert cmp_["ratio_to_best_tuned"] == pytest.approx(
+        e["methods"]["same"]["error"] / e["methods"]["best_tuned"]["error"])
+    assert "same/best-tuned" in (out / "table.md").read_text()
+
+
+def test_evaluate_shapes_and_rejects_bad_grids():
+    scene = sc.make("signal1d", quick=True)
+    errs = T.evaluate(scene, T.adam_factory, {"learning_rate": [0.01, 0.02], "b1": [0.9]},
+                      seeds=(0, 1))
+    assert errs.shape == (2, 2) and np.all(np.isfinite(errs))
+    # Seeds change the noise: two seeds of one setting differ.
+    assert errs[0, 0] != errs[0, 1]
+    with pytest.raises(TypeError, match="must be numbers"):
+        T.evaluate(scene, T.adam_factory, [{"learning_rate": 0.01, "b1": "x"}], seeds=(0,))
+    with pytest.raises(ValueError, match="same keys"):
+        T.evaluate(scene, T.adam_factory, [{"learning_rate": 0.01, "b1": 0.9},
+                                           {"learning_rate": 0.01}], seeds=(0,))
+
+
+def test_bad_cli_arguments():
+    with pytest.raises(ValueError, match="unknown scene"):
+        T.run_benchmark(["nope"], quick=True, out="/tmp/unused-tuning")
+    with pytest.raises(ValueError, match=r"\[NAME=\]module:factory"):
+        T.load_candidates(["no_colon"])
+    with pytest.raises(ValueError, match="taken"):
+        T.load_candidates(["adam=experiments.tuning:adam_factory"])
