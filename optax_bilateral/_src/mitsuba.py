@@ -366,6 +366,9 @@ class SceneOptimizer:
     def update(self, grads, state: optax.OptState, values) -> tuple[dict, optax.OptState]:
         """The compiled step without the scene: ``(new_values, new_state)`` from ``{key: array}``
         gradients and values (the update, the projection and the masking of :meth:`step`)."""
+        # States from init() or load_state are uncommitted; committing them to the values'
+        # device keeps jit from compiling the step a second time for the committed outputs.
+        state = jax.device_put(state, next(iter(values.values())).sharding)
         return _update(*self._static, grads, state, values)
 
     def step(self, state: optax.OptState) -> optax.OptState:
