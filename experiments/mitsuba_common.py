@@ -95,13 +95,26 @@ def auto_unavailable() -> str | None:
     return None
 
 
+DECAYS = ("constant", "cosine", "hold-cosine")
+
+
 def learning_rate(lr: float, decay: str, iterations: int):
-    """``lr`` held constant, or cosine-decayed to 0 over ``iterations`` (``decay="cosine"``)."""
+    """The learning-rate schedule of a run.
+
+    ``constant``: ``lr`` throughout; ``cosine``: cosine-decayed from ``lr`` to 0 over the
+    run; ``hold-cosine``: ``lr`` for the first two thirds, then cosine-decayed to 0 over
+    the last third (the decay starts once a constant-rate run has mostly converged).
+    """
     if decay == "constant":
         return lr
     if decay == "cosine":
         return optax.cosine_decay_schedule(lr, iterations)
-    raise ValueError(f"decay must be 'constant' or 'cosine', got {decay!r}")
+    if decay == "hold-cosine":
+        hold = (2 * iterations) // 3
+        return optax.join_schedules([optax.constant_schedule(lr),
+                                     optax.cosine_decay_schedule(lr, max(iterations - hold, 1))],
+                                    [hold])
+    raise ValueError(f"decay must be one of {DECAYS}, got {decay!r}")
 
 
 def make_transform(method: str, hp: Mapping[str, Any], iterations: int
@@ -169,13 +182,12 @@ def run_method(problem, name: str, transform, iterations: int, *, hyperparameter
     return trace
 
 
-def run_sweeps(prob, clone: Callable[[], Any], sweeps: Mapping[str, list[dict]],
-               hyperparameters: Callable[[str, dict], dict], swept: tuple[str, ...], *,
-               iterations: int, record_every: int, timing_rounds: int, progress: bool = True):
+def run_sweeps(prob, sweeps: Mapping[str, list[dict]], hyperparameters: Callable[[str, dict], dict],
+               swept: tuple[str, ...], *, iterations: int, record_every: int, timing_rounds: int,
+               progress: bool = True):
     """Every method's sweep on ``prob``, then the best entries' steps timed interleaved.
 
-    ``clone()`` builds another problem of the same configuration (its own scene) for the
-    timing. ``auto`` is skipped, with the reason, while the library lacks it. Returns
+    ``auto`` is skipped, with the reason, while the library lacks it. Returns
     ``(traces, samples, skipped)``: ``{method: [Trace]}``, :func:`time_interleaved`'s
     samples of the best entries (their medians set ``seconds_per_iteration`` and the
     time axis of every entry of the method), and ``{method: reason}``.
@@ -198,8 +210,7 @@ def run_sweeps(prob, clone: Callable[[], Any], sweeps: Mapping[str, list[dict]],
                                              hyperparameters=hp, record_every=record_every,
                                              progress=progress))
     # The same transform objects as the runs: their compiled updates are reused.
-    # One warm-up round: the runs compiled the updates already, a new scene its kernels.
-    samples = time_interleaved({m: (clone(), transforms[best(traces[m]).name]) for m in methods},
+    samples = time_interleaved(prob, {m: transforms[best(traces[m]).name] for m in methods},
                                rounds=timing_rounds, warmup=1)
     for m in methods:
         for tr in traces[m]:
@@ -207,38 +218,41 @@ def run_sweeps(prob, clone: Callable[[], Any], sweeps: Mapping[str, list[dict]],
     return traces, samples, skipped
 
 
-def time_interleaved(problems: Mapping[str, tuple[Any, optax.GradientTransformation]],
-                     rounds: int, warmup: int = 2, first_seed: int = 500_000
-                     ) -> dict[str, dict[str, list[float]]]:
+def time_interleaved(problem, transforms: Mapping[str, optax.GradientTransformation], rounds: int,
+                     warmup: int = 2, first_seed: int = 500_000) -> dict[str, dict[str, list[float]]]:
     """Seconds per iteration of each method's render + backward, update, and their total.
 
-    Every method has its own problem (its own scene, so no values are swapped in and
-    out) and runs its own optimisation from ``init``; a round runs one iteration of
-    each method, in an order rotated every round, so load from other processes hits
-    all alike. ``dr.sync_thread()`` / ``jax.block_until_ready`` end each timed part.
-    ``warmup`` untimed rounds first (compilation). Returns ``{name: {part: [seconds per
-    round]}}`` with parts ``render`` (render, loss, ``dr.backward``, gradients
-    evaluated), ``update`` (the whole :meth:`SceneOptimizer.step`), of which ``jit``
-    (the compiled update, its inputs read from the scene) and ``write`` (the values
-    written back, ``params.update()``), and ``total``.
+    Every method runs its own optimisation from ``problem.init`` on ``problem``'s one
+    scene: before its iteration its own values are written in (untimed), so every
+    render sees that method's parameters. One scene, because renders got slower with
+    more scenes alive in the process. A round runs one iteration of each method, in an
+    order rotated every round, so load from other processes hits all alike.
+    ``dr.sync_thread()`` / ``jax.block_until_ready`` end each timed part; ``warmup``
+    untimed rounds first (compilation). Returns ``{name: {part: [seconds per round]}}``
+    with parts ``render`` (render, loss, ``dr.backward``, gradients evaluated),
+    ``update`` (the whole :meth:`SceneOptimizer.step`), of which ``jit`` (the compiled
+    update, its inputs read from the scene) and ``write`` (the values written back,
+    ``params.update()``), and ``total``.
     """
     import drjit as dr
     import jax
+    import jax.numpy as jnp
 
     from optax_bilateral.mitsuba import SceneOptimizer
 
+    problem.reset()
     runs = {}
-    for name, (problem, transform) in problems.items():
-        problem.reset()
+    for name, transform in transforms.items():
         opt = SceneOptimizer(transform, problem.params, problem.keys, project=problem.project)
-        runs[name] = [problem, opt, opt.init()]
+        runs[name] = [opt, opt.init(), {k: jnp.array(v) for k, v in opt.values().items()}]
     parts = ("render", "update", "jit", "write", "total")
-    samples = {name: {p: [] for p in parts} for name in problems}
-    names = list(problems)
+    samples = {name: {p: [] for p in parts} for name in transforms}
+    names = list(transforms)
     seed = first_seed
     for r in range(warmup + rounds):
         for name in names[r % len(names):] + names[:r % len(names)]:
-            problem, opt, state = runs[name]
+            opt, state, values = runs[name]
+            opt.set_values(values)
             dr.sync_thread()
             t0 = time.perf_counter()
             problem.render_and_backward(seed)
@@ -248,7 +262,7 @@ def time_interleaved(problems: Mapping[str, tuple[Any, optax.GradientTransformat
             opt.set_values(values)
             dr.sync_thread()
             t3 = time.perf_counter()
-            runs[name][2] = state
+            runs[name][1:] = [state, values]
             if r >= warmup:
                 for p, dt in zip(parts, (t1 - t0, t3 - t1, t2 - t1, t3 - t2, t3 - t0)):
                     samples[name][p].append(dt)

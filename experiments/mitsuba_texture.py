@@ -27,7 +27,8 @@ Methods (as experiments/texture.py; best of each sweep reported, every entry lis
   has it (:func:`experiments.mitsuba_common.auto_unavailable`).
 
 Filtered methods use ``b1 = 0.2, b2 = 1 - (1 - b1)^2`` and ``levels = 5``. The
-learning-rate ``decay`` (``constant`` or ``cosine``) is part of the sweeps.
+learning-rate ``decay`` (``constant``, ``cosine``, ``hold-cosine``:
+:func:`experiments.mitsuba_common.learning_rate`) is part of the sweeps.
 
 Outputs in ``--out`` (default ``results/mitsuba_texture``): ``summary.json``,
 ``table.md``, ``images.png`` (renders, error images, recovered textures) and
@@ -96,14 +97,16 @@ def default_config(quick: bool = False) -> Config:
                   sweeps={"adam": [dict(learning_rate=0.001, decay="constant"),
                                    dict(learning_rate=0.003, decay="constant"),
                                    dict(learning_rate=0.01, decay="constant"),
-                                   dict(learning_rate=0.003, decay="cosine")],
-                          "low-pass": [dict(learning_rate=0.02, decay="cosine")],
-                          "bilateral": [dict(learning_rate=0.02, decay="cosine", sigma_d=s)
+                                   dict(learning_rate=0.003, decay="hold-cosine")],
+                          "low-pass": [dict(learning_rate=0.02, decay="hold-cosine")],
+                          "bilateral": [dict(learning_rate=0.02, decay="hold-cosine", sigma_d=s)
                                         for s in (0.5, 2.0)],
-                          "cross-bilateral": [dict(learning_rate=0.02, decay="cosine", sigma_d=0.05),
-                                              dict(learning_rate=0.02, decay="cosine", sigma_d=0.1),
-                                              dict(learning_rate=0.02, decay="constant", sigma_d=0.1)],
-                          "auto": [dict(learning_rate=0.02, decay="cosine")]})
+                          "cross-bilateral": [
+                              dict(learning_rate=0.02, decay=d, sigma_d=0.1)
+                              for d in ("constant", "cosine", "hold-cosine")] + [
+                              dict(learning_rate=0.02, decay=d, sigma_d=0.05)
+                              for d in ("constant", "hold-cosine")],
+                          "auto": [dict(learning_rate=0.02, decay="hold-cosine")]})
 
 
 SWEPT = ("learning_rate", "decay", "sigma_d")
@@ -261,8 +264,7 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     prob = Problem(cfg)
     traces, samples, skipped = mc.run_sweeps(
-        prob, lambda: Problem(cfg, reference=prob.reference), cfg.sweeps,
-        lambda m, e: hyperparameters(m, e, cfg), SWEPT, iterations=cfg.iterations,
+        prob, cfg.sweeps, lambda m, e: hyperparameters(m, e, cfg), SWEPT, iterations=cfg.iterations,
         record_every=cfg.record_every, timing_rounds=cfg.timing_rounds, progress=progress)
     methods = list(traces)
     summary_methods = mc.summary_methods(traces, METRIC_KEYS)

@@ -26,7 +26,8 @@ Methods (as experiments/volume.py; both grids, ``sigma_d`` given per key):
 * ``cross-bilateral``: ``guide="params"`` (linear guide), the paper's method.
 * ``auto``: cross-bilateral with ``sigma_d="auto"`` once the library has it.
 
-Filtered methods: ``b1 = 0.2, b2 = 1 - (1 - b1)^2``, ``levels = 3``.
+Filtered methods: ``b1 = 0.2, b2 = 1 - (1 - b1)^2``, ``levels = 3``. The learning-rate
+``decay`` (:func:`experiments.mitsuba_common.learning_rate`) is part of the sweeps.
 
 ``final_param_error`` is :func:`optax_bilateral.toy.volume.param_errors`'s: the mean
 of the density's mean absolute error and the density-weighted mean absolute albedo
@@ -95,14 +96,13 @@ def default_config(quick: bool = False) -> Config:
                   sweeps={"adam": [dict(learning_rate=0.002, decay="constant"),
                                    dict(learning_rate=0.005, decay="constant"),
                                    dict(learning_rate=0.01, decay="constant"),
-                                   dict(learning_rate=0.005, decay="cosine")],
-                          "low-pass": [dict(learning_rate=0.2, decay="constant")],
-                          "bilateral": [dict(learning_rate=0.2, decay="constant", sigma_d=s)
+                                   dict(learning_rate=0.005, decay="hold-cosine")],
+                          "low-pass": [dict(learning_rate=0.2, decay="hold-cosine")],
+                          "bilateral": [dict(learning_rate=0.2, decay="hold-cosine", sigma_d=s)
                                         for s in (1.0, 10.0)],
-                          "cross-bilateral": [dict(learning_rate=0.2, decay="constant", sigma_d=sd),
-                                              dict(learning_rate=0.2, decay="cosine", sigma_d=sd),
-                                              dict(learning_rate=0.4, decay="constant", sigma_d=sd)],
-                          "auto": [dict(learning_rate=0.2, decay="constant")]})
+                          "cross-bilateral": [dict(learning_rate=0.2, decay=d, sigma_d=sd)
+                                              for d in ("constant", "cosine", "hold-cosine")],
+                          "auto": [dict(learning_rate=0.2, decay="hold-cosine")]})
 
 
 SWEPT = ("learning_rate", "decay", "sigma_d")
@@ -266,8 +266,7 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     prob = Problem(cfg)
     traces, samples, skipped = mc.run_sweeps(
-        prob, lambda: Problem(cfg, reference=prob.reference), cfg.sweeps,
-        lambda m, e: hyperparameters(m, e, cfg), SWEPT, iterations=cfg.iterations,
+        prob, cfg.sweeps, lambda m, e: hyperparameters(m, e, cfg), SWEPT, iterations=cfg.iterations,
         record_every=cfg.record_every, timing_rounds=cfg.timing_rounds, progress=progress)
     methods = list(traces)
     summary_methods = mc.summary_methods(traces, METRIC_KEYS)

@@ -372,6 +372,10 @@ def test_resized_parameter_and_bad_values_are_reported(tiny, mi):
         opt.set_values({DENSITY: np.zeros((4, 3, 5, 1))})
     with pytest.raises(ValueError, match="shape"):
         opt.set_values({TEX: np.zeros((3, 3, 1))})
+    params[TEX] = mi.TensorXf(np.full((6, 5, 1), 0.2, np.float32))     # replaced, no gradients
+    params.update()
+    with pytest.raises(ValueError, match="does not track gradients.*set_values"):
+        opt.step(state)
     params[TEX] = mi.TensorXf(np.zeros((12, 10, 1), np.float32))     # upsampled texture
     params.update()
     with pytest.raises(ValueError, match=r"now has shape \(12, 10, 1\).*new SceneOptimizer"):

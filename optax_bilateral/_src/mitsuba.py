@@ -245,7 +245,7 @@ class SceneOptimizer:
     One :meth:`step`, after the user's ``dr.backward(loss)``:
 
     1. reads the gradients ``dr.grad(params[key])`` and the current values as JAX
-       arrays (DLPack, no copy on the CPU);
+       arrays (DLPack; no copy on the CPU for 64-byte aligned buffers, see above);
     2. runs one jitted program: ``transform.update(grads, state, values)`` (the
        values are the transform's ``params``, i.e. the cross-bilateral guide),
        ``optax.apply_updates``, the projection ``project``, and with
@@ -307,8 +307,9 @@ class SceneOptimizer:
                                 f"params[{k!r}] = mi.TensorXf(values / 255.0)")
         self.mask_unobserved = mask_unobserved
         project = _projection(project, self.keys)
-        self._static = (_ById(transform), project if isinstance(project, _Clamp) or project is None
-                        else _ById(project), mask_unobserved,
+        if project is not None and not isinstance(project, _Clamp):
+            project = _ById(project)
+        self._static = (_ById(transform), project, mask_unobserved,
                         tuple(sorted(self.shapes.items())))
         self._enable_grads()
 
@@ -338,7 +339,16 @@ class SceneOptimizer:
     def grads(self) -> dict[str, jax.Array]:
         """The gradients accumulated by ``dr.backward`` since the last step, ``{key: array}``."""
         _, dr = _modules()
-        return {k: to_jax(dr.grad(self._current(k))) for k in self.keys}
+        grads = {}
+        for k in self.keys:
+            value = self._current(k)
+            if not dr.grad_enabled(value):
+                raise ValueError(f"params[{k!r}] does not track gradients (it was replaced after this "
+                                 "SceneOptimizer enabled them), so its gradient would read as zero; "
+                                 "write values with opt.set_values(...), or call "
+                                 f"dr.enable_grad(params[{k!r}]) and params.update() before rendering")
+            grads[k] = to_jax(dr.grad(value))
+        return grads
 
     def set_values(self, values: Mapping[str, Any]) -> None:
         """Writes ``values`` (``{key: array}``, e.g. from a checkpoint) into the scene,
