@@ -306,12 +306,17 @@ def best(traces: list[common.Trace]) -> common.Trace:
 def summary_methods(traces: Mapping[str, list[common.Trace]], metric_keys: Mapping[str, str]
                     ) -> dict[str, dict]:
     """``summary.json``'s ``methods``: the best sweep entry per method, with every entry listed."""
+    def entry(t):
+        e = {"run": t.name, **common.summary_entry(t, metric_keys)}
+        errors = t.metrics["param_error"]
+        i = int(np.nanargmin(errors))
+        e["lowest_param_error"] = float(errors[i])            # a run that drifts up after it
+        e["lowest_param_error_iteration"] = int(t.iterations[i])
+        return e
+
     out = {}
     for method, trs in traces.items():
-        entry = common.summary_entry(best(trs), metric_keys)
-        entry["run"] = best(trs).name
-        entry["sweep"] = [{"run": t.name, **common.summary_entry(t, metric_keys)} for t in trs]
-        out[method] = entry
+        out[method] = {**entry(best(trs)), "sweep": [entry(t) for t in trs]}
     return out
 
 
@@ -332,6 +337,8 @@ def write_tables(out, title: str, methods: Mapping[str, dict], budget: float,
                          "param_error", budget),
                      "s/iter": e["seconds_per_iteration"]})
     sweep_rows = [{"run": s["run"], "param error": s["final_param_error"],
+                   "lowest (iteration)": f"{s['lowest_param_error']:.4g} "
+                                         f"({s['lowest_param_error_iteration']})",
                    "image loss": s["final_loss"]}
                   for e in methods.values() for s in e["sweep"]]
     text = (f"{title}\n\n{notes}{common.markdown_table(rows)}\n\nEvery sweep entry:\n\n"

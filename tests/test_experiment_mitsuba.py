@@ -37,6 +37,9 @@ def _check_summary(out, module):
         assert m["hyperparameters"]["learning_rate"] > 0
         assert len(m["sweep"]) == len(cfg.sweeps[name])
         assert m["final_param_error"] == min(s["final_param_error"] for s in m["sweep"])
+        for s in m["sweep"]:
+            assert s["lowest_param_error"] <= s["final_param_error"]
+            assert 1 <= s["lowest_param_error_iteration"] <= cfg.iterations
     for p in data["pngs"]:
         assert pathlib.Path(p).read_bytes()[:8] == PNG_MAGIC
     table = (out / "table.md").read_text()
