@@ -228,6 +228,28 @@ class Problem:
         dr.sync_thread()
         return float(loss.numpy())
 
+    def observed_fractions(self, iterations: int) -> tuple[float, float]:
+        """Fractions of texels with a gradient (``observed_texels``): per iteration (mean over
+        ``iterations`` renders with seeds 0, 1, ...) and in at least one of them."""
+        import drjit as dr
+        import mitsuba as mi
+
+        from optax_bilateral.mitsuba import observed_texels, to_jax
+
+        self.reset()
+        seen, per = None, []
+        for i in range(iterations):
+            value = mi.TensorXf(dr.detach(self.params[KEY]))
+            dr.enable_grad(value)
+            self.params[KEY] = value
+            self.params.update()
+            self.render_and_backward(i)
+            obs = np.asarray(observed_texels(to_jax(dr.grad(self.params[KEY]))))
+            per.append(float(obs.mean()))
+            seen = obs if seen is None else seen | obs
+        self.reset()
+        return float(np.mean(per)), float(seen.mean())
+
     def param_errors(self, values) -> dict:
         return {"param_error": jnp.mean(jnp.abs(values[KEY] - self.target[KEY]))}
 
@@ -263,6 +285,7 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     t_start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     prob = Problem(cfg)
+    observed = prob.observed_fractions(20)
     traces, samples, skipped = mc.run_sweeps(
         prob, cfg.sweeps, lambda m, e: hyperparameters(m, e, cfg), SWEPT, iterations=cfg.iterations,
         record_every=cfg.record_every, timing_rounds=cfg.timing_rounds, progress=progress)
@@ -280,7 +303,9 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     title = (f"Mitsuba 3 texture recovery: {cfg.texture_size}^2 GGX roughness, {cfg.image_size}^2 "
              f"image, prb, spp {cfg.spp}, {cfg.iterations} iterations (initial param error "
              f"{initial:.4f}). Best entry of each sweep by final param error.")
-    notes = (f"Skipped: {skipped}\n\n" if skipped else "")
+    notes = (f"Texels with a gradient: {100 * observed[0]:.1f}% per iteration, "
+             f"{100 * observed[1]:.2f}% within 20 iterations (spp {cfg.spp}).\n\n")
+    notes += (f"Skipped: {skipped}\n\n" if skipped else "")
     table = mc.write_tables(out, title, summary_methods, budget, traces, lambda e: {}, notes)
     total = time.perf_counter() - t_start
     common.write_summary(
@@ -290,6 +315,8 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
         load_average=mc.load_average(),
         setting={**dataclasses.asdict(cfg), "key": KEY, "initial_param_error": initial,
                  "reference_seconds": prob.reference_seconds,
+                 "observed_texels_per_iteration": observed[0],
+                 "observed_texels_within_20_iterations": observed[1],
                  "loss": "mean((I - I_ref)^2 / (I_ref^2 + 1e-2))",
                  "final_loss": f"that loss of a {cfg.eval_spp}-spp render of the final texture",
                  "final_train_loss": f"the loss of the last iteration's {cfg.spp}-spp render",

@@ -68,6 +68,9 @@ def test_texture_experiment_writes_summary_table_and_figures(texture_run):
     initial = data["setting"]["initial_param_error"]
     for name, m in methods.items():
         assert m["final_param_error"] < initial, name
+    per, ever = (data["setting"][k] for k in ("observed_texels_per_iteration",
+                                              "observed_texels_within_20_iterations"))
+    assert 0 < per <= ever <= 1
     names = {p.name for p in texture_run.iterdir()}
     assert {"images.png", "param_error_vs_iteration.png", "param_error_vs_time.png",
             "loss_vs_iteration.png", "loss_vs_time.png"} <= names
