@@ -63,7 +63,8 @@ def probe(variant: str = VARIANT, timeout: float = 300.0) -> str | None:
     if run.returncode == 0:
         return None
     lines = [ln.strip() for ln in (run.stderr + run.stdout).splitlines() if ln.strip()]
-    hint = next((ln for ln in lines if "LLVM ERROR" in ln or "Error" in ln or "error" in ln),
+    # An aborting libLLVM says why on its "LLVM ERROR" line; a Python error on its last line.
+    hint = next((ln for ln in lines if ln.startswith("LLVM ERROR")),
                 lines[-1] if lines else "no output")
     return (f"Mitsuba {variant} cannot render a 16x16 scene here (exit {run.returncode}): "
             f"{hint[:300]}")

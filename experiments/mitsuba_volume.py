@@ -187,7 +187,7 @@ def scene_dict(values: dict, cfg: Config) -> dict:
 class Problem:
     """The scene (its own ``mi.SceneParameters``), target, reference images and metrics."""
 
-    def __init__(self, cfg: Config, reference=None):
+    def __init__(self, cfg: Config):
         mi, dr = mc.setup()
         self.cfg = cfg
         self.keys = KEYS
@@ -198,12 +198,10 @@ class Problem:
         self.scene = mi.load_dict(scene_dict(self.target, cfg))
         self.params = mi.traverse(self.scene)
         t0 = time.perf_counter()
-        if reference is None:
-            reference = mi.render(self.scene, spp=cfg.reference_spp, seed=REFERENCE_SEED)
-            dr.eval(reference)
-            dr.sync_thread()
+        self.reference = mi.render(self.scene, spp=cfg.reference_spp, seed=REFERENCE_SEED)
+        dr.eval(self.reference)
+        dr.sync_thread()
         self.reference_seconds = time.perf_counter() - t0
-        self.reference = reference
         self.images: dict[str, np.ndarray] = {}
         self.reset()
 

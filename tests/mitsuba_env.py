@@ -25,13 +25,23 @@ def unavailable() -> str | None:
 
 
 def require_mitsuba():
-    """Skips (fails under CI) unless Mitsuba's LLVM variant works; sets it and returns ``mi``."""
+    """Call at module level. With a usable Mitsuba: sets the variant and returns ``mi``.
+    Without: skips the calling module (one line saying why), or under CI returns ``None``;
+    the module's ``mi`` fixture (:func:`fail_under_ci`) then fails every test in it while
+    the other modules still run."""
     reason = unavailable()
-    if reason is not None:
-        if os.environ.get("CI"):
-            pytest.fail(f"CI must run the Mitsuba tests: {reason}", pytrace=False)
-        pytest.skip(reason)
-    from experiments import mitsuba_common as mc
+    if reason is None:
+        from experiments import mitsuba_common as mc
 
-    mi, _ = mc.setup()
+        mi, _ = mc.setup()
+        return mi
+    if os.environ.get("CI"):
+        return None
+    pytest.skip(reason, allow_module_level=True)
+
+
+def fail_under_ci(mi):
+    """``mi`` itself, or a test failure saying why Mitsuba is unusable (``mi is None``)."""
+    if mi is None:
+        pytest.fail(f"CI must run the Mitsuba tests: {unavailable()}", pytrace=False)
     return mi
