@@ -112,3 +112,20 @@ def test_the_rule_catches_what_it_should():
     assert _exists("_src/step.py", page) and _exists("figures", page)
     assert _external("a/b.py", "The authors' code (github owner/repo, `a/b.py`).\n\nMore.")
     assert not _external("a/b.py", "Our `a/b.py`.\n\nThe authors' (github owner/repo).")
+
+
+@pytest.mark.parametrize(
+    "module, page",
+    [
+        ("optax_bilateral", "optax_bilateral.md"),
+        ("optax_bilateral.mesh", "mesh.md"),
+        ("optax_bilateral.mitsuba", "mitsuba.md"),
+    ],
+)
+def test_api_pages_document_every_public_name(module, page):
+    import importlib
+
+    text = (ROOT / "docs" / "api" / page).read_text()
+    documented = set(re.findall(rf"^::: {re.escape(module)}\.(\w+)$", text, re.M))
+    public = set(importlib.import_module(module).__all__) - {"mesh"}  # a submodule: its own page
+    assert documented == public, (sorted(public - documented), sorted(documented - public))
