@@ -1,9 +1,9 @@
-# Set-up commands: `make demo`, `make test` and `make lint`. They create .venv on first use.
+# Set-up commands: `make demo`, `make test`, `make lint` and `make docs`. They create .venv on first use.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: demo test lint install install-dev clean
+.PHONY: demo test lint docs install install-dev clean
 
 # The paths `make lint` checks (ruff lint + format, pyright): the library (but the mesh
 # modules, still under work on another branch) and the tests written to its standards.
@@ -68,5 +68,10 @@ lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff format --check $(LINT_PATHS)
 	$(VENV)/bin/pyright $(TYPECHECK_PATHS)
 
+# The docs site (mkdocs.yml) into site/; --strict: any warning (a broken link or anchor, a
+# docstring griffe cannot parse) fails the build.
+docs: $(VENV)/.installed-dev
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+
 clean:
-	rm -rf $(VENV) results .pytest_cache
+	rm -rf $(VENV) results site .pytest_cache

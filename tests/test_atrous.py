@@ -264,7 +264,7 @@ def test_operator_is_nonnegative_row_stochastic_and_linear(shape, sigma_d, level
 
 # Guide values on a 2^-20 grid: a multi-channel distance is sqrt of a float32 sum of squares,
 # so differences below ~1e-19 (whose squares underflow) count as equal guides, which the
-# float64 reference does not do (README, "Robustness"; the extremes are in test_properties).
+# float64 reference does not do (docs/robustness.md; the extremes are in test_properties).
 QUANTISED_GUIDES = st.integers(-3 * 2**20, 3 * 2**20).map(lambda i: np.float32(i / 2**20))
 
 

@@ -1,6 +1,6 @@
 """Robustness: numerical extremes, non-finite gradients, bad input, state, meta-gradients.
 
-The README's "Robustness" section is the table these tests back. Compile time dominates on CPU, so
+docs/robustness.md is the table these tests back. Compile time dominates on CPU, so
 most tests share one compiled update whose hyperparameters (learning rate, b1, b2,
 eps, sigma_d) are traced through ``optax.inject_hyperparams`` and set per call.
 """

@@ -51,22 +51,49 @@ def bilateral_adam(
     middle stage is ``postfilter(..., levels=0)``, i.e. Adam with this library's
     handling of non-finite and extreme gradients (``scale_by_adam`` has none).
     With ``levels=0`` it is ``optax.adam(learning_rate, b1, b2, eps)`` on finite
-    gradients of moderate size (README.md, "Robustness", lists the extremes).
+    gradients of moderate size (docs/robustness.md lists the extremes).
 
     Defaults follow the paper's grid runs: ``b1 = 0.2``, ``b2 = 1 - (1 - b1)^2``
     (= 0.36), postfilter only, ``levels = 5``. ``sigma_d = 0.1`` suits
     parameters in a unit range and log-domain guides (a guide step of 0.1 weighs
-    ``e^-1``); the texture experiment's sweep in the README measures it.
+    ``e^-1``); docs/hyperparameters.md says how to choose it.
 
     ``learning_rate`` and ``sigma_d`` can be schedules through
     ``optax.inject_hyperparams(bilateral_adam, static_args=("levels",))``.
 
     Args:
       learning_rate: a number or an optax schedule.
-      b1, b2, eps, eps_root, mu_dtype: as in Adam; ``b2=None`` is ``1-(1-b1)^2``.
-      sigma_d, levels, separable, guide, log_guide, spatial_axes, mask_unobserved:
-        see :func:`postfilter`.
-      prefilter, postfilter: which spatial filters to apply.
+      b1: decay rate of the first moment, in [0, 1).
+      b2: decay rate of the second moment, in [0, 1); ``None`` is ``1 - (1 - b1)^2``.
+      eps: added to the denominator, as in Adam.
+      sigma_d: data-term scale of the filter's weights ``exp(-|guide[p] - guide[q]| /
+        sigma_d)``, in the guide's units (>= 0; ``0`` keeps only equal-guide
+        neighbours, ``inf`` is a plain B-spline low-pass); a number or a pytree prefix
+        of the parameters (one value per leaf). Traceable.
+      levels: F, the number of a-trous levels (static; footprint radius
+        ``2 (2^F - 1)``; ``0`` is Adam); a number or a pytree prefix.
+      prefilter: filter the gradient before the moments (``A_t``, eq. 1).
+      postfilter: filter the moments before the step (``B_t``, eqs. 6, 8).
+      separable: one normalised 1-D pass per spatial axis (True) or all ``5^n`` taps
+        per level (False, the authors' kernels).
+      guide: ``"params"`` (cross-bilateral: the current parameters, the paper's
+        method), ``"self"`` (bilateral: each filtered field guides itself; ``m`` and
+        ``v`` then get different weights), or a callable ``params -> guide pytree``
+        (a prefix of the parameters).
+      log_guide: guide with ``log(|guide| + 1e-8)`` (the paper's texture runs).
+      spatial_axes: ``None`` (the default leaf rule, :func:`default_spatial_axes`), a
+        tuple of axes for every leaf, a pytree prefix of tuples (``()`` = not
+        filtered), or a callable ``leaf -> axes``.
+      mask_unobserved: texels whose gradient is exactly zero in every channel keep
+        their moments, get a zero update and are left out of the filter sums.
+        Non-finite gradients are always treated this way.
+      eps_root: added inside the square root, as in optax's Adam.
+      mu_dtype: dtype of the first moment (default: the parameters'); the second
+        moment keeps the parameters' dtype.
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs``; its ``update`` needs ``params``
+      (the guide) unless ``guide="self"`` or every leaf is unfiltered.
 
     Example::
 

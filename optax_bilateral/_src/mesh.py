@@ -523,7 +523,10 @@ def bilateral_normal_filter(fields: Sequence[Any], normals, mesh: MeshLaplacian,
       sigma_d: splat width ``> 0``, ``inf`` for Large Steps (may be traced).
       sigma_phi: slice width ``> 0`` (may be traced; ``inf``: unweighted slice).
       directions: int (that many Sobol directions, built with SciPy) or ``(K, 3)``.
-      solver, tol, maxiter: see :func:`smoothing_solve`.
+      solver: ``"cg"`` (Jacobi-preconditioned CG) or ``"cholesky"`` (needs ``cholespy``);
+        see :func:`smoothing_solve`.
+      tol: CG relative residual per column.
+      maxiter: CG iteration cap.
 
     Returns:
       A list with the filtered fields.
@@ -685,7 +688,10 @@ def laplacian_smoothing(faces, lambda_=DEFAULT_LAMBDA, *, solver: str = "cg",
     Args:
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian` (built once).
       lambda_: smoothing weight ``>= 0``; may be traced / injected.
-      solver, tol, maxiter: see :func:`smoothing_solve`.
+      solver: ``"cg"`` (Jacobi-preconditioned CG) or ``"cholesky"`` (needs ``cholespy``);
+        see :func:`smoothing_solve`.
+      tol: CG relative residual per column.
+      maxiter: CG iteration cap.
       warm_start: keep the last solution in the state and start the CG there.
     """
     mesh = mesh_laplacian(faces)
@@ -852,7 +858,9 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
         ``compute_matrix(alpha=lambda/(1+lambda))`` is ``M / (1 + lambda)``
         (docs/mesh.md maps the two).
       sigma_d: splat width on normals (``> 0``, ``inf`` = Large Steps; may be traced).
-      b1, b2, eps: Adam's decay rates and epsilon (Large Steps uses 0.9, 0.999).
+      b1: Adam's first-moment decay rate (Large Steps uses 0.9).
+      b2: Adam's second-moment decay rate (Large Steps uses 0.999).
+      eps: Adam's epsilon.
       sigma_phi: slice width (the authors' 0.4 by default; may be traced).
       postfilter_v: ``"uniform"`` (max over the leaf, as Large Steps), ``"bilateral"``
         (``B v``) or ``"smooth"`` (``M^-1 v``).
@@ -860,7 +868,10 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
         set; needs SciPy when built) or a ``(K, 3)`` array of unit vectors.
       normals: ``"area"``, ``"uniform"`` (the authors'), ``"angle"`` (see
         :func:`vertex_normals`) or a callable ``positions -> (V, 3) unit normals``.
-      solver, tol, maxiter: see :func:`smoothing_solve`.
+      solver: ``"cg"`` (Jacobi-preconditioned CG) or ``"cholesky"`` (needs ``cholespy``);
+        see :func:`smoothing_solve`.
+      tol: CG relative residual per column.
+      maxiter: CG iteration cap.
       warm_start: keep the last solutions in the state and start the CG there.
 
     ``update(updates, state, params)`` needs ``params``: a pytree of ``(V, 3)``
@@ -957,8 +968,14 @@ def large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, b1=0.9, b2=0.999, 
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian` (welded seams: see
         :func:`mesh_laplacian`).
       lambda_: smoothing weight (may be traced / injected).
-      b1, b2, eps: ``AdamUniform``'s parameters.
-      solver, tol, maxiter, warm_start: see :func:`laplacian_smoothing`.
+      b1: ``AdamUniform``'s first-moment decay rate.
+      b2: ``AdamUniform``'s second-moment decay rate.
+      eps: ``AdamUniform``'s epsilon.
+      solver: ``"cg"`` (Jacobi-preconditioned CG) or ``"cholesky"`` (needs ``cholespy``);
+        see :func:`smoothing_solve`.
+      tol: CG relative residual per column.
+      maxiter: CG iteration cap.
+      warm_start: keep the last solutions in the state and start the CG there.
     """
     mesh = mesh_laplacian(faces)
     kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)

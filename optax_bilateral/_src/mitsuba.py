@@ -277,8 +277,11 @@ class SceneOptimizer:
         spreads the gradient to them, so leave it off there (docs/mitsuba.md).
 
     Raises:
-      KeyError / TypeError / ValueError: a key that is not in ``params``, not a tensor,
-      not a (H, W, C) or (D, H, W, C) grid, or a malformed ``project``.
+      KeyError: a key that is not in ``params``.
+      TypeError: a value that is not a differentiable tensor, or keys or ``project``
+        bounds of the wrong type.
+      ValueError: a value that is not a (H, W, C) or (D, H, W, C) grid, or a
+        malformed ``project``.
       RuntimeError: no AD variant, or an LLVM variant on a libLLVM older than 16.
     """
 

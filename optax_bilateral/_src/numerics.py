@@ -1,4 +1,4 @@
-"""Numerical policies of the transforms, in one place (README.md, "Robustness").
+"""Numerical policies of the transforms, in one place (docs/robustness.md).
 
 * Bias correction ``1 - b^t`` keeps its digits for ``b`` within ``2^-14`` of 1.
 * Gradients are clipped before the moment update so that ``m`` and ``v = g^2`` fit

@@ -28,7 +28,7 @@ footprint or into the optimizer state. ``scale_by_adam`` stays identical to
 ``postfilter`` with ``levels=0`` for its unfiltered Adam path).
 
 Numerical extremes (``postfilter``; :mod:`optax_bilateral._src.numerics` implements
-them, README.md, "Robustness", has the full table):
+them, docs/robustness.md has the full table):
 
 * Finite gradients are clipped to ``+-G`` before the moment update, with ``G``
   the largest magnitude whose square still fits the second moment's dtype
@@ -187,7 +187,7 @@ def prefilter(
         the sums (see :func:`postfilter`).
 
     Gradients beyond a quarter of the float maximum are clipped first, so the
-    sums cannot overflow (README.md, "Robustness", lists the numerical policies).
+    sums cannot overflow (docs/robustness.md lists the numerical policies).
     """
     leaves.check_guide(guide)
     _static_checks(sigma_d, levels, spatial_axes)
@@ -303,22 +303,33 @@ def postfilter(
     signal-to-noise ratio (eq. 24).
 
     Args:
-      b1, b2: decay rates; ``b2=None`` means ``1 - (1 - b1)^2`` (both references).
-      eps, eps_root: as in Adam.
-      sigma_d, levels, separable, guide, log_guide, spatial_axes: as in
-        :func:`prefilter`. ``guide="self"`` filters ``m`` guided by ``m`` and ``v``
-        by ``v``: they then get *different* weights and the bound above no
-        longer holds.
+      b1: decay rate of the first moment, in [0, 1).
+      b2: decay rate of the second moment, in [0, 1); ``None`` means
+        ``1 - (1 - b1)^2`` (both references).
+      eps: added to the denominator, as in Adam.
+      sigma_d: data-term scale (>= 0; ``inf`` = low-pass), in the guide's units; a
+        number or a pytree prefix of the parameters. Traceable.
+      levels: F, number of a-trous levels (static), a number or a prefix.
+      separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
+      guide: ``"params"`` (cross-bilateral, the paper's method), ``"self"``, or a
+        callable ``params -> guide pytree`` (a prefix of the parameters).
+        ``guide="self"`` filters ``m`` guided by ``m`` and ``v`` by ``v``: they then
+        get *different* weights and the bound above no longer holds.
+      log_guide: use ``log(|guide| + 1e-8)`` as the guide.
+      spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`),
+        a tuple for every leaf, a pytree prefix of tuples (``()`` = do not
+        filter), or a callable ``leaf -> axes``.
       mask_unobserved: texels whose gradient is exactly zero in every channel
         this step keep their moments, get a zero update and are left out of the
         filter sums (Mitsuba's ``mask_updates``; PyTorch's SparseAdam).
         Non-finite gradients are always treated this way.
       mu_dtype: dtype of the first moment buffer (default: the parameters').
         The second moment always has the parameters' dtype.
+      eps_root: added inside the square root, as in optax's Adam.
 
     Finite gradients are clipped to the largest magnitude whose square fits the
     second moment's dtype (1.3e19 for float32, 181 for float16), and a zero
-    denominator gives a zero step; README.md, "Robustness", lists these policies.
+    denominator gives a zero step; docs/robustness.md lists these policies.
     """
     if b2 is None:
         b2 = 1 - (1 - b1) ** 2

@@ -1,0 +1,131 @@
+"""No document cites a file that is not in the repository.
+
+The rule, for README.md, BENCHMARKS.md, CHANGELOG.md and every Markdown page under docs/:
+
+* every relative Markdown link or image (``[text](path)``, ``![alt](path)``) resolves, from
+  the page's folder, to a file or folder of the repository, and none points into
+  ``results/``;
+* every path written in the text (``dir/name.ext``, with at least one folder, as in
+  ``experiments/benchmark.py`` or ``figures/x.png``) exists, read from the repository root,
+  from the page's folder or from ``optax_bilateral/`` (docs name ``_src/step.py``);
+* a path of *another* repository is cited as such: its paragraph names the repository
+  (``github owner/name``, as docs/method.md cites the authors' code);
+* paths under ``results/`` are what the experiments write (git-ignored): they are generated
+  outputs, so they appear only as code (in backticks or a code block, next to the command
+  that writes them), never as a link or as plain text.
+"""
+
+import pathlib
+import re
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DOCUMENTS = sorted(
+    [
+        ROOT / "README.md",
+        ROOT / "BENCHMARKS.md",
+        ROOT / "CHANGELOG.md",
+        *(ROOT / "docs").rglob("*.md"),
+    ]
+)
+GENERATED = "results/"
+EXTENSIONS = "py|md|ipynb|json|png|toml|txt|npz|yml|yaml|sh|js|csv"
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+PATH = re.compile(rf"(?<![\w/.<>*{{}}-])((?:[\w.-]+/)+[\w.-]+\.(?:{EXTENSIONS}))(?![\w/])")
+FENCE = re.compile(r"^(```|~~~).*?^\1", re.S | re.M)
+CODE_SPAN = re.compile(r"(`+)(.+?)\1", re.S)
+OTHER_REPOSITORY = re.compile(r"github [\w.-]+/[\w.-]+")
+
+
+def _ids(paths):
+    return [str(p.relative_to(ROOT)) for p in paths]
+
+
+def _exists(ref: str, page: pathlib.Path) -> bool:
+    return any((base / ref).exists() for base in (ROOT, page.parent, ROOT / "optax_bilateral"))
+
+
+def _external(ref: str, text: str) -> bool:
+    """Whether every paragraph citing ``ref`` names the other repository it belongs to."""
+    paragraphs = [p for p in re.split(r"\n\s*\n", text) if ref in p]
+    return bool(paragraphs) and all(OTHER_REPOSITORY.search(p) for p in paragraphs)
+
+
+def _links(text: str) -> list[str]:
+    """Relative link targets outside code, without their #anchor."""
+    prose = CODE_SPAN.sub("", FENCE.sub("", text))
+    out = []
+    for target in LINK.findall(prose):
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
+            continue  # a URL or an anchor on the same page
+        out.append(target.split("#", 1)[0])
+    return out
+
+
+def test_every_document_is_checked():
+    names = _ids(DOCUMENTS)
+    assert {"README.md", "BENCHMARKS.md", "CHANGELOG.md", "docs/method.md"} <= set(names)
+
+
+@pytest.mark.parametrize("page", DOCUMENTS, ids=_ids(DOCUMENTS))
+def test_links_resolve_to_repository_files(page):
+    text = page.read_text()
+    missing = [t for t in _links(text) if not (page.parent / t).exists()]
+    generated = [
+        t for t in _links(text) if (page.parent / t).resolve().is_relative_to(ROOT / "results")
+    ]
+    assert not missing, f"{page.name}: links to files that are not in the repository: {missing}"
+    assert not generated, f"{page.name}: links to generated outputs (results/): {generated}"
+
+
+@pytest.mark.parametrize("page", DOCUMENTS, ids=_ids(DOCUMENTS))
+def test_cited_paths_exist_and_generated_ones_are_code(page):
+    text = page.read_text()
+    cited = PATH.findall(text)
+    missing = sorted(
+        {
+            p
+            for p in cited
+            if not p.startswith(GENERATED) and not _exists(p, page) and not _external(p, text)
+        }
+    )
+    assert not missing, f"{page.name}: cites files that are not in the repository: {missing}"
+    prose = CODE_SPAN.sub("", FENCE.sub("", text))
+    bare = sorted({p for p in PATH.findall(prose) if p.startswith(GENERATED)})
+    assert not bare, (
+        f"{page.name}: generated outputs {bare} written as plain text or links; "
+        "write them as code, next to the command that writes them"
+    )
+
+
+def test_the_rule_catches_what_it_should():
+    page = ROOT / "docs" / "example.md"
+    assert _links("see [x](missing.md) and [y](https://a.b/c) and [z](#here)") == ["missing.md"]
+    assert _links("`[x](in-code.md)`") == []
+    assert PATH.findall("run `experiments/benchmark.py`, see docs/x.md.") == [
+        "experiments/benchmark.py",
+        "docs/x.md",
+    ]
+    assert PATH.findall("`OUT/cache/<scene>/<family>.json` and `processes/*/m.json`") == []
+    assert not _exists("experiments/no_such_file.py", page)
+    assert _exists("_src/step.py", page) and _exists("figures", page)
+    assert _external("a/b.py", "The authors' code (github owner/repo, `a/b.py`).\n\nMore.")
+    assert not _external("a/b.py", "Our `a/b.py`.\n\nThe authors' (github owner/repo).")
+
+
+@pytest.mark.parametrize(
+    "module, page",
+    [
+        ("optax_bilateral", "optax_bilateral.md"),
+        ("optax_bilateral.mesh", "mesh.md"),
+        ("optax_bilateral.mitsuba", "mitsuba.md"),
+    ],
+)
+def test_api_pages_document_every_public_name(module, page):
+    import importlib
+
+    text = (ROOT / "docs" / "api" / page).read_text()
+    documented = set(re.findall(rf"^::: {re.escape(module)}\.(\w+)$", text, re.M))
+    public = set(importlib.import_module(module).__all__) - {"mesh"}  # a submodule: its own page
+    assert documented == public, (sorted(public - documented), sorted(documented - public))
