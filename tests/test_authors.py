@@ -11,9 +11,11 @@ Mapping (docs/mesh.md and the ``levels`` docstrings state it): their
 value as ``sigma_d``; their mesh ``M`` for ``alpha = lambda / (1 + lambda)`` is
 ``(I + lambda L) / (1 + lambda)``, tested below against the library's ``I + lambda L``.
 
-Grid features the library does not have yet (per-level self guide, ``mtfilter`` /
-``vtfilter``, ``weight_decay``, the uniform second moment) are tested here only
-through the port's own consistency with independent constructions.
+The authors' grid options are checked against the library too: ``cross_term_off``
+(``guide="self"``: every level guided by its own input), ``mtfilter`` / ``vtfilter``
+(``filter_m`` / ``filter_v``), the uniform second moment (``second_moment="uniform"``);
+their coupled ``weight_decay`` against a chain with ``optax.add_decayed_weights``, and
+the library's decoupled one against ``optax.adamw``.
 """
 
 import jax
@@ -140,11 +142,10 @@ def test_volume_refuses_other_channel_counts():
         ref.volume_sigma(2, 0.1, 0.1)
 
 
-# --- the port's own features, checked against independent constructions ---------------
-# (phase 2 wires these into the library; see the report / docs for the list)
+# --- their options: the bilateral baseline, mtfilter / vtfilter, weight decay, uniform ---
 
 
-def self_guided_by_cosets(x, stride_levels, sigma, log=False):
+def self_guided_by_cosets(x, stride_levels, sigma, log=False, separable=False):
     """cross_term_off built from the library's one-level filter: a stride-s level is a
     stride-1 level on each of the s^n interleaved sub-grids (off-grid taps are skipped),
     each guided by its own current values."""
@@ -160,7 +161,7 @@ def self_guided_by_cosets(x, stride_levels, sigma, log=False):
             guide = jnp.log(jnp.abs(sub) + ref.LOG_PRIMAL_EPS) if log else sub
             out[sl] = np.asarray(ob.atrous_bilateral(
                 sub, guide, sigma_d=ref.kernel_sigma(sigma, n, x.shape[-1]), levels=1,
-                spatial_axes=tuple(range(n)), separable=False))
+                spatial_axes=tuple(range(n)), separable=separable))
         x = out
     return x
 
@@ -171,9 +172,63 @@ def test_cross_term_off_reguides_every_level(shape, log):
     x = edged(shape, 8) * np.sign(rand(shape, 9))
     theirs = ref.filter_chain(x, None, 4, 0.3, cross_term_off=True, log=log)
     close(theirs, self_guided_by_cosets(x, 4, 0.3, log))
-    # ... and it is not the fixed-guide filter (the library's guide="self" today).
+    # ... and it is not a filter guided by the unfiltered field at every level.
     fixed = ref.filter_chain(x, x, 4, 0.3, log=log)
     assert np.abs(fixed - theirs).max() > 1e-3
+    # The library's separable mode, re-guided per level, against the same construction.
+    n = len(shape) - 1
+    ours = ob.atrous_bilateral(jnp.asarray(x), "self", sigma_d=ref.kernel_sigma(0.3, n, shape[-1]),
+                               levels=3, spatial_axes=(0, 1), separable=True, log_guide=log)
+    close(ours, self_guided_by_cosets(x, 4, 0.3, log, separable=True))
+
+
+@pytest.mark.parametrize("shape,log", [((9, 7, 3), True), ((9, 7, 1), False),
+                                       ((5, 4, 4, 1), False), ((5, 4, 4, 3), True)])
+def test_self_guide_is_cross_term_off(shape, log):
+    """guide="self" is their bilateral baseline (full mode): 2-D and 3-D, 1 and 3 channels."""
+    x = edged(shape, 17) * np.sign(rand(shape, 18))
+    n = len(shape) - 1
+    theirs = ref.filter_chain(x, None, 3, 0.3, cross_term_off=True, log=log)
+    ours = ob.atrous_bilateral(jnp.asarray(x), "self", sigma_d=ref.kernel_sigma(0.3, n, shape[-1]),
+                               levels=2, spatial_axes=tuple(range(n)), separable=False, log_guide=log)
+    close(ours, theirs)
+
+
+@pytest.mark.parametrize("channels,log,mode", [(3, True, "both"), (1, False, "post")])
+def test_self_guided_texture_optimizer_matches_cross_term_off(channels, log, mode):
+    shape, sl, sigma, lr, b1, b2 = (9, 7, channels), 3, 0.4, 0.05, 0.2, 0.36
+    pre = mode == "both"
+    p0 = edged(shape, 19)
+    grads = [rand(shape, 90 + i) for i in range(3)]
+    opt = ob.bilateral_adam(lr, b1, b2, 1e-8, sigma_d=ref.kernel_sigma(sigma, 2, channels),
+                            levels=sl - 1, prefilter=pre, separable=False, guide="self",
+                            log_guide=log)
+    ours = run_library(opt, jnp.asarray(p0), [jnp.asarray(g) for g in grads])
+    p, state = p0, ref.adam_init(p0)
+    for g, o in zip(grads, ours):
+        p, state = ref.spatiotemporal_adam_step(p, g, state, lr=lr, betas=(b1, b2), sigma_d=sigma,
+                                                prefilter=pre, log_primal=log, cross_term_off=True,
+                                                stride_levels=sl)
+        close(o, p)
+
+
+def test_self_guided_volume_optimizer_matches_cross_term_off():
+    """Their volume class with cross_term_off, two grids (1 and 3 channels), 2 steps."""
+    s1, s3, lr, b1, b2 = 0.05, 0.3, 0.02, 0.2, 0.36
+    p0 = {"density": edged((5, 4, 4, 1), 21), "albedo": edged((5, 4, 4, 3), 22)}
+    grads = [{k: rand(v.shape, 100 + i) for k, v in p0.items()} for i in range(2)]
+    opt = ob.bilateral_adam(lr, b1, b2, 1e-8, levels=2, separable=False, guide="self",
+                            sigma_d={"density": ref.kernel_sigma(s1, 3, 1),
+                                     "albedo": ref.kernel_sigma(s3, 3, 3)},
+                            spatial_axes=(0, 1, 2))
+    ours = run_library(opt, jax.tree.map(jnp.asarray, p0), jax.tree.map(jnp.asarray, grads))
+    for k in p0:
+        p, state = p0[k], ref.adam_init(p0[k])
+        for g, o in zip(grads, ours):
+            p, state = ref.spatiotemporal_adam_step(p, g[k], state, lr=lr, betas=(b1, b2),
+                                                    sigma_d_1d=s1, sigma_d_3d=s3, stride_levels=3,
+                                                    cross_term_off=True)
+            close(o[k], p)
 
 
 def test_cross_term_off_step_guides_m_by_m_and_v_by_v():
@@ -239,6 +294,23 @@ def test_mtfilter_vtfilter_filter_one_moment(which):
     close(p1, p0 - lr * (m / (1 - b1)) / (np.sqrt(v / (1 - b2)) + 1e-8))
 
 
+@pytest.mark.parametrize("filter_m,filter_v", [(True, False), (False, True), (False, False)])
+def test_filter_m_filter_v_match_mtfilter_vtfilter(filter_m, filter_v):
+    """bilateral_adam(filter_m=, filter_v=) = their mtfilter / vtfilter, over 3 steps."""
+    shape, sl, sigma, lr, b1, b2 = (9, 7, 3), 3, 0.4, 0.05, 0.2, 0.36
+    p0 = edged(shape, 23)
+    grads = [rand(shape, 110 + i) for i in range(3)]
+    opt = ob.bilateral_adam(lr, b1, b2, 1e-8, sigma_d=ref.kernel_sigma(sigma, 2, 3), levels=sl - 1,
+                            separable=False, log_guide=True, filter_m=filter_m, filter_v=filter_v)
+    ours = run_library(opt, jnp.asarray(p0), [jnp.asarray(g) for g in grads])
+    p, state = p0, ref.adam_init(p0)
+    for g, o in zip(grads, ours):
+        p, state = ref.spatiotemporal_adam_step(p, g, state, lr=lr, betas=(b1, b2), sigma_d=sigma,
+                                                mtfilter=filter_m, vtfilter=filter_v,
+                                                log_primal=True, stride_levels=sl)
+        close(o, p)
+
+
 def test_uniform_second_moment_matches_scale_by_uniform_adam():
     """The uniform step (max of v over the whole leaf) = the library's mesh AdamUniform;
     the Dr.Jit port's version puts eps on the uncorrected root: eps / sqrt(1 - b2^t)."""
@@ -253,6 +325,49 @@ def test_uniform_second_moment_matches_scale_by_uniform_adam():
         close(out, ref.uniform_adam_step(m, v, t, b1, b2, eps))
         close(ref.drjit_uniform_step(m, v, t, b1, b2, eps),
               ref.uniform_adam_step(m, v, t, b1, b2, eps / np.sqrt(1 - b2 ** t)))
+
+
+@pytest.mark.parametrize("levels", [0, 2])
+def test_postfilter_uniform_second_moment(levels):
+    """second_moment="uniform": B m^ / (sqrt(max B v^) + eps), the max over the leaf
+    (levels 0: the mesh AdamUniform's formula on a grid)."""
+    b1, b2, eps, sigma = 0.2, 0.36, 1e-3, 0.3
+    p0 = edged((9, 7, 3), 24)
+    grads = [rand((9, 7, 3), 120 + i) * 1e-3 for i in range(3)]
+    tx = ob.postfilter(b1, b2, eps, sigma_d=ref.kernel_sigma(sigma, 2, 3), levels=levels,
+                       separable=False, second_moment="uniform")
+    state = tx.init(jnp.asarray(p0))
+    m = v = 0.0
+    for t, g in enumerate(grads, 1):
+        out, state = tx.update(jnp.asarray(g), state, jnp.asarray(p0))
+        m, v = b1 * m + (1 - b1) * g, b2 * v + (1 - b2) * g * g
+        mf, vf = ref.filter_chain(m, p0, levels + 1, sigma), ref.filter_chain(v, p0, levels + 1, sigma)
+        close(out, ref.uniform_adam_step(mf, vf, t, b1, b2, eps))
+        ratio = np.abs(np.asarray(out)) / np.abs(mf)   # one denominator for the whole leaf
+        assert np.ptp(ratio) <= 1e-12 * ratio.mean()
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_weight_decay_is_optax_adamw(masked):
+    """Decoupled weight decay: with no filter, bilateral_adam(weight_decay=) = optax.adamw;
+    filtered, the same decay is added to the filtered step."""
+    lr, b1, b2, wd = 0.05, 0.8, 0.9, 0.3
+    p0 = {"tex": jnp.asarray(edged((6, 5, 3), 25)), "b": jnp.asarray(rand((4,), 26))}
+    grads = [jax.tree.map(lambda p, i=i: jnp.asarray(rand(p.shape, 130 + i)), p0) for i in range(3)]
+    mask = {"tex": True, "b": False} if masked else None
+    ours = run_library(ob.bilateral_adam(lr, b1, b2, 1e-8, levels=0, weight_decay=wd,
+                                         weight_decay_mask=mask), p0, grads)
+    theirs = run_library(optax.adamw(lr, b1, b2, 1e-8, weight_decay=wd, mask=mask), p0, grads)
+    for o, t in zip(ours, theirs):
+        for k in p0:
+            close(o[k], t[k])
+    kw = dict(sigma_d=0.3, levels=2, spatial_axes={"tex": (0, 1), "b": ()})
+    filtered = ob.bilateral_adam(lr, b1, b2, 1e-8, weight_decay=wd, weight_decay_mask=mask, **kw)
+    chained = optax.chain(ob.postfilter(b1, b2, 1e-8, **kw), optax.add_decayed_weights(wd, mask),
+                          optax.scale(-lr))
+    for o, t in zip(run_library(filtered, p0, grads), run_library(chained, p0, grads)):
+        for k in p0:
+            close(o[k], t[k])
 
 
 # --- meshes ---------------------------------------------------------------------------
