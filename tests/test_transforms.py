@@ -654,3 +654,21 @@ def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kin
     sel = np.asarray(obs)
     for a, b in zip(out, ref):  # float32 sums of the same terms: a few ulps
         np.testing.assert_allclose(np.asarray(a)[sel], np.asarray(b)[sel], rtol=1e-6, atol=1e-7)
+
+
+def test_weight_decay_through_inject_hyperparams():
+    """weight_decay as a hyperparameter (traced in the update): the chain keeps its shape,
+    and 0 is plain bilateral_adam."""
+    theta = jax.random.uniform(KEY, (8, 8, 2)) + 0.1
+    g = _grads(0, theta)
+    adam = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels",))
+    decayed = adam(learning_rate=0.1, sigma_d=0.3, levels=2, weight_decay=0.5)
+    u, _ = jax.jit(decayed.update)(g, decayed.init(theta), theta)
+    plain = ob.bilateral_adam(0.1, sigma_d=0.3, levels=2)
+    u0, _ = plain.update(g, plain.init(theta), theta)
+    np.testing.assert_allclose(
+        np.asarray(u), np.asarray(u0 - 0.1 * 0.5 * theta), rtol=1e-5, atol=1e-7
+    )
+    zero = adam(learning_rate=0.1, sigma_d=0.3, levels=2, weight_decay=0.0)
+    u, _ = jax.jit(zero.update)(g, zero.init(theta), theta)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(u0), rtol=1e-5, atol=1e-7)

@@ -8,7 +8,7 @@ import jax
 import optax
 
 from optax_bilateral._src import transforms
-from optax_bilateral._src.validation import check_nonnegative, is_zero
+from optax_bilateral._src.validation import check_nonnegative
 
 if TYPE_CHECKING:
     from optax_bilateral._src.leaves import GuideSetting, SpatialAxesSetting
@@ -35,7 +35,7 @@ def bilateral_adam(
     filter_m: bool = True,
     filter_v: bool = True,
     second_moment: SecondMoment = "elementwise",
-    weight_decay: optax.ScalarOrSchedule = 0.0,
+    weight_decay: optax.ScalarOrSchedule | None = None,
     weight_decay_mask: Any = None,
 ) -> optax.GradientTransformationExtraArgs:
     r"""Adam with spatiotemporal cross-bilateral gradient filtering (Chang et al. 2024).
@@ -85,7 +85,7 @@ def bilateral_adam(
       filter_m, filter_v, second_moment: see :func:`postfilter` (the authors'
         ``mtfilter`` / ``vtfilter``; the Dr.Jit port's ``uniform``).
       weight_decay: decoupled weight decay rate (>= 0) or schedule, as in
-        :func:`optax.adamw`.
+        :func:`optax.adamw`; None (the default) adds no stage to the chain.
       weight_decay_mask: as :func:`optax.adamw`'s ``mask``: a pytree of bools like
         the parameters (or a callable returning one); True where weight decay applies.
 
@@ -102,7 +102,7 @@ def bilateral_adam(
     """
     if b2 is None:
         b2 = 1 - (1 - b1) ** 2
-    if not callable(weight_decay):
+    if weight_decay is not None and not callable(weight_decay):
         check_nonnegative(weight_decay, "weight_decay")
     parts = []
     common: dict[str, Any] = dict(
@@ -145,8 +145,9 @@ def bilateral_adam(
                 second_moment=second_moment,
             )
         )
-    if callable(weight_decay) or not is_zero(weight_decay):
-        # Absent at 0, so that the chain's state is what it was before the option existed.
+    if weight_decay is not None:
+        # Absent when not asked for (decided by None, not by the value, which
+        # inject_hyperparams traces): the chain's state is then what it was before.
         parts.append(optax.add_decayed_weights(weight_decay, weight_decay_mask))
     parts.append(optax.scale_by_learning_rate(learning_rate))
     return optax.chain(*parts)
