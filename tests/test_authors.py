@@ -286,9 +286,10 @@ def test_self_guided_texture_optimizer_matches_cross_term_off(channels, log, mod
 
 
 def test_self_guided_volume_optimizer_matches_cross_term_off():
-    """Their volume class with cross_term_off, two grids (1 and 3 channels), 2 steps."""
+    """Their volume class with cross_term_off, the density grid, 2 steps (the 3-channel
+    3-D filter is checked above: every 3-D full-mode level compiles for seconds)."""
     s1, s3, lr, b1, b2 = 0.05, 0.3, 0.02, 0.2, 0.36
-    p0 = {"density": edged((5, 4, 4, 1), 21), "albedo": edged((5, 4, 4, 3), 22)}
+    p0 = {"density": edged((5, 4, 4, 1), 21)}
     grads = [{k: rand(v.shape, 100 + i) for k, v in p0.items()} for i in range(2)]
     opt = ob.bilateral_adam(
         lr,
@@ -298,7 +299,7 @@ def test_self_guided_volume_optimizer_matches_cross_term_off():
         levels=2,
         separable=False,
         guide="self",
-        sigma_d={"density": ref.kernel_sigma(s1, 3, 1), "albedo": ref.kernel_sigma(s3, 3, 3)},
+        sigma_d={"density": ref.kernel_sigma(s1, 3, 1)},
         spatial_axes=(0, 1, 2),
     )
     ours = run_library(opt, jax.tree.map(jnp.asarray, p0), jax.tree.map(jnp.asarray, grads))
