@@ -5,8 +5,8 @@ PY := $(VENV)/bin/python
 
 .PHONY: demo test lint docs install install-dev clean
 
-# The paths `make lint` checks (ruff lint + format, pyright): the library (but the mesh
-# modules, still under work on another branch) and the tests written to its standards.
+# The paths `make lint` checks (ruff lint + format, pyright): the library (but the
+# Mitsuba and pyramid modules) and the tests written to its standards.
 # Extend as other files are brought up to them.
 LINT_PATHS := \
 	optax_bilateral/__init__.py \
@@ -16,6 +16,7 @@ LINT_PATHS := \
 	optax_bilateral/_src/filter.py \
 	optax_bilateral/_src/layout.py \
 	optax_bilateral/_src/leaves.py \
+	optax_bilateral/_src/mesh.py \
 	optax_bilateral/_src/numerics.py \
 	optax_bilateral/_src/sharded.py \
 	optax_bilateral/_src/state_io.py \
@@ -31,6 +32,7 @@ LINT_PATHS := \
 	tests/snapshots.py \
 	tests/reference.py \
 	tests/test_atrous.py \
+	tests/test_authors.py \
 	tests/test_goldens.py \
 	tests/test_packaging.py \
 	tests/test_properties.py \

@@ -2,6 +2,7 @@
 
     .venv/bin/python tests/goldens.py            # re-record tests/goldens.npz
     .venv/bin/python tests/goldens.py --check    # compare all configurations (slow)
+    .venv/bin/python tests/goldens.py --only self  # re-record one factor level's configurations
 
 A *configuration* is one compiled update: transform (``prefilter``, ``postfilter``, both
 chained, memoryless ``postfilter``) x ``separable`` x ``guide`` (``"params"``, ``"self"``,
@@ -182,10 +183,24 @@ def toolchain() -> str:
     return f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
 
 
-def record(path=PATH) -> None:
+def record(path=PATH, only: str | None = None) -> None:
+    """Records every configuration, or (``only``) those with that factor level, keeping
+    the file's records of the others (for an intended change of one option's numbers)."""
     subset = set(covering_subset())
     arrays, digests = {}, []
+    kept, kept_arrays = {}, {}
+    if only is not None:
+        with np.load(path) as data:
+            kept = dict(line.split(" ") for line in data["digests"].tolist())
+            kept_arrays = {k: data[k] for k in data.files if "/" in k}
     for i, cid in enumerate(ALL):
+        if only is not None and only not in cid.split("-"):
+            for variant in VARIANTS:
+                key = f"{cid}/{variant}"
+                digests.append(f"{key} {kept[key]}")
+                if key in kept_arrays:
+                    arrays[key] = kept_arrays[key]
+            continue
         t = time.time()
         res = run(cid)
         for variant, x in res.items():
@@ -217,4 +232,5 @@ if __name__ == "__main__":
         print(f"{n} differ" if n else "all equal")
         sys.exit(1 if n else 0)
     os.makedirs(PATH.parent, exist_ok=True)
-    record()
+    args = sys.argv[1:]
+    record(only=args[args.index("--only") + 1] if "--only" in args else None)

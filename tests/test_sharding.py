@@ -124,6 +124,24 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
              permute_bytes=st["collective-permute"]["bytes"], minimum=halo["minimum"],
              box=halo["box"])
 
+    # --- guide="self": every level guided by its own input; a field whose channels are split
+    # too (they are gathered per block for the guide's norm, and split again after).
+    mesh = mesh_of((4, 2), AxisType.Explicit)
+    x = jax.random.normal(jax.random.fold_in(key, 99), (16, 12, 4))
+    mask = jax.random.uniform(jax.random.fold_in(key, 98), (16, 12)) > 0.2
+    for sep in (True, False):
+        kw = dict(sigma_d=0.3, levels=3, spatial_axes=(0, 1), separable=sep, log_guide=True)
+        ref = ob.atrous_bilateral((x, x * x), "self", mask=mask, **kw)
+        sh = NamedSharding(mesh, P("x", None, "y"))
+        xs = jax.device_put(x, sh)
+        ms = jax.device_put(mask, NamedSharding(mesh, P("x", None)))
+        out = jax.jit(lambda a, mk, kw=kw: ob.atrous_bilateral((a, a * a), "self", mask=mk, **kw))(
+            xs, ms)
+        emit(check="filter_self", case=f"(16, 12, 4) 4x2 P('x', None, 'y') F=3 "
+                                        f"{'sep' if sep else 'full'} mask log",
+             max_diff=max_diff(out, ref),
+             sharding_kept=all(o.sharding.is_equivalent_to(sh, 3) for o in out))
+
     # --- The transforms and bilateral_adam, explicit and auto meshes.
     params = {"tex": jax.random.uniform(key, (16, 16, 3), minval=0.05, maxval=1.0),
               "vol": jax.random.uniform(jax.random.fold_in(key, 1), (8, 8, 4, 2), minval=0.05),
@@ -245,6 +263,13 @@ def test_sharded_filter_moves_only_halos():
         # 2-axis splits also forwards the off-grid zeros of edge blocks' corners: at most
         # the unclipped halo boxes.
         assert r["minimum"] <= r["permute_bytes"] <= (r["minimum"] if r["separable"] else r["box"]), r
+
+
+def test_sharded_self_guided_filter_equals_single_device_and_keeps_sharding():
+    recs = _checks("filter_self")
+    assert len(recs) == 2
+    for r in recs:
+        assert r["max_diff"] <= TOL and r["sharding_kept"], r
 
 
 def test_transforms_equal_single_device():

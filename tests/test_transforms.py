@@ -93,9 +93,65 @@ def test_default_b2_is_one_minus_squared():
 # --- The paper's equations ----------------------------------------------------------------
 
 
-def _B(x, guide, sigma_d, levels, separable=True):
+def _B(x, guide, sigma_d, levels, separable=True, first=0):
+    """The filter; ``first=1``: only its level 1 (stride 2), guided by ``x`` itself, as the
+    stride-1 filter of each of the 4 interleaved sub-grids."""
+    if first:
+        assert first == 1 and levels == 2
+        out = jnp.zeros_like(x)
+        for i in range(2):
+            for j in range(2):
+                sub = x[i::2, j::2]
+                out = out.at[i::2, j::2].set(_B(sub, sub, sigma_d, 1, separable))
+        return out
     return atrous_bilateral(
         x, guide, sigma_d=sigma_d, levels=levels, spatial_axes=(0, 1), separable=separable
+    )
+
+
+def test_new_options_refuse_bad_values():
+    with pytest.raises(ValueError, match="second_moment"):
+        ob.postfilter(second_moment="max")
+    with pytest.raises(ValueError, match="second_moment"):
+        ob.bilateral_adam(0.1, second_moment="per-texel")
+    with pytest.raises(TypeError, match="filter_m"):
+        ob.postfilter(filter_m="yes")  # pyright: ignore[reportArgumentType]
+    with pytest.raises(TypeError, match="filter_v"):
+        ob.bilateral_adam(0.1, filter_v=None)  # pyright: ignore[reportArgumentType]
+    with pytest.raises(ValueError, match="weight_decay"):
+        ob.bilateral_adam(0.1, weight_decay=-1e-3)
+    x = jnp.ones((8, 8, 2))
+    with pytest.raises(ValueError, match="guide must be an array or 'self'"):
+        atrous_bilateral(x, "params", sigma_d=0.1, levels=1, spatial_axes=(0, 1))  # pyright: ignore[reportArgumentType]
+    with pytest.raises(ValueError, match="guide_axes"):
+        atrous_bilateral(x, "self", sigma_d=0.1, levels=1, spatial_axes=(0, 1), guide_axes=(0, 1))
+
+
+def test_uniform_second_moment_counts_unobserved_texels_by_their_kept_moments():
+    """A NaN texel takes the masked path: its update is 0, its moments are kept, and the
+    leaf's one denominator is the max over the observed texels' B v and its kept v."""
+    theta = jax.random.uniform(KEY, (8, 8, 2)) + 0.1
+    post = ob.postfilter(0.2, 0.36, 0.0, sigma_d=0.3, levels=2, second_moment="uniform")
+    state = post.init(theta)
+    g0 = _grads(0, theta).at[3, 3].set(10.0)  # a large v at (3, 3), kept below
+    _, state = jax.jit(post.update)(g0, state, theta)
+    g1 = _grads(1, theta).at[3, 3, 0].set(jnp.nan)
+    u, new = jax.jit(post.update)(g1, state, theta)
+    assert state.nu is not None and new.nu is not None and new.mu is not None
+    np.testing.assert_array_equal(np.asarray(u[3, 3]), 0.0)
+    np.testing.assert_array_equal(np.asarray(new.nu[3, 3]), np.asarray(state.nu[3, 3]))
+    obs = jnp.ones((8, 8), bool).at[3, 3].set(False)
+    m_f, v_f = atrous_bilateral(
+        (new.mu, new.nu),
+        jnp.where(obs[..., None], theta, jnp.nan),
+        sigma_d=0.3,
+        levels=2,
+        spatial_axes=(0, 1),
+    )
+    v_max = jnp.max(jnp.where(obs[..., None], v_f, new.nu))
+    want = (m_f / (1 - 0.2**2)) / jnp.sqrt(v_max / (1 - 0.36**2))
+    np.testing.assert_allclose(
+        np.asarray(u)[np.asarray(obs)], np.asarray(want)[np.asarray(obs)], rtol=2e-5
     )
 
 
@@ -338,9 +394,12 @@ def test_guide_options():
     np.testing.assert_allclose(
         np.asarray(u), np.asarray(_B(g, jnp.log(theta + 1e-8), 0.3, 2)), rtol=1e-5
     )
-    # "self": the gradient guides itself.
+    # "self": the gradient guides itself, each level by its own input (not by g throughout).
     u, _ = jax.jit(ob.prefilter(0.3, 2, guide="self").update)(g, (), theta)
-    np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, g, 0.3, 2)), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(_B(g, "self", 0.3, 2)), rtol=1e-5)
+    by_level = _B(_B(g, g, 0.3, 1), None, 0.3, 2, first=1)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(by_level), rtol=1e-5)
+    assert float(jnp.max(jnp.abs(u - _B(g, g, 0.3, 2)))) > 1e-3
     # A callable returning auxiliary features (here a guide without channels).
     feat = lambda p: jnp.sum(p, axis=-1)
     u, _ = jax.jit(ob.prefilter(0.3, 2, guide=feat).update)(g, (), theta)
@@ -349,7 +408,9 @@ def test_guide_options():
     post = ob.postfilter(0.0, 0.0, 0.0, sigma_d=0.3, levels=2, guide="self")
     u, _ = jax.jit(post.update)(g, post.init(theta), theta)
     np.testing.assert_allclose(
-        np.asarray(u), np.asarray(_B(g, g, 0.3, 2) / jnp.sqrt(_B(g * g, g * g, 0.3, 2))), rtol=1e-5
+        np.asarray(u),
+        np.asarray(_B(g, "self", 0.3, 2) / jnp.sqrt(_B(g * g, "self", 0.3, 2))),
+        rtol=1e-5,
     )
 
 
@@ -593,3 +654,21 @@ def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kin
     sel = np.asarray(obs)
     for a, b in zip(out, ref):  # float32 sums of the same terms: a few ulps
         np.testing.assert_allclose(np.asarray(a)[sel], np.asarray(b)[sel], rtol=1e-6, atol=1e-7)
+
+
+def test_weight_decay_through_inject_hyperparams():
+    """weight_decay as a hyperparameter (traced in the update): the chain keeps its shape,
+    and 0 is plain bilateral_adam."""
+    theta = jax.random.uniform(KEY, (8, 8, 2)) + 0.1
+    g = _grads(0, theta)
+    adam = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels",))
+    decayed = adam(learning_rate=0.1, sigma_d=0.3, levels=2, weight_decay=0.5)
+    u, _ = jax.jit(decayed.update)(g, decayed.init(theta), theta)
+    plain = ob.bilateral_adam(0.1, sigma_d=0.3, levels=2)
+    u0, _ = plain.update(g, plain.init(theta), theta)
+    np.testing.assert_allclose(
+        np.asarray(u), np.asarray(u0 - 0.1 * 0.5 * theta), rtol=1e-5, atol=1e-7
+    )
+    zero = adam(learning_rate=0.1, sigma_d=0.3, levels=2, weight_decay=0.0)
+    u, _ = jax.jit(zero.update)(g, zero.init(theta), theta)
+    np.testing.assert_allclose(np.asarray(u), np.asarray(u0), rtol=1e-5, atol=1e-7)

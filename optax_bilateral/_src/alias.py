@@ -8,9 +8,11 @@ import jax
 import optax
 
 from optax_bilateral._src import transforms
+from optax_bilateral._src.validation import check_nonnegative
 
 if TYPE_CHECKING:
     from optax_bilateral._src.leaves import GuideSetting, SpatialAxesSetting
+    from optax_bilateral._src.transforms import SecondMoment
 
 
 def bilateral_adam(
@@ -30,6 +32,11 @@ def bilateral_adam(
     mask_unobserved: bool = False,
     eps_root: jax.typing.ArrayLike = 0.0,
     mu_dtype: Any = None,
+    filter_m: bool = True,
+    filter_v: bool = True,
+    second_moment: SecondMoment = "elementwise",
+    weight_decay: optax.ScalarOrSchedule | None = None,
+    weight_decay_mask: Any = None,
 ) -> optax.GradientTransformationExtraArgs:
     r"""Adam with spatiotemporal cross-bilateral gradient filtering (Chang et al. 2024).
 
@@ -53,10 +60,17 @@ def bilateral_adam(
     With ``levels=0`` it is ``optax.adam(learning_rate, b1, b2, eps)`` on finite
     gradients of moderate size (docs/robustness.md lists the extremes).
 
-    Defaults follow the paper's grid runs: ``b1 = 0.2``, ``b2 = 1 - (1 - b1)^2``
-    (= 0.36), postfilter only, ``levels = 5``. ``sigma_d = 0.1`` suits
-    parameters in a unit range and log-domain guides (a guide step of 0.1 weighs
-    ``e^-1``); docs/hyperparameters.md says how to choose it.
+    Defaults: the paper's ``b1 = 0.2``, ``b2 = 1 - (1 - b1)^2`` (= 0.36), postfilter
+    only; ``levels = 5`` (the authors' ``stride_levels = 6``; their texture runs
+    use ``stride_levels = 5``, i.e. ``levels = 4``, their volume runs ``levels = 2``).
+    ``sigma_d = 0.1`` suits parameters in a unit range and log-domain guides (a
+    guide step of 0.1 weighs ``e^-1``); docs/hyperparameters.md says how to choose it.
+
+    ``weight_decay`` is decoupled, as in :func:`optax.adamw`: ``lr * wd * params``
+    is subtracted after the (filtered) Adam step, unfiltered. (The authors'
+    ``weight_decay`` is torch Adam's coupled L2, ``g + wd * params`` before the
+    moments: ``optax.chain(prefilter(...)?, optax.add_decayed_weights(wd),
+    postfilter(...), optax.scale_by_learning_rate(lr))`` reproduces it.)
 
     ``learning_rate`` and ``sigma_d`` can be schedules through
     ``optax.inject_hyperparams(bilateral_adam, static_args=("levels",))``.
@@ -71,7 +85,8 @@ def bilateral_adam(
         neighbours, ``inf`` is a plain B-spline low-pass); a number or a pytree prefix
         of the parameters (one value per leaf). Traceable.
       levels: F, the number of a-trous levels (static; footprint radius
-        ``2 (2^F - 1)``; ``0`` is Adam); a number or a pytree prefix.
+        ``2 (2^F - 1)``; ``0`` is Adam); a number or a pytree prefix. The authors'
+        ``stride_levels`` is ``levels + 1`` (their first level has stride 0).
       prefilter: filter the gradient before the moments (``A_t``, eq. 1).
       postfilter: filter the moments before the step (``B_t``, eqs. 6, 8).
       separable: one normalised 1-D pass per spatial axis (True) or all ``5^n`` taps
@@ -90,6 +105,15 @@ def bilateral_adam(
       eps_root: added inside the square root, as in optax's Adam.
       mu_dtype: dtype of the first moment (default: the parameters'); the second
         moment keeps the parameters' dtype.
+      filter_m, filter_v: filter only ``m`` or only ``v`` (the authors' ``mtfilter`` /
+        ``vtfilter``); with one of them unfiltered the bound of supplement §1.3 no
+        longer holds. See :func:`postfilter`.
+      second_moment: ``"elementwise"`` (Adam's) or ``"uniform"`` (one second moment
+        per leaf, the max of ``B v``: the Dr.Jit port's ``uniform``).
+      weight_decay: decoupled weight decay rate (>= 0) or schedule, as in
+        :func:`optax.adamw`; None (the default) adds no stage to the chain.
+      weight_decay_mask: as :func:`optax.adamw`'s ``mask``: a pytree of bools like
+        the parameters (or a callable returning one); True where weight decay applies.
 
     Returns:
       An ``optax.GradientTransformationExtraArgs``; its ``update`` needs ``params``
@@ -108,6 +132,8 @@ def bilateral_adam(
     """
     if b2 is None:
         b2 = 1 - (1 - b1) ** 2
+    if weight_decay is not None and not callable(weight_decay):
+        check_nonnegative(weight_decay, "weight_decay")
     parts = []
     common: dict[str, Any] = dict(
         sigma_d=sigma_d,
@@ -128,6 +154,9 @@ def bilateral_adam(
                 mask_unobserved=mask_unobserved,
                 eps_root=eps_root,
                 mu_dtype=mu_dtype,
+                filter_m=filter_m,
+                filter_v=filter_v,
+                second_moment=second_moment,
                 **common,
             )
         )
@@ -143,7 +172,12 @@ def bilateral_adam(
                 eps_root=eps_root,
                 mu_dtype=mu_dtype,
                 spatial_axes=spatial_axes,
+                second_moment=second_moment,
             )
         )
+    if weight_decay is not None:
+        # Absent when not asked for (decided by None, not by the value, which
+        # inject_hyperparams traces): the chain's state is then what it was before.
+        parts.append(optax.add_decayed_weights(weight_decay, weight_decay_mask))
     parts.append(optax.scale_by_learning_rate(learning_rate))
     return optax.chain(*parts)

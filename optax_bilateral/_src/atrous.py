@@ -48,8 +48,9 @@ def filter_planes(
     sigma: jax.Array,
     levels: int,
     separable: bool,
+    start: int = 0,
 ) -> jax.Array:
-    """All levels on planar arrays.
+    """Levels ``start .. levels - 1`` on planar arrays.
 
     Args:
       x: (C, *plane_shape(S)) fields, zero where invalid.
@@ -57,13 +58,14 @@ def filter_planes(
       valid: (*S) float 0/1, or None for all valid.
       sigma: scalar sigma_d, in the guide's dtype.
       levels, separable: as in :func:`optax_bilateral.atrous_bilateral`.
+      start: the first level to run (stride ``2**start``).
 
     Returns:
       The filtered fields, (C, *S).
     """
     if g.shape[0] > 1:  # one channel: see _pair_weights
         g, sigma = rescale_guide(g, sigma)
-    return _filter_planar(x, g, valid, sigma, levels, separable)
+    return _filter_planar(x, g, valid, sigma, levels, separable, start)
 
 
 def _pad_rows(x: jax.Array, lo: int, hi: int, shape: Sequence[int]) -> jax.Array:
@@ -278,9 +280,9 @@ def _pass(grid: _Grid, x, pairs, h0, valid, weights, parts=None) -> jax.Array:
 _CHUNK = 6
 
 
-def _filter_planar(x, g, valid, sigma, levels: int, separable: bool) -> jax.Array:
-    """All levels on planar arrays: x (C, *S) or (C, *_view(S, n0)) zero where invalid,
-    g (G, *S). Returns (C, *S)."""
+def _filter_planar(x, g, valid, sigma, levels: int, separable: bool, start: int = 0) -> jax.Array:
+    """Levels ``start .. levels - 1`` on planar arrays: x (C, *S) or (C, *_view(S, n0)) zero
+    where invalid, g (G, *S). Returns (C, *S)."""
     shape = g.shape[1:]
     pitch = pitch_columns(shape, separable, g.dtype.itemsize)
     if pitch:
@@ -293,7 +295,7 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool) -> jax.Arra
     lead = max(
         [
             grid.halo(off)
-            for i in range(levels)
+            for i in range(start, levels)
             for pairs, _ in level_passes(shape, 2**i, separable)
             for off, _ in pairs
         ]
@@ -322,11 +324,11 @@ def _filter_planar(x, g, valid, sigma, levels: int, separable: bool) -> jax.Arra
                 cache[o] = (stack[j : j + 1], h)
         return {o: cache[o] for o in offs}
 
-    for i in range(levels):
+    for i in range(start, levels):
         for pairs, h0 in level_passes(shape, 2**i, separable):
             parts = None
             if not separable and len(grid.shape) >= 3:
-                pairs, parts = _handover_order(pairs, 2**i, i > 0, i + 1 < levels)
+                pairs, parts = _handover_order(pairs, 2**i, i > start, i + 1 < levels)
             elif not separable:
                 cache.clear()  # 2-D full mode recomputes them (see _handover_order)
             x = _pass(grid, x, pairs, h0, valid, weights, parts)

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
 
 from optax_bilateral._src import atrous, layout, sharded
+from optax_bilateral._src.leaves import log_transform
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 if TYPE_CHECKING:
@@ -47,14 +48,16 @@ class Kernel(Protocol):
         sigma: jax.Array,
         levels: int,
         separable: bool,
+        start: int = 0,
     ) -> jax.Array:
-        """All levels: x (C, *plane), g (G, *spatial), valid (*spatial) or None -> (C, *spatial)."""
+        """Levels ``start .. levels - 1``: x (C, *plane), g (G, *spatial), valid (*spatial) or
+        None -> (C, *spatial)."""
         ...
 
 
 def atrous_bilateral(
     fields: Fields,
-    guide: jax.typing.ArrayLike,
+    guide: jax.typing.ArrayLike | Literal["self"],
     *,
     sigma_d: jax.typing.ArrayLike,
     levels: int,
@@ -62,6 +65,7 @@ def atrous_bilateral(
     separable: bool = True,
     mask: Mask | None = None,
     guide_axes: Sequence[int] | None = None,
+    log_guide: bool = False,
 ) -> Fields:
     r"""A-trous cross-bilateral filter of one or more fields with one set of weights.
 
@@ -91,10 +95,16 @@ def atrous_bilateral(
         ``guide_axes`` (default: ``spatial_axes``) have the fields' spatial sizes;
         the distance is the L2 norm over its remaining (channel) axes. A point whose
         guide is NaN is nobody's neighbour.
+        Or ``"self"``: the *bilateral* filter (the paper's baseline, the authors'
+        ``cross_term_off=True``): each field is guided by itself, and every level
+        by its own input, the field as the previous levels left it (so each field,
+        and each level, gets its own weights).
       sigma_d: the data term's scale (>= 0). ``0`` keeps only neighbours with an
         equal guide; ``inf`` is a plain B-spline low-pass. May be traced.
       levels: F, the number of a-trous levels (static int >= 0); ``0`` is the
-        identity. The footprint radius is ``2 (2**F - 1)``.
+        identity. The footprint radius is ``2 (2**F - 1)``. The authors'
+        ``stride_levels = L`` (strides 0, 1, 2, 4, ...: the stride-0 level is the
+        identity) is ``levels = L - 1``.
       spatial_axes: the fields' spatial axes (any number, in pass order); the
         other axes are channels that share the weights.
       separable: if True, each level is one normalised 1-D pass of 5 taps per
@@ -105,6 +115,8 @@ def atrous_bilateral(
         their output is 0).
       guide_axes: the guide's spatial axes, when it has channels and they differ
         from ``spatial_axes``.
+      log_guide: guide by ``log(|gamma| + 1e-8)`` (with ``"self"``: of each level's
+        input; the authors' ``log_primal``).
 
     Returns:
       The filtered fields, with the structure and dtypes of ``fields``. Sums are
@@ -125,6 +137,11 @@ def atrous_bilateral(
     """
     levels = check_levels(levels)
     check_sigma_d(sigma_d)
+    self_guided = isinstance(guide, str)
+    if self_guided and guide != "self":
+        raise ValueError(f"guide must be an array or 'self', got {guide!r}")
+    if self_guided and guide_axes is not None:
+        raise ValueError("guide_axes must be None with guide='self' (the fields guide themselves)")
     if isinstance(spatial_axes, list):
         spatial_axes = tuple(spatial_axes)
     if isinstance(guide_axes, list):
@@ -133,13 +150,15 @@ def atrous_bilateral(
         return fields  # the identity, without a copy
     return _filter_jit(
         fields,
-        guide,
+        None if self_guided else guide,
         sigma_d,
         mask,
         levels=levels,
         spatial_axes=spatial_axes,
         separable=bool(separable),
         guide_axes=guide_axes,
+        self_guided=self_guided,
+        log_guide=bool(log_guide),
     )
 
 
@@ -150,7 +169,7 @@ class _Plan(NamedTuple):
     fields: tuple[jax.Array, ...]
     field_axes: tuple[tuple[int, ...], ...]
     shape: tuple[int, ...]  # the spatial shape, in spatial_axes order
-    guide: jax.Array
+    guide: jax.Array | None  # None: each field guides itself
     guide_axes: tuple[int, ...]
     mask: jax.Array | None
 
@@ -185,6 +204,9 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
             )
         field_axes.append(axes)
 
+    mask = _check_mask(mask, shape)
+    if guide is None:
+        return _Plan(single, fields, tuple(field_axes), shape, None, (), mask)
     guide = jnp.asarray(guide)
     if jnp.issubdtype(guide.dtype, jnp.complexfloating):
         raise TypeError(
@@ -205,15 +227,41 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
             f"guide has spatial shape {g_shape} but the fields have {shape}: "
             "the guide must cover the same grid"
         )
+    return _Plan(single, fields, tuple(field_axes), shape, guide, g_axes, mask)
+
+
+def _check_mask(mask, shape):
     if mask is not None:
         mask = jnp.asarray(mask)
         if mask.shape != shape:
             raise ValueError(f"mask must have the spatial shape {shape}, got {mask.shape}")
-    return _Plan(single, fields, tuple(field_axes), shape, guide, g_axes, mask)
+    return mask
 
 
-@functools.partial(jax.jit, static_argnames=("levels", "spatial_axes", "separable", "guide_axes"))
-def _filter_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable, guide_axes):
+@functools.partial(
+    jax.jit,
+    static_argnames=(
+        "levels",
+        "spatial_axes",
+        "separable",
+        "guide_axes",
+        "self_guided",
+        "log_guide",
+    ),
+)
+def _filter_jit(
+    fields,
+    guide,
+    sigma_d,
+    mask,
+    *,
+    levels,
+    spatial_axes,
+    separable,
+    guide_axes,
+    self_guided=False,
+    log_guide=False,
+):
     """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
     traced."""
     plan = _plan(fields, guide, mask, spatial_axes, guide_axes)
@@ -224,30 +272,56 @@ def _filter_jit(fields, guide, sigma_d, mask, *, levels, spatial_axes, separable
             jnp.where(layout.expand_mask(mask, f.ndim, ax), f, 0).astype(f.dtype)
             for f, ax in zip(plan.fields, plan.field_axes)
         )
-    else:
-        filter_blocks = functools.partial(
-            _filter_blocks,
-            field_axes=plan.field_axes,
-            guide_axes=plan.guide_axes,
-            levels=levels,
-            separable=separable,
+    elif self_guided:
+        # Each field guides itself: its own weights, its own guide read at every level.
+        out = tuple(
+            _filter_route((f,), (ax,), f, ax, plan, sigma_d, levels, separable, True, log_guide)[0]
+            for f, ax in zip(plan.fields, plan.field_axes)
         )
-        part = sharded.spatial_partition(plan.fields[0], plan.field_axes[0])
-        if part is None:
-            out = filter_blocks(plan.fields, plan.guide, plan.mask, sigma_d, atrous)
-        else:
-            out = sharded.filter_sharded(
-                filter_blocks,
-                part,
-                plan.fields,
-                plan.field_axes,
-                plan.shape,
-                plan.guide,
-                plan.guide_axes,
-                plan.mask,
-                sigma_d,
-            )
+    else:
+        out = _filter_route(
+            plan.fields,
+            plan.field_axes,
+            plan.guide,
+            plan.guide_axes,
+            plan,
+            sigma_d,
+            levels,
+            separable,
+            False,
+            log_guide,
+        )
     return out[0] if plan.single else out
+
+
+def _filter_route(
+    fields, field_axes, guide, guide_axes, plan, sigma_d, levels, separable, self_guided, log_guide
+):
+    """The single-device kernel, or the sharded one when the fields' type says so."""
+    filter_blocks = functools.partial(
+        _filter_blocks,
+        field_axes=field_axes,
+        guide_axes=guide_axes,
+        levels=levels,
+        separable=separable,
+        self_guided=self_guided,
+        log_guide=log_guide,
+    )
+    part = sharded.spatial_partition(fields[0], field_axes[0])
+    if part is None:
+        return filter_blocks(fields, guide, plan.mask, sigma_d, atrous)
+    return sharded.filter_sharded(
+        filter_blocks,
+        part,
+        fields,
+        field_axes,
+        plan.shape,
+        guide,
+        guide_axes,
+        plan.mask,
+        sigma_d,
+        gather_channels=self_guided,
+    )
 
 
 def _filter_blocks(
@@ -261,20 +335,38 @@ def _filter_blocks(
     guide_axes,
     levels: int,
     separable: bool,
+    self_guided: bool = False,
+    log_guide: bool = False,
 ) -> tuple[jax.Array, ...]:
-    """Planar layout in, ``kernel``, layout out: on the whole grid, or on one device's block."""
+    """Planar layout in, ``kernel``, layout out: on the whole grid, or on one device's block.
+
+    ``self_guided``: ``fields`` is one field, and level ``i`` is guided by its input (the
+    field after levels ``0 .. i-1``); ``guide`` is then not read."""
     compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
     shape = tuple(fields[0].shape[a] for a in field_axes[0])
     # In the kernel's plane shape already: a reshape between the concatenation and the
     # first pass would stop XLA fusing them.
-    x, restore = layout.to_planes(fields, field_axes, compute, kernel.plane_shape(shape))
-    g = layout.guide_planes(guide, guide_axes, compute, shape)
-    sigma = jnp.asarray(sigma_d, dtype=g.dtype)
+    planes = kernel.plane_shape(shape)
+    x, restore = layout.to_planes(fields, field_axes, compute, planes)
+    g = None
+    if not self_guided:
+        g = layout.guide_planes(guide, guide_axes, compute, shape)
+        g = log_transform(g) if log_guide else g
+    sigma = jnp.asarray(sigma_d, dtype=compute)
     valid = None
     if mask is not None:
         valid = mask.astype(compute)
         x = jnp.where(mask.reshape(x.shape[1:]), x, 0)  # also drops NaN/Inf at masked entries
-    x = kernel.filter_planes(x, g, valid, sigma, levels, separable)
+    if self_guided:
+        for i in range(levels):
+            g = x.reshape(x.shape[:1] + shape)
+            g = log_transform(g) if log_guide else g
+            x = kernel.filter_planes(x, g, valid, sigma, i + 1, separable, start=i)
+            x = x.reshape(x.shape[:1] + planes)
+        x = x.reshape(x.shape[:1] + shape)
+    else:
+        assert g is not None
+        x = kernel.filter_planes(x, g, valid, sigma, levels, separable)
     if mask is not None:
         x = jnp.where(mask, x, 0)
     return layout.from_planes(x, restore, shape)

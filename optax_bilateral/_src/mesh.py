@@ -53,13 +53,16 @@ import hashlib
 import math
 import numbers
 import threading
-from typing import Any, Callable, NamedTuple, Optional, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 from jax import lax
+
+from optax_bilateral._src import numerics
 
 # Large Steps' examples use lambda around 10-100; the authors' mesh run uses 19.
 DEFAULT_LAMBDA = 19.0
@@ -98,8 +101,8 @@ class MeshLaplacian(NamedTuple):
     neighbors: jax.Array
     degree: jax.Array
     faces: jax.Array
-    index: Optional[jax.Array] = None
-    first: Optional[jax.Array] = None
+    index: jax.Array | None = None
+    first: jax.Array | None = None
 
     @property
     def num_vertices(self) -> int:
@@ -116,9 +119,11 @@ def _concrete_faces(faces) -> np.ndarray:
     try:
         return np.asarray(faces)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        raise TypeError("faces must be concrete (a NumPy/JAX array, not traced); build "
-                        "mesh_laplacian(faces) outside jit, or pass static_args=('faces',) "
-                        "to optax.inject_hyperparams") from None
+        raise TypeError(
+            "faces must be concrete (a NumPy/JAX array, not traced); build "
+            "mesh_laplacian(faces) outside jit, or pass static_args=('faces',) "
+            "to optax.inject_hyperparams"
+        ) from None
 
 
 def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=None) -> MeshLaplacian:
@@ -148,7 +153,9 @@ def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=Non
         raise ValueError(f"faces must hold vertex indices >= 0, got {f.min()}")
     n = int(f.max()) + 1 if num_vertices is None else num_vertices
     if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < int(f.max()) + 1:
-        raise ValueError(f"num_vertices must be an int > max(faces) = {int(f.max())}, got {num_vertices!r}")
+        raise ValueError(
+            f"num_vertices must be an int > max(faces) = {int(f.max())}, got {num_vertices!r}"
+        )
     n = int(n)
     index = first = None
     if weld_positions is not None:
@@ -160,8 +167,10 @@ def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=Non
         f = index[f]
         n = len(first)
     if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])):
-        raise ValueError("faces contains a degenerate triangle (a repeated vertex index"
-                         + (", after welding equal positions)" if index is not None else ")"))
+        raise ValueError(
+            "faces contains a degenerate triangle (a repeated vertex index"
+            + (", after welding equal positions)" if index is not None else ")")
+        )
     edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     # An interior edge appears in two faces; the Laplacian counts it once.
     edges = np.unique(np.sort(edges, axis=1), axis=0)
@@ -174,9 +183,14 @@ def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=Non
     width = max(int(degree.max()), 1)
     neighbors = np.full((n, width), n, dtype=np.int32)
     neighbors[src, np.arange(len(src)) - start[src]] = dst
-    as_index = (lambda a: None if a is None else jnp.asarray(a, jnp.int32))  # noqa: E731
-    return MeshLaplacian(jnp.asarray(neighbors), jnp.asarray(degree, jnp.float32),
-                         jnp.asarray(f, jnp.int32), as_index(index), as_index(first))
+    as_index = lambda a: None if a is None else jnp.asarray(a, jnp.int32)
+    return MeshLaplacian(
+        jnp.asarray(neighbors),
+        jnp.asarray(degree, jnp.float32),
+        jnp.asarray(f, jnp.int32),
+        as_index(index),
+        as_index(first),
+    )
 
 
 def _merge(mesh: MeshLaplacian, x):
@@ -213,8 +227,10 @@ class _Cholesky:
         try:
             import cholespy
         except ImportError as e:
-            raise ImportError("solver='cholesky' needs cholespy: pip install "
-                              "'optax_bilateral[cholesky]' (or use solver='cg')") from e
+            raise ImportError(
+                "solver='cholesky' needs cholespy: pip install "
+                "'optax_bilateral[cholesky]' (or use solver='cg')"
+            ) from e
         self._cholespy = cholespy
         u = len(degree)
         rows = np.repeat(np.arange(u), neighbors.shape[1])
@@ -233,8 +249,9 @@ class _Cholesky:
                 self._factors.move_to_end(lam)
                 return self._factors[lam]
             values = np.concatenate([1.0 + lam * self._degree, np.full(self._off, -lam)])
-            fac = self._cholespy.CholeskySolverD(len(self._degree), self._ii, self._jj, values,
-                                                 self._cholespy.MatrixType.COO)
+            fac = self._cholespy.CholeskySolverD(
+                len(self._degree), self._ii, self._jj, values, self._cholespy.MatrixType.COO
+            )
             self._factors[lam] = fac
             while len(self._factors) > self.MAX_FACTORS:
                 self._factors.popitem(last=False)
@@ -250,8 +267,9 @@ class _Cholesky:
         for value in np.unique(flat_lam):
             which = np.nonzero(flat_lam == value)[0]
             # All batch members with this lambda as the columns of one solve.
-            rhs = (flat_b[which[0]] if len(which) == 1
-                   else np.concatenate(list(flat_b[which]), axis=1))
+            rhs = (
+                flat_b[which[0]] if len(which) == 1 else np.concatenate(list(flat_b[which]), axis=1)
+            )
             rhs = np.require(rhs, np.float64, ["C", "W"])  # cholespy takes writable C arrays
             x = np.empty_like(rhs)
             self.factor(float(value)).solve(rhs, x)
@@ -259,7 +277,7 @@ class _Cholesky:
         return out.reshape(b.shape)
 
 
-_HOSTS: "collections.OrderedDict[bytes, _Cholesky]" = collections.OrderedDict()
+_HOSTS: collections.OrderedDict[bytes, _Cholesky] = collections.OrderedDict()
 _HOSTS_LOCK = threading.Lock()
 
 
@@ -268,7 +286,9 @@ def _host_cholesky(mesh: MeshLaplacian) -> _Cholesky:
     try:
         nb = np.asarray(mesh.neighbors)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        raise TypeError("solver='cholesky' needs a concrete MeshLaplacian (built outside jit)") from None
+        raise TypeError(
+            "solver='cholesky' needs a concrete MeshLaplacian (built outside jit)"
+        ) from None
     key = hashlib.blake2b(nb.tobytes() + str(nb.shape).encode(), digest_size=16).digest()
     with _HOSTS_LOCK:
         if key not in _HOSTS:
@@ -281,11 +301,18 @@ def _host_cholesky(mesh: MeshLaplacian) -> _Cholesky:
 
 def _solve(host, neighbors, degree, b, lambda_, tol, maxiter, x0):
     """``(I + lambda L)^-1 b`` for ``b`` of shape ``(U, C)``; ``host`` None means CG."""
-    matvec = lambda v: _matvec(neighbors, degree, lambda_, v)  # noqa: E731
+    matvec = lambda v: _matvec(neighbors, degree, lambda_, v)
     if host is not None:
+
         def solve(_, rhs):
-            return jax.pure_callback(host.solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-                                     rhs, lambda_, vmap_method="broadcast_all")
+            return jax.pure_callback(
+                host.solve,
+                jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                rhs,
+                lambda_,
+                vmap_method="broadcast_all",
+            )
+
         return lax.custom_linear_solve(matvec, b, solve, symmetric=True)
     scale = jnp.sqrt(jnp.sum(b * b, axis=0))
     scale = jnp.where(scale > 0, scale, 1.0)
@@ -296,8 +323,9 @@ def _solve(host, neighbors, degree, b, lambda_, tol, maxiter, x0):
     guess = inv_diag * b
     if x0 is not None:
         guess = jnp.where(jnp.any(x0 != 0), x0 / scale, guess)  # all zeros: the first step
-    x, _ = jax.scipy.sparse.linalg.cg(matvec, b, x0=guess, tol=tol, atol=0.0, maxiter=maxiter,
-                                      M=lambda r: inv_diag * r)
+    x, _ = jax.scipy.sparse.linalg.cg(
+        matvec, b, x0=guess, tol=tol, atol=0.0, maxiter=maxiter, M=lambda r: inv_diag * r
+    )
     return x * scale
 
 
@@ -318,12 +346,28 @@ def _host_for(mesh, solver):
 def _solve_merged(mesh, host, b, lambda_, tol, maxiter, x0=None):
     """Solves on the merged vertices; ``b`` and ``x0`` are ``(U, C)``."""
     dtype = b.dtype
-    return _solve_jit(host, mesh.neighbors, mesh.degree, b, jnp.asarray(lambda_, dtype),
-                      jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32), x0)
+    return _solve_jit(
+        host,
+        mesh.neighbors,
+        mesh.degree,
+        b,
+        jnp.asarray(lambda_, dtype),
+        jnp.asarray(tol, dtype),
+        jnp.asarray(maxiter, jnp.int32),
+        x0,
+    )
 
 
-def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, solver: str = "cg",
-                    tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER, x0=None):
+def smoothing_solve(
+    mesh: MeshLaplacian,
+    b,
+    lambda_,
+    *,
+    solver: str = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = DEFAULT_MAXITER,
+    x0=None,
+):
     """Solves ``(I + lambda L) x = b`` (Large Steps' "smooth").
 
     Args:
@@ -344,8 +388,9 @@ def smoothing_solve(mesh: MeshLaplacian, b, lambda_, *, solver: str = "cg",
     host = _host_for(mesh, solver)
     b = jnp.asarray(b)
     if b.ndim not in (1, 2) or b.shape[0] != mesh.num_vertices:
-        raise ValueError(f"b must have shape (V,) or (V, C) with V = {mesh.num_vertices}, "
-                         f"got {b.shape}")
+        raise ValueError(
+            f"b must have shape (V,) or (V, C) with V = {mesh.num_vertices}, got {b.shape}"
+        )
     squeeze = b.ndim == 1
     if squeeze:
         b = b[:, None]
@@ -406,7 +451,9 @@ def vertex_normals(vertices, faces, weighting: str = "area"):
     return n if mesh is None else _spread(mesh, n)
 
 
-def sphere_directions(num: int = DEFAULT_DIRECTIONS, seed: int = 0, *, lloyd: bool = True) -> np.ndarray:
+def sphere_directions(
+    num: int = DEFAULT_DIRECTIONS, seed: int = 0, *, lloyd: bool = True
+) -> np.ndarray:
     """``num`` quasi-random unit vectors: scrambled Sobol points mapped to the sphere.
 
     ``(u1, u2) -> (sqrt(1-z^2) cos 2 pi u1, sqrt(1-z^2) sin 2 pi u1, z)`` with
@@ -425,10 +472,14 @@ def sphere_directions(num: int = DEFAULT_DIRECTIONS, seed: int = 0, *, lloyd: bo
     try:
         from scipy.stats import qmc
     except ImportError as e:  # pragma: no cover - scipy is in the experiments extra
-        raise ImportError("sphere_directions needs scipy (scipy.stats.qmc); install scipy or "
-                          "pass directions= as a (K, 3) array of unit vectors") from e
+        raise ImportError(
+            "sphere_directions needs scipy (scipy.stats.qmc); install scipy or "
+            "pass directions= as a (K, 3) array of unit vectors"
+        ) from e
     sampler = qmc.Sobol(d=2, scramble=True, seed=seed, optimization="lloyd" if lloyd else None)
-    u = sampler.random_base2(math.ceil(math.log2(num)))[:num]  # a power-of-two prefix keeps the balance
+    u = sampler.random_base2(math.ceil(math.log2(num)))[
+        :num
+    ]  # a power-of-two prefix keeps the balance
     z = 1.0 - 2.0 * u[:, 1]
     r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
     phi = 2.0 * np.pi * u[:, 0]
@@ -440,8 +491,10 @@ def _as_directions(directions) -> np.ndarray:
         return sphere_directions(int(directions))
     d = np.asarray(directions, dtype=np.float64)
     if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
-        raise ValueError(f"directions must be an int (number of Sobol directions) or a (K, 3) "
-                         f"array of unit vectors, got shape {d.shape}")
+        raise ValueError(
+            f"directions must be an int (number of Sobol directions) or a (K, 3) "
+            f"array of unit vectors, got shape {d.shape}"
+        )
     if not np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4):
         raise ValueError("directions must be unit vectors")
     return d
@@ -468,8 +521,16 @@ def _bilateral(host, neighbors, degree, x, n, s, lambda_, sigma_d, sigma_phi, to
     phi = _vmf(n, s, sigma_phi)
     num_v, num_dirs, channels = x.shape[0], w.shape[1], x.shape[1]
     splat = jnp.concatenate([w[:, :, None] * x[:, None, :], w[:, :, None]], axis=2)
-    flat = _solve(host, neighbors, degree, splat.reshape(num_v, num_dirs * (channels + 1)),
-                  lambda_, tol, maxiter, x0)
+    flat = _solve(
+        host,
+        neighbors,
+        degree,
+        splat.reshape(num_v, num_dirs * (channels + 1)),
+        lambda_,
+        tol,
+        maxiter,
+        x0,
+    )
     sliced = jnp.einsum("vk,vkc->vc", phi, flat.reshape(num_v, num_dirs, channels + 1))
     num, den = sliced[:, :channels], sliced[:, channels:]
     ok = den > jnp.finfo(x.dtype).tiny
@@ -479,8 +540,9 @@ def _bilateral(host, neighbors, degree, x, n, s, lambda_, sigma_d, sigma_phi, to
 _bilateral_jit = jax.jit(_bilateral, static_argnums=0)
 
 
-def _bilateral_fields(fields, normals, mesh, host, directions, lambda_, sigma_d, sigma_phi, tol,
-                      maxiter, x0):
+def _bilateral_fields(
+    fields, normals, mesh, host, directions, lambda_, sigma_d, sigma_phi, tol, maxiter, x0
+):
     """The operator B on a list of ``(V, C_i)`` fields; returns (fields, diffused columns)."""
     widths = [x.shape[1] for x in fields]
     splits = np.cumsum(widths)[:-1].tolist()
@@ -491,19 +553,36 @@ def _bilateral_fields(fields, normals, mesh, host, directions, lambda_, sigma_d,
         out = _solve_merged(mesh, host, x, lambda_, tol, maxiter, x0)
         flat = out
     else:
-        out, flat = _bilateral_jit(host, mesh.neighbors, mesh.degree, x,
-                                   jnp.asarray(_merge(mesh, jnp.asarray(normals)), dtype),
-                                   jnp.asarray(directions, dtype), jnp.asarray(lambda_, dtype),
-                                   jnp.asarray(sigma_d, dtype), jnp.asarray(sigma_phi, dtype),
-                                   jnp.asarray(tol, dtype), jnp.asarray(maxiter, jnp.int32), x0)
+        out, flat = _bilateral_jit(
+            host,
+            mesh.neighbors,
+            mesh.degree,
+            x,
+            jnp.asarray(_merge(mesh, jnp.asarray(normals)), dtype),
+            jnp.asarray(directions, dtype),
+            jnp.asarray(lambda_, dtype),
+            jnp.asarray(sigma_d, dtype),
+            jnp.asarray(sigma_phi, dtype),
+            jnp.asarray(tol, dtype),
+            jnp.asarray(maxiter, jnp.int32),
+            x0,
+        )
     return jnp.split(_spread(mesh, out), splits, axis=1), flat
 
 
-def bilateral_normal_filter(fields: Sequence[Any], normals, mesh: MeshLaplacian, *,
-                            lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D,
-                            sigma_phi=DEFAULT_SIGMA_PHI, directions=DEFAULT_DIRECTIONS,
-                            solver: str = "cg", tol: float = DEFAULT_TOL,
-                            maxiter: int = DEFAULT_MAXITER) -> list:
+def bilateral_normal_filter(
+    fields: Sequence[Any],
+    normals,
+    mesh: MeshLaplacian,
+    *,
+    lambda_=DEFAULT_LAMBDA,
+    sigma_d=DEFAULT_SIGMA_D,
+    sigma_phi=DEFAULT_SIGMA_PHI,
+    directions=DEFAULT_DIRECTIONS,
+    solver: str = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = DEFAULT_MAXITER,
+) -> list:
     """Applies the paper's mesh cross-bilateral operator ``B`` to every field.
 
     ``(B x)_i = sum_k phi_k(i) [M^-1 (w_k * x)]_i / sum_k phi_k(i) [M^-1 w_k]_i`` with
@@ -535,11 +614,13 @@ def bilateral_normal_filter(fields: Sequence[Any], normals, mesh: MeshLaplacian,
     fields = [jnp.asarray(x) for x in fields]
     for x in fields:
         if x.ndim != 2 or x.shape[0] != mesh.num_vertices:
-            raise ValueError(f"every field must have shape (V, C) with V = {mesh.num_vertices}, "
-                             f"got {x.shape}")
+            raise ValueError(
+                f"every field must have shape (V, C) with V = {mesh.num_vertices}, got {x.shape}"
+            )
     s = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
-    out, _ = _bilateral_fields(fields, normals, mesh, host, s, lambda_, sigma_d, sigma_phi, tol,
-                               maxiter, None)
+    out, _ = _bilateral_fields(
+        fields, normals, mesh, host, s, lambda_, sigma_d, sigma_phi, tol, maxiter, None
+    )
     return out
 
 
@@ -585,8 +666,10 @@ def _check_normals(normals):
 def _check_solver(solver, tol, maxiter, warm_start=False):
     _check_solver_name(solver)
     if warm_start and solver != "cg":
-        raise ValueError(f"warm_start starts the CG from the last solution; it does not apply to "
-                         f"solver={solver!r} (a direct solve)")
+        raise ValueError(
+            f"warm_start starts the CG from the last solution; it does not apply to "
+            f"solver={solver!r} (a direct solve)"
+        )
     # Concrete values only: optax.inject_hyperparams may pass them as (traced) arrays.
     t = _concrete_float(tol)
     if t is not None and not t > 0:
@@ -599,38 +682,14 @@ def _check_solver(solver, tol, maxiter, warm_start=False):
 def _check_leaf(x, mesh: MeshLaplacian, what: str, channels: int | None = None):
     if x.ndim != 2 or x.shape[0] != mesh.num_vertices or (channels and x.shape[1] != channels):
         want = f"({mesh.num_vertices}, {channels})" if channels else f"({mesh.num_vertices}, C)"
-        raise ValueError(f"{what}: every leaf must have shape {want} (one row per mesh vertex), "
-                         f"got {x.shape}")
-
-
-def _safe_increment(count):
-    return jnp.where(count < jnp.iinfo(jnp.int32).max, count + 1, count).astype(jnp.int32)
-
-
-# Below this 1 - b, float32 keeps fewer than 10 bits of 1 - b in b itself.
-_NEAR_ONE = 2.0 ** -14
-
-
-def _one_minus(b):
-    """``1 - b``, in float64 when ``b`` is concrete (keeps its digits for b near 1)."""
-    v = _concrete_float(b)
-    return 1 - b if v is None else float(1.0 - np.float64(np.asarray(b)))
+        raise ValueError(
+            f"{what}: every leaf must have shape {want} (one row per mesh vertex), got {x.shape}"
+        )
 
 
 def _bias_correction(b, count, dtype):
-    """Adam's ``1 - b^t`` in ``dtype``; ``-expm1(t log1p(-(1 - b)))`` for ``b`` within
-    ``2^-14`` of 1, where ``1 - b^t`` would lose its digits (or be 0 when ``b`` rounds
-    to 1 in float32). A traced ``b`` chooses at run time."""
-    t = count.astype(dtype)
-    a = _one_minus(b)
-    if _concrete_float(b) is not None:
-        if a < _NEAR_ONE:
-            return -jnp.expm1(t * jnp.log1p(jnp.asarray(-a, dtype)))
-        return 1 - jnp.asarray(b, dtype) ** t
-    a = jnp.asarray(a, dtype)
-    near = a < _NEAR_ONE
-    exact = -jnp.expm1(t * jnp.log1p(-jnp.where(near, a, 0)))
-    return jnp.where(near, exact, 1 - jnp.asarray(b, dtype) ** t)
+    """Adam's ``1 - b^t`` in ``dtype``: the grid transforms' policy (exact for b near 1)."""
+    return numerics.bias_correction(b, count).astype(dtype)
 
 
 # ----------------------------------------------------------------------------
@@ -648,8 +707,11 @@ def _smoothing_init(warm_start: bool, columns: Callable[[Any], int]):
     def init_fn(params):
         if not warm_start:
             return SmoothingState(jnp.zeros([], jnp.int32), None)
-        return SmoothingState(jnp.zeros([], jnp.int32), jax.tree.map(
-            lambda p: jnp.zeros((p.shape[0], columns(p)), p.dtype), params))
+        return SmoothingState(
+            jnp.zeros([], jnp.int32),
+            jax.tree.map(lambda p: jnp.zeros((p.shape[0], columns(p)), p.dtype), params),
+        )
+
     return init_fn
 
 
@@ -671,14 +733,21 @@ def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
         def weld(g):
             _check_leaf(g, mesh, "weld_gradients")
             return _spread(mesh, jax.ops.segment_sum(g, mesh.index, num_segments=mesh.num_merged))
+
         return jax.tree.map(weld, updates), state
 
     return optax.GradientTransformationExtraArgs(lambda params: optax.EmptyState(), update_fn)
 
 
-def laplacian_smoothing(faces, lambda_=DEFAULT_LAMBDA, *, solver: str = "cg",
-                        tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
-                        warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
+def laplacian_smoothing(
+    faces,
+    lambda_=DEFAULT_LAMBDA,
+    *,
+    solver: str = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = DEFAULT_MAXITER,
+    warm_start: bool = False,
+) -> optax.GradientTransformationExtraArgs:
     """Large Steps' smoothing ``g -> (I + lambda L)^-1 g`` on every ``(V, C)`` leaf.
 
     Used before the moments it is the prefilter ``A`` (eq. 1), the gradient of the
@@ -707,16 +776,26 @@ def laplacian_smoothing(faces, lambda_=DEFAULT_LAMBDA, *, solver: str = "cg",
         out, sols = [], []
         for x, x0 in zip(leaves, starts):
             _check_leaf(x, mesh, "laplacian_smoothing")
-            sol = _solve_merged(mesh, host, _merge(mesh, x), lambda_, tol, maxiter,
-                                None if x0 is None else _merge(mesh, x0))
+            sol = _solve_merged(
+                mesh,
+                host,
+                _merge(mesh, x),
+                lambda_,
+                tol,
+                maxiter,
+                None if x0 is None else _merge(mesh, x0),
+            )
             sols.append(_spread(mesh, sol))
             out.append(sols[-1].astype(x.dtype))
-        new = SmoothingState(_safe_increment(state.count),
-                             jax.tree.unflatten(treedef, sols) if warm_start else None)
+        new = SmoothingState(
+            optax.safe_increment(state.count),
+            jax.tree.unflatten(treedef, sols) if warm_start else None,
+        )
         return jax.tree.unflatten(treedef, out), new
 
-    return optax.GradientTransformationExtraArgs(_smoothing_init(warm_start, lambda p: p.shape[1]),
-                                                 update_fn)
+    return optax.GradientTransformationExtraArgs(
+        _smoothing_init(warm_start, lambda p: p.shape[1]), update_fn
+    )
 
 
 def _normals_fn(normals, mesh):
@@ -725,11 +804,19 @@ def _normals_fn(normals, mesh):
     return lambda x: vertex_normals(x, mesh, normals)
 
 
-def bilateral_smoothing(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, *,
-                        sigma_phi=DEFAULT_SIGMA_PHI, directions=DEFAULT_DIRECTIONS,
-                        normals="area", solver: str = "cg", tol: float = DEFAULT_TOL,
-                        maxiter: int = DEFAULT_MAXITER, warm_start: bool = False
-                        ) -> optax.GradientTransformationExtraArgs:
+def bilateral_smoothing(
+    faces,
+    lambda_=DEFAULT_LAMBDA,
+    sigma_d=DEFAULT_SIGMA_D,
+    *,
+    sigma_phi=DEFAULT_SIGMA_PHI,
+    directions=DEFAULT_DIRECTIONS,
+    normals="area",
+    solver: str = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = DEFAULT_MAXITER,
+    warm_start: bool = False,
+) -> optax.GradientTransformationExtraArgs:
     """The bilateral normal filter ``g -> B g`` on every ``(V, 3)`` leaf (the authors'
     ``prefilter="bilateral"``), guided by the normals of ``params``.
 
@@ -745,13 +832,15 @@ def bilateral_smoothing(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, 
     dirs = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
     normals_of = _normals_fn(normals, mesh)
     warm_start = bool(warm_start)
-    width = (lambda p: p.shape[1] if dirs is None else len(dirs) * (p.shape[1] + 1))  # noqa: E731
+    width = lambda p: p.shape[1] if dirs is None else len(dirs) * (p.shape[1] + 1)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
         if params is None:
-            raise ValueError("bilateral_smoothing needs params (the vertex positions) to compute "
-                             "the normals that guide the filter: call update(updates, state, params)")
+            raise ValueError(
+                "bilateral_smoothing needs params (the vertex positions) to compute "
+                "the normals that guide the filter: call update(updates, state, params)"
+            )
         leaves, treedef = jax.tree.flatten(updates)
         xs = treedef.flatten_up_to(params)
         starts = treedef.flatten_up_to(state.x0) if warm_start else [None] * len(leaves)
@@ -759,20 +848,25 @@ def bilateral_smoothing(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, 
         for g, x, x0 in zip(leaves, xs, starts):
             _check_leaf(x, mesh, "bilateral_smoothing params", channels=3)
             _check_leaf(g, mesh, "bilateral_smoothing updates")
-            (gf,), flat = _bilateral_fields([g], normals_of(x), mesh, host, dirs, lambda_, sigma_d,
-                                            sigma_phi, tol, maxiter, x0)
+            (gf,), flat = _bilateral_fields(
+                [g], normals_of(x), mesh, host, dirs, lambda_, sigma_d, sigma_phi, tol, maxiter, x0
+            )
             sols.append(flat)
             out.append(gf.astype(g.dtype))
-        new = SmoothingState(_safe_increment(state.count),
-                             jax.tree.unflatten(treedef, sols) if warm_start else None)
+        new = SmoothingState(
+            optax.safe_increment(state.count),
+            jax.tree.unflatten(treedef, sols) if warm_start else None,
+        )
         return jax.tree.unflatten(treedef, out), new
 
     def init_fn(params):
         # The diffused columns live on the merged vertices.
         if not warm_start:
             return SmoothingState(jnp.zeros([], jnp.int32), None)
-        return SmoothingState(jnp.zeros([], jnp.int32), jax.tree.map(
-            lambda p: jnp.zeros((mesh.num_merged, width(p)), p.dtype), params))
+        return SmoothingState(
+            jnp.zeros([], jnp.int32),
+            jax.tree.map(lambda p: jnp.zeros((mesh.num_merged, width(p)), p.dtype), params),
+        )
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
@@ -796,10 +890,10 @@ class MeshPostfilterState(NamedTuple):
 
 
 def _moments(updates, mu, nu, count, b1, b2):
-    a1, a2 = _one_minus(b1), _one_minus(b2)
+    a1, a2 = numerics.one_minus(b1), numerics.one_minus(b2)
     mu = jax.tree.map(lambda g, m: b1 * m + a1 * g, updates, mu)
     nu = jax.tree.map(lambda g, v: b2 * v + a2 * g * g, updates, nu)
-    return _safe_increment(count), mu, nu
+    return optax.safe_increment(count), mu, nu
 
 
 def _zeros_like_tree(params):
@@ -820,8 +914,9 @@ def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransform
     _check_unit(b2, "b2")
 
     def init_fn(params):
-        return ScaleByUniformAdamState(jnp.zeros([], jnp.int32), _zeros_like_tree(params),
-                                       _zeros_like_tree(params))
+        return ScaleByUniformAdamState(
+            jnp.zeros([], jnp.int32), _zeros_like_tree(params), _zeros_like_tree(params)
+        )
 
     def update_fn(updates, state, params=None, **extra_args):
         del params, extra_args
@@ -836,17 +931,29 @@ def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransform
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0.9, b2=0.999,
-                    eps=1e-8, *, sigma_phi=DEFAULT_SIGMA_PHI, postfilter_v: str = "uniform",
-                    directions=DEFAULT_DIRECTIONS, normals="area", solver: str = "cg",
-                    tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
-                    warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
+def mesh_postfilter(
+    faces,
+    lambda_=DEFAULT_LAMBDA,
+    sigma_d=DEFAULT_SIGMA_D,
+    b1=0.9,
+    b2=0.999,
+    eps=1e-8,
+    *,
+    sigma_phi=DEFAULT_SIGMA_PHI,
+    postfilter_v: str = "uniform",
+    directions=DEFAULT_DIRECTIONS,
+    normals="area",
+    solver: str = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = DEFAULT_MAXITER,
+    warm_start: bool = False,
+) -> optax.GradientTransformationExtraArgs:
     """Adam moments with the bilateral normal postfilter ``B`` (supplement eqs. 6-10).
 
-        m_t, v_t = EMAs of the incoming (prefiltered) gradient   (eqs. 2, 4; unfiltered in the state)
+        m_t, v_t = EMAs of the incoming (prefiltered) gradient  (eqs. 2, 4; kept unfiltered)
         "uniform":   Delta_t = B m^_t / (sqrt(max_k v^_t,k) + eps)
         "bilateral": Delta_t = B m^_t / (sqrt(B v^_t) + eps)       (same B for m and v, §1.3)
-        "smooth":    Delta_t = B m^_t / (sqrt(M^-1 v^_t) + eps)    (the authors' option; not bounded)
+        "smooth":    Delta_t = B m^_t / (sqrt(M^-1 v^_t) + eps)    (the authors'; not bounded)
 
     ``B`` is :func:`bilateral_normal_filter` with the guide ``n`` = the vertex
     normals of ``params`` (the current positions; "cross-bilateral"). With
@@ -903,16 +1010,20 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
     def init_fn(params):
         x0 = None
         if warm_start:
-            x0 = jax.tree.map(lambda p: tuple(jnp.zeros((mesh.num_merged, w), p.dtype)
-                                              for w in widths(p)), params)
-        return MeshPostfilterState(jnp.zeros([], jnp.int32), _zeros_like_tree(params),
-                                   _zeros_like_tree(params), x0)
+            x0 = jax.tree.map(
+                lambda p: tuple(jnp.zeros((mesh.num_merged, w), p.dtype) for w in widths(p)), params
+            )
+        return MeshPostfilterState(
+            jnp.zeros([], jnp.int32), _zeros_like_tree(params), _zeros_like_tree(params), x0
+        )
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
         if params is None:
-            raise ValueError("mesh_postfilter needs params (the vertex positions) to compute "
-                             "the normals that guide the filter: call update(updates, state, params)")
+            raise ValueError(
+                "mesh_postfilter needs params (the vertex positions) to compute "
+                "the normals that guide the filter: call update(updates, state, params)"
+            )
         count, mu, nu = _moments(updates, state.mu, state.nu, state.count, b1, b2)
         flat_m, treedef = jax.tree.flatten(mu)
         flat_v = treedef.flatten_up_to(nu)
@@ -925,8 +1036,16 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
             c1, c2 = _bias_correction(b1, count, m.dtype), _bias_correction(b2, count, v.dtype)
             m_hat, v_hat = m / c1, v / c2
             normals_x = normals_of(x)
-            kw = dict(mesh=mesh, host=host, directions=dirs, lambda_=lambda_, sigma_d=sigma_d,
-                      sigma_phi=sigma_phi, tol=tol, maxiter=maxiter)
+            kw = dict(
+                mesh=mesh,
+                host=host,
+                directions=dirs,
+                lambda_=lambda_,
+                sigma_d=sigma_d,
+                sigma_phi=sigma_phi,
+                tol=tol,
+                maxiter=maxiter,
+            )
             first = None if x0 is None else x0[0]
             if postfilter_v == "bilateral":
                 (m_f, v_f), flat = _bilateral_fields([m_hat, v_hat], normals_x, x0=first, **kw)
@@ -937,8 +1056,15 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
                 if postfilter_v == "uniform":
                     v_f = jnp.max(v_hat)
                 else:
-                    v_s = _solve_merged(mesh, host, _merge(mesh, v_hat), lambda_, tol, maxiter,
-                                        None if x0 is None else x0[1])
+                    v_s = _solve_merged(
+                        mesh,
+                        host,
+                        _merge(mesh, v_hat),
+                        lambda_,
+                        tol,
+                        maxiter,
+                        None if x0 is None else x0[1],
+                    )
                     leaf_sols += (v_s,)
                     v_f = _spread(mesh, v_s)
             # B and M^-1 are non-negative, so v_f >= 0 up to the solver; clip its round-off.
@@ -946,15 +1072,24 @@ def mesh_postfilter(faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D, b1=0
             outs.append((m_f / denom).astype(m.dtype))
             sols.append(leaf_sols)
         x0_new = jax.tree.unflatten(treedef, sols) if warm_start else None
-        return (jax.tree.unflatten(treedef, outs),
-                MeshPostfilterState(count, mu, nu, x0_new))
+        return (jax.tree.unflatten(treedef, outs), MeshPostfilterState(count, mu, nu, x0_new))
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, b1=0.9, b2=0.999, eps=1e-8, *,
-                solver: str = "cg", tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
-                warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
+def large_steps(
+    learning_rate,
+    faces,
+    lambda_=DEFAULT_LAMBDA,
+    b1=0.9,
+    b2=0.999,
+    eps=1e-8,
+    *,
+    solver: str = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = DEFAULT_MAXITER,
+    warm_start: bool = False,
+) -> optax.GradientTransformationExtraArgs:
     """Large Steps in Inverse Rendering of Geometry (Nicolet et al. 2021) on vertex positions.
 
         x <- x - lr M^-1 AdamUniform(M^-1 g),    M = I + lambda L
@@ -988,12 +1123,25 @@ def large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, b1=0.9, b2=0.999, 
     )
 
 
-def bilateral_large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, sigma_d=DEFAULT_SIGMA_D,
-                          b1=0.9, b2=0.999, eps=1e-8, *, sigma_phi=DEFAULT_SIGMA_PHI,
-                          prefilter: str = "smooth", postfilter_v: str = "uniform",
-                          directions=DEFAULT_DIRECTIONS, normals="area", solver: str = "cg",
-                          tol: float = DEFAULT_TOL, maxiter: int = DEFAULT_MAXITER,
-                          warm_start: bool = False) -> optax.GradientTransformationExtraArgs:
+def bilateral_large_steps(
+    learning_rate,
+    faces,
+    lambda_=DEFAULT_LAMBDA,
+    sigma_d=DEFAULT_SIGMA_D,
+    b1=0.9,
+    b2=0.999,
+    eps=1e-8,
+    *,
+    sigma_phi=DEFAULT_SIGMA_PHI,
+    prefilter: str = "smooth",
+    postfilter_v: str = "uniform",
+    directions=DEFAULT_DIRECTIONS,
+    normals="area",
+    solver: str = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = DEFAULT_MAXITER,
+    warm_start: bool = False,
+) -> optax.GradientTransformationExtraArgs:
     """The paper's mesh optimizer: Large Steps with a cross-bilateral postfilter on normals.
 
         g~ = M^-1 g,   m, v = EMAs of g~
@@ -1021,7 +1169,10 @@ def bilateral_large_steps(learning_rate, faces, lambda_=DEFAULT_LAMBDA, sigma_d=
         parts.append(laplacian_smoothing(mesh, lambda_, **kw))
     elif prefilter == "bilateral":
         parts.append(bilateral_smoothing(mesh, lambda_, sigma_d, **bil, **kw))
-    parts += [mesh_postfilter(mesh, lambda_, sigma_d, b1, b2, eps, postfilter_v=postfilter_v,
-                              **bil, **kw),
-              optax.scale_by_learning_rate(learning_rate)]
+    parts += [
+        mesh_postfilter(
+            mesh, lambda_, sigma_d, b1, b2, eps, postfilter_v=postfilter_v, **bil, **kw
+        ),
+        optax.scale_by_learning_rate(learning_rate),
+    ]
     return optax.chain(*parts)

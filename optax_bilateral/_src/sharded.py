@@ -251,9 +251,10 @@ class HaloKernel:
         sigma: jax.Array,
         levels: int,
         separable: bool,
+        start: int = 0,
     ) -> jax.Array:
         geo, shape = self.geo, self.shape
-        passes = [p for i in range(levels) for p in level_passes(shape, 2**i, separable)]
+        passes = [p for i in range(start, levels) for p in level_passes(shape, 2**i, separable)]
         # The guide's halo along each axis: the widest offset any pass reads.
         g_halo = [
             max([abs(off[k]) for pairs, _ in passes for off, _ in pairs] + [0])
@@ -296,16 +297,20 @@ def filter_sharded(
     guide_axes: tuple[int, ...],
     mask: jax.Array | None,
     sigma_d: Any,
+    *,
+    gather_channels: bool = False,
 ) -> tuple[jax.Array, ...]:
     """``filter_blocks(fields, guide, mask, sigma_d, kernel)`` run per device on its block,
     with a :class:`HaloKernel`; returns the fields with the input's shardings.
 
-    Every field gets the first field's spatial split, its channel axes keep their own;
-    the guide's channels are gathered within each block (the distance sums over them).
+    Every field gets the first field's spatial split, its channel axes keep their own
+    (``gather_channels``: are gathered within each block, for a field that guides
+    itself); the guide's channels are gathered within each block (the distance sums
+    over them).
     """
     mesh = part.mesh
     used = {a for e in part.names for a in e}
-    specs = []
+    specs, out_specs = [], []
     for f, axes in zip(fields, field_axes):
         own = _spec_of(f)
         entries: list[tuple[str, ...]] = [()] * f.ndim
@@ -314,6 +319,9 @@ def filter_sharded(
                 entries[a] = part.names[axes.index(a)]
             elif own is not None and own[0] == mesh:
                 entries[a] = tuple(n for n in own[1][a] if n not in used)
+        out_specs.append(tuple(entries))
+        if gather_channels:
+            entries = [e if a in axes else () for a, e in enumerate(entries)]
         specs.append(tuple(entries))
     fields = tuple(_reshard(f, mesh, e) for f, e in zip(fields, specs))
     g_entries: list[tuple[str, ...]] = [()] * guide.ndim
@@ -337,6 +345,9 @@ def filter_sharded(
         m = local[n + 1] if has_mask else None
         return filter_blocks(local[:n], local[n], m, sigma, kernel)
 
-    return jax.shard_map(
+    out = jax.shard_map(
         body, mesh=mesh, in_specs=tuple(in_specs), out_specs=tuple(_spec(e) for e in specs)
     )(*args)
+    if gather_channels:
+        out = tuple(_reshard(o, mesh, e) for o, e in zip(out, out_specs))
+    return out

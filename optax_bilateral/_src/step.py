@@ -15,9 +15,8 @@ into an enclosing ``jit``.
 
 Where later options plug in: a ``sigma_d`` computed from the data belongs in
 :func:`_sigma` (it sees the leaf's fields and guide); a per-texel blend of filtered
-and unfiltered moments, ``filter_m``/``filter_v`` switches or a "uniform" second
-moment in :func:`_filtered_moments`; a guide that changes per level in the kernels
-(:mod:`optax_bilateral._src.atrous`, ``filter_planes``). docs/design.md has the details.
+and unfiltered moments in :func:`_filtered_moments` (beside the ``filter_m`` /
+``filter_v`` switches). docs/design.md has the details.
 """
 
 from __future__ import annotations
@@ -32,7 +31,6 @@ from jax import lax
 
 from optax_bilateral._src import layout, numerics
 from optax_bilateral._src.filter import atrous_bilateral
-from optax_bilateral._src.leaves import log_transform
 
 Moments = tuple[jax.Array, jax.Array] | None
 
@@ -51,6 +49,9 @@ class LeafRule(NamedTuple):
     guard_sigma: bool  # sigma_d is traced: NaN update if negative or NaN
     compute_dtype: Any = None  # postfilter: the moments' arithmetic dtype
     constants: tuple = ()  # ((name, number), ...): hyperparameters known now
+    filter_m: bool = True  # postfilter: filter m (the authors' mtfilter)
+    filter_v: bool = True  # postfilter: filter v (the authors' vtfilter)
+    second_moment: str = "elementwise"  # or "uniform": the max of v over the leaf
 
 
 def split_numbers(**values: Any) -> tuple[tuple, dict]:
@@ -170,6 +171,9 @@ def _postfilter_masked(rule, operands):
         m = jnp.where(obs_full, m, moments[0].astype(rule.compute_dtype))
         v = jnp.where(obs_full, v, moments[1].astype(rule.compute_dtype))
     m_f, v_f = _filtered_moments(rule, m, v, guide, hyper, observed if rule.axes else None)
+    if rule.second_moment == "uniform":
+        # The max over the leaf counts unobserved texels by the moments they keep.
+        v_f = jnp.where(obs_full, v_f, v)
     d = jnp.where(obs_full, _step(rule, m_f, v_f, hyper), 0)
     return d.astype(g.dtype), m, v
 
@@ -202,13 +206,21 @@ def _moments(rule, g, moments, hyper, *, clip: bool):
 
 
 def _filtered_moments(rule, m, v, guide, hyper, observed):
-    """B m and B v, with one set of weights (unfiltered where the leaf is not filtered)."""
-    if not rule.axes:
+    """B m and B v, with one set of weights (unfiltered where the leaf is not filtered, and
+    each left as it is when ``filter_m`` / ``filter_v`` is off)."""
+    if not rule.axes or not (rule.filter_m or rule.filter_v):
         return m, v
+    if not rule.filter_v:
+        return filter_fields(rule, m, guide, hyper, observed), v
+    if not rule.filter_m:
+        return m, filter_fields(rule, v, guide, hyper, observed)
     return filter_fields(rule, (m, v), guide, hyper, observed)
 
 
 def _step(rule, m_f, v_f, hyper):
+    if rule.second_moment == "uniform":
+        # One second moment for the whole leaf (Large Steps' and the Dr.Jit port's uniform).
+        v_f = jnp.broadcast_to(jnp.max(v_f), v_f.shape)
     num = functools.partial(_number, rule, hyper)
     return numerics.safe_step(m_f, v_f, num("c1"), num("c2"), num("eps"), num("eps_root"))
 
@@ -217,15 +229,21 @@ def filter_fields(rule, fields, guide, hyper, observed) -> Any:
     """The leaf's filter of ``fields`` (an array or a tuple); ``observed`` (texels, in
     ``rule.axes`` order) or None.
 
-    With ``guide="self"`` every field guides itself, so each gets its own weights.
+    With ``guide="self"`` every field guides itself, each level by its own input (the
+    authors' ``cross_term_off``), so each field gets its own weights; unobserved texels
+    are left out by the filter's ``mask`` (a guide read from the fields cannot carry NaN).
     """
     if rule.self_guided:
-        many = isinstance(fields, tuple)
-        out = tuple(
-            _filter(rule, f, log_transform(f) if rule.log_guide else f, hyper, observed)
-            for f in (fields if many else (fields,))
+        return atrous_bilateral(
+            fields,
+            "self",
+            sigma_d=_sigma(rule, hyper),
+            levels=rule.levels,
+            spatial_axes=rule.axes,
+            separable=rule.separable,
+            mask=observed,
+            log_guide=rule.log_guide,
         )
-        return out if many else out[0]
     return _filter(rule, fields, guide, hyper, observed)
 
 

@@ -49,7 +49,7 @@ them, docs/robustness.md has the full table):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -58,10 +58,12 @@ import optax
 from optax_bilateral._src import leaves, numerics
 from optax_bilateral._src.step import LeafRule, leaf_step, split_numbers
 from optax_bilateral._src.validation import (
+    check_bool,
     check_decay,
     check_levels,
     check_mu_dtype,
     check_nonnegative,
+    check_second_moment,
     check_sigma_d,
     is_concrete,
     is_zero,
@@ -69,6 +71,8 @@ from optax_bilateral._src.validation import (
 
 if TYPE_CHECKING:
     from optax_bilateral._src.leaves import GuideSetting, SpatialAxesSetting
+
+SecondMoment = Literal["elementwise", "uniform"]
 
 # Chosen for parameters in a unit range (albedo, roughness, density) and for
 # log-domain guides: a guide step of 0.1 weighs e^-1, a step of 0.5 weighs e^-5.
@@ -174,12 +178,17 @@ def prefilter(
     Args:
       sigma_d: data-term scale (>= 0; ``inf`` = low-pass), a number or a pytree
         prefix of the parameters. Traceable.
-      levels: F, number of a-trous levels (static), a number or a prefix.
+      levels: F, number of a-trous levels (static), a number or a prefix. The
+        authors' ``stride_levels = L`` is ``levels = L - 1`` (their strides are 0,
+        1, 2, 4, ...; the stride-0 level is the identity).
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
       guide: ``"params"`` (cross-bilateral, the paper's method), ``"self"``
-        (bilateral: the gradient guides itself), or a callable
-        ``params -> guide pytree`` (a prefix of the parameters).
-      log_guide: use ``log(|guide| + 1e-8)`` as the guide.
+        (bilateral, the paper's baseline and the authors' ``cross_term_off``: the
+        gradient guides itself, every level by its own, partially filtered,
+        input), or a callable ``params -> guide pytree`` (a prefix of the
+        parameters).
+      log_guide: use ``log(|guide| + 1e-8)`` as the guide (the authors'
+        ``log_primal``; with ``"self"``, of each level's input).
       spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`),
         a tuple for every leaf, a pytree prefix of tuples (``()`` = do not
         filter), or a callable ``leaf -> axes``.
@@ -281,6 +290,9 @@ def postfilter(
     mask_unobserved: bool = False,
     eps_root: jax.typing.ArrayLike = 0.0,
     mu_dtype: Any = None,
+    filter_m: bool = True,
+    filter_v: bool = True,
+    second_moment: SecondMoment = "elementwise",
 ) -> optax.GradientTransformationExtraArgs:
     r"""Adam whose moments are filtered in space after the temporal averages.
 
@@ -309,12 +321,14 @@ def postfilter(
       eps: added to the denominator, as in Adam.
       sigma_d: data-term scale (>= 0; ``inf`` = low-pass), in the guide's units; a
         number or a pytree prefix of the parameters. Traceable.
-      levels: F, number of a-trous levels (static), a number or a prefix.
+      levels: F, number of a-trous levels (static), a number or a prefix; the
+        authors' ``stride_levels`` - 1.
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
       guide: ``"params"`` (cross-bilateral, the paper's method), ``"self"``, or a
         callable ``params -> guide pytree`` (a prefix of the parameters).
-        ``guide="self"`` filters ``m`` guided by ``m`` and ``v`` by ``v``: they then
-        get *different* weights and the bound above no longer holds.
+        ``guide="self"`` filters ``m`` guided by ``m`` and ``v`` by ``v``, every level
+        by its own input: they then get *different* weights and the bound above no
+        longer holds.
       log_guide: use ``log(|guide| + 1e-8)`` as the guide.
       spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`),
         a tuple for every leaf, a pytree prefix of tuples (``()`` = do not
@@ -326,6 +340,14 @@ def postfilter(
       mu_dtype: dtype of the first moment buffer (default: the parameters').
         The second moment always has the parameters' dtype.
       eps_root: added inside the square root, as in optax's Adam.
+      filter_m, filter_v: filter ``m`` / ``v`` (the authors' ``mtfilter`` /
+        ``vtfilter``); the other is used unfiltered. With only one of them
+        filtered the bound above no longer holds.
+      second_moment: ``"elementwise"`` (Adam's: each entry's own ``B v``) or
+        ``"uniform"``: one second moment per leaf, the max of ``B v`` over it
+        (Large Steps' ``AdamUniform``; the Dr.Jit port's ``uniform``, which puts
+        ``eps`` on the uncorrected root, is this one with ``eps / sqrt(1 - b2^t)``).
+        Unobserved texels enter the max with the moments they keep.
 
     Finite gradients are clipped to the largest magnitude whose square fits the
     second moment's dtype (1.3e19 for float32, 181 for float16), and a zero
@@ -340,6 +362,8 @@ def postfilter(
     leaves.check_guide(guide)
     _static_checks(sigma_d, levels, spatial_axes)
     mu_dtype = check_mu_dtype(mu_dtype)
+    check_second_moment(second_moment)
+    filter_m, filter_v = check_bool(filter_m, "filter_m"), check_bool(filter_v, "filter_v")
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
@@ -410,6 +434,9 @@ def postfilter(
                 guard_sigma=not is_concrete(spec.sigma_d),
                 compute_dtype=compute_dtype,
                 constants=constants,
+                filter_m=filter_m,
+                filter_v=filter_v,
+                second_moment=second_moment,
             )
             d, new = leaf_step(g, leaf_guide, moments, dict(traced, c1=c1, c2=c2), rule=rule)
             outs.append(d)

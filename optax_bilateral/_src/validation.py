@@ -129,3 +129,18 @@ def check_mu_dtype(mu_dtype: Any) -> jnp.dtype | None:
 def is_zero(x: Any) -> bool:
     """True for a concrete value equal to 0 (a traced one may be anything)."""
     return x is not None and is_concrete(x) and float(np.asarray(x)) == 0.0
+
+
+SECOND_MOMENTS = ("elementwise", "uniform")
+
+
+def check_second_moment(second_moment: Any) -> None:
+    if second_moment not in SECOND_MOMENTS:
+        raise ValueError(f"second_moment must be one of {SECOND_MOMENTS}, got {second_moment!r}")
+
+
+def check_bool(x: Any, name: str) -> bool:
+    """``x`` if it is a bool (NumPy's included), else a TypeError naming ``name``."""
+    if not isinstance(x, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {x!r}")
+    return bool(x)
