@@ -20,7 +20,7 @@ def bilateral_adam(
     eps: jax.typing.ArrayLike = 1e-8,
     *,
     sigma_d: Any = transforms.DEFAULT_SIGMA_D,
-    levels: Any = 5,
+    levels: Any = transforms.DEFAULT_LEVELS,
     prefilter: bool = False,
     postfilter: bool = True,
     separable: bool = True,

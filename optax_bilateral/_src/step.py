@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src import layout, numerics
+from optax_bilateral._src import auto, layout, numerics
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.leaves import log_transform
 
@@ -51,6 +51,7 @@ class LeafRule(NamedTuple):
     guard_sigma: bool  # sigma_d is traced: NaN update if negative or NaN
     compute_dtype: Any = None  # postfilter: the moments' arithmetic dtype
     constants: tuple = ()  # ((name, number), ...): hyperparameters known now
+    auto_sigma: bool = False  # sigma_d="auto": chosen from the data (module auto)
 
 
 def split_numbers(**values: Any) -> tuple[tuple, dict]:
@@ -63,38 +64,64 @@ def split_numbers(**values: Any) -> tuple[tuple, dict]:
 
 @functools.partial(jax.jit, static_argnames=("rule",), inline=True)
 def leaf_step(
-    g: jax.Array, guide: jax.Array | None, moments: Moments, hyper: dict, *, rule: LeafRule
-) -> tuple[jax.Array, Moments]:
-    """One leaf's output and (postfilter) new moments.
+    g: jax.Array,
+    guide: jax.Array | None,
+    moments: Moments,
+    hyper: dict,
+    auto_state: auto.AutoState | None = None,
+    *,
+    rule: LeafRule,
+) -> tuple[jax.Array, Moments, auto.AutoState | None]:
+    """One leaf's output, (postfilter) new moments and (``sigma_d="auto"``) new auto state.
 
     Args:
       g: the leaf's gradient.
       guide: its guide (None for ``guide="self"`` or an unfiltered leaf).
       moments: the stored ``(m, v)``, or None (prefilter; memoryless postfilter).
-      hyper: the traced hyperparameters (those not in ``rule.constants``) and, for
-        the postfilter, the bias corrections ``c1``, ``c2``.
+      hyper: the traced hyperparameters (those not in ``rule.constants``), the step
+        ``count`` and, for the postfilter, the bias corrections ``c1``, ``c2``.
+      auto_state: with ``rule.auto_sigma``, the leaf's :class:`auto.AutoState`.
       rule: the static settings.
 
     Returns:
       (the prefiltered gradient or the step, the new ``(m, v)`` in their stored dtypes
-      or None).
+      or None, the new auto state or None).
     """
+    new_auto = None
+    if rule.auto_sigma:
+        hyper, new_auto = _auto_sigma(rule, g, guide, hyper, auto_state)
     if rule.stage == "prefilter":
         operands = (g, guide, hyper)
         if rule.mask_unobserved:
             out = _prefilter_masked(rule, operands)
         else:
             out = _when_clean(rule, g, _prefilter_plain, _prefilter_masked, operands)
-        return _guarded(rule, out, hyper), None
+        return _guarded(rule, out, hyper), None, new_auto
     operands = (g, guide, moments, hyper)
     if rule.mask_unobserved:
-        d, m, v = _postfilter_masked(rule, operands)
+        d, m, v, residual = _postfilter_masked(rule, operands)
     else:
-        d, m, v = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
+        d, m, v, residual = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
     d = _guarded(rule, d, hyper)
+    if new_auto is not None and residual is not None and new_auto.residual is not None:
+        new_auto = new_auto._replace(residual=residual.astype(new_auto.residual.dtype))
     if moments is None:
-        return d, None
-    return d, (m.astype(moments[0].dtype), v.astype(moments[1].dtype))
+        return d, None, new_auto
+    return d, (m.astype(moments[0].dtype), v.astype(moments[1].dtype)), new_auto
+
+
+def _auto_sigma(rule, g, guide, hyper, state):
+    """``hyper`` with the leaf's data-driven sigma_d (and the stored residual); the new state
+    with this step's guide."""
+    hyper = dict(hyper)
+    if state is not None and state.residual is not None:
+        hyper["residual"] = state.residual
+    if rule.self_guided or guide is None:
+        return hyper, state  # each field's own sigma_d, in filter_fields
+    previous = None if state is None else state.previous_guide
+    hyper["sigma_d"] = auto.sigma(guide, previous, hyper["count"], rule.axes)
+    keep = guide if previous is None else guide.astype(previous.dtype)
+    return hyper, auto.AutoState(keep, None if state is None else state.residual)
 
 
 def _when_clean(rule, g, plain, masked, operands):
@@ -109,7 +136,7 @@ def _when_clean(rule, g, plain, masked, operands):
 
 
 def _guarded(rule, out, hyper):
-    if rule.axes and rule.guard_sigma:
+    if rule.axes and rule.guard_sigma and not rule.auto_sigma:
         return out * numerics.sigma_guard(_sigma(rule, hyper)).astype(out.dtype)
     return out
 
@@ -151,8 +178,8 @@ def _prefilter_masked(rule, operands):
 def _postfilter_plain(rule, operands):
     g, guide, moments, hyper = operands
     m, v = _moments(rule, g, moments, hyper, clip=False)
-    m_f, v_f = _filtered_moments(rule, m, v, guide, hyper, None)
-    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v
+    m_f, v_f, residual = _filtered_moments(rule, m, v, guide, hyper, None)
+    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v, residual
 
 
 def _postfilter_masked(rule, operands):
@@ -169,9 +196,11 @@ def _postfilter_masked(rule, operands):
     if moments is not None:
         m = jnp.where(obs_full, m, moments[0].astype(rule.compute_dtype))
         v = jnp.where(obs_full, v, moments[1].astype(rule.compute_dtype))
-    m_f, v_f = _filtered_moments(rule, m, v, guide, hyper, observed if rule.axes else None)
+    m_f, v_f, residual = _filtered_moments(
+        rule, m, v, guide, hyper, observed if rule.axes else None
+    )
     d = jnp.where(obs_full, _step(rule, m_f, v_f, hyper), 0)
-    return d.astype(g.dtype), m, v
+    return d.astype(g.dtype), m, v, residual
 
 
 # ----------------------------------------------------------------------------------------
@@ -202,10 +231,26 @@ def _moments(rule, g, moments, hyper, *, clip: bool):
 
 
 def _filtered_moments(rule, m, v, guide, hyper, observed):
-    """B m and B v, with one set of weights (unfiltered where the leaf is not filtered)."""
+    """B m and B v, with one set of weights (unfiltered where the leaf is not filtered), and
+    the new residual EMA (``sigma_d="auto"`` with moments, else None)."""
     if not rule.axes:
-        return m, v
-    return filter_fields(rule, (m, v), guide, hyper, observed)
+        return m, v, None
+    m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
+    if "residual" not in hyper:
+        return m_f, v_f, None
+    return auto.blend(
+        m,
+        v,
+        m_f,
+        v_f,
+        hyper["residual"].astype(m.dtype),
+        b1=_number(rule, hyper, "b1"),
+        c1=hyper["c1"],
+        c2=hyper["c2"],
+        count=hyper["count"],
+        axes=rule.axes,
+        observed=auto.full_mask(observed, m.ndim, rule.axes),
+    )
 
 
 def _step(rule, m_f, v_f, hyper):
@@ -240,10 +285,14 @@ def _filter(rule, fields, guide, hyper, observed):
         nan_guide = nan_guide_at(guide, observed, rule.axes)
         if nan_guide is not None:
             guide, observed = nan_guide, None
+    if rule.auto_sigma and rule.self_guided:
+        sigma_d = auto.sigma(guide, None, hyper["count"], rule.axes)
+    else:
+        sigma_d = _sigma(rule, hyper)
     return atrous_bilateral(
         fields,
         guide,
-        sigma_d=_sigma(rule, hyper),
+        sigma_d=sigma_d,
         levels=rule.levels,
         spatial_axes=rule.axes,
         separable=rule.separable,
