@@ -72,6 +72,8 @@ class Scene:
         covers ``log_guide=True`` (as the paper's texture runs).
       error_name: what ``error`` measures, for tables.
       config: JSON-able settings that identify the problem (the cache key).
+      spatial_axes: the parameters' spatial axes, passed to every filtered method, where
+        the library's default leaf rule would not filter them (a 1-D (N, 1) signal).
       batch: runs advanced together (their gradients in one vmapped program).
     """
 
@@ -89,6 +91,7 @@ class Scene:
     error_name: str = "mean |theta - theta_target|"
     config: dict = dataclasses.field(default_factory=dict)
     batch: int = 24
+    spatial_axes: Any = None
 
     def initial_error(self) -> float:
         return float(self.error(self.data, self.init))
@@ -235,9 +238,9 @@ def signal1d(quick: bool) -> Scene:
         init=jnp.full((n, 1), 0.5, jnp.float32), data={"y": y, "k": k, "target": x_t}, grad=grad,
         project=lambda data, x: jnp.clip(x, 0.0, 1.0),
         error=lambda data, x: jnp.mean(jnp.abs(x - data["target"])),
-        iterations=iterations, learning_rates=_around(0.02),
+        iterations=iterations, learning_rates=_around(0.02), spatial_axes=(0,),
         config=dict(kind="signal1d", n=n, blur_sigma=blur_sigma, fraction=fraction, noise=noise,
-                    iterations=iterations, init=0.5))
+                    iterations=iterations, init=0.5, spatial_axes=[0]))
 
 
 # ----------------------------------------------------------------------------- deblurring

@@ -431,13 +431,17 @@ def _round(x: float) -> float:
 
 
 def _bind(factory, static: Mapping[str, Any], scene: sc.Scene):
-    """``factory`` with the static settings and (if it takes one) the scene bound."""
+    """``factory`` with the static settings and (if it takes them) the scene and the scene's
+    ``spatial_axes`` bound."""
     kwargs = dict(static)
     try:
-        if "scene" in inspect.signature(factory).parameters:
-            kwargs["scene"] = scene
+        accepts = inspect.signature(factory).parameters
     except (TypeError, ValueError):
-        pass
+        accepts = {}
+    if "scene" in accepts:
+        kwargs["scene"] = scene
+    if "spatial_axes" in accepts and scene.spatial_axes is not None:
+        kwargs["spatial_axes"] = scene.spatial_axes
     if not kwargs:
         return factory
 
@@ -459,8 +463,9 @@ def _levels_that_matter(scene: sc.Scene, levels_grid: Sequence[int]) -> tuple[li
     A level of stride ``2^(L-1)`` at least every spatial size has no neighbour inside the
     grid: it is the identity, so ``levels = L`` gives the results of ``L - 1``.
     """
-    sizes = [max(np.shape(x)[a] for a in ob.default_spatial_axes(x))
-             for x in jax.tree.leaves(scene.init) if ob.default_spatial_axes(x)]
+    axes = ob.filtered_axes(scene.init, spatial_axes=scene.spatial_axes)
+    sizes = [max(np.shape(x)[a] for a in ax)
+             for x, ax in zip(jax.tree.leaves(scene.init), axes.values()) if ax]
     largest = max(sizes) if sizes else 1
     keep, same = [], {}
     for lev in sorted(levels_grid):
@@ -471,26 +476,27 @@ def _levels_that_matter(scene: sc.Scene, levels_grid: Sequence[int]) -> tuple[li
     return keep, same
 
 
-def bilateral_factory(learning_rate, sigma_d, *, levels, log_guide):
+def bilateral_factory(learning_rate, sigma_d, *, levels, log_guide, spatial_axes=None):
     """``bilateral_adam`` (postfilter, its default ``b1``) with a traced ``sigma_d``."""
-    return ob.bilateral_adam(learning_rate, sigma_d=sigma_d, levels=levels, log_guide=log_guide)
+    return ob.bilateral_adam(learning_rate, sigma_d=sigma_d, levels=levels, log_guide=log_guide,
+                             spatial_axes=spatial_axes)
 
 
 def adam_factory(learning_rate, b1, b2=0.999):
     return optax.adam(learning_rate, b1=b1, b2=b2)
 
 
-def pyramid_factory(learning_rate, *, levels):
-    return ob.pyramid_adam(learning_rate, levels=levels)
+def pyramid_factory(learning_rate, *, levels, spatial_axes=None):
+    return ob.pyramid_adam(learning_rate, levels=levels, spatial_axes=spatial_axes)
 
 
-def defaults_factory(learning_rate):
+def defaults_factory(learning_rate, spatial_axes=None):
     """``bilateral_adam`` with every default (whatever the installed library's defaults are)."""
-    return ob.bilateral_adam(learning_rate)
+    return ob.bilateral_adam(learning_rate, spatial_axes=spatial_axes)
 
 
-def auto_factory(learning_rate):
-    return ob.bilateral_adam(learning_rate, sigma_d="auto")
+def auto_factory(learning_rate, spatial_axes=None):
+    return ob.bilateral_adam(learning_rate, sigma_d="auto", spatial_axes=spatial_axes)
 
 
 def auto_available() -> bool:

@@ -8,11 +8,13 @@ from importlib.metadata import PackageNotFoundError, version
 
 from optax_bilateral import mesh
 from optax_bilateral._src.alias import bilateral_adam
+from optax_bilateral._src.auto import AutoState
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
 from optax_bilateral._src.pyramid import LaplacianPyramidState, laplacian_pyramid, pyramid_adam
 from optax_bilateral._src.state_io import load_state, save_state
 from optax_bilateral._src.transforms import (
+    DEFAULT_LEVELS,
     DEFAULT_SIGMA_D,
     PostfilterState,
     PrefilterState,
@@ -28,7 +30,9 @@ except PackageNotFoundError:  # a source tree that is not installed
     __version__ = "unknown"
 
 __all__ = (
+    "DEFAULT_LEVELS",
     "DEFAULT_SIGMA_D",
+    "AutoState",
     "LaplacianPyramidState",
     "LeafRuleWarning",
     "PostfilterState",

@@ -59,7 +59,7 @@ def hlo_hash(shape, separable: bool) -> str:
 
     import optax_bilateral as ob
 
-    opt = ob.bilateral_adam(1e-2, levels=5, separable=separable)
+    opt = ob.bilateral_adam(1e-2, sigma_d=0.1, levels=5, separable=separable)
     p = jax.ShapeDtypeStruct(shape, jnp.float32)
     state = jax.eval_shape(opt.init, p)
     text = jax.jit(opt.update).lower(p, state, p).as_text()

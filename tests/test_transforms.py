@@ -465,7 +465,7 @@ def test_finite_gradients_build_no_observation_mask(prefilter):
     """The unobserved-texel masks belong to the masked branch: a finite step must not
     pay for them (a cond's closed-over values are computed before it, every step)."""
     theta = jax.random.uniform(KEY, (16, 16, 3))
-    opt = ob.bilateral_adam(0.1, levels=2, prefilter=prefilter)
+    opt = ob.bilateral_adam(0.1, sigma_d=0.1, levels=2, prefilter=prefilter)
     jaxpr = jax.make_jaxpr(opt.update)(_grads(0, theta), opt.init(theta), theta).jaxpr
 
     def top_level_prims(jx):

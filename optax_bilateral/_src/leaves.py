@@ -227,8 +227,10 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
         lev = check_levels(lev, name=f"levels (for leaf {name})")
         ax = _resolve_axes(leaf, ax, name, warn and lev > 0)
         if sig is None:
-            raise ValueError(f"sigma_d is None for leaf {name}; pass a number (inf for a low-pass)")
-        check_sigma_d(sig, name=f"sigma_d (for leaf {name})")
+            raise ValueError(
+                f"sigma_d is None for leaf {name}; pass a number (inf for a low-pass) or 'auto'"
+            )
+        check_sigma_d(sig, name=f"sigma_d (for leaf {name})", allow_auto=True)
         if ax and lev > 0:
             check_real_floating(
                 leaf,
@@ -255,7 +257,7 @@ def check_real_floating(leaf: Any, name: str, why: str) -> None:
 
 
 def filtered_axes(
-    params: Any, *, spatial_axes: SpatialAxesSetting = None, levels: Any = 5
+    params: Any, *, spatial_axes: SpatialAxesSetting = None, levels: Any = 3
 ) -> dict[str, tuple[int, ...]]:
     """The spatial axes each leaf of ``params`` is filtered along, ``()`` for none.
 

@@ -29,8 +29,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src import layout, numerics
+from optax_bilateral._src import auto, layout, numerics
 from optax_bilateral._src.filter import atrous_bilateral
+from optax_bilateral._src.leaves import log_transform
 
 Moments = tuple[jax.Array, jax.Array] | None
 
@@ -52,6 +53,7 @@ class LeafRule(NamedTuple):
     filter_m: bool = True  # postfilter: filter m (the authors' mtfilter)
     filter_v: bool = True  # postfilter: filter v (the authors' vtfilter)
     second_moment: str = "elementwise"  # or "uniform": the max of v over the leaf
+    auto_sigma: bool = False  # sigma_d="auto": chosen from the data (module auto)
 
 
 def split_numbers(**values: Any) -> tuple[tuple, dict]:
@@ -64,38 +66,64 @@ def split_numbers(**values: Any) -> tuple[tuple, dict]:
 
 @functools.partial(jax.jit, static_argnames=("rule",), inline=True)
 def leaf_step(
-    g: jax.Array, guide: jax.Array | None, moments: Moments, hyper: dict, *, rule: LeafRule
-) -> tuple[jax.Array, Moments]:
-    """One leaf's output and (postfilter) new moments.
+    g: jax.Array,
+    guide: jax.Array | None,
+    moments: Moments,
+    hyper: dict,
+    auto_state: auto.AutoState | None = None,
+    *,
+    rule: LeafRule,
+) -> tuple[jax.Array, Moments, auto.AutoState | None]:
+    """One leaf's output, (postfilter) new moments and (``sigma_d="auto"``) new auto state.
 
     Args:
       g: the leaf's gradient.
       guide: its guide (None for ``guide="self"`` or an unfiltered leaf).
       moments: the stored ``(m, v)``, or None (prefilter; memoryless postfilter).
-      hyper: the traced hyperparameters (those not in ``rule.constants``) and, for
-        the postfilter, the bias corrections ``c1``, ``c2``.
+      hyper: the traced hyperparameters (those not in ``rule.constants``), the step
+        ``count`` and, for the postfilter, the bias corrections ``c1``, ``c2``.
+      auto_state: with ``rule.auto_sigma``, the leaf's :class:`auto.AutoState`.
       rule: the static settings.
 
     Returns:
       (the prefiltered gradient or the step, the new ``(m, v)`` in their stored dtypes
-      or None).
+      or None, the new auto state or None).
     """
+    new_auto = None
+    if rule.auto_sigma:
+        hyper, new_auto = _auto_sigma(rule, g, guide, hyper, auto_state)
     if rule.stage == "prefilter":
         operands = (g, guide, hyper)
         if rule.mask_unobserved:
             out = _prefilter_masked(rule, operands)
         else:
             out = _when_clean(rule, g, _prefilter_plain, _prefilter_masked, operands)
-        return _guarded(rule, out, hyper), None
+        return _guarded(rule, out, hyper), None, new_auto
     operands = (g, guide, moments, hyper)
     if rule.mask_unobserved:
-        d, m, v = _postfilter_masked(rule, operands)
+        d, m, v, residual = _postfilter_masked(rule, operands)
     else:
-        d, m, v = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
+        d, m, v, residual = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
     d = _guarded(rule, d, hyper)
+    if new_auto is not None and residual is not None and new_auto.residual is not None:
+        new_auto = new_auto._replace(residual=residual.astype(new_auto.residual.dtype))
     if moments is None:
-        return d, None
-    return d, (m.astype(moments[0].dtype), v.astype(moments[1].dtype))
+        return d, None, new_auto
+    return d, (m.astype(moments[0].dtype), v.astype(moments[1].dtype)), new_auto
+
+
+def _auto_sigma(rule, g, guide, hyper, state):
+    """``hyper`` with the leaf's data-driven sigma_d (and the stored residual); the new state
+    with this step's guide."""
+    hyper = dict(hyper)
+    if state is not None and state.residual is not None:
+        hyper["residual"] = state.residual
+    if rule.self_guided or guide is None:
+        return hyper, state  # each field's own sigma_d, in filter_fields
+    previous = None if state is None else state.previous_guide
+    hyper["sigma_d"] = auto.sigma(guide, previous, hyper["count"], rule.axes)
+    keep = guide if previous is None else guide.astype(previous.dtype)
+    return hyper, auto.AutoState(keep, None if state is None else state.residual)
 
 
 def _when_clean(rule, g, plain, masked, operands):
@@ -110,7 +138,7 @@ def _when_clean(rule, g, plain, masked, operands):
 
 
 def _guarded(rule, out, hyper):
-    if rule.axes and rule.guard_sigma:
+    if rule.axes and rule.guard_sigma and not rule.auto_sigma:
         return out * numerics.sigma_guard(_sigma(rule, hyper)).astype(out.dtype)
     return out
 
@@ -152,8 +180,8 @@ def _prefilter_masked(rule, operands):
 def _postfilter_plain(rule, operands):
     g, guide, moments, hyper = operands
     m, v = _moments(rule, g, moments, hyper, clip=False)
-    m_f, v_f = _filtered_moments(rule, m, v, guide, hyper, None)
-    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v
+    m_f, v_f, residual = _filtered_moments(rule, m, v, guide, hyper, None)
+    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v, residual
 
 
 def _postfilter_masked(rule, operands):
@@ -170,12 +198,14 @@ def _postfilter_masked(rule, operands):
     if moments is not None:
         m = jnp.where(obs_full, m, moments[0].astype(rule.compute_dtype))
         v = jnp.where(obs_full, v, moments[1].astype(rule.compute_dtype))
-    m_f, v_f = _filtered_moments(rule, m, v, guide, hyper, observed if rule.axes else None)
+    m_f, v_f, residual = _filtered_moments(
+        rule, m, v, guide, hyper, observed if rule.axes else None
+    )
     if rule.second_moment == "uniform":
         # The max over the leaf counts unobserved texels by the moments they keep.
         v_f = jnp.where(obs_full, v_f, v)
     d = jnp.where(obs_full, _step(rule, m_f, v_f, hyper), 0)
-    return d.astype(g.dtype), m, v
+    return d.astype(g.dtype), m, v, residual
 
 
 # ----------------------------------------------------------------------------------------
@@ -207,14 +237,30 @@ def _moments(rule, g, moments, hyper, *, clip: bool):
 
 def _filtered_moments(rule, m, v, guide, hyper, observed):
     """B m and B v, with one set of weights (unfiltered where the leaf is not filtered, and
-    each left as it is when ``filter_m`` / ``filter_v`` is off)."""
+    each left as it is when ``filter_m`` / ``filter_v`` is off), and the new residual EMA
+    (``sigma_d="auto"`` with moments and both filtered, else None)."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
-        return m, v
+        return m, v, None
     if not rule.filter_v:
-        return filter_fields(rule, m, guide, hyper, observed), v
+        return filter_fields(rule, m, guide, hyper, observed), v, None
     if not rule.filter_m:
-        return m, filter_fields(rule, v, guide, hyper, observed)
-    return filter_fields(rule, (m, v), guide, hyper, observed)
+        return m, filter_fields(rule, v, guide, hyper, observed), None
+    m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
+    if "residual" not in hyper:
+        return m_f, v_f, None
+    return auto.blend(
+        m,
+        v,
+        m_f,
+        v_f,
+        hyper["residual"].astype(m.dtype),
+        b1=_number(rule, hyper, "b1"),
+        c1=hyper["c1"],
+        c2=hyper["c2"],
+        count=hyper["count"],
+        axes=rule.axes,
+        observed=auto.full_mask(observed, m.ndim, rule.axes),
+    )
 
 
 def _step(rule, m_f, v_f, hyper):
@@ -234,17 +280,33 @@ def filter_fields(rule, fields, guide, hyper, observed) -> Any:
     are left out by the filter's ``mask`` (a guide read from the fields cannot carry NaN).
     """
     if rule.self_guided:
-        return atrous_bilateral(
-            fields,
-            "self",
-            sigma_d=_sigma(rule, hyper),
-            levels=rule.levels,
-            spatial_axes=rule.axes,
-            separable=rule.separable,
-            mask=observed,
-            log_guide=rule.log_guide,
-        )
+        if rule.auto_sigma:  # each field's own sigma_d, from its own contrast
+            many = isinstance(fields, tuple)
+            out = tuple(
+                _self_filter(rule, f, _self_sigma(rule, f, hyper), observed)
+                for f in (fields if many else (fields,))
+            )
+            return out if many else out[0]
+        return _self_filter(rule, fields, _sigma(rule, hyper), observed)
     return _filter(rule, fields, guide, hyper, observed)
+
+
+def _self_filter(rule, fields, sigma_d, observed):
+    return atrous_bilateral(
+        fields,
+        "self",
+        sigma_d=sigma_d,
+        levels=rule.levels,
+        spatial_axes=rule.axes,
+        separable=rule.separable,
+        mask=observed,
+        log_guide=rule.log_guide,
+    )
+
+
+def _self_sigma(rule, field, hyper):
+    guide = log_transform(field) if rule.log_guide else field
+    return auto.sigma(guide, None, hyper["count"], rule.axes)
 
 
 def _filter(rule, fields, guide, hyper, observed):

@@ -49,13 +49,13 @@ them, docs/robustness.md has the full table):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
 import optax
 
-from optax_bilateral._src import leaves, numerics
+from optax_bilateral._src import auto, leaves, numerics
 from optax_bilateral._src.step import LeafRule, leaf_step, split_numbers
 from optax_bilateral._src.validation import (
     check_bool,
@@ -74,9 +74,10 @@ if TYPE_CHECKING:
 
 SecondMoment = Literal["elementwise", "uniform"]
 
-# Chosen for parameters in a unit range (albedo, roughness, density) and for
-# log-domain guides: a guide step of 0.1 weighs e^-1, a step of 0.5 weighs e^-5.
-DEFAULT_SIGMA_D = 0.1
+# Chosen from the data every step (docs/auto_sigma.md): no number suits every problem.
+DEFAULT_SIGMA_D = "auto"
+# F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.
+DEFAULT_LEVELS = 3
 
 
 # ----------------------------------------------------------------------------------------
@@ -152,12 +153,19 @@ def scale_by_adam(
 
 
 class PrefilterState(NamedTuple):
-    """:func:`prefilter` is stateless."""
+    """State of :func:`prefilter`: none, unless a leaf has ``sigma_d="auto"``.
+
+    Then ``count`` is the step count and ``auto`` holds, per leaf, the guide of the last
+    update (:class:`AutoState`; None for leaves with a numeric sigma_d).
+    """
+
+    count: Any = None  # shape=(), int32, or None
+    auto: Any = None
 
 
 def prefilter(
     sigma_d: Any = DEFAULT_SIGMA_D,
-    levels: Any = 5,
+    levels: Any = DEFAULT_LEVELS,
     *,
     separable: bool = True,
     guide: GuideSetting = "params",
@@ -176,8 +184,9 @@ def prefilter(
     treats them as unobserved (keeps their moments, zero update).
 
     Args:
-      sigma_d: data-term scale (>= 0; ``inf`` = low-pass), a number or a pytree
-        prefix of the parameters. Traceable.
+      sigma_d: data-term scale (>= 0; ``inf`` = low-pass) or ``"auto"`` (the
+        default: 3x the guide's mean change per step, per leaf; docs/auto_sigma.md),
+        a value or a pytree prefix of the parameters. A number is traceable.
       levels: F, number of a-trous levels (static), a number or a prefix. The
         authors' ``stride_levels = L`` is ``levels = L - 1`` (their strides are 0,
         1, 2, 4, ...; the stride-0 level is the identity).
@@ -203,7 +212,7 @@ def prefilter(
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        leaves.check_params(
+        specs = leaves.check_params(
             params,
             spatial_axes=spatial_axes,
             sigma_d=sigma_d,
@@ -212,7 +221,10 @@ def prefilter(
             transform="prefilter",
             all_leaves=False,
         )
-        return PrefilterState()
+        auto_state = _auto_init(params, specs, guide, log_guide, "prefilter", with_residual=False)
+        if auto_state is None:
+            return PrefilterState()
+        return PrefilterState(count=jnp.zeros([], jnp.int32), auto=auto_state)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
@@ -221,12 +233,19 @@ def prefilter(
         )
         guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "prefilter")
         flat, treedef = jax.tree.flatten(updates)
-        out = []
-        for g, leaf_guide, spec in zip(flat, guides, specs):
+        # A stateless prefilter's state may also be passed as () (it was an empty tuple).
+        auto_tree = state.auto if isinstance(state, PrefilterState) else None
+        count = None if auto_tree is None else optax.safe_increment(cast(Any, state).count)
+        autos = _auto_leaves(auto_tree, treedef)
+        out, new_autos = [], []
+        for g, leaf_guide, spec, auto_state in zip(flat, guides, specs, autos):
             if not spec.axes:
                 out.append(g)
+                new_autos.append(auto_state)
                 continue
-            constants, traced = split_numbers(sigma_d=spec.sigma_d)
+            constants, traced = split_numbers(**_sigma_setting(spec.sigma_d))
+            if auto.is_auto(spec.sigma_d):
+                traced["count"] = count
             rule = LeafRule(
                 stage="prefilter",
                 axes=spec.axes,
@@ -238,9 +257,15 @@ def prefilter(
                 limit=numerics.prefilter_limit(g.dtype),
                 guard_sigma=not is_concrete(spec.sigma_d),
                 constants=constants,
+                auto_sigma=auto.is_auto(spec.sigma_d),
             )
-            out.append(leaf_step(g, leaf_guide, None, traced, rule=rule)[0])
-        return jax.tree.unflatten(treedef, out), state
+            d, _, new_auto = leaf_step(g, leaf_guide, None, traced, auto_state, rule=rule)
+            out.append(d)
+            new_autos.append(new_auto)
+        if auto_tree is None:
+            return jax.tree.unflatten(treedef, out), state
+        new_state = PrefilterState(count=count, auto=jax.tree.unflatten(treedef, new_autos))
+        return jax.tree.unflatten(treedef, out), new_state
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
@@ -253,8 +278,10 @@ def _static_checks(sigma_d, levels, spatial_axes) -> None:
     """
     for sig in jax.tree.leaves(sigma_d, is_leaf=lambda x: x is None):
         if sig is None:
-            raise ValueError("sigma_d must be a number >= 0 (inf for a low-pass), got None")
-        check_sigma_d(sig)
+            raise ValueError(
+                "sigma_d must be a number >= 0 (inf for a low-pass) or 'auto', got None"
+            )
+        check_sigma_d(sig, allow_auto=True)
     for lev in jax.tree.leaves(levels):
         if not (hasattr(lev, "shape") and not is_concrete(lev)):  # traced: update says how
             check_levels(lev)
@@ -268,12 +295,15 @@ def _static_checks(sigma_d, levels, spatial_axes) -> None:
 class PostfilterState(NamedTuple):
     """State of :func:`postfilter`: the *unfiltered* moments (eqs. 2, 4).
 
-    ``mu`` and ``nu`` are ``None`` in the memoryless case ``b1 = b2 = 0``.
+    ``mu`` and ``nu`` are ``None`` in the memoryless case ``b1 = b2 = 0``. ``auto`` is
+    None unless a leaf has ``sigma_d="auto"``; then it holds, per leaf, that leaf's
+    :class:`AutoState` (None for leaves with a numeric sigma_d).
     """
 
     count: jax.Array  # shape=(), int32
     mu: optax.Updates | None
     nu: optax.Updates | None
+    auto: Any = None
 
 
 def postfilter(
@@ -282,7 +312,7 @@ def postfilter(
     eps: jax.typing.ArrayLike = 1e-8,
     *,
     sigma_d: Any = DEFAULT_SIGMA_D,
-    levels: Any = 5,
+    levels: Any = DEFAULT_LEVELS,
     separable: bool = True,
     guide: GuideSetting = "params",
     log_guide: bool = False,
@@ -319,8 +349,12 @@ def postfilter(
       b2: decay rate of the second moment, in [0, 1); ``None`` means
         ``1 - (1 - b1)^2`` (both references).
       eps: added to the denominator, as in Adam.
-      sigma_d: data-term scale (>= 0; ``inf`` = low-pass), in the guide's units; a
-        number or a pytree prefix of the parameters. Traceable.
+      sigma_d: data-term scale (>= 0; ``inf`` = low-pass), in the guide's units, or
+        ``"auto"`` (the default: 3x the guide's mean change per step, per leaf, and a
+        per-entry blend ``lam m + (1 - lam) B m`` (likewise ``v``, the same ``lam``)
+        where the filter's residual persists beyond the moments' noise;
+        docs/auto_sigma.md); a value or a pytree prefix of the parameters. A number is
+        traceable.
       levels: F, number of a-trous levels (static), a number or a prefix; the
         authors' ``stride_levels`` - 1.
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
@@ -367,7 +401,7 @@ def postfilter(
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        leaves.check_params(
+        specs = leaves.check_params(
             params,
             spatial_axes=spatial_axes,
             sigma_d=sigma_d,
@@ -377,11 +411,15 @@ def postfilter(
             all_leaves=True,
         )
         count = jnp.zeros([], jnp.int32)
-        if is_zero(b1) and is_zero(b2):
-            return PostfilterState(count=count, mu=None, nu=None)
+        memoryless = is_zero(b1) and is_zero(b2)
+        auto_state = _auto_init(
+            params, specs, guide, log_guide, "postfilter", with_residual=not memoryless
+        )
+        if memoryless:
+            return PostfilterState(count=count, mu=None, nu=None, auto=auto_state)
         mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
         nu = jax.tree.map(jnp.zeros_like, params)
-        return PostfilterState(count=count, mu=mu, nu=nu)
+        return PostfilterState(count=count, mu=mu, nu=nu, auto=auto_state)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
@@ -400,9 +438,12 @@ def postfilter(
         c1 = numerics.bias_correction(b1, count_inc)
         c2 = numerics.bias_correction(b2, count_inc)
         one_minus_b1, one_minus_b2 = numerics.one_minus(b1), numerics.one_minus(b2)
+        autos = _auto_leaves(state.auto, treedef)
 
-        outs, new_mu, new_nu = [], [], []
-        for g, leaf_guide, spec, m_old, v_old in zip(flat, guides, specs, mus, nus):
+        outs, new_mu, new_nu, new_autos = [], [], [], []
+        for g, leaf_guide, spec, m_old, v_old, auto_state in zip(
+            flat, guides, specs, mus, nus, autos
+        ):
             moments = None if m_old is None or v_old is None else (m_old, v_old)
             # Moments are updated in at least float32 and stored back in their own dtype.
             stored = [] if moments is None else list(moments)
@@ -414,7 +455,7 @@ def postfilter(
                     g.dtype, compute_dtype, moments[0].dtype, moments[1].dtype
                 )
             constants, traced = split_numbers(
-                sigma_d=spec.sigma_d,
+                **_sigma_setting(spec.sigma_d),
                 b1=b1,
                 b2=b2,
                 one_minus_b1=one_minus_b1,
@@ -437,9 +478,12 @@ def postfilter(
                 filter_m=filter_m,
                 filter_v=filter_v,
                 second_moment=second_moment,
+                auto_sigma=bool(spec.axes) and auto.is_auto(spec.sigma_d),
             )
-            d, new = leaf_step(g, leaf_guide, moments, dict(traced, c1=c1, c2=c2), rule=rule)
+            hyper = dict(traced, c1=c1, c2=c2, count=count_inc)
+            d, new, new_auto = leaf_step(g, leaf_guide, moments, hyper, auto_state, rule=rule)
             outs.append(d)
+            new_autos.append(new_auto if rule.auto_sigma else auto_state)
             if new is not None:
                 new_mu.append(new[0])
                 new_nu.append(new[1])
@@ -448,8 +492,49 @@ def postfilter(
             count=count_inc,
             mu=None if memoryless else jax.tree.unflatten(treedef, new_mu),
             nu=None if memoryless else jax.tree.unflatten(treedef, new_nu),
+            auto=None if state.auto is None else jax.tree.unflatten(treedef, new_autos),
         )
         return jax.tree.unflatten(treedef, outs), new_state
 
     # optax's OptState alias admits no None fields (the memoryless state has them).
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)  # pyright: ignore[reportArgumentType]
+
+
+# ----------------------------------------------------------------------------------------
+# sigma_d="auto"
+
+AutoState = auto.AutoState
+
+
+def _sigma_setting(sigma_d) -> dict:
+    """The ``sigma_d`` hyperparameter of a leaf's step: none for "auto" (computed inside)."""
+    return {} if auto.is_auto(sigma_d) else {"sigma_d": sigma_d}
+
+
+def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_residual: bool):
+    """Per leaf, an :class:`AutoState` where sigma_d is "auto" and the leaf is filtered (None
+    elsewhere); None if no leaf is."""
+    wanted = [bool(spec.axes) and auto.is_auto(spec.sigma_d) for spec in specs]
+    if not any(wanted):
+        return None
+    guides = leaves.guide_leaves(guide, params, params, specs, log_guide, transform)
+    states = []
+    for leaf, leaf_guide, want in zip(jax.tree.leaves(params), guides, wanted):
+        if not want:
+            states.append(None)
+            continue
+        dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
+        states.append(
+            AutoState(
+                previous_guide=None if leaf_guide is None else jnp.zeros_like(leaf_guide),
+                residual=jnp.zeros(jnp.shape(leaf), dtype) if with_residual else None,
+            )
+        )
+    return jax.tree.unflatten(jax.tree.structure(params), states)
+
+
+def _auto_leaves(tree, treedef) -> list:
+    """The per-leaf auto states (None where there are none)."""
+    if tree is None:
+        return [None] * treedef.num_leaves
+    return treedef.flatten_up_to(tree)

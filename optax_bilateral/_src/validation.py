@@ -28,12 +28,18 @@ def is_concrete(x: Any) -> bool:
     return True
 
 
-def check_sigma_d(sigma_d: Any, name: str = "sigma_d") -> None:
-    """Raises if a concrete ``sigma_d`` is negative, NaN or not a real scalar."""
+def check_sigma_d(sigma_d: Any, name: str = "sigma_d", *, allow_auto: bool = False) -> None:
+    """Raises if a concrete ``sigma_d`` is negative, NaN or not a real scalar (or, with
+    ``allow_auto``, the string "auto")."""
+    if allow_auto and isinstance(sigma_d, str):
+        if sigma_d != "auto":
+            raise ValueError(f"{name} must be a number >= 0 or 'auto', got {sigma_d!r}")
+        return
     if isinstance(sigma_d, bool) or not (
         isinstance(sigma_d, numbers.Real) or hasattr(sigma_d, "dtype")
     ):
-        raise TypeError(f"{name} must be a real scalar (float, inf allowed), got {sigma_d!r}")
+        also = " or 'auto'" if allow_auto else ""
+        raise TypeError(f"{name} must be a real scalar (float, inf allowed){also}, got {sigma_d!r}")
     sigma_d = cast(Any, sigma_d)  # a number or an array: told apart by attribute below
     if hasattr(sigma_d, "shape") and np.shape(sigma_d) != ():
         raise ValueError(f"{name} must be a scalar, got an array of shape {np.shape(sigma_d)}")

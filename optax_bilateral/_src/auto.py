@@ -1,0 +1,157 @@
+"""``sigma_d="auto"``: the data term's scale, and how much to filter, chosen from the data.
+
+Two parts, derived in docs/auto_sigma.md and measured by ``python -m experiments.tuning``:
+
+* **The scale.** ``sigma_d = STEP_FACTOR * mean_p ||guide_t[p] - guide_{t-1}[p]||``: guide
+  differences smaller than a few optimisation steps are noise the optimiser is still
+  moving through; larger ones are edges. It scales with the guide (and with the learning
+  rate), so it needs no unit. Before the guide has moved (the first step) the guide's
+  mean neighbour difference stands in (``CONTRAST_FACTOR`` times it).
+* **The blend** (postfilter with moments only). The filter's bias accumulates over steps,
+  its noise reduction does not: texels where the residual ``r = m_hat - B m_hat`` persists
+  over time beyond what the moments' noise (supplement eq. 24, ``v - m^2``) explains keep
+  more of their unfiltered moments, ``m~ = lam m_hat + (1 - lam) B m_hat`` and likewise
+  ``v``. ``lam`` is per entry and the same for ``m`` and ``v``, so ``m~`` and ``v~`` come
+  from one non-negative, row-stochastic operator and the step stays bounded
+  (supplement §1.3). A leaf blends only where persistent residuals are widespread
+  (``GATE``): a few texels with large ``lam`` early on are noise in the estimate itself.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, cast
+
+import jax
+import jax.numpy as jnp
+
+from optax_bilateral._src import layout
+from optax_bilateral._src.filter import atrous_bilateral
+
+AUTO = "auto"
+STEP_FACTOR = 3.0  # sigma_d per mean guide step
+CONTRAST_FACTOR = 1.5  # sigma_d per mean deviation from the local average (~ neighbour difference)
+RESIDUAL_DECAY = 0.9  # the residual's EMA
+GAIN = 0.25  # lam = 0 until the persistent residual exceeds 1/GAIN times its noise floor
+POWER = 2.0
+GATE = (0.2, 0.35)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
+
+
+class AutoState(NamedTuple):
+    """One leaf's state for ``sigma_d="auto"``.
+
+    ``previous_guide``: the guide the last update saw (None for ``guide="self"``);
+    ``residual``: the EMA of ``m_hat - B m_hat`` (None without moments).
+    """
+
+    previous_guide: jax.Array | None
+    residual: jax.Array | None
+
+
+def is_auto(sigma_d: Any) -> bool:
+    return isinstance(sigma_d, str) and sigma_d == AUTO
+
+
+def _guide_axes(guide: jax.Array, axes: tuple[int, ...]) -> tuple[int, ...]:
+    """The spatial axes of ``guide``: ``axes`` for a leaf-shaped guide, all for a grid-only one."""
+    return tuple(range(guide.ndim)) if guide.ndim == len(axes) else axes
+
+
+def _texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    channels = tuple(a for a in range(x.ndim) if a not in axes)
+    return jnp.sqrt(jnp.sum(x * x, axis=channels)) if channels else jnp.abs(x)
+
+
+def _finite_mean(x: jax.Array) -> jax.Array:
+    """Mean over the entries that are not NaN (a masked guide holds NaN at unobserved
+    texels); 0 if none."""
+    ok = ~jnp.isnan(x)
+    return jnp.sum(jnp.where(ok, x, 0)) / jnp.maximum(jnp.sum(ok), 1)
+
+
+def contrast(guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    """The guide's mean distance from its local average (one low-pass level of the filter,
+    which runs sharded like the leaf): the scale of its texel-to-texel variation."""
+    guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
+    axes = _guide_axes(guide, axes)
+    (local,) = _smooth((jnp.nan_to_num(guide),), axes)
+    return _finite_mean(_texel_norm(guide - local, axes))
+
+
+def sigma(
+    guide: jax.Array, previous: jax.Array | None, count: jax.Array, axes: tuple[int, ...]
+) -> jax.Array:
+    """The leaf's sigma_d at step ``count`` (1 = first)."""
+    if previous is None:
+        return CONTRAST_FACTOR * contrast(guide, axes)
+    guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
+    step = _finite_mean(_texel_norm(guide - previous.astype(guide.dtype), _guide_axes(guide, axes)))
+    # The contrast costs a filter pass; only the first step (or a guide at rest) needs it.
+    return jax.lax.cond(
+        (count > 1) & (step > 0),
+        lambda: STEP_FACTOR * step,
+        lambda: (CONTRAST_FACTOR * contrast(guide, axes)).astype(step.dtype),
+    )
+
+
+def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:
+    """Var of a bias-corrected EMA (decay ``b``, ``c = 1 - b^t``) per unit sample variance:
+    ``(1-b)(1-b^2t) / ((1+b)(1-b^t)^2)``, with ``1 - b^2t = c (2 - c)``."""
+    return (1 - b) * (2 - c) / ((1 + b) * c)
+
+
+def _smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
+    """Local averages of the statistics: one level of the filter's 5-tap B-spline with
+    every weight 1 (sigma_d = inf), on one device or sharded like the leaf."""
+    # The guide is unused at sigma_d = inf: a grid of zeros, sharded like the leaf.
+    channels = tuple(a for a in range(fields[0].ndim) if a not in axes)
+    guide = jnp.zeros_like(jnp.sum(fields[0], axis=channels))
+    guide = jnp.transpose(guide, [sorted(axes).index(a) for a in axes])
+    out = atrous_bilateral(fields, guide, sigma_d=jnp.inf, levels=1, spatial_axes=axes)
+    return cast(tuple[jax.Array, ...], out)
+
+
+
+def blend(
+    m: jax.Array,
+    v: jax.Array,
+    bm: jax.Array,
+    bv: jax.Array,
+    residual: jax.Array,
+    *,
+    b1: Any,
+    c1: jax.Array,
+    c2: jax.Array,
+    count: jax.Array,
+    axes: tuple[int, ...],
+    observed: jax.Array | None,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(lam m + (1-lam) B m, lam v + (1-lam) B v, new residual EMA)`` for raw moments.
+
+    ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``observed``
+    (full-shape bool or None) keeps the residual where a texel was not observed.
+    """
+    dtype = m.dtype
+    b1 = jnp.asarray(b1, dtype)
+    c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
+    t = count.astype(dtype)
+    decay = jnp.asarray(RESIDUAL_DECAY, dtype)
+    new_residual = decay * residual + (1 - decay) * (m - bm) / c1
+    if observed is not None:
+        new_residual = jnp.where(observed, new_residual, residual)
+    residual_hat = new_residual / (1 - decay**t)
+    # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
+    ratio = _ema_variance_ratio(b1, c1)
+    usable = (count > 1) & (ratio < 1 - 1e-6)
+    k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
+    noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
+    residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)
+    residual_noise = residual_noise * (1 + b1 * decay) / (1 - b1 * decay)  # m_hat is correlated
+    floor, signal = _smooth((residual_noise, residual_hat**2), axes)
+    lam = 1 - floor / (GAIN * jnp.where(signal > 0, signal, 1))
+    lam = jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** POWER
+    lam = lam * jnp.clip((jnp.mean(lam) - GATE[0]) / (GATE[1] - GATE[0]), 0, 1)
+    return lam * m + (1 - lam) * bm, lam * v + (1 - lam) * bv, new_residual
+
+
+def full_mask(observed: jax.Array | None, ndim: int, axes: tuple[int, ...]) -> jax.Array | None:
+    return None if observed is None else layout.expand_mask(observed, ndim, axes)

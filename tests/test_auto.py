@@ -1,0 +1,260 @@
+"""sigma_d="auto": scale invariance, the bounded step, state, transforms and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import hypothesis.extra.numpy as hnp
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+import optax_bilateral as ob
+from optax_bilateral._src import auto
+
+SHAPE = (16, 16, 3)
+
+
+def _target(block=4):
+    """A piecewise-constant RGB image of 4 x 4 blocks: edges for the filter to keep."""
+    rng = np.random.default_rng(0)
+    return jnp.asarray(np.kron(rng.random((4, 4, 3)), np.ones((block, block, 1))), jnp.float32)
+
+
+def _noisy_grad(params, key, target):
+    """Gradient of 0.5 |x - target|^2 plus unit Gaussian noise per entry."""
+    return params - target + jax.random.normal(key, params.shape, params.dtype)
+
+
+def _run(opt, params, target, steps=12, scale=1.0):
+    """``steps`` updates of ``opt`` on a problem whose parameters are ``scale`` times the
+    unit problem's (the gradient is then the unit gradient / scale: the same loss)."""
+    state = opt.init(params)
+
+    @jax.jit
+    def step(p, s, key):
+        g = _noisy_grad(p / scale, key, target) / scale
+        u, s = opt.update(g, s, p)
+        return optax.apply_updates(p, u), s
+
+    for i in range(steps):
+        params, state = step(params, state, jax.random.PRNGKey(i))
+    return params, state
+
+
+@pytest.mark.parametrize("log_guide", [False, True])
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_trajectory_is_invariant_to_the_parameters_units(scale, log_guide):
+    # Parameters in other units (x scale, the learning rate with them) give the same
+    # trajectory in those units: auto's sigma_d follows the guide's scale. A fixed sigma_d
+    # does not (checked below), so the test can fail.
+    target = _target()
+    x0 = jnp.full(SHAPE, 0.5, jnp.float32)
+    base, _ = _run(ob.bilateral_adam(0.05, sigma_d="auto", log_guide=log_guide), x0, target)
+    scaled, _ = _run(
+        ob.bilateral_adam(0.05 * scale, sigma_d="auto", log_guide=log_guide),
+        x0 * scale,
+        target,
+        scale=scale,
+    )
+    np.testing.assert_allclose(np.asarray(scaled) / scale, np.asarray(base), rtol=2e-3, atol=2e-4)
+    if not log_guide:
+        fixed, _ = _run(ob.bilateral_adam(0.05, sigma_d=0.1), x0, target)
+        fixed_scaled, _ = _run(
+            ob.bilateral_adam(0.05 * scale, sigma_d=0.1), x0 * scale, target, scale=scale
+        )
+        assert np.max(np.abs(np.asarray(fixed_scaled) / scale - np.asarray(fixed))) > 1e-3
+
+
+def test_auto_beats_adam_on_a_noisy_denoising_problem():
+    target = _target(block=8)
+    x0 = jnp.full(target.shape, 0.5, jnp.float32)
+
+    def error(opt):
+        x, _ = _run(opt, x0, target, steps=60)
+        return float(jnp.mean(jnp.abs(x - target)))
+
+    adam = min(error(optax.adam(lr)) for lr in (0.01, 0.03))
+    auto_err = error(ob.bilateral_adam(0.03, sigma_d="auto"))
+    assert auto_err < 0.9 * adam, (auto_err, adam)
+
+
+def test_sigma_follows_the_guide_step_and_starts_from_its_contrast():
+    guide = jnp.asarray(np.random.default_rng(1).random((8, 8, 2)), jnp.float32)
+    axes = (0, 1)
+    first = auto.sigma(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
+    local = ob.atrous_bilateral(guide, guide, sigma_d=math.inf, levels=1, spatial_axes=axes)
+    deviation = np.linalg.norm(np.asarray(guide - local), axis=-1).mean()
+    np.testing.assert_allclose(first, auto.CONTRAST_FACTOR * deviation, rtol=1e-5)
+    # On white noise that is about the mean neighbour difference.
+    diffs = [np.linalg.norm(np.diff(np.asarray(guide), axis=a), axis=-1).mean() for a in axes]
+    assert 0.7 < float(first) / np.mean(diffs) < 1.3
+    moved = guide + 0.01
+    later = auto.sigma(moved, guide, jnp.asarray(2), axes)
+    np.testing.assert_allclose(later, auto.STEP_FACTOR * 0.01 * math.sqrt(2), rtol=1e-4)
+    # A guide that did not move falls back to the contrast.
+    np.testing.assert_allclose(auto.sigma(guide, guide, jnp.asarray(5), axes), first)
+
+
+@st.composite
+def blend_problems(draw):
+    shape = draw(st.sampled_from([(6, 5, 1), (1, 9, 2), (4, 4, 3)]))
+    elements = st.floats(-1e6, 1e6, width=32)
+    m = draw(hnp.arrays(np.float32, shape, elements=elements))
+    extra = draw(hnp.arrays(np.float32, shape, elements=st.floats(0, 1e6, width=32)))
+    residual = draw(hnp.arrays(np.float32, shape, elements=elements))
+    guide = draw(hnp.arrays(np.float32, shape[:2], elements=st.floats(-3, 3, width=32)))
+    count = draw(st.integers(1, 50))
+    return m, m.astype(np.float64) ** 2 + extra, residual, guide, count
+
+
+@given(problem=blend_problems())
+def test_the_blend_keeps_the_bounded_step(problem):
+    # Supplement 1.3: m~ and v~ come from one non-negative row-stochastic operator, so
+    # |m~| / sqrt(v~) <= the largest |m| / sqrt(v) of the texels they mix.
+    m, v, residual, guide, count = problem
+    m, v = jnp.asarray(m), jnp.asarray(v, jnp.float32)
+    bm, bv = ob.atrous_bilateral(
+        (m, v), jnp.asarray(guide), sigma_d=0.5, levels=2, spatial_axes=(0, 1)
+    )
+    mt, vt, new_residual = auto.blend(
+        m,
+        v,
+        bm,
+        bv,
+        jnp.asarray(residual),
+        b1=0.2,
+        c1=1.0,
+        c2=1.0,
+        count=jnp.asarray(count),
+        axes=(0, 1),
+        observed=None,
+    )
+    assert np.all(np.isfinite(np.asarray(new_residual)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.abs(np.asarray(m, np.float64)) / np.sqrt(np.asarray(v, np.float64))
+        got = np.abs(np.asarray(mt, np.float64)) / np.sqrt(np.asarray(vt, np.float64))
+    bound = np.nanmax(ratio) if np.any(np.isfinite(ratio)) else 0.0
+    assert np.all(got[np.isfinite(got)] <= bound * (1 + 1e-5) + 1e-6)
+
+
+def test_state_holds_the_previous_guide_and_residual_and_checkpoints(tmp_path):
+    params = {"tex": jnp.full(SHAPE, 0.5), "light": jnp.zeros(())}
+    opt = ob.bilateral_adam(0.05, sigma_d={"tex": "auto", "light": 0.1})
+    _, state = _run_dict(opt, params, steps=3)
+    post = state[0]
+    assert post.auto["light"] is None
+    np.testing.assert_array_equal(post.auto["tex"].previous_guide, _prev_params(opt, params))
+    assert post.auto["tex"].residual.shape == SHAPE
+    path = tmp_path / "state.npz"
+    ob.save_state(path, state)
+    restored = ob.load_state(path, opt.init(params))
+    for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state)):
+        np.testing.assert_array_equal(a, b)
+
+
+def _run_dict(opt, params, steps):
+    target = _target()
+    state = opt.init(params)
+    for i in range(steps):
+        g = {
+            "tex": _noisy_grad(params["tex"], jax.random.PRNGKey(i), target),
+            "light": params["light"] - 1.0,
+        }
+        u, state = opt.update(g, state, params)
+        params = optax.apply_updates(params, u)
+    return params, state
+
+
+def _prev_params(opt, params):
+    """The tex parameters the last of 3 updates saw (2 updates in)."""
+    x, _ = _run_dict(opt, params, steps=2)
+    return x["tex"]
+
+
+def test_jit_eager_vmap_and_inject_hyperparams_agree():
+    target = _target()
+    x0 = jnp.full(SHAPE, 0.5, jnp.float32)
+    opt = ob.bilateral_adam(0.05, sigma_d="auto", levels=2)
+    state = opt.init(x0)
+    g = _noisy_grad(x0, jax.random.PRNGKey(0), target)
+    eager = opt.update(g, state, x0)
+    jitted = jax.jit(opt.update)(g, state, x0)
+    for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(jitted)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    injected = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels", "sigma_d"))(
+        learning_rate=0.05, sigma_d="auto", levels=2
+    )
+    u_inj, _ = injected.update(g, injected.init(x0), x0)
+    np.testing.assert_allclose(u_inj, eager[0], rtol=1e-6, atol=1e-7)
+    batch = jnp.stack([x0, x0 + 0.1])
+    gb = jnp.stack([g, g])
+    ub, _ = jax.vmap(opt.update)(gb, jax.vmap(opt.init)(batch), batch)
+    np.testing.assert_allclose(ub[0], eager[0], rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(prefilter=True, postfilter=False),
+        dict(prefilter=True),
+        dict(guide="self"),
+        dict(b1=0.0, b2=0.0),
+        dict(mask_unobserved=True),
+        dict(log_guide=True, separable=False),
+    ],
+    ids=["prefilter", "pre+post", "self", "memoryless", "mask", "log-full"],
+)
+def test_every_composition_runs_and_stays_finite_at_the_extremes(kwargs):
+    x0 = jnp.full((8, 6, 2), 0.5, jnp.float32)
+    opt = ob.bilateral_adam(0.05, sigma_d="auto", levels=2, **kwargs)
+    state = opt.init(x0)
+    update = jax.jit(opt.update)
+    x = x0
+    rng = np.random.default_rng(0)
+    for g in (
+        rng.normal(size=x0.shape),
+        np.zeros(x0.shape),  # nothing observed (mask) / zero gradient
+        np.where(rng.random(x0.shape) < 0.1, np.nan, rng.normal(size=x0.shape) * 1e30),
+        rng.normal(size=x0.shape),
+    ):
+        g = jnp.asarray(g, jnp.float32)
+        u, state = update(g, state, x)
+        assert np.all(np.isfinite(np.asarray(u))), kwargs
+        bad = ~np.all(np.isfinite(np.asarray(g)), axis=-1)
+        if "prefilter" not in kwargs or kwargs.get("postfilter", True):
+            assert np.all(np.asarray(u)[bad] == 0)
+        x = optax.apply_updates(x, u)
+
+
+def test_a_constant_guide_and_a_guide_that_never_moves():
+    # sigma_d from a constant guide is 0; every neighbour then has an equal guide and
+    # weighs 1 (the filter's rule), so the first step is the plain low-pass of the moments.
+    x0 = jnp.zeros((8, 8, 1))
+    g = jnp.asarray(np.random.default_rng(0).normal(size=x0.shape), jnp.float32)
+    u_auto, _ = ob.bilateral_adam(1.0, sigma_d="auto", levels=2).update(
+        g, ob.bilateral_adam(1.0, sigma_d="auto", levels=2).init(x0), x0
+    )
+    u_inf, _ = ob.bilateral_adam(1.0, sigma_d=math.inf, levels=2).update(
+        g, ob.bilateral_adam(1.0, sigma_d=math.inf, levels=2).init(x0), x0
+    )
+    np.testing.assert_allclose(u_auto, u_inf, rtol=1e-6)
+
+
+@pytest.mark.parametrize("bad", ["Auto", "adaptive", ""])
+def test_other_strings_are_refused_naming_sigma_d(bad):
+    with pytest.raises(ValueError, match=r"sigma_d.*'auto'"):
+        ob.bilateral_adam(0.1, sigma_d=bad)
+    with pytest.raises(ValueError, match=r"sigma_d.*'auto'"):
+        ob.postfilter(sigma_d={"a": bad}).init({"a": jnp.zeros((4, 4, 1))})
+
+
+def test_the_filter_itself_takes_numbers_only():
+    with pytest.raises(TypeError, match="sigma_d"):
+        ob.atrous_bilateral(
+            jnp.zeros((4, 4)), jnp.zeros((4, 4)), sigma_d="auto", levels=1, spatial_axes=(0, 1)
+        )
