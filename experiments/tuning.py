@@ -624,6 +624,10 @@ def run_scene(scene: sc.Scene, s: Settings, cache_dir: pathlib.Path | None, *,
     for name, factory in (candidates or {}).items():
         extra[name] = Family(name, factory, description=f"candidate {name}")
     for name, fam in extra.items():
+        if name == "auto" and getattr(ob, "DEFAULT_SIGMA_D", None) == "auto":
+            # The defaults are bilateral_adam(lr) with sigma_d="auto": the same runs.
+            results[name], from_cache[name] = results["defaults"], from_cache["defaults"]
+            continue
         results[name] = tune(scene, fam, s.seeds, max_extend=s.max_extend,
                              learning_rates=_lrs(scene, s), progress=progress)
         from_cache[name] = False
