@@ -102,6 +102,16 @@ def run_library(opt, params, grads):
     return out
 
 
+def assert_follows_reference(opt, p0, grads, **step):
+    """The library's iterates from ``p0`` equal the authors' ``spatiotemporal_adam_step``
+    with the keyword arguments ``step``, after every step."""
+    ours = run_library(opt, jnp.asarray(p0), [jnp.asarray(g) for g in grads])
+    p, state = p0, ref.adam_init(p0)
+    for g, o in zip(grads, ours):
+        p, state = ref.spatiotemporal_adam_step(p, g, state, **step)
+        close(o, p)
+
+
 @pytest.mark.parametrize(
     "channels,log,mode", [(3, True, "both"), (1, True, "post"), (3, False, "pre")]
 )
@@ -124,22 +134,18 @@ def test_texture_optimizer_matches(channels, log, mode):
         separable=False,
         log_guide=log,
     )
-    ours = run_library(opt, jnp.asarray(p0), [jnp.asarray(g) for g in grads])
-    p, state = p0, ref.adam_init(p0)
-    for g, o in zip(grads, ours):
-        p, state = ref.spatiotemporal_adam_step(
-            p,
-            g,
-            state,
-            lr=lr,
-            betas=(b1, b2),
-            sigma_d=sigma,
-            prefilter=pre,
-            postfilter=post,
-            log_primal=log,
-            stride_levels=stride_levels,
-        )
-        close(o, p)
+    assert_follows_reference(
+        opt,
+        p0,
+        grads,
+        lr=lr,
+        betas=(b1, b2),
+        sigma_d=sigma,
+        prefilter=pre,
+        postfilter=post,
+        log_primal=log,
+        stride_levels=stride_levels,
+    )
 
 
 def test_volume_optimizer_two_grids_matches():
@@ -267,22 +273,18 @@ def test_self_guided_texture_optimizer_matches_cross_term_off(channels, log, mod
         guide="self",
         log_guide=log,
     )
-    ours = run_library(opt, jnp.asarray(p0), [jnp.asarray(g) for g in grads])
-    p, state = p0, ref.adam_init(p0)
-    for g, o in zip(grads, ours):
-        p, state = ref.spatiotemporal_adam_step(
-            p,
-            g,
-            state,
-            lr=lr,
-            betas=(b1, b2),
-            sigma_d=sigma,
-            prefilter=pre,
-            log_primal=log,
-            cross_term_off=True,
-            stride_levels=sl,
-        )
-        close(o, p)
+    assert_follows_reference(
+        opt,
+        p0,
+        grads,
+        lr=lr,
+        betas=(b1, b2),
+        sigma_d=sigma,
+        prefilter=pre,
+        log_primal=log,
+        cross_term_off=True,
+        stride_levels=sl,
+    )
 
 
 def test_self_guided_volume_optimizer_matches_cross_term_off():
@@ -373,21 +375,17 @@ def test_weight_decay_is_added_after_the_prefilter_and_then_postfiltered():
         ob.postfilter(0.2, 0.36, 1e-8, **common),
         optax.scale(-lr),
     )
-    ours = run_library(opt, jnp.asarray(p0), [jnp.asarray(g) for g in grads])
-    p, state = p0, ref.adam_init(p0)
-    for g, o in zip(grads, ours):
-        p, state = ref.spatiotemporal_adam_step(
-            p,
-            g,
-            state,
-            lr=lr,
-            betas=(0.2, 0.36),
-            sigma_d=sigma,
-            weight_decay=wd,
-            prefilter=True,
-            stride_levels=3,
-        )
-        close(o, p)
+    assert_follows_reference(
+        opt,
+        p0,
+        grads,
+        lr=lr,
+        betas=(0.2, 0.36),
+        sigma_d=sigma,
+        weight_decay=wd,
+        prefilter=True,
+        stride_levels=3,
+    )
 
 
 @pytest.mark.parametrize("which", ["m", "v"])
@@ -444,22 +442,18 @@ def test_filter_m_filter_v_match_mtfilter_vtfilter(filter_m, filter_v):
         filter_m=filter_m,
         filter_v=filter_v,
     )
-    ours = run_library(opt, jnp.asarray(p0), [jnp.asarray(g) for g in grads])
-    p, state = p0, ref.adam_init(p0)
-    for g, o in zip(grads, ours):
-        p, state = ref.spatiotemporal_adam_step(
-            p,
-            g,
-            state,
-            lr=lr,
-            betas=(b1, b2),
-            sigma_d=sigma,
-            mtfilter=filter_m,
-            vtfilter=filter_v,
-            log_primal=True,
-            stride_levels=sl,
-        )
-        close(o, p)
+    assert_follows_reference(
+        opt,
+        p0,
+        grads,
+        lr=lr,
+        betas=(b1, b2),
+        sigma_d=sigma,
+        mtfilter=filter_m,
+        vtfilter=filter_v,
+        log_primal=True,
+        stride_levels=sl,
+    )
 
 
 def test_uniform_second_moment_matches_scale_by_uniform_adam():
