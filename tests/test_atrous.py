@@ -1,5 +1,6 @@
 """The a-trous cross-bilateral filter against docs/method.md's definition and its properties."""
 
+import functools
 import math
 
 import hypothesis.extra.numpy as hnp
@@ -32,14 +33,21 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("separable", [True, False])
-@pytest.mark.parametrize("sigma_d", [0.0, 0.35, 2.0, np.inf])
-@pytest.mark.parametrize("shape,channels,gch,levels", CASES)
-def test_matches_float64_reference(shape, channels, gch, levels, sigma_d, separable):
+@functools.cache
+def _reference_case(shape, channels, gch, levels, sigma_d, separable):
+    """(x, guide, float64 reference output), computed once for both kernels."""
     rng = np.random.default_rng(abs(hash((shape, sigma_d, separable))) % 2**32)
     x = rng.normal(size=shape + (channels,)).astype(np.float32)
     g = _quantised_guide(rng, shape, gch) + rng.normal(size=shape + (gch,)).astype(np.float32) * 0.1
-    ref = atrous_reference(x, g, sigma_d, levels, separable)
+    return x, g, atrous_reference(x, g, sigma_d, levels, separable)
+
+
+@pytest.mark.parametrize("kernel", ["xla_cpu", "plain"])
+@pytest.mark.parametrize("separable", [True, False])
+@pytest.mark.parametrize("sigma_d", [0.0, 0.35, 2.0, np.inf])
+@pytest.mark.parametrize("shape,channels,gch,levels", CASES)
+def test_matches_float64_reference(shape, channels, gch, levels, sigma_d, separable, kernel):
+    x, g, ref = _reference_case(shape, channels, gch, levels, sigma_d, separable)
     out = atrous_bilateral(
         jnp.asarray(x),
         jnp.asarray(g),
@@ -47,12 +55,14 @@ def test_matches_float64_reference(shape, channels, gch, levels, sigma_d, separa
         levels=levels,
         spatial_axes=tuple(range(len(shape))),
         separable=separable,
+        kernel=kernel,
     )
     np.testing.assert_allclose(np.asarray(out), ref, rtol=RTOL, atol=RTOL * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("kernel", ["xla_cpu", "plain"])
 @pytest.mark.parametrize("separable", [True, False])
-def test_mask_matches_reference(separable):
+def test_mask_matches_reference(separable, kernel):
     rng = np.random.default_rng(1)
     shape = (6, 7)
     x = rng.normal(size=shape + (2,)).astype(np.float32)
@@ -68,6 +78,7 @@ def test_mask_matches_reference(separable):
         spatial_axes=(0, 1),
         separable=separable,
         mask=jnp.asarray(mask),
+        kernel=kernel,
     )
     assert np.all(np.isfinite(out))
     np.testing.assert_allclose(np.asarray(out), ref, rtol=RTOL, atol=1e-6)
@@ -411,3 +422,51 @@ def test_atrous_bilateral_is_defined_once_and_help_shows_its_docstring():
         "Example::",
     ):
         assert part in text, part
+
+
+@pytest.mark.parametrize("separable", [True, False])
+@pytest.mark.parametrize("shape", [(6, 7), (4, 3, 5)])
+def test_plain_kernel_equals_the_cpu_kernel_at_extremes(shape, separable):
+    # Non-finite and huge entries, a NaN guide texel, a mask, and the self-guided filter:
+    # the two kernels decide every case the same way (up to float rounding).
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=shape + (2,)).astype(np.float32)
+    x.flat[[1, 5, 9]] = [np.inf, -1e30, np.nan]
+    g = rng.normal(size=shape + (3,)).astype(np.float32)
+    g.flat[7] = np.nan
+    g.flat[11] = 3e38
+    mask = jnp.asarray(rng.random(shape) > 0.2)
+    axes = tuple(range(len(shape)))
+    for guide, m, sigma in ((g, None, 0.5), (g, mask, 0.0), (g, mask, np.inf), ("self", mask, 0.5)):
+        out = {
+            k: atrous_bilateral(
+                jnp.asarray(x),
+                guide if isinstance(guide, str) else jnp.asarray(guide),
+                sigma_d=sigma,
+                levels=2,
+                spatial_axes=axes,
+                separable=separable,
+                mask=m,
+                guide_axes=None if isinstance(guide, str) else axes,
+                kernel=k,
+            )
+            for k in ("xla_cpu", "plain")
+        }
+        np.testing.assert_allclose(out["plain"], out["xla_cpu"], rtol=RTOL, atol=1e-6)
+
+
+def test_kernel_choice(monkeypatch):
+    from optax_bilateral._src.filter import KERNEL_ENV, resolve_kernel
+
+    monkeypatch.delenv(KERNEL_ENV, raising=False)
+    assert resolve_kernel("auto") == ("xla_cpu" if jax.default_backend() == "cpu" else "plain")
+    assert resolve_kernel("plain") == "plain"
+    monkeypatch.setenv(KERNEL_ENV, "plain")
+    assert resolve_kernel("auto") == "plain"
+    assert resolve_kernel("xla_cpu") == "xla_cpu"  # an explicit choice wins
+    monkeypatch.setenv(KERNEL_ENV, "cuda")
+    with pytest.raises(ValueError, match=KERNEL_ENV):
+        resolve_kernel("auto")
+    x = jnp.ones((4, 4))
+    with pytest.raises(ValueError, match="kernel must be"):
+        atrous_bilateral(x, x, sigma_d=1.0, levels=1, spatial_axes=(0, 1), kernel="gpu")

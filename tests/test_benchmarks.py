@@ -162,3 +162,17 @@ def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
     assert (tmp_path / "profile.json").exists() and (tmp_path / "profile.md").exists()
     with pytest.raises(ValueError, match="--calls"):
         profile_update.main(["--quick", "--calls", "0", "--out", str(tmp_path)])
+
+
+def test_bench_gpu_quick_times_both_kernels(tmp_path):
+    # Runs on the CPU backend here: checks the script, not the numbers.
+    from experiments import bench_gpu
+
+    data = bench_gpu.main(["--quick", "--out", str(tmp_path)])
+    assert {r["kernel"] for r in data["filter"]} == {"xla_cpu", "plain"}
+    assert {r["kernel"] for r in data["update"]} == {"xla_cpu", "plain"}
+    assert {r["kernel"] for r in data["texture"]} == {"plain"}  # --quick: one kernel
+    for r in data["update"]:
+        assert r["x adam (paired)"] > 0 and np.isfinite(r["x adam (paired)"])
+    for name in ("bench_gpu.json", "bench_gpu.md", "bench_gpu.png"):
+        assert (tmp_path / name).stat().st_size > 0

@@ -2,24 +2,25 @@
 
 Checks the arguments and sets up the planar layout once, then hands the planes
 to a kernel: the single-device XLA-CPU kernel (:mod:`optax_bilateral._src.atrous`),
-or, when the fields' spatial axes are split over explicit mesh axes, the same
-per-block code run on every device with halo exchange
-(:mod:`optax_bilateral._src.sharded`).
+the plain kernel for other backends (:mod:`optax_bilateral._src.plain`), or, when
+the fields' spatial axes are split over explicit mesh axes, the same per-block code
+run on every device with halo exchange (:mod:`optax_bilateral._src.sharded`).
 
-A kernel is anything with the two methods of :class:`Kernel`; a kernel for another
-backend plugs in at :func:`_filter_jit`.
+A kernel is anything with the two methods of :class:`Kernel`; :data:`KERNELS` names
+the single-device ones.
 """
 
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
 
-from optax_bilateral._src import atrous, layout, sharded
+from optax_bilateral._src import atrous, layout, plain, sharded
 from optax_bilateral._src.leaves import log_transform
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
@@ -55,6 +56,25 @@ class Kernel(Protocol):
         ...
 
 
+# The single-device kernels, by the name `atrous_bilateral(kernel=...)` takes.
+KERNELS: dict[str, Kernel] = {"xla_cpu": atrous, "plain": plain}  # type: ignore[dict-item]
+# Overrides kernel="auto" (for benchmarks and debugging); read when a program is traced.
+KERNEL_ENV = "OPTAX_BILATERAL_KERNEL"
+
+
+def resolve_kernel(kernel: str) -> str:
+    """The single-device kernel ``kernel`` names: ``"auto"`` is ``$OPTAX_BILATERAL_KERNEL``
+    if set, else ``"xla_cpu"`` on JAX's CPU backend and ``"plain"`` on any other."""
+    if kernel == "auto":
+        env = os.environ.get(KERNEL_ENV, "")
+        if env and env not in KERNELS:
+            raise ValueError(f"${KERNEL_ENV} must be one of {sorted(KERNELS)}, got {env!r}")
+        kernel = env or ("xla_cpu" if jax.default_backend() == "cpu" else "plain")
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be 'auto' or one of {sorted(KERNELS)}, got {kernel!r}")
+    return kernel
+
+
 def atrous_bilateral(
     fields: Fields,
     guide: jax.typing.ArrayLike | Literal["self"],
@@ -66,6 +86,7 @@ def atrous_bilateral(
     mask: Mask | None = None,
     guide_axes: Sequence[int] | None = None,
     log_guide: bool = False,
+    kernel: Literal["auto", "xla_cpu", "plain"] = "auto",
 ) -> Fields:
     r"""A-trous cross-bilateral filter of one or more fields with one set of weights.
 
@@ -117,6 +138,13 @@ def atrous_bilateral(
         from ``spatial_axes``.
       log_guide: guide by ``log(|gamma| + 1e-8)`` (with ``"self"``: of each level's
         input; the authors' ``log_primal``).
+      kernel: how the single-device filter is computed; every kernel gives the same
+        result up to float rounding. ``"xla_cpu"`` is shaped for XLA's CPU backend
+        (chunked, ordered by optimisation barriers); ``"plain"`` is one shifted slice
+        per neighbour, which XLA's GPU backend fuses by itself. ``"auto"`` (default):
+        the environment variable ``OPTAX_BILATERAL_KERNEL`` if set, else ``"xla_cpu"``
+        on the CPU backend and ``"plain"`` on any other (BENCHMARKS.md, "GPU"). The
+        sharded filter has its own kernel.
 
     Returns:
       The filtered fields, with the structure and dtypes of ``fields``. Sums are
@@ -137,6 +165,7 @@ def atrous_bilateral(
     """
     levels = check_levels(levels)
     check_sigma_d(sigma_d)
+    kernel = resolve_kernel(kernel)  # type: ignore[assignment]
     self_guided = isinstance(guide, str)
     if self_guided and guide != "self":
         raise ValueError(f"guide must be an array or 'self', got {guide!r}")
@@ -159,6 +188,7 @@ def atrous_bilateral(
         guide_axes=guide_axes,
         self_guided=self_guided,
         log_guide=bool(log_guide),
+        kernel=kernel,
     )
 
 
@@ -247,6 +277,7 @@ def _check_mask(mask, shape):
         "guide_axes",
         "self_guided",
         "log_guide",
+        "kernel",
     ),
 )
 def _filter_jit(
@@ -261,6 +292,7 @@ def _filter_jit(
     guide_axes,
     self_guided=False,
     log_guide=False,
+    kernel="xla_cpu",
 ):
     """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
     traced."""
@@ -275,7 +307,9 @@ def _filter_jit(
     elif self_guided:
         # Each field guides itself: its own weights, its own guide read at every level.
         out = tuple(
-            _filter_route((f,), (ax,), f, ax, plan, sigma_d, levels, separable, True, log_guide)[0]
+            _filter_route(
+                (f,), (ax,), f, ax, plan, sigma_d, levels, separable, True, log_guide, kernel
+            )[0]
             for f, ax in zip(plan.fields, plan.field_axes)
         )
     else:
@@ -290,12 +324,23 @@ def _filter_jit(
             separable,
             False,
             log_guide,
+            kernel,
         )
     return out[0] if plan.single else out
 
 
 def _filter_route(
-    fields, field_axes, guide, guide_axes, plan, sigma_d, levels, separable, self_guided, log_guide
+    fields,
+    field_axes,
+    guide,
+    guide_axes,
+    plan,
+    sigma_d,
+    levels,
+    separable,
+    self_guided,
+    log_guide,
+    kernel,
 ):
     """The single-device kernel, or the sharded one when the fields' type says so."""
     filter_blocks = functools.partial(
@@ -309,7 +354,7 @@ def _filter_route(
     )
     part = sharded.spatial_partition(fields[0], field_axes[0])
     if part is None:
-        return filter_blocks(fields, guide, plan.mask, sigma_d, atrous)
+        return filter_blocks(fields, guide, plan.mask, sigma_d, KERNELS[kernel])
     return sharded.filter_sharded(
         filter_blocks,
         part,
