@@ -226,19 +226,23 @@ def test_jit_vmap_and_grads():
         assert all(np.all(np.isfinite(a)) for a in grads)
 
 
-def _operator(shape, guide, sigma_d, levels, separable):
-    """The filter's matrix, by filtering every one-hot input at once (one channel each)."""
+def _operator(shape, guide, sigma_d, levels, separable, extra=None):
+    """The filter's matrix, by filtering every one-hot input at once (one channel each);
+    with ``extra`` (*shape, k), also the filtered ``extra`` from the same program."""
     n = math.prod(shape)
-    eye = jnp.eye(n, dtype=jnp.float32).reshape(shape + (n,))
+    fields = jnp.eye(n, dtype=jnp.float32).reshape(shape + (n,))
+    if extra is not None:
+        fields = jnp.concatenate([fields, jnp.asarray(extra)], axis=-1)
     out = atrous_bilateral(
-        eye,
+        fields,
         guide,
         sigma_d=sigma_d,
         levels=levels,
         spatial_axes=tuple(range(len(shape))),
         separable=separable,
     )
-    return np.asarray(out, np.float64).reshape(n, n)
+    out = np.asarray(out, np.float64).reshape(n, -1)
+    return out[:, :n] if extra is None else (out[:, :n], out[:, n:])
 
 
 shapes = st.sampled_from([(1,), (2,), (5,), (1, 1), (1, 4), (3, 2), (4, 5), (2, 2, 2), (3, 1, 2)])
@@ -255,22 +259,14 @@ sigmas = st.one_of(st.sampled_from([0.0, 1e-30, 1e30, np.inf]), st.floats(1e-3, 
 def test_operator_is_nonnegative_row_stochastic_and_linear(shape, sigma_d, levels, separable, seed):
     rng = np.random.default_rng(seed)
     guide = jnp.asarray(rng.integers(0, 3, size=shape) * rng.random(), jnp.float32)
-    B = _operator(shape, guide, sigma_d, levels, separable)
+    # Linear in the fields: filtering a random field (alongside, same weights) equals B @ it.
+    x = rng.normal(size=shape + (1,)).astype(np.float32)
+    B, y = _operator(shape, guide, sigma_d, levels, separable, extra=x)
     assert np.all(B >= 0)
     np.testing.assert_allclose(B.sum(axis=1), 1.0, rtol=1e-5)  # float32 sums of <= 125 terms
     if levels == 0:
         np.testing.assert_array_equal(B, np.eye(B.shape[0]))
-    # Linear in the fields: filtering a random field equals B @ field.
-    x = rng.normal(size=shape + (1,)).astype(np.float32)
-    y = atrous_bilateral(
-        jnp.asarray(x),
-        guide,
-        sigma_d=sigma_d,
-        levels=levels,
-        spatial_axes=tuple(range(len(shape))),
-        separable=separable,
-    )
-    np.testing.assert_allclose(np.asarray(y).ravel(), B @ x.ravel(), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(y.ravel(), B @ x.ravel(), rtol=1e-4, atol=1e-5)
 
 
 # Guide values on a 2^-20 grid: a multi-channel distance is sqrt of a float32 sum of squares,
