@@ -39,6 +39,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 SRC = HERE / "src"
 # The recorded outputs the docs site shows (committed: small JSON and PNGs).
 OUTPUTS = HERE / "outputs"
+PNG_BUDGET = 300_000  # bytes per recorded figure
 NAMES = ("memoryless", "pre_vs_post", "ablation")
 KERNEL = {"display_name": "Python 3 (ipykernel)", "language": "python", "name": "python3"}
 
@@ -123,14 +124,20 @@ def source_hash(source: str) -> str:
 
 
 def _small_png(data: bytes) -> bytes:
-    """``data`` re-encoded with a 256-colour palette when that is smaller (plots and colour maps
-    lose nothing visible), else as it is."""
+    """``data`` re-encoded with a 256-colour palette (plots and colour maps lose nothing visible),
+    scaled down by steps of 0.8 while it exceeds ``PNG_BUDGET`` (noise textures compress badly);
+    ``data`` itself when that is smaller."""
     from PIL import Image
 
     image = Image.open(io.BytesIO(data)).convert("RGB")
-    out = io.BytesIO()
-    image.quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
-        out, "PNG", optimize=True)
+    while True:
+        out = io.BytesIO()
+        image.quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+            out, "PNG", optimize=True)
+        if out.tell() <= PNG_BUDGET or image.width < 600:
+            break
+        image = image.resize((round(image.width * 0.8), round(image.height * 0.8)),
+                             Image.Resampling.LANCZOS)
     return out.getvalue() if out.tell() < len(data) else data
 
 

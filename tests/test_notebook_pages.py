@@ -54,7 +54,7 @@ def test_page_shows_every_cell_and_every_figure(name):
     assert len(shown) >= len(FIGURES[name]), f"{name}: fewer figures than the notebook saves"
     for png in stored:
         size = (build_notebooks.OUTPUTS / name / png).stat().st_size
-        assert size < 300_000, f"{png}: {size} bytes; the committed figures must stay small"
+        assert size <= build_notebooks.PNG_BUDGET, f"{png}: {size} bytes; figures must stay small"
     assert "Recorded outputs" in text and "/work/" not in text
 
 
