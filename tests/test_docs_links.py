@@ -1,10 +1,12 @@
 """No document cites a file that is not in the repository.
 
-The rule, for README.md, BENCHMARKS.md, CHANGELOG.md and every Markdown page under docs/:
+The rule, for README.md, BENCHMARKS.md, CHANGELOG.md, every Markdown page under docs/ and
+the Markdown cells of every notebook (notebooks/*.ipynb, whose pages the docs site shows):
 
 * every relative Markdown link or image (``[text](path)``, ``![alt](path)``) resolves, from
-  the page's folder, to a file or folder of the repository, and none points into
-  ``results/``;
+  the page's folder, to a file or folder of the repository (or to a notebook's page,
+  ``docs/notebooks/<name>.md``, which the docs build generates from
+  ``notebooks/<name>.ipynb``), and none points into ``results/``;
 * every path written in the text (``dir/name.ext``, with at least one folder, as in
   ``experiments/benchmark.py`` or ``figures/x.png``) exists, read from the repository root,
   from the page's folder or from ``optax_bilateral/`` (docs name ``_src/step.py``);
@@ -15,6 +17,7 @@ The rule, for README.md, BENCHMARKS.md, CHANGELOG.md and every Markdown page und
   that writes them), never as a link or as plain text.
 """
 
+import json
 import pathlib
 import re
 
@@ -29,6 +32,7 @@ DOCUMENTS = sorted(
         *(ROOT / "docs").rglob("*.md"),
     ]
 )
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 GENERATED = "results/"
 EXTENSIONS = "py|md|ipynb|json|png|toml|txt|npz|yml|yaml|sh|js|csv"
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
@@ -42,8 +46,17 @@ def _ids(paths):
     return [str(p.relative_to(ROOT)) for p in paths]
 
 
+def _is_file(path: pathlib.Path) -> bool:
+    """Whether ``path`` is in the repository, or is a notebook page the docs build generates."""
+    path = path.resolve()
+    if path.exists():
+        return True
+    page_of = path.parent == ROOT / "docs" / "notebooks" and path.suffix == ".md"
+    return page_of and (ROOT / "notebooks" / f"{path.stem}.ipynb").exists()
+
+
 def _exists(ref: str, page: pathlib.Path) -> bool:
-    return any((base / ref).exists() for base in (ROOT, page.parent, ROOT / "optax_bilateral"))
+    return any(_is_file(base / ref) for base in (ROOT, page.parent, ROOT / "optax_bilateral"))
 
 
 def _external(ref: str, text: str) -> bool:
@@ -64,14 +77,25 @@ def _links(text: str) -> list[str]:
 
 
 def test_every_document_is_checked():
-    names = _ids(DOCUMENTS)
+    names = _ids(DOCUMENTS + NOTEBOOKS)
     assert {"README.md", "BENCHMARKS.md", "CHANGELOG.md", "docs/method.md"} <= set(names)
+    assert {"notebooks/memoryless.ipynb", "notebooks/ablation.ipynb"} <= set(names)
+    memoryless = _text(ROOT / "notebooks" / "memoryless.ipynb")
+    assert memoryless.startswith("# Memoryless") and "import optax_bilateral" not in memoryless
 
 
-@pytest.mark.parametrize("page", DOCUMENTS, ids=_ids(DOCUMENTS))
+def _text(page: pathlib.Path) -> str:
+    """A document's Markdown: the file, or a notebook's Markdown cells."""
+    if page.suffix != ".ipynb":
+        return page.read_text()
+    cells = json.loads(page.read_text())["cells"]
+    return "\n\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "markdown")
+
+
+@pytest.mark.parametrize("page", DOCUMENTS + NOTEBOOKS, ids=_ids(DOCUMENTS + NOTEBOOKS))
 def test_links_resolve_to_repository_files(page):
-    text = page.read_text()
-    missing = [t for t in _links(text) if not (page.parent / t).exists()]
+    text = _text(page)
+    missing = [t for t in _links(text) if not _is_file(page.parent / t)]
     generated = [
         t for t in _links(text) if (page.parent / t).resolve().is_relative_to(ROOT / "results")
     ]
@@ -79,9 +103,9 @@ def test_links_resolve_to_repository_files(page):
     assert not generated, f"{page.name}: links to generated outputs (results/): {generated}"
 
 
-@pytest.mark.parametrize("page", DOCUMENTS, ids=_ids(DOCUMENTS))
+@pytest.mark.parametrize("page", DOCUMENTS + NOTEBOOKS, ids=_ids(DOCUMENTS + NOTEBOOKS))
 def test_cited_paths_exist_and_generated_ones_are_code(page):
-    text = page.read_text()
+    text = _text(page)
     cited = PATH.findall(text)
     missing = sorted(
         {
@@ -109,6 +133,7 @@ def test_the_rule_catches_what_it_should():
     ]
     assert PATH.findall("`OUT/cache/<scene>/<family>.json` and `processes/*/m.json`") == []
     assert not _exists("experiments/no_such_file.py", page)
+    assert _exists("notebooks/ablation.md", page) and not _exists("notebooks/no_such.md", page)
     assert _exists("_src/step.py", page) and _exists("figures", page)
     assert _external("a/b.py", "The authors' code (github owner/repo, `a/b.py`).\n\nMore.")
     assert not _external("a/b.py", "Our `a/b.py`.\n\nThe authors' (github owner/repo).")

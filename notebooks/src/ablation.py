@@ -268,8 +268,9 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # ## What we measured (full size)
 #
 # Measured with `python notebooks/build_notebooks.py --execute ablation` (no
-# `OPTAX_BILATERAL_QUICK`), 2026-11-22, on a shared 2-core CPU (load 12–20 from other jobs): 3698 s
-# wall. Texture 512², 150 iterations, lr 0.02 and β1 = 0.2 for every filtered run, log guide.
+# `OPTAX_BILATERAL_QUICK`), 2026-11-24, library of main at 76e7e61, on a shared 2-core CPU (load
+# 11–16 from other jobs): 4678 s wall; the outputs above are that run's. Texture 512², 150
+# iterations, lr 0.02 and β1 = 0.2 for every filtered run, log guide.
 # Errors are final mean |α − α_target| (start: 0.0807 camera, 0.0962 noise).
 #
 # **Claim 1 (Fig. 3, noise vs smoothing bias) — agrees.** Camera target, 1 spp:
@@ -277,28 +278,29 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # | F \ σ_d | 0.02 | 0.1 | 0.5 | ∞ (low-pass) |
 # |---|---|---|---|---|
 # | 0 (Adam, β1 = 0.2) | 0.0294 | 0.0294 | 0.0294 | 0.0294 |
-# | 1 | 0.0247 | 0.0158 | 0.0113 | 0.0110 |
-# | 3 | 0.0171 | 0.0068 | **0.0047** | 0.0068 |
-# | 5 | 0.0126 | 0.0083 | 0.0167 | 0.0224 |
+# | 1 | 0.0246 | 0.0158 | 0.0114 | 0.0110 |
+# | 3 | 0.0170 | 0.0068 | **0.0047** | 0.0068 |
+# | 5 | 0.0125 | 0.0083 | 0.0166 | 0.0224 |
 #
 # Small `F` stays noisy and close to Adam; the smallest `σ_d` is the noisiest at every `F`; large
 # `F` with large `σ_d` oversmooths (F = 5, σ_d = ∞ is a blur with the error of Adam). Adam
 # (β1 = 0.9, best lr 0.01) ends at 0.0227. The best cell is F = 3, σ_d = 0.5 (4.8× below Adam).
 #
 # **Claim 2 (Fig. 4, high-frequency target) — partly disagrees.** Noise target, 1 spp, same
-# hyperparameters: Adam 0.0315, `F = 0` 0.0268, bilateral (self-guided) 0.0355, low-pass
-# **0.2339**, cross-bilateral (ours, F = 5, σ_d = 0.1) **0.2336**. As in the paper Adam beats every
-# filter and the low-pass is worst, but here the cross-bilateral filter is *as bad as the low-pass*
-# (worse than the start), not in between. Why: the start is a constant texture, so the guide is flat
+# hyperparameters: Adam 0.0315, `F = 0` 0.0268, bilateral (self-guided) 0.0270, low-pass
+# **0.2339**, cross-bilateral (ours, F = 5, σ_d = 0.1) **0.2336**. As in the paper Adam beats the
+# cross-bilateral and low-pass filters and the low-pass is worst, but here the cross-bilateral
+# filter is *as bad as the low-pass* (worse than the start), not in between, and the self-guided
+# bilateral filter (re-guided at every level, as the authors' `cross_term_off`) beats Adam. Why: the start is a constant texture, so the guide is flat
 # and `B` is a plain low-pass at step 1; its smooth updates keep the texture smooth, so the guide
 # never develops the edges that would stop the filter. The grid on this target shows the bias is a
-# matter of footprint: F = 1 (σ_d = 0.1: 0.0242) and F = 3 (σ_d = 0.02: 0.0249) beat Adam even here,
-# while every F = 5 cell is ≥ 0.18.
+# matter of footprint: F = 1 (σ_d = 0.1: 0.0241) and F = 3 (σ_d = 0.02: 0.0249) beat Adam even here,
+# while every F = 5 cell is ≥ 0.179.
 #
 # **Claim 3 (Fig. 5, low-noise gradients) — agrees on the high-frequency target only.** With 8
 # averaged gradients per iteration: on the noise target Adam (0.0177) beats the fixed filter
 # (0.2335) by far, as the paper says. On the piecewise-smooth camera target the filter still wins
-# (ours 0.0045, bilateral 0.0046, Adam 0.0101, low-pass 0.0219): 8× less gradient variance is not
+# (ours 0.0045, bilateral 0.0054, Adam 0.0101, low-pass 0.0219): 8× less gradient variance is not
 # enough for Adam to catch up there (the paper's Fig. 5 uses a volume at 512 / 128 spp).
 #
 # **Claim 4 (a schedule toward Adam) — helps where Adam wins, hurts where the filter wins.**
@@ -306,7 +308,7 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 #
 # | setting | Adam | F = 0 | ours (fixed σ_d) | σ_d schedule |
 # |---|---|---|---|---|
-# | camera, 1 spp | 0.0227 | 0.0294 | **0.0083** | 0.0271 |
+# | camera, 1 spp | 0.0227 | 0.0294 | **0.0083** | 0.0272 |
 # | noise, 1 spp | 0.0315 | **0.0268** | 0.2336 | 0.0376 |
 # | camera, 8× gradients | 0.0101 | 0.0158 | **0.0045** | 0.0141 |
 # | noise, 8× gradients | 0.0177 | 0.0153 | 0.2335 | **0.0150** |
@@ -316,3 +318,8 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # filter's 2–3× lower error: its error falls with the filter until σ_d ≈ 0.02 (iteration ≈ 100), then
 # rises again as the steps become Adam's (see the curves). A schedule inherits the error of
 # whichever method it ends as; its end value should depend on how much detail the target has.
+#
+# (An earlier run, 2026-11-22, before the library's redesign and before `guide="self"` was
+# re-guided per level, gave the same numbers to the digits shown except for the self-guided
+# bilateral filter: 0.0355 on the noise target at 1 spp, 0.0046 on the camera target at 8×
+# gradients.)

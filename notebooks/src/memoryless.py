@@ -316,17 +316,15 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # ## What we measured (full size)
 #
 # Measured with `python notebooks/build_notebooks.py --execute memoryless` (no
-# `OPTAX_BILATERAL_QUICK`), 2026-11-22, on a shared 2-core CPU (load ≈ 15 from other jobs): 2275 s
-# wall in total. Texture 512², F = 5, σ_d = 0.1 (log guide), 150 iterations, 1 spp / 1 spp, start
-# error 0.0807.
+# `OPTAX_BILATERAL_QUICK`), 2026-11-24, library of main at 76e7e61, on a shared 2-core CPU (load
+# 11–16 from other jobs): 2333 s wall in total; the outputs above are that run's. Texture 512²,
+# F = 5, σ_d = 0.1 (log guide), 150 iterations, 1 spp / 1 spp, start error 0.0807.
 #
 # **Claim 2 (Fig. 1, faster convergence) — agrees.** Best learning rate of each (of 0.003, 0.01,
-# 0.03, 0.1): Adam (sign g) ends at param error **0.0543** (lr 0.01) and its loss *rises* (the
-# training loss from 7.7 to ~25; low-noise image loss at the end 14.7): every texel keeps jumping
-# by ±lr. The prefilter (sign A g) ends at
-# **0.0154** (lr 0.01); the postfilter at **0.0077** (lr 0.03), 7× below Adam, with image loss
-# 0.059. The postfilter reaches Adam's final error after **5** iterations (Adam: 150), the
-# prefilter after 9.
+# 0.03, 0.1): Adam (sign g) ends at param error **0.0543** (lr 0.01) with a low-noise image loss of
+# 14.7 at the end: every texel keeps jumping by ±lr. The prefilter (sign A g) ends at **0.0153**
+# (lr 0.01); the postfilter at **0.0077** (lr 0.03), 7× below Adam, with image loss 0.059. The
+# postfilter reaches Adam's final error after **5** iterations (Adam: 150), the prefilter after 9.
 #
 # **Claim 3 (memory) — agrees, with one caveat.** The memoryless postfilter's state is 4 bytes (the
 # step count) against 2,097,156 for Adam with β1 = 0.2 (`m`, `v`): parameters + state fall to
@@ -342,9 +340,13 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # ratio of filtered sums is no longer close to the ratio of their expectations. The library's
 # memoryless postfilter equals `B g / (sqrt(B g²) + ε)` exactly (max difference 0).
 #
-# **Volume (Fig. 1, right) — agrees qualitatively.** 64³ density + RGB albedo, 32² images, 4 of 64
-# views per iteration, 300 iterations, F = 4, σ_d = {density 0.05, albedo 0.1}; start error 0.2162.
-# Sign-step Adam never improves on the start at any learning rate tried (best 0.2178 at lr 0.003;
-# 0.2276 at 0.01; 0.2535 at 0.03) and its training loss rises; the memoryless postfilter lowers
-# the error to **0.1878** (lr 0.01; density error 0.145 at the start → 0.115). Neither is converged after 300
-# iterations.
+# **Volume (Fig. 1, right) — agrees.** 64³ density + RGB albedo, 32² images, 4 of 64 views per
+# iteration, 300 iterations, F = 4, σ_d = {density 0.05, albedo 0.1}; start error 0.2162 (density
+# 0.145, albedo 0.288). Sign-step Adam barely moves from the start at any learning rate tried (best
+# 0.2154 at lr 0.003; 0.2202 at 0.01; 0.238 at 0.03); the memoryless postfilter lowers the error to
+# **0.1515** (lr 0.1, the largest tried; density error 0.145 → 0.083). Neither is converged after
+# 300 iterations.
+#
+# (An earlier run, 2026-11-22, before the library's redesign, gave the same texture and eq. 24
+# numbers to the digits shown (prefilter 0.0154), and on the volume a postfilter error of 0.1878
+# at lr 0.01 (now 0.1809 at that rate) with sign-step Adam at 0.2178 or worse.)

@@ -161,35 +161,39 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # ## What we measured (full size)
 #
 # Measured with `python notebooks/build_notebooks.py --execute pre_vs_post` (no
-# `OPTAX_BILATERAL_QUICK`), 2026-11-22, library at commit 0144c60, on a shared 2-core CPU (load
-# 2–11 from other jobs): 901 s wall. (An earlier run, before the filter's rewrite in c0c5157, gave
-# the same numbers to 4 digits.) Texture 512², F = 5, 150 iterations, 1 spp / 1 spp, start error
-# 0.0807, learning rates 0.00125 … 0.08 (every best rate below is inside the sweep).
+# `OPTAX_BILATERAL_QUICK`), 2026-11-24, library of main at 76e7e61, on a shared 2-core CPU (load
+# 11–14 from other jobs): 1637 s wall; the outputs above are that run's. Texture 512², F = 5,
+# 150 iterations, 1 spp / 1 spp, start error 0.0807, learning rates 0.00125 … 0.08 (every best
+# rate below is inside the sweep).
 #
 # | method (β1 = 0.2) | best lr | final param error | image loss |
 # |---|---|---|---|
 # | Adam (eq. 12) | 0.005 | 0.0219 | 0.525 |
-# | prefilter (eq. 13) | 0.005 | 0.00867 | 0.049 |
-# | postfilter (eq. 14) | 0.04 | **0.00825** | 0.046 |
-# | both (eq. 11) | 0.02 | 0.0110 | 0.043 |
-# | postfilter, self-guided | 0.01 | 0.00924 | 0.031 |
+# | prefilter (eq. 13) | 0.005 | 0.00875 | 0.048 |
+# | postfilter (eq. 14) | 0.02 | **0.00828** | 0.034 |
+# | both (eq. 11) | 0.02 | 0.0109 | 0.042 |
+# | postfilter, self-guided | 0.005 | 0.00874 | 0.035 |
 # | Adam β1 = 0.9, β2 = 0.999 | 0.01 | 0.0227 | 0.234 |
 #
-# **Filtering vs Adam — agrees.** Every filtered variant ends with 2.0–2.8× less parameter error
-# than Adam at β1 = 0.2 or at its usual β1 = 0.9.
+# **Filtering vs Adam — agrees.** Every filtered variant ends with 2.0–2.6× less parameter error
+# than Adam at β1 = 0.2, and 2.1–2.7× less than Adam at its usual β1 = 0.9.
 #
-# **Postfilter vs prefilter — only a small difference here.** The postfilter is best, but at
-# β1 = 0.2 the prefilter is within 5 % of it (0.00867 vs 0.00825); applying both is worse than
-# either (0.0110: the gradient is smoothed twice). The clear separation is at β1 = 0 (the
-# `memoryless` notebook: 0.0154 vs 0.0077), where the prefilter degenerates to sign steps (eq. 16)
-# and only the postfilter keeps a noise-adaptive step size. The self-guided (bilateral) postfilter
-# has the lowest image loss (0.031) but a higher parameter error than the cross-bilateral one.
+# **Postfilter vs prefilter — only a small difference here.** The postfilter is best, in error and
+# in image loss, but at β1 = 0.2 the prefilter is within 6 % of it (0.00875 vs 0.00828); applying
+# both is worse than either (0.0109: the gradient is smoothed twice). The clear separation is at
+# β1 = 0 (the `memoryless` notebook), where the prefilter degenerates to sign steps (eq. 16) and
+# only the postfilter keeps a noise-adaptive step size. The self-guided (bilateral) postfilter,
+# re-guided at every level as the authors' `cross_term_off`, ends between the two (0.00874).
 #
 # **Bounded step (§1.3) — agrees.** Over all 7 learning rates × 150 steps, `max|Δ_t| ≤ c_t` held at
 # every step (0 of 1050 violations) for Adam, prefilter, postfilter and both; the largest step was
 # 1.061. Adam's own ratio `c_t` reached 1.061, not 1: with β2 = 1 − (1 − β1)², Cauchy–Schwarz on
 # Adam's sums gives `|m_t| ≤ sqrt(v_t / (1 − β1²/β2)) = sqrt(9/8) sqrt(v_t) ≈ 1.0607 sqrt(v_t)` for
 # β1 = 0.2, so the premise "|m/sqrt(v)| ≤ 1" of eq. 25 holds only up to that factor; the theorem's
-# conclusion with `c = c_t` holds exactly. The **self-guided** filter broke the bound on **944 of
-# 1050** steps, with steps up to **3.71** (3.5 `c_t`): `m` and `v` get different weights. In this
+# conclusion with `c = c_t` holds exactly. The **self-guided** filter broke the bound on **all
+# 1050** steps, with steps up to **7.82** (7.4 `c_t`): `m` and `v` get different weights. In this
 # scene the larger steps did not hurt its final error.
+#
+# (An earlier run, 2026-11-22, before the library's redesign and before `guide="self"` was
+# re-guided per level, gave the same Adam numbers, prefilter 0.00867, postfilter 0.00825 at
+# lr 0.04, and a self-guided filter that broke the bound on 944 of 1050 steps, up to 3.71.)

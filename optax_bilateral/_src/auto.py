@@ -37,10 +37,29 @@ GATE = (0.2, 0.35)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]:
 
 
 class AutoState(NamedTuple):
-    """One leaf's state for ``sigma_d="auto"``.
+    """One leaf's state for ``sigma_d="auto"`` (in :class:`PrefilterState` and
+    :class:`PostfilterState`).
 
-    ``previous_guide``: the guide the last update saw (None for ``guide="self"``);
-    ``residual``: the EMA of ``m_hat - B m_hat`` (None without moments).
+    ``sigma_d`` is 3 times the mean change of the guide per step,
+    ``3 mean_p ||guide_t[p] - guide_{t-1}[p]||`` (before the guide moves: 1.5 times its
+    mean deviation from the local average), and the postfilter blends
+    ``lam m_hat + (1 - lam) B m_hat`` (likewise ``v``, the same ``lam``) where the filter's
+    residual persists beyond the moments' noise ``v - m^2`` (docs/auto_sigma.md).
+
+    Attributes:
+      previous_guide: the guide the last update saw, with the guide's shape (the
+        parameter leaf's, or a callable guide's); None for ``guide="self"``.
+      residual: the exponential moving average (decay 0.9) of ``m_hat - B m_hat``, with
+        the leaf's shape; None in a :func:`prefilter` or a memoryless postfilter (no
+        moments).
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> state = ob.postfilter().init({"tex": jnp.ones((16, 16, 3))})   # sigma_d="auto"
+        >>> auto = state.auto["tex"]
+        >>> type(auto).__name__, auto.previous_guide.shape, auto.residual.shape
+        ('AutoState', (16, 16, 3), (16, 16, 3))
     """
 
     previous_guide: jax.Array | None

@@ -30,7 +30,26 @@ MAX_CHANNELS = 4
 
 
 class LeafRuleWarning(UserWarning):
-    """The default leaf rule had to guess a leaf's layout (see :func:`default_spatial_axes`)."""
+    """The default leaf rule had to guess a leaf's layout (see :func:`default_spatial_axes`).
+
+    Raised (as a warning) by the transforms' ``init``, once per process for each leaf
+    name and shape, naming the leaf, the axes guessed and the ``spatial_axes`` to pass.
+    Passing ``spatial_axes`` explicitly silences it; ``warnings.simplefilter("error",
+    LeafRuleWarning)`` turns every guess into an error.
+
+    Args:
+      *args: the message, as for any ``UserWarning``.
+
+    Example::
+
+        >>> import warnings, jax.numpy as jnp, optax_bilateral as ob
+        >>> with warnings.catch_warnings(record=True) as caught:
+        ...     warnings.simplefilter("always")
+        ...     _ = ob.postfilter(sigma_d=0.1).init({"w": jnp.zeros((13, 17))})  # grid or matrix?
+        >>> caught[0].category is ob.LeafRuleWarning
+        True
+        >>> _ = ob.postfilter(sigma_d=0.1, spatial_axes=()).init({"w": jnp.zeros((13, 17))})
+    """
 
 
 def default_spatial_axes(leaf: Any) -> tuple[int, ...]:
@@ -54,6 +73,23 @@ def default_spatial_axes(leaf: Any) -> tuple[int, ...]:
     * anything else: ``()``.
 
     :func:`optax_bilateral.filtered_axes` lists what the rule gives for every leaf.
+
+    Args:
+      leaf: an array or anything with a shape (only ``np.shape(leaf)`` is read).
+
+    Returns:
+      The spatial axes, a tuple of ints in increasing order; ``()`` when the leaf is not
+      filtered.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> ob.default_spatial_axes(jnp.zeros((64, 64, 3)))       # a texture (H, W, C)
+        (0, 1)
+        >>> ob.default_spatial_axes(jnp.zeros((16, 16, 16, 1)))   # a volume (D, H, W, C)
+        (0, 1, 2)
+        >>> ob.default_spatial_axes(jnp.zeros(10))                # a vector: plain Adam
+        ()
     """
     return _default_rule(np.shape(leaf))[0]
 
@@ -263,6 +299,14 @@ def filtered_axes(
 
     Resolves ``spatial_axes`` and ``levels`` (as given to the transforms; ``None`` is the
     default leaf rule, :func:`default_spatial_axes`) without building an optimizer.
+
+    Args:
+      params: the parameters (any pytree of arrays, or of ``jax.ShapeDtypeStruct``).
+      spatial_axes: as the transforms' argument: ``None`` (the default leaf rule), a tuple
+        of axes for every leaf, a pytree prefix of tuples (``()`` = not filtered), or a
+        callable ``leaf -> axes``.
+      levels: as the transforms' argument (default 3, :data:`DEFAULT_LEVELS`); a leaf with
+        ``levels=0`` is not filtered, whatever its axes.
 
     Returns:
       ``{leaf path: axes}``, e.g. ``{"['tex']": (0, 1), "['w']": ()}``.

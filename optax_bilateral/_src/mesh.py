@@ -66,20 +66,30 @@ from optax_bilateral._src import numerics
 
 # Large Steps' examples use lambda around 10-100; the authors' mesh run uses 19.
 DEFAULT_LAMBDA = 19.0
+"""The default smoothing weight ``lambda`` of ``M = I + lambda L`` (the authors' mesh run)."""
 # The paper's default data term (supplement §3: "sigma_d around 0.5"); the authors'
 # code splats with sigma_d and slices with sigma_phi = 0.4.
 DEFAULT_SIGMA_D = 0.5
+"""The default splat width ``sigma_d`` on normals of the mesh filter (supplement §3)."""
 DEFAULT_SIGMA_PHI = 0.4
+"""The default slice width ``sigma_phi`` on normals (the authors' code)."""
 # "A few dozen" directions (the authors' n_filter_samples); a power of two keeps Sobol's balance.
 DEFAULT_DIRECTIONS = 32
+"""The default number of sphere directions ``s_k`` of the filter (:func:`sphere_directions`)."""
 # Relative residual per right-hand side (docs/mesh.md: iterations against tol).
 DEFAULT_TOL = 1e-4
+"""The default CG tolerance: relative residual per right-hand side."""
 DEFAULT_MAXITER = 2000
+"""The default cap on CG iterations per solve."""
 
 SOLVERS = ("cg", "cholesky")
+"""The values of ``solver=``: Jacobi-preconditioned CG, or CHOLMOD through ``cholespy``."""
 NORMALS = ("area", "uniform", "angle")
+"""The values of ``normals=`` (and :func:`vertex_normals`' ``weighting``)."""
 PREFILTERS = ("smooth", "bilateral", "off")
+"""The values of :func:`bilateral_large_steps`' ``prefilter=``."""
 POSTFILTERS_V = ("uniform", "bilateral", "smooth")
+"""The values of ``postfilter_v=`` (the second moment's filter, :func:`mesh_postfilter`)."""
 
 
 # ----------------------------------------------------------------------------
@@ -96,6 +106,22 @@ class MeshLaplacian(NamedTuple):
       faces: ``(F, 3)`` int32 triangles over the merged vertices (for the normals).
       index: ``(V,)`` int32 merged vertex of every input vertex, or None (no welding).
       first: ``(U,)`` int32 one input vertex of every merged vertex, or None.
+
+    ``V`` is the number of input vertices, ``U <= V`` of merged ones (``U = V`` without
+    welding). A NamedTuple of arrays, so it can be passed through ``jax.jit``; the mesh
+    transforms accept it as ``faces`` (the table is then built once).
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> mesh = obm.mesh_laplacian(faces)
+        >>> mesh.neighbors.shape, mesh.degree.tolist(), mesh.index is None
+        ((6, 4), [4.0, 4.0, 4.0, 4.0, 4.0, 4.0], True)
     """
 
     neighbors: jax.Array
@@ -141,6 +167,25 @@ def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=Non
     Returns:
       A :class:`MeshLaplacian`, to pass as ``faces`` to the mesh transforms so the
       table is built once (and, with ``optax.inject_hyperparams``, treated as static).
+
+    Raises:
+      ValueError: ``faces`` is not a concrete ``(F, 3)`` integer array of indices in
+        ``[0, V)``, or ``weld_positions`` is not ``(V, 3)``.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> obm.mesh_laplacian(faces).degree.tolist()       # every vertex has 4 neighbours
+        [4.0, 4.0, 4.0, 4.0, 4.0, 4.0]
+        >>> seam = jnp.concatenate([verts, verts[:1]])      # vertex 6 duplicates vertex 0
+        >>> welded = obm.mesh_laplacian(np.where(faces == 0, 6, faces), 7, weld_positions=seam)
+        >>> welded.degree.shape, bool(welded.index[0] == welded.index[6])   # 6 merged vertices
+        ((6,), True)
     """
     if isinstance(faces, MeshLaplacian):
         return faces
@@ -384,6 +429,20 @@ def smoothing_solve(
 
     Returns:
       ``x`` with the shape and dtype of ``b``.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> mesh = obm.mesh_laplacian(faces)
+        >>> b = jnp.zeros(6).at[4].set(1.0)
+        >>> x = obm.smoothing_solve(mesh, b, lambda_=1.0)
+        >>> print(np.round(np.asarray(x, float), 3))  # M^-1 is row-stochastic: sums stay 1
+        [0.143 0.143 0.143 0.143 0.314 0.114]
     """
     host = _host_for(mesh, solver)
     b = jnp.asarray(b)
@@ -422,9 +481,25 @@ def vertex_normals(vertices, faces, weighting: str = "area"):
       vertices: ``(V, 3)`` positions.
       faces: ``(F, 3)`` int triangles (counter-clockwise seen from outside) or a
         :class:`MeshLaplacian` (then ``vertices`` are the input vertices, seams included).
-      weighting: how face normals are averaged: ``"area"`` (by face area),
-        ``"uniform"`` (unit face normals, unweighted: what the authors' code computes,
-        up to ``O(1/F)``; docs/mesh.md) or ``"angle"`` (by the corner angles).
+      weighting: how face normals are averaged: ``"area"`` (by face area, the
+        default), ``"uniform"`` (unit face normals, unweighted: what the authors' code
+        computes, up to ``O(1/F)``; docs/mesh.md) or ``"angle"`` (by the corner angles).
+
+    Returns:
+      ``(V, 3)`` unit normals, the dtype of ``vertices``; a vertex whose faces' normals
+      cancel gets a zero normal.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> # the top vertex
+        >>> print(np.round(np.asarray(obm.vertex_normals(verts, faces)[4], float), 3))
+        [0. 0. 1.]
     """
     if weighting not in NORMALS:
         raise ValueError(f"weighting (normals) must be one of {NORMALS}, got {weighting!r}")
@@ -464,8 +539,21 @@ def sphere_directions(
     the first ``num`` of the next power of two. Imports ``scipy.stats.qmc`` (SciPy is
     not a dependency of the library; pass explicit directions to avoid it).
 
+    Args:
+      num: the number of directions (>= 1; default 32, :data:`DEFAULT_DIRECTIONS`).
+      seed: the scrambling seed (default 0, the authors').
+      lloyd: relax the points with SciPy's Lloyd step first (default True).
+
     Returns:
-      ``(num, 3)`` float64.
+      ``(num, 3)`` float64 unit vectors.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral import mesh as obm
+        >>> s = obm.sphere_directions(8)
+        >>> s.shape, bool(np.allclose(np.linalg.norm(s, axis=1), 1.0))
+        ((8, 3), True)
     """
     if isinstance(num, bool) or not isinstance(num, numbers.Integral) or num < 1:
         raise ValueError(f"num (number of sphere directions) must be a positive int, got {num!r}")
@@ -586,9 +674,13 @@ def bilateral_normal_filter(
     """Applies the paper's mesh cross-bilateral operator ``B`` to every field.
 
     ``(B x)_i = sum_k phi_k(i) [M^-1 (w_k * x)]_i / sum_k phi_k(i) [M^-1 w_k]_i`` with
-    ``M = I + lambda L``, splat weights ``w_k(i) = exp((max(n_i . s_k, -1) - 1) / sigma_d)``
-    and slice weights ``phi_k(i)``, the same with ``sigma_phi`` (the authors' code;
-    module docstring). All fields go through the same solves, so e.g. Adam's ``m``
+    ``M = I + lambda L`` (``L = D - A`` the combinatorial Laplacian), sphere directions
+    ``s_k``, splat weights ``w_k(i) = exp((max(n_i . s_k, -1) - 1) / sigma_d)`` and slice
+    weights ``phi_k(i) = exp((max(n_i . s_k, -1) - 1) / sigma_phi)`` (the authors' code:
+    von Mises-Fisher kernels evaluated against fixed directions; supplement §3). So
+    ``B_ij = [M^-1]_ij K(n_i, n_j) / sum_j [M^-1]_ij K(n_i, n_j)`` with
+    ``K(n_i, n_j) = sum_k phi_k(i) w_k(j)``: ``M^-1`` is non-negative and row-stochastic
+    (``M 1 = 1``), hence so is ``B``. All fields go through the same solves, so e.g. Adam's ``m``
     and ``v`` get the same row-stochastic, non-negative operator (supplement §1.3).
     ``sigma_d = inf`` (concrete) skips the directions: ``B = M^-1``. Vertices whose
     denominator underflows (a sigma far below the spacing of the directions) keep
@@ -608,7 +700,23 @@ def bilateral_normal_filter(
       maxiter: CG iteration cap.
 
     Returns:
-      A list with the filtered fields.
+      A list with the filtered fields (shapes and dtypes as given).
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> mesh = obm.mesh_laplacian(faces)
+        >>> normals = obm.vertex_normals(verts, faces)
+        >>> ones, spike = jnp.ones((6, 1)), jnp.zeros((6, 1)).at[4].set(1.0)
+        >>> out = obm.bilateral_normal_filter([ones, spike], normals, mesh, lambda_=1.0,
+        ...                                   sigma_d=0.5, directions=8)
+        >>> print(np.round(np.asarray(out[0][:, 0], float), 3))  # row-stochastic: constants stay
+        [1. 1. 1. 1. 1. 1.]
     """
     host = _host_for(mesh, solver)
     fields = [jnp.asarray(x) for x in fields]
@@ -697,7 +805,25 @@ def _bias_correction(b, count, dtype):
 
 
 class SmoothingState(NamedTuple):
-    """State of the mesh smoothing transforms: the last solutions, or None (no warm start)."""
+    """State of :func:`laplacian_smoothing` and :func:`bilateral_smoothing`.
+
+    Attributes:
+      count: the number of updates so far, an int32 scalar.
+      x0: with ``warm_start=True``, the last solutions (the CG's next starting point,
+        ``(U, C)`` per leaf); else None.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> state = obm.laplacian_smoothing(faces, warm_start=True).init(verts)
+        >>> type(state).__name__, int(state.count), state.x0.shape
+        ('SmoothingState', 0, (6, 3))
+    """
 
     count: jax.Array
     x0: Any
@@ -722,6 +848,29 @@ def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
     ``df/dx_merged = sum of the copies' df/dx``: the gradient of the merged vertex.
     Identity for a mesh built without ``weld_positions``. The mesh aliases put it
     first; a hand-built chain needs it before the first smoothing.
+
+    Args:
+      faces: a :class:`MeshLaplacian` built with ``weld_positions`` (or ``(F, 3)``
+        triangles, or a mesh without welding: then the identity).
+
+    Returns:
+      A stateless ``optax.GradientTransformationExtraArgs`` on ``(V, C)`` leaves.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> seam = jnp.concatenate([verts, verts[:1]])      # vertex 6 duplicates vertex 0
+        >>> mesh = obm.mesh_laplacian(np.where(faces == 0, 6, faces), 7, weld_positions=seam)
+        >>> weld = obm.weld_gradients(mesh)
+        >>> grads = jnp.zeros((7, 3)).at[0, 0].set(1.0).at[6, 0].set(2.0)
+        >>> updates, _ = weld.update(grads, weld.init(grads))
+        >>> updates[:, 0].tolist()                       # both copies get the sum
+        [3.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0]
     """
     mesh = mesh_laplacian(faces)
 
@@ -759,9 +908,27 @@ def laplacian_smoothing(
       lambda_: smoothing weight ``>= 0``; may be traced / injected.
       solver: ``"cg"`` (Jacobi-preconditioned CG) or ``"cholesky"`` (needs ``cholespy``);
         see :func:`smoothing_solve`.
-      tol: CG relative residual per column.
-      maxiter: CG iteration cap.
+      tol: CG relative residual per column (default 1e-4).
+      maxiter: CG iteration cap (default 2000).
       warm_start: keep the last solution in the state and start the CG there.
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state :class:`SmoothingState`) on
+      ``(V, C)`` leaves; ``update`` needs no ``params``.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> grads = jnp.zeros((6, 3)).at[4, 2].set(1.0)     # pull the top vertex up
+        >>> smooth = obm.laplacian_smoothing(faces, lambda_=1.0)
+        >>> updates, _ = smooth.update(grads, smooth.init(verts))
+        >>> print(np.round(np.asarray(updates[:, 2], float), 3))           # (I + L)^-1 g
+        [0.143 0.143 0.143 0.143 0.314 0.114]
     """
     mesh = mesh_laplacian(faces)
     _check_lambda(lambda_)
@@ -820,7 +987,44 @@ def bilateral_smoothing(
     """The bilateral normal filter ``g -> B g`` on every ``(V, 3)`` leaf (the authors'
     ``prefilter="bilateral"``), guided by the normals of ``params``.
 
-    Args: as :func:`mesh_postfilter`. ``update`` needs ``params``.
+    ``B`` is :func:`bilateral_normal_filter`'s operator: ``M^-1 = (I + lambda L)^-1``
+    diffusion that does not cross normals which differ (von Mises-Fisher splat of width
+    ``sigma_d``, slice of width ``sigma_phi``); ``sigma_d = inf`` gives
+    :func:`laplacian_smoothing`.
+
+    Args:
+      faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian`.
+      lambda_: smoothing weight ``>= 0`` of ``M = I + lambda L`` (default 19; may be
+        traced).
+      sigma_d: splat width on normals (``> 0``, default 0.5; ``inf`` = no data term; may
+        be traced).
+      sigma_phi: slice width (``> 0``, default 0.4; may be traced).
+      directions: int number of Sobol sphere directions (default 32; needs SciPy) or a
+        ``(K, 3)`` array of unit vectors.
+      normals: ``"area"`` (default), ``"uniform"``, ``"angle"`` (see
+        :func:`vertex_normals`) or a callable ``positions -> (V, 3) unit normals``.
+      solver: ``"cg"`` or ``"cholesky"``; see :func:`smoothing_solve`.
+      tol: CG relative residual per column (default 1e-4).
+      maxiter: CG iteration cap (default 2000).
+      warm_start: keep the last solutions in the state and start the CG there.
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state :class:`SmoothingState`);
+      ``update(updates, state, params)`` needs ``params``, the ``(V, 3)`` positions.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> grads = jnp.zeros((6, 3)).at[4, 2].set(1.0)     # pull the top vertex up
+        >>> smooth = obm.bilateral_smoothing(faces, lambda_=1.0, directions=8)
+        >>> updates, _ = smooth.update(grads, smooth.init(verts), verts)
+        >>> print(np.round(np.asarray(updates[:, 2], float), 3))  # spreads less than M^-1 g
+        [0.051 0.037 0.044 0.032 0.126 0.034]
     """
     mesh = mesh_laplacian(faces)
     _check_lambda(lambda_)
@@ -872,7 +1076,26 @@ def bilateral_smoothing(
 
 
 class ScaleByUniformAdamState(NamedTuple):
-    """Moments of :func:`scale_by_uniform_adam`."""
+    """State of :func:`scale_by_uniform_adam`.
+
+    Attributes:
+      count: the number of updates so far, an int32 scalar.
+      mu: the first moment, like the parameters.
+      nu: the second moment, like the parameters (per entry; the max is taken at each
+        step).
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> state = obm.scale_by_uniform_adam().init(verts)
+        >>> type(state).__name__, int(state.count), state.nu.shape
+        ('ScaleByUniformAdamState', 0, (6, 3))
+    """
 
     count: jax.Array
     mu: Any
@@ -880,8 +1103,27 @@ class ScaleByUniformAdamState(NamedTuple):
 
 
 class MeshPostfilterState(NamedTuple):
-    """State of :func:`mesh_postfilter`: the *unfiltered* moments and, with
-    ``warm_start``, the last solutions of the filter's solves (else None)."""
+    """State of :func:`mesh_postfilter`: the *unfiltered* moments (eqs. 2, 4).
+
+    Attributes:
+      count: the number of updates so far, an int32 scalar.
+      mu: the first moment ``m_t``, like the parameters.
+      nu: the second moment ``v_t``, like the parameters.
+      x0: with ``warm_start=True``, the last solutions of the filter's solves; else
+        None.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> state = obm.mesh_postfilter(faces, directions=8).init(verts)
+        >>> type(state).__name__, state.mu.shape, state.x0
+        ('MeshPostfilterState', (6, 3), None)
+    """
 
     count: jax.Array
     mu: Any
@@ -909,6 +1151,26 @@ def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransform
     with bias-corrected ``m^, v^`` and the max over every entry of the leaf (all
     vertices and coordinates). Every vertex then moves with the same step scale,
     which keeps the reparameterised update of Large Steps uniform over the mesh.
+
+    Args:
+      b1: decay rate of the first moment, in [0, 1) (default 0.9).
+      b2: decay rate of the second moment, in [0, 1) (default 0.999).
+      eps: added to the denominator (default 1e-8).
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state
+      :class:`ScaleByUniformAdamState`); any leaf shape.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> opt = obm.scale_by_uniform_adam()
+        >>> grads = jnp.array([[0.5, 0.0, -1.0], [0.25, 0.0, 0.0]])
+        >>> updates, _ = opt.update(grads, opt.init(grads))
+        >>> print(np.round(np.asarray(updates, float), 3))  # g / max|g| at the first step
+        [[ 0.5   0.   -1.  ]
+         [ 0.25  0.    0.  ]]
     """
     _check_unit(b1, "b1")
     _check_unit(b2, "b2")
@@ -983,6 +1245,25 @@ def mesh_postfilter(
 
     ``update(updates, state, params)`` needs ``params``: a pytree of ``(V, 3)``
     vertex-position leaves of this mesh (the updates have the same structure).
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state :class:`MeshPostfilterState`)
+      returning ``Delta_t`` (no learning rate; :func:`bilateral_large_steps` chains it).
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> grads = jnp.zeros((6, 3)).at[4, 2].set(1.0)     # pull the top vertex up
+        >>> post = obm.mesh_postfilter(faces, lambda_=1.0, directions=8)
+        >>> step, state = post.update(grads, post.init(verts), verts)
+        >>> # B m^ / sqrt(max v^), m^ = g at t = 1
+        >>> print(np.round(np.asarray(step[:, 2], float), 3))
+        [0.051 0.037 0.044 0.032 0.126 0.034]
     """
     mesh = mesh_laplacian(faces)
     _check_lambda(lambda_)
@@ -1111,6 +1392,26 @@ def large_steps(
       tol: CG relative residual per column.
       maxiter: CG iteration cap.
       warm_start: keep the last solutions in the state and start the CG there.
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs``: ``weld_gradients``,
+      ``laplacian_smoothing``, ``scale_by_uniform_adam``, ``laplacian_smoothing`` and
+      ``optax.scale_by_learning_rate`` chained; ``update`` needs no ``params``.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> grads = jnp.zeros((6, 3)).at[4, 2].set(1.0)     # pull the top vertex up
+        >>> opt = obm.large_steps(0.1, faces, lambda_=1.0)
+        >>> updates, state = opt.update(grads, opt.init(verts))
+        >>> # the whole mesh moves up, smoothly
+        >>> print(np.round(np.asarray(updates[:, 2], float), 3))
+        [-0.052 -0.052 -0.052 -0.052 -0.062 -0.049]
     """
     mesh = mesh_laplacian(faces)
     kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
@@ -1159,6 +1460,52 @@ def bilateral_large_steps(
     With ``optax.inject_hyperparams`` (to schedule ``lambda_``, ``sigma_d``,
     ``sigma_phi`` or the learning rate) pass a :class:`MeshLaplacian` as ``faces``, or
     list ``"faces"`` (and ``"directions"`` if it is an array) in ``static_args``.
+    docs/mesh.md has the method, the authors' parameterisation and measured results.
+
+    Args:
+      learning_rate: a number or an optax schedule.
+      faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian` (welded seams: see
+        :func:`mesh_laplacian`).
+      lambda_: smoothing weight ``>= 0`` of ``M = I + lambda L`` (default 19, the
+        authors'; may be traced).
+      sigma_d: splat width on normals (``> 0``, default 0.5, the paper's; ``inf`` gives
+        :func:`large_steps`; may be traced).
+      b1: first-moment decay rate (default 0.9, Large Steps').
+      b2: second-moment decay rate (default 0.999).
+      eps: added to the denominator (default 1e-8).
+      sigma_phi: slice width (``> 0``, default 0.4, the authors'; may be traced).
+      prefilter: ``"smooth"`` (``A = M^-1``, default), ``"bilateral"`` (``A = B``) or
+        ``"off"``.
+      postfilter_v: ``"uniform"`` (default), ``"bilateral"`` or ``"smooth"``, as above
+        (see :func:`mesh_postfilter`).
+      directions: int number of Sobol sphere directions (default 32; needs SciPy) or a
+        ``(K, 3)`` array of unit vectors.
+      normals: ``"area"`` (default), ``"uniform"`` (the authors'), ``"angle"`` (see
+        :func:`vertex_normals`) or a callable ``positions -> (V, 3) unit normals``.
+      solver: ``"cg"`` or ``"cholesky"`` (needs ``cholespy``); see
+        :func:`smoothing_solve`.
+      tol: CG relative residual per column (default 1e-4).
+      maxiter: CG iteration cap (default 2000).
+      warm_start: keep the last solutions in the state and start the CG there.
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (``weld_gradients``, the prefilter,
+      :func:`mesh_postfilter` and ``optax.scale_by_learning_rate`` chained);
+      ``update(updates, state, params)`` needs ``params``, the ``(V, 3)`` positions.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> grads = jnp.zeros((6, 3)).at[4, 2].set(1.0)     # pull the top vertex up
+        >>> opt = obm.bilateral_large_steps(0.1, faces, lambda_=1.0, directions=8)
+        >>> updates, state = opt.update(grads, opt.init(verts), verts)
+        >>> print(np.round(np.asarray(updates[:, 2], float), 3))
+        [-0.047 -0.047 -0.047 -0.046 -0.051 -0.044]
     """
     mesh = mesh_laplacian(faces)
     _check_choice(prefilter, "prefilter", PREFILTERS)

@@ -25,12 +25,14 @@ import jax
 import jax.numpy as jnp
 import optax
 
-#: Mitsuba 3.9's LLVM kernels use ``fminimum``, which libLLVM 14 and 15 cannot compile
-#: (the first render aborts the process with ``LLVM ERROR: Cannot select ... fminimum``).
 MIN_LLVM_MAJOR = 16
+"""The oldest libLLVM major version the ``llvm_*`` variants can use: Mitsuba 3.9's LLVM
+kernels use ``fminimum``, which libLLVM 14 and 15 cannot compile (the first render aborts
+the process with ``LLVM ERROR: Cannot select ... fminimum``)."""
 
-#: Parameter ranks the helper accepts: bitmap textures (H, W, C) and grid volumes (D, H, W, C).
 GRID_NDIMS = (3, 4)
+"""Parameter ranks :class:`SceneOptimizer` accepts: bitmap textures ``(H, W, C)`` and grid
+volumes ``(D, H, W, C)``."""
 
 _INSTALL_HINT = ("pip install 'optax_bilateral[mitsuba]' (Mitsuba 3 and Dr.Jit, pinned), and for "
                  "the llvm_* variants a libLLVM >= 16 on the system (Debian/Ubuntu: apt-get "
@@ -47,7 +49,21 @@ def _modules():
 
 
 def llvm_version() -> tuple[int, int, int] | None:
-    """The libLLVM version Dr.Jit loaded, or ``None`` when it found none."""
+    """The libLLVM version Dr.Jit loaded, or ``None`` when it found none.
+
+    Returns:
+      ``(major, minor, patch)`` ints, or None.
+
+    Raises:
+      ImportError: Mitsuba 3 or Dr.Jit is not installed (the ``mitsuba`` extra).
+
+    Example::
+
+        >>> from optax_bilateral.mitsuba import llvm_version
+        >>> version = llvm_version()          # e.g. (19, 1, 7)
+        >>> version is None or len(version) == 3
+        True
+    """
     _, dr = _modules()
     version = tuple(int(v) for v in dr.detail.llvm_version())
     return version if version[0] >= 0 else None
@@ -58,7 +74,24 @@ def check_variant() -> str:
 
     Checks that a variant is set, that it is an AD variant (``*_ad_*``), and for the
     ``llvm_*`` variants that Dr.Jit loaded a libLLVM >= 16 (with an older one the first
-    render aborts the whole process, which no ``try`` can catch). Returns the variant.
+    render aborts the whole process, which no ``try`` can catch). Renders nothing.
+
+    Returns:
+      The current variant's name.
+
+    Raises:
+      ImportError: Mitsuba 3 or Dr.Jit is not installed.
+      RuntimeError: no variant is set, no libLLVM was found, or it is older than
+        :data:`MIN_LLVM_MAJOR` (the message says what to install).
+      ValueError: the variant is not differentiable.
+
+    Example::
+
+        >>> import mitsuba as mi
+        >>> from optax_bilateral.mitsuba import check_variant
+        >>> mi.set_variant("llvm_ad_rgb")
+        >>> check_variant()
+        'llvm_ad_rgb'
     """
     mi, _ = _modules()
     variant = mi.variant()
@@ -85,7 +118,23 @@ def check_variant() -> str:
 
 def to_jax(tensor) -> jax.Array:
     """A Dr.Jit tensor as a JAX array through DLPack: no copy on the CPU when the buffer is
-    64-byte aligned (Dr.Jit's own buffers are), else JAX copies it."""
+    64-byte aligned (Dr.Jit's own buffers are), else JAX copies it.
+
+    Args:
+      tensor: a Dr.Jit tensor (e.g. ``mi.TensorXf``, a value of ``mi.traverse(scene)``
+        or ``dr.grad`` of one), any shape.
+
+    Returns:
+      A ``jax.Array`` with the tensor's shape and dtype.
+
+    Example::
+
+        >>> import numpy as np, mitsuba as mi
+        >>> from optax_bilateral.mitsuba import to_jax
+        >>> mi.set_variant("llvm_ad_rgb")
+        >>> to_jax(mi.TensorXf(np.ones((4, 4, 3), np.float32))).shape
+        (4, 4, 3)
+    """
     return jnp.from_dlpack(tensor)
 
 
@@ -193,6 +242,21 @@ def observed_texels(grad: jax.Array) -> jax.Array:
 
     The library's rule for ``mask_unobserved=True``: a texel no ray reached this step
     has an all-zero gradient, and a non-finite gradient is never trusted.
+
+    Args:
+      grad: a gradient ``(..., C)``, channels last (a texture's ``(H, W, C)``, a
+        volume's ``(D, H, W, C)``).
+
+    Returns:
+      A boolean array ``(..., 1)``: True where the texel counts as observed.
+
+    Example::
+
+        >>> import jax.numpy as jnp
+        >>> from optax_bilateral.mitsuba import observed_texels
+        >>> grad = jnp.array([[[0.0, 0.0]], [[0.0, 0.5]], [[jnp.nan, 1.0]]])   # (3, 1, 2)
+        >>> observed_texels(grad)[:, 0, 0].tolist()
+        [False, True, False]
     """
     finite = jnp.all(jnp.isfinite(grad), axis=-1, keepdims=True)
     return finite & jnp.any(grad != 0, axis=-1, keepdims=True)
@@ -283,6 +347,30 @@ class SceneOptimizer:
       ValueError: a value that is not a (H, W, C) or (D, H, W, C) grid, or a
         malformed ``project``.
       RuntimeError: no AD variant, or an LLVM variant on a libLLVM older than 16.
+
+    Example::
+
+        >>> import numpy as np, drjit as dr, mitsuba as mi, optax_bilateral as ob
+        >>> from optax_bilateral.mitsuba import SceneOptimizer
+        >>> mi.set_variant("llvm_ad_rgb")
+        >>> camera = mi.ScalarTransform4f().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0])
+        >>> texture = mi.TensorXf(np.full((8, 8, 3), 0.5, np.float32))
+        >>> scene = mi.load_dict({
+        ...     "type": "scene", "integrator": {"type": "direct"}, "light": {"type": "constant"},
+        ...     "sensor": {"type": "perspective", "to_world": camera,
+        ...                "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        ...     "plane": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": {
+        ...         "type": "bitmap", "raw": True, "data": texture}}}})
+        >>> params = mi.traverse(scene)
+        >>> key = "plane.bsdf.reflectance.data"
+        >>> opt = SceneOptimizer(ob.bilateral_adam(0.05, sigma_d=0.1, levels=1), params, key,
+        ...                      project={key: (0.0, 1.0)})
+        >>> state = opt.init()
+        >>> image = mi.render(scene, params, spp=4)
+        >>> dr.backward(dr.mean(dr.square(image - 0.1), axis=None))   # darker than the target
+        >>> state = opt.step(state)
+        >>> float(opt.values()[key].mean()) < 0.5                    # the texture got darker
+        True
     """
 
     def __init__(self, transform: optax.GradientTransformation, params, keys: str | Sequence[str], *,

@@ -118,7 +118,21 @@ def _transpose(grid, levels, axes):
 
 
 class LaplacianPyramidState(NamedTuple):
-    """State of :func:`laplacian_pyramid`: the inner optimiser's state on the coefficients."""
+    """State of :func:`laplacian_pyramid`: the inner optimiser's state on the coefficients.
+
+    Attributes:
+      inner_state: ``inner.init`` of the coefficients: a list with, per parameter leaf (in
+        ``jax.tree.leaves`` order), a tuple of ``levels`` arrays, finest first (level ``k``
+        has ``ceil(n / 2^k)`` samples along each spatial axis of size ``n``); a leaf with
+        no spatial axes is a 1-tuple of itself.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax, optax_bilateral as ob
+        >>> state = ob.laplacian_pyramid(optax.adam(0.01), levels=3).init(jnp.zeros((8, 8, 1)))
+        >>> [m.shape for m in state.inner_state[0].mu[0]]
+        [(8, 8, 1), (4, 4, 1), (2, 2, 1)]
+    """
 
     inner_state: Any
 
@@ -137,11 +151,15 @@ def laplacian_pyramid(inner: optax.GradientTransformation, levels: int, *, spati
         \tilde g_t = P^\top g_t, \qquad \Delta_t = \mathrm{inner}(\tilde g_t), \qquad
         u_t = P \Delta_t
 
-    with ``P c = c_0 + U(c_1 + U(\dots c_{K-1}))`` (module docstring). Equivalent to
-    optimising the coefficients with ``inner`` while the loss sees their sum; the
-    inner state lives in coefficient space (one array per level and leaf). The
-    inner transform is called with ``params=None`` (the coefficients are never
-    formed), so it must not need parameter values (Adam, SGD, momentum do not).
+    with ``P c = c_0 + U(c_1 + U(\dots c_{K-1}))``: level ``k`` has ``ceil(n / 2^k)``
+    samples along each spatial axis of size ``n``, and ``U`` doubles every spatial axis by
+    linear interpolation on cell centres (output ``2i`` is ``0.75 c[i] + 0.25 c[i-1]``,
+    ``2i+1`` is ``0.75 c[i] + 0.25 c[i+1]``, edges clamped), then crops to the finer
+    level's size. Equivalent to optimising the coefficients with ``inner`` while the loss
+    sees their sum (``df/dc = P^T df/dtheta``); the inner state lives in coefficient
+    space (one array per level and leaf). The inner transform is called with
+    ``params=None`` (the coefficients are never formed), so it must not need parameter
+    values (Adam, SGD, momentum do not).
 
     Args:
       inner: the optimiser of the coefficients (e.g. ``optax.adam(lr)``).
@@ -150,6 +168,22 @@ def laplacian_pyramid(inner: optax.GradientTransformation, levels: int, *, spati
       spatial_axes: which axes of each leaf are the grid, as in
         :func:`optax_bilateral.postfilter` (``None``: the default leaf rule;
         leaves with no spatial axes are passed to ``inner`` as they are).
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state :class:`LaplacianPyramidState`)
+      whose updates have the gradients' shapes and dtypes.
+
+    Raises:
+      ValueError: ``levels`` is not an int >= 1, or ``spatial_axes`` is not a valid setting.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax, optax_bilateral as ob
+        >>> opt = ob.laplacian_pyramid(optax.sgd(1.0), levels=3)
+        >>> grads = jnp.zeros((8, 8, 1)).at[3, 3].set(1.0)
+        >>> updates, _ = opt.update(grads, opt.init(grads))   # -P P^T g: spread over levels
+        >>> print(updates[3, 3, 0], updates[0, 0, 0])
+        -1.6728516 -0.390625
     """
     levels = _check_levels(levels)
     lv.check_spatial_axes_setting(spatial_axes)
@@ -186,7 +220,30 @@ def pyramid_adam(learning_rate, levels: int, b1=0.9, b2=0.999, eps=1e-8, *, spat
     Weier et al.'s texture parameterisation (SIGGRAPH 2025): one learning rate for
     every level, Adam's defaults (Mitsuba's). ``learning_rate`` (a number or a
     schedule) is traceable through
-    ``optax.inject_hyperparams(pyramid_adam, static_args=("levels",))``.
+    ``optax.inject_hyperparams(pyramid_adam, static_args=("levels",))``. The step on the
+    grid is ``-lr P adam(P^T g)`` (:func:`laplacian_pyramid` defines ``P``), so a first
+    step moves a texel by up to ``levels * lr``.
+
+    Args:
+      learning_rate: a number or an optax schedule.
+      levels: ``K >= 1``, the number of pyramid levels (static).
+      b1: Adam's first-moment decay rate (default 0.9).
+      b2: Adam's second-moment decay rate (default 0.999).
+      eps: Adam's epsilon (default 1e-8).
+      spatial_axes: which axes of each leaf are the grid (``None``: the default leaf
+        rule, :func:`default_spatial_axes`), as in :func:`laplacian_pyramid`.
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state :class:`LaplacianPyramidState`).
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> opt = ob.pyramid_adam(0.01, levels=3)
+        >>> grads = jnp.zeros((8, 8, 1)).at[3, 3].set(1.0)
+        >>> updates, _ = opt.update(grads, opt.init(grads))
+        >>> round(float(updates.min()), 4)          # three levels of -lr sign steps
+        -0.03
     """
     return laplacian_pyramid(optax.adam(learning_rate, b1=b1, b2=b2, eps=eps), levels,
                              spatial_axes=spatial_axes)

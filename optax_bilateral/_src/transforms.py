@@ -76,8 +76,12 @@ SecondMoment = Literal["elementwise", "uniform"]
 
 # Chosen from the data every step (docs/auto_sigma.md): no number suits every problem.
 DEFAULT_SIGMA_D = "auto"
+"""The default ``sigma_d`` of every transform: ``"auto"``, chosen per leaf and step from the
+guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes it."""
 # F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.
 DEFAULT_LEVELS = 3
+"""The default ``levels`` F = 3 of every transform: footprint radius ``2 (2^F - 1) = 14``
+texels; the authors' ``stride_levels = 4``."""
 
 
 # ----------------------------------------------------------------------------------------
@@ -85,7 +89,20 @@ DEFAULT_LEVELS = 3
 
 
 class ScaleByAdamState(NamedTuple):
-    """State of :func:`scale_by_adam`: step count and the first two moments."""
+    """State of :func:`scale_by_adam`: step count and the first two moments.
+
+    Attributes:
+      count: the number of updates so far, an int32 scalar.
+      mu: the first moment ``m_t``, like the parameters (dtype ``mu_dtype`` if given).
+      nu: the second moment ``v_t``, like the parameters.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> state = ob.scale_by_adam().init({"w": jnp.zeros(3)})
+        >>> type(state).__name__, int(state.count), state.mu["w"].shape
+        ('ScaleByAdamState', 0, (3,))
+    """
 
     count: jax.Array  # shape=(), int32
     mu: optax.Updates
@@ -108,7 +125,29 @@ def scale_by_adam(
         \Delta_t = \frac{m_t/(1-\beta_1^t)}{\sqrt{v_t/(1-\beta_2^t) + \epsilon_{root}} + \epsilon}
 
     (supplement eq. 12). Chained after :func:`prefilter` it is eq. 13. With
-    ``b1 = b2 = 0`` it is ``sign(g)`` up to ``eps`` (eq. 15).
+    ``b1 = b2 = 0`` it is ``sign(g)`` up to ``eps`` (eq. 15). Unlike :func:`postfilter` it
+    has no policy for non-finite or extreme gradients (docs/robustness.md).
+
+    Args:
+      b1: decay rate of the first moment, in [0, 1) (default 0.9, Adam's).
+      b2: decay rate of the second moment, in [0, 1) (default 0.999, Adam's).
+      eps: added to the denominator (default 1e-8).
+      eps_root: added inside the square root (default 0).
+      mu_dtype: dtype of the first moment (default: the parameters').
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` whose state is a
+      :class:`ScaleByAdamState`; the updates have the gradients' shapes and need a learning
+      rate after them (``optax.scale_by_learning_rate``).
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> opt = ob.scale_by_adam()
+        >>> grads = {"w": jnp.array([0.5, -2.0, 0.0])}
+        >>> updates, state = opt.update(grads, opt.init(grads))
+        >>> print(updates["w"])     # the first step is g / |g|, up to eps
+        [ 0.9999934 -0.9999934  0.       ]
     """
     check_decay(b1, "b1")
     check_decay(b2, "b2")
@@ -155,8 +194,21 @@ def scale_by_adam(
 class PrefilterState(NamedTuple):
     """State of :func:`prefilter`: none, unless a leaf has ``sigma_d="auto"``.
 
-    Then ``count`` is the step count and ``auto`` holds, per leaf, the guide of the last
-    update (:class:`AutoState`; None for leaves with a numeric sigma_d).
+    Attributes:
+      count: the number of updates so far (int32 scalar), or None when no leaf has
+        ``sigma_d="auto"``.
+      auto: None when no leaf has ``sigma_d="auto"``; else a pytree with the parameters'
+        structure holding, per leaf, its :class:`AutoState` (the guide of the last
+        update), or None for leaves with a numeric ``sigma_d`` or not filtered.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> ob.prefilter(sigma_d=0.1).init(jnp.ones((16, 16, 3)))
+        PrefilterState(count=None, auto=None)
+        >>> state = ob.prefilter().init(jnp.ones((16, 16, 3)))       # sigma_d="auto"
+        >>> int(state.count), state.auto.previous_guide.shape
+        (0, (16, 16, 3))
     """
 
     count: Any = None  # shape=(), int32, or None
@@ -206,6 +258,27 @@ def prefilter(
 
     Gradients beyond a quarter of the float maximum are clipped first, so the
     sums cannot overflow (docs/robustness.md lists the numerical policies).
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state :class:`PrefilterState`) whose
+      ``update(grads, state, params)`` returns ``A_t g_t`` with the gradients' shapes and
+      dtypes; it needs ``params`` (the guide) unless ``guide="self"``.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax, optax_bilateral as ob
+        >>> params = jnp.ones((16, 16, 3))                       # a flat 16x16 RGB texture
+        >>> grads = jnp.zeros((16, 16, 3)).at[8, 8].set(1.0)     # one noisy texel
+        >>> opt = ob.prefilter(sigma_d=0.1, levels=2)
+        >>> filtered, _ = opt.update(grads, opt.init(params), params)
+        >>> print(filtered[8, 8])                                # spread over its neighbours
+        [0.02954102 0.02954102 0.02954102]
+        >>> eq13 = optax.chain(ob.prefilter(sigma_d=0.1, levels=2),
+        ...                    ob.scale_by_adam(b1=0.2, b2=0.36),
+        ...                    optax.scale_by_learning_rate(0.01))
+        >>> updates, _ = eq13.update(grads, eq13.init(params), params)
+        >>> print(updates[8, 10])                # -lr sign(A g): step 1 of Adam is a sign step
+        [-0.01 -0.01 -0.01]
     """
     leaves.check_guide(guide)
     _static_checks(sigma_d, levels, spatial_axes)
@@ -295,9 +368,24 @@ def _static_checks(sigma_d, levels, spatial_axes) -> None:
 class PostfilterState(NamedTuple):
     """State of :func:`postfilter`: the *unfiltered* moments (eqs. 2, 4).
 
-    ``mu`` and ``nu`` are ``None`` in the memoryless case ``b1 = b2 = 0``. ``auto`` is
-    None unless a leaf has ``sigma_d="auto"``; then it holds, per leaf, that leaf's
-    :class:`AutoState` (None for leaves with a numeric sigma_d).
+    Attributes:
+      count: the number of updates so far, an int32 scalar.
+      mu: the first moment ``m_t`` (unfiltered), like the parameters; None in the
+        memoryless case ``b1 = b2 = 0``.
+      nu: the second moment ``v_t`` (unfiltered), like the parameters; None when
+        ``b1 = b2 = 0``.
+      auto: None unless a leaf has ``sigma_d="auto"``; then a pytree with the
+        parameters' structure holding, per leaf, its :class:`AutoState` (None for leaves
+        with a numeric ``sigma_d`` or not filtered).
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> state = ob.postfilter(sigma_d=0.1).init(jnp.ones((16, 16, 3)))
+        >>> int(state.count), state.mu.shape, state.auto
+        (0, (16, 16, 3), None)
+        >>> ob.postfilter(b1=0.0, b2=0.0, sigma_d=0.1).init(jnp.ones((16, 16, 3))).mu is None
+        True
     """
 
     count: jax.Array  # shape=(), int32
@@ -386,6 +474,25 @@ def postfilter(
     Finite gradients are clipped to the largest magnitude whose square fits the
     second moment's dtype (1.3e19 for float32, 181 for float16), and a zero
     denominator gives a zero step; docs/robustness.md lists these policies.
+
+    Returns:
+      An ``optax.GradientTransformationExtraArgs`` (state :class:`PostfilterState`) whose
+      ``update(grads, state, params)`` returns the step ``Delta_t`` with the gradients'
+      shapes (no learning rate: chain ``optax.scale_by_learning_rate``, as
+      :func:`bilateral_adam` does); it needs ``params`` (the guide) unless
+      ``guide="self"``.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp, optax_bilateral as ob
+        >>> params = jnp.ones((16, 16, 3))
+        >>> grads = 0.1 * jax.random.normal(jax.random.key(0), (16, 16, 3))
+        >>> opt = ob.postfilter(b1=0.2, sigma_d=0.1, levels=2)
+        >>> step, state = opt.update(grads, opt.init(params), params)
+        >>> bool(jnp.abs(step).max() <= 1.0)     # bounded like Adam's (supplement §1.3)
+        True
+        >>> bool(jnp.all(state.mu == 0.8 * grads))   # the state keeps the unfiltered m_t
+        True
     """
     if b2 is None:
         b2 = 1 - (1 - b1) ** 2

@@ -54,6 +54,21 @@ def icosphere(frequency: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarr
 
     ``V = 10 frequency^2 + 2`` vertices (16 -> 2562, 32 -> 10242, 59 -> 34812,
     129 -> 166412), faces counter-clockwise seen from outside.
+
+    Args:
+      frequency: subdivisions per icosahedron edge (a positive int).
+      radius: the sphere's radius (default 1).
+
+    Returns:
+      ``(vertices, faces)``: ``(V, 3)`` float32 and ``(20 frequency^2, 3)`` int32.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> vertices, faces = tm.icosphere(2)
+        >>> vertices.shape, faces.shape
+        ((42, 3), (80, 3))
     """
     if isinstance(frequency, bool) or not isinstance(frequency, int) or frequency < 1:
         raise ValueError(f"frequency must be a positive int, got {frequency!r}")
@@ -88,7 +103,25 @@ def icosphere(frequency: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarr
 
 
 def sample_surface(vertices, faces, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` points uniformly distributed over the area of a triangle mesh."""
+    """``count`` points uniformly distributed over the area of a triangle mesh.
+
+    Args:
+      vertices: ``(V, 3)`` positions.
+      faces: ``(F, 3)`` int triangles.
+      count: the number of points.
+      rng: a ``np.random.Generator``.
+
+    Returns:
+      ``(count, 3)`` float64 points.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> vertices, faces = tm.icosphere(2)
+        >>> tm.sample_surface(vertices, faces, 5, np.random.default_rng(0)).shape
+        (5, 3)
+    """
     tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     idx = rng.choice(len(tri), size=count, p=area / area.sum())
@@ -100,7 +133,24 @@ def sample_surface(vertices, faces, count: int, rng: np.random.Generator) -> np.
 
 
 def sample_cube_surface(half: float, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` points uniform on the surface of the cube ``[-half, half]^3``."""
+    """``count`` points uniform on the surface of the cube ``[-half, half]^3``.
+
+    Args:
+      half: half the cube's side.
+      count: the number of points.
+      rng: a ``np.random.Generator``.
+
+    Returns:
+      ``(count, 3)`` float64 points, each with one coordinate at ``+-half``.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> p = tm.sample_cube_surface(0.5, 4, np.random.default_rng(0))
+        >>> p.shape, bool(np.all(np.abs(p).max(axis=1) == 0.5))
+        ((4, 3), True)
+    """
     axis = rng.integers(0, 3, count)
     sign = rng.choice([-1.0, 1.0], count)
     p = rng.uniform(-half, half, (count, 3))
@@ -114,6 +164,24 @@ def hausdorff_to_cube(vertices, faces, half: float, count: int = 20000, seed: in
     Mesh -> cube uses the exact distance of each mesh sample (and vertex) to the
     cube surface; cube -> mesh the nearest mesh sample (``scipy.spatial.cKDTree``),
     so that direction is accurate to about the sample spacing.
+
+    Args:
+      vertices: ``(V, 3)`` positions.
+      faces: ``(F, 3)`` int triangles.
+      half: half the cube's side.
+      count: surface samples on each side (default 20000).
+      seed: the samples' seed (default 0).
+
+    Returns:
+      The distance, a float in world units.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> vertices, faces = tm.icosphere(2)
+        >>> round(tm.hausdorff_to_cube(vertices, faces, 0.55, count=500), 2)   # the unit sphere
+        0.45
     """
     from scipy.spatial import cKDTree
 
@@ -142,6 +210,14 @@ class Scene(NamedTuple):
       extent: the image covers ``[-extent, extent]^2`` in world units.
       cube_half: half side of the target cube.
       views_per_iteration: views rendered per optimisation step.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> scene = tm.make_scene(num_views=4, resolution=8)
+        >>> scene.frames.shape, scene.pixel_size
+        ((4, 3, 3), 0.3)
     """
 
     frames: np.ndarray
@@ -157,7 +233,26 @@ class Scene(NamedTuple):
 
 def make_scene(num_views: int = 16, resolution: int = 64, extent: float = 1.2,
                cube_half: float = 0.55, views_per_iteration: int = 2, seed: int = 1) -> Scene:
-    """Cameras on quasi-random directions (scrambled Sobol, ``scipy.stats.qmc``)."""
+    """Cameras on quasi-random directions (scrambled Sobol, ``scipy.stats.qmc``).
+
+    Args:
+      num_views: the number of orthographic cameras (default 16).
+      resolution: pixels per side (default 64).
+      extent: the images cover ``[-extent, extent]^2`` (default 1.2).
+      cube_half: half side of the target cube (default 0.55).
+      views_per_iteration: views rendered per optimisation step (default 2).
+      seed: the directions' scrambling seed (default 1).
+
+    Returns:
+      A :class:`Scene`.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> tm.make_scene(num_views=4, resolution=8).resolution
+        8
+    """
     from optax_bilateral.mesh import sphere_directions
 
     d = sphere_directions(num_views, seed=seed, lloyd=False)
@@ -196,7 +291,24 @@ def _target_hits(scene: Scene, frame: np.ndarray, xy: np.ndarray):
 
 
 def render_target(scene: Scene, view: int) -> np.ndarray:
-    """Noise-free target image ``(R, R, 3)`` at pixel centres."""
+    """Noise-free target image ``(R, R, 3)`` at pixel centres.
+
+    The cube ``[-cube_half, cube_half]^3`` under all six lights (ray-box intersection).
+
+    Args:
+      scene: the :class:`Scene`.
+      view: the camera's index.
+
+    Returns:
+      ``(R, R, 3)`` float RGB, ``R`` the scene's resolution; 0 where the cube is missed.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> tm.render_target(tm.make_scene(num_views=4, resolution=8), 0).shape
+        (8, 8, 3)
+    """
     _, rgb = _target_hits(scene, scene.frames[view], _pixel_centres(scene))
     return rgb.reshape(scene.resolution, scene.resolution, 3)
 
@@ -261,7 +373,34 @@ def _edge_faces(faces: np.ndarray):
 
 
 class Frame(NamedTuple):
-    """One iteration's non-differentiable rendering data (fixed shapes, for jit)."""
+    """One iteration's non-differentiable rendering data (fixed shapes, for jit).
+
+    Built by :meth:`MeshRenderer.frame` for ``B`` views, ``P`` pixel samples per view and
+    ``Q`` silhouette-band samples (padded).
+
+    Attributes:
+      frames: ``(B, 3, 3)`` the views' camera frames.
+      xy: ``(B, P, 2)`` sample positions in the image plane.
+      face: ``(B, P)`` the visible face, or -1.
+      target_hit: ``(B, P)`` bool, whether the sample sees the cube.
+      target_rgb: ``(B, P, 3)`` the target's colour there.
+      lights: ``(B, P, 2)`` two independent light indices per sample.
+      band_xy: ``(B, Q, 2)`` silhouette-band samples.
+      band_edge: ``(B, Q, 2)`` vertex indices of the nearest silhouette edge.
+      band_sign: ``(B, Q)`` +1 covered by the mesh, -1 not.
+      band_target: ``(B, Q)`` target coverage (0/1).
+      band_mask: ``(B, Q)`` 1 for real entries, 0 for padding.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> vertices, faces = tm.icosphere(2)
+        >>> renderer = tm.MeshRenderer(tm.make_scene(num_views=4, resolution=8), faces)
+        >>> frame = renderer.frame(0.6 * vertices, np.random.default_rng(0))
+        >>> frame.face.shape                                  # 2 views of 8x8 samples
+        (2, 64)
+    """
 
     frames: np.ndarray  # (B, 3, 3)
     xy: np.ndarray  # (B, P, 2) sample positions in the image plane
@@ -277,7 +416,28 @@ class Frame(NamedTuple):
 
 
 class MeshRenderer:
-    """Builds per-iteration rendering data and the differentiable loss for one mesh topology."""
+    """Builds per-iteration rendering data and the differentiable loss for one mesh topology.
+
+    Each iteration: :meth:`frame` (NumPy: visibility, targets, silhouette bands for a
+    random subset of views), then :meth:`loss` (JAX, differentiable in the vertices):
+    its first output's gradient is the noisy Monte Carlo gradient.
+
+    Args:
+      scene: the :class:`Scene`.
+      faces: ``(F, 3)`` int triangles (fixed; the vertices change).
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> import jax
+        >>> vertices, faces = tm.icosphere(2)
+        >>> renderer = tm.MeshRenderer(tm.make_scene(num_views=4, resolution=8), faces)
+        >>> frame = renderer.frame(0.6 * vertices, np.random.default_rng(0))
+        >>> grads = jax.grad(lambda v: renderer.loss(v, frame)[0])(0.6 * vertices)
+        >>> grads.shape
+        (42, 3)
+    """
 
     def __init__(self, scene: Scene, faces):
         self.scene = scene
@@ -394,7 +554,25 @@ class MeshRenderer:
 
 
 def render(scene: Scene, vertices, faces, view: int) -> np.ndarray:
-    """Noise-free image ``(R, R, 3)`` of the mesh (all lights, pixel centres, no AA)."""
+    """Noise-free image ``(R, R, 3)`` of the mesh (all lights, pixel centres, no AA).
+
+    Args:
+      scene: the :class:`Scene`.
+      vertices: ``(V, 3)`` positions.
+      faces: ``(F, 3)`` int triangles.
+      view: the camera's index.
+
+    Returns:
+      ``(R, R, 3)`` float32 RGB; 0 where no triangle is hit.
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> vertices, faces = tm.icosphere(2)
+        >>> tm.render(tm.make_scene(num_views=4, resolution=8), 0.6 * vertices, faces, 0).shape
+        (8, 8, 3)
+    """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     frame = scene.frames[view].astype(np.float64)
@@ -408,7 +586,24 @@ def render(scene: Scene, vertices, faces, view: int) -> np.ndarray:
 
 
 def image_error(scene: Scene, vertices, faces) -> float:
-    """Mean squared error of noise-free renders against the target over all views."""
+    """Mean squared error of noise-free renders against the target over all views.
+
+    Args:
+      scene: the :class:`Scene`.
+      vertices: ``(V, 3)`` positions.
+      faces: ``(F, 3)`` int triangles.
+
+    Returns:
+      The error, a float (0 for a mesh that renders exactly as the cube).
+
+    Example::
+
+        >>> import numpy as np
+        >>> from optax_bilateral.toy import mesh as tm
+        >>> vertices, faces = tm.icosphere(2)
+        >>> tm.image_error(tm.make_scene(num_views=4, resolution=8), 0.6 * vertices, faces) > 0
+        True
+    """
     errs = [np.mean((render(scene, vertices, faces, i) - render_target(scene, i)) ** 2)
             for i in range(len(scene.frames))]
     return float(np.mean(errs))

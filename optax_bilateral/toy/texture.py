@@ -80,6 +80,14 @@ class TextureScene(NamedTuple):
       sun_dir: ``(3,)`` unit direction of the sun's centre.
       sun_width: scalar ``b``, the halo's width (radians, roughly).
       sun_power: scalar ``E``, the sun's irradiance on a surface facing it.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> scene = tex.make_scene(8, env_size=32)      # 8x8 texels (the paper: 512)
+        >>> scene.wo.shape, scene.env.shape, scene.shape
+        ((8, 8, 3), (32, 32), (8, 8))
     """
 
     wo: jax.Array
@@ -101,6 +109,21 @@ def camera_directions(size: int | tuple[int, int], camera_position=CAMERA_POSITI
 
     Texel ``(i, j)`` sits at ``x = -1 + (j + 1/2) 2/W``, ``y = 1 - (i + 1/2) 2/H``
     (row 0 is the far edge of the plane, as in a photograph of it).
+
+    Args:
+      size: ``H = W`` (an int) or ``(H, W)``.
+      camera_position: ``(x, y, z)`` of the camera, ``z > 0`` (default
+        :data:`CAMERA_POSITION`).
+
+    Returns:
+      ``(H, W, 3)`` float32 unit vectors.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> tex.camera_directions((4, 6)).shape
+        (4, 6, 3)
     """
     h, w = _size(size)
     cam = np.asarray(camera_position, np.float64)
@@ -117,7 +140,21 @@ def camera_directions(size: int | tuple[int, int], camera_position=CAMERA_POSITI
 
 
 def mirror_direction(camera_position=CAMERA_POSITION) -> np.ndarray:
-    """The mirror reflection, about the plane's normal, of the view from the plane's centre."""
+    """The mirror reflection, about the plane's normal, of the view from the plane's centre.
+
+    Args:
+      camera_position: ``(x, y, z)`` of the camera (default :data:`CAMERA_POSITION`).
+
+    Returns:
+      A ``(3,)`` float64 unit vector: ``(-x, -y, z) / |(x, y, z)|``.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> print(tex.mirror_direction((0.0, -3.0, 4.0)))
+        [-0.   0.6  0.8]
+    """
     c = np.asarray(camera_position, np.float64)
     c = c / np.linalg.norm(c)
     return np.array([-c[0], -c[1], c[2]])
@@ -133,6 +170,20 @@ def environment_map(size: int = 1024) -> np.ndarray:
     towards the camera); the other half is a dim gradient. Two soft-edged lamps
     (radiance 3) sit 25-35 degrees from the mirror direction: only rough texels see
     them, which adds Monte Carlo noise there.
+
+    Args:
+      size: the map's side ``N`` (default 1024).
+
+    Returns:
+      ``(N, N)`` float32 radiance (cached: the same array for the same size).
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> env = tex.environment_map(32)
+        >>> env.shape, env.dtype.name
+        ((32, 32), 'float32')
     """
     from scipy import ndimage, special
     from skimage import color, data
@@ -174,6 +225,24 @@ def make_scene(
     The sun is centred on :func:`mirror_direction`; ``sun_width`` (radians) must
     exceed the spread of the texels' mirror directions for ``I(alpha)`` to be
     monotone (the default camera spreads them by +-0.047 rad).
+
+    Args:
+      size: ``H = W`` (an int) or ``(H, W)`` (default 512, the paper's).
+      env_size: side of the environment map (default 1024; :func:`environment_map`).
+      camera_position: ``(x, y, z)``, ``z > 0`` (default :data:`CAMERA_POSITION`).
+      sun_width: the sun halo's width ``b`` in radians (> 0, default 0.06).
+      sun_power: the sun's irradiance ``E`` (>= 0, default 3).
+
+    Returns:
+      A :class:`TextureScene`.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> scene = tex.make_scene((8, 12), env_size=32)
+        >>> scene.shape
+        (8, 12)
     """
     if not sun_width > 0 or not sun_power >= 0:
         raise ValueError(
@@ -202,7 +271,23 @@ def _resize(img: np.ndarray, size) -> np.ndarray:
 
 def roughness_from_unit(u, lo: float = ALPHA_MIN, hi: float = ALPHA_MAX):
     """Maps ``u in [0, 1]`` to roughness ``lo (hi/lo)^u`` (log-uniform: equal steps of ``u``
-    are equal *relative* changes of alpha, which is how roughness looks)."""
+    are equal *relative* changes of alpha, which is how roughness looks).
+
+    Args:
+      u: an array (or number) in ``[0, 1]``.
+      lo: the roughness at ``u = 0`` (default :data:`ALPHA_MIN`, 0.005).
+      hi: the roughness at ``u = 1`` (default :data:`ALPHA_MAX`, 0.5).
+
+    Returns:
+      The roughness, with ``u``'s shape.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> print(tex.roughness_from_unit(jnp.array([0.0, 0.5, 1.0])))
+        [0.005 0.05  0.5  ]
+    """
     return lo * (hi / lo) ** u
 
 
@@ -218,6 +303,22 @@ def target_roughness(
     * ``"noise"``: high-frequency i.i.d. noise, log-uniform per texel (seeded):
       the case where spatial filtering is biased (supplement Fig. 4).
     * ``"phantom"``: piecewise constant, the Shepp-Logan phantom.
+
+    Args:
+      name: ``"camera"`` (default), ``"noise"`` or ``"phantom"``.
+      size: ``H = W`` (an int) or ``(H, W)`` (default 512).
+      seed: the ``"noise"`` target's seed.
+
+    Returns:
+      ``(H, W)`` float32 roughness.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> alpha = tex.target_roughness("camera", 16)
+        >>> alpha.shape, bool(alpha.min() >= tex.ALPHA_MIN), bool(alpha.max() <= tex.ALPHA_MAX)
+        ((16, 16), True, True)
     """
     from skimage import data, restoration
 
@@ -238,9 +339,24 @@ def target_roughness(
 
 
 def ggx_d(tan2_h, cos_h, alpha):
-    """GGX normal distribution ``alpha^2 / (pi cos^4 (alpha^2 + tan^2)^2)``.
+    """GGX normal distribution ``D = alpha^2 / (pi cos^4 (alpha^2 + tan^2)^2)``.
+
+    Args:
+      tan2_h: ``tan^2`` of the half vector's angle to the normal.
+      cos_h: its cosine.
+      alpha: GGX roughness (> 0). All three broadcast together.
+
+    Returns:
+      ``D`` (per steradian), the broadcast shape.
 
     Taking ``tan^2(theta_h)`` separately keeps near-mirror lobes accurate in float32.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> round(float(tex.ggx_d(0.0, 1.0, 0.5)), 5)    # 1 / (pi alpha^2) at the peak
+        1.27324
     """
     a2 = alpha * alpha
     c2 = cos_h * cos_h
@@ -248,7 +364,22 @@ def ggx_d(tan2_h, cos_h, alpha):
 
 
 def smith_g1(cos_t, alpha):
-    """Smith masking for GGX, ``2 cos / (cos + sqrt(a^2 + (1 - a^2) cos^2))``."""
+    """Smith masking for GGX, ``G1 = 2 cos / (cos + sqrt(a^2 + (1 - a^2) cos^2))``.
+
+    Args:
+      cos_t: cosine of the direction's angle to the normal (> 0).
+      alpha: GGX roughness ``a``. Both broadcast together.
+
+    Returns:
+      ``G1`` in ``(0, 1]``, the broadcast shape.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> float(tex.smith_g1(1.0, 0.3))                 # no masking at normal incidence
+        1.0
+    """
     a2 = alpha * alpha
     c2 = cos_t * cos_t
     return 2.0 * cos_t / (cos_t + jnp.sqrt(a2 + (1.0 - a2) * c2))
@@ -256,7 +387,22 @@ def smith_g1(cos_t, alpha):
 
 def sun_pdf(cos_b, width):
     """Solid-angle density of sun sampling, ``b / (2 pi (1 - c^2 + b^2 c^2)^{3/2})``
-    for ``c > 0``."""
+    for ``c > 0`` (0 otherwise).
+
+    Args:
+      cos_b: cosine of the angle to the sun's centre, ``c``.
+      width: the halo's width ``b`` (> 0). Both broadcast together.
+
+    Returns:
+      The density (per steradian), the broadcast shape.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> round(float(tex.sun_pdf(1.0, 0.06)), 3)       # 1 / (2 pi b^2) at the centre
+        44.21
+    """
     c2 = cos_b * cos_b
     return jnp.where(
         cos_b > 0,
@@ -273,6 +419,21 @@ def lookup_env(env, x, y, z):
 
     Direction ``w`` maps to ``(x, y) / (1 + z)`` in the unit disc (no trigonometry);
     ``env[r, c]`` covers ``u = -1 + (c + 1/2) 2/N`` (x), ``v = 1 - (r + 1/2) 2/N`` (y).
+
+    Args:
+      env: ``(N, N)`` radiance, e.g. :func:`environment_map`.
+      x, y, z: the directions' components, arrays of one shape.
+
+    Returns:
+      The radiance, with the components' shape.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> env = jnp.arange(16.0).reshape(4, 4)
+        >>> float(tex.lookup_env(env, jnp.array(0.0), jnp.array(0.0), jnp.array(1.0)))  # zenith
+        7.5
     """
     n = env.shape[0]
     inv = 1.0 / (1.0 + z)
@@ -309,6 +470,27 @@ def sample_weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False)
     ``2/a - 4a/(a^2 + tan^2 theta_h)`` from D plus ``-a (1-c^2) / (S (c + S))``,
     ``S = sqrt(a^2 + (1-a^2) c^2)``, from each G1 (one fused pass; far cheaper on
     CPU than reverse-mode through this function).
+
+    Args:
+      alpha: ``(H, W)`` GGX roughness.
+      scene: the :class:`TextureScene` (``H x W`` texels).
+      u1, u2: uniforms in ``[0, 1)``, e.g. ``(spp, H, W)``: which lobe or light and
+        where in it.
+      with_score: also return ``w * d log f / d alpha``.
+
+    Returns:
+      ``w``, the per-sample estimates (the broadcast shape of ``alpha``, ``u1``,
+      ``u2``), or ``(w, w * score)`` with ``with_score``.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> scene = tex.make_scene(8, env_size=32)      # 8x8 texels (the paper: 512)
+        >>> u = jax.random.uniform(jax.random.key(0), (2, 1, 8, 8))
+        >>> w = tex.sample_weights(jnp.full((8, 8), 0.1), scene, u[0], u[1])
+        >>> w.shape, bool(jnp.all(w >= 0))
+        ((1, 8, 8), True)
     """
     wo, s, b = scene.wo, scene.sun_dir, scene.sun_width
     a0 = jax.lax.stop_gradient(alpha)
@@ -362,7 +544,26 @@ def sample_weights(alpha, scene: TextureScene, u1, u2, with_score: bool = False)
 def estimate(alpha, scene: TextureScene, u) -> jax.Array:
     """Monte Carlo estimate of the image from uniforms ``u`` of shape ``(spp, H, W, 2)``.
 
-    Differentiable in ``alpha`` (unbiased derivative, see the module docstring).
+    ``I = mean_s w(alpha, u_s)`` (:func:`sample_weights`). Differentiable in ``alpha``
+    in forward and reverse mode; its derivative is unbiased but correlated with ``I``
+    (the same samples): :func:`render` decorrelates them for loss gradients.
+
+    Args:
+      alpha: ``(H, W)`` GGX roughness.
+      scene: the :class:`TextureScene`.
+      u: ``(spp, H, W, 2)`` uniforms in ``[0, 1)``.
+
+    Returns:
+      The ``(H, W)`` image.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> scene = tex.make_scene(8, env_size=32)      # 8x8 texels (the paper: 512)
+        >>> u = jax.random.uniform(jax.random.key(0), (1, 8, 8, 2))
+        >>> tex.estimate(jnp.full((8, 8), 0.1), scene, u).shape
+        (8, 8)
     """
     return jnp.mean(sample_weights(alpha, scene, u[..., 0], u[..., 1]), axis=0)
 
@@ -408,6 +609,27 @@ def render(alpha, scene: TextureScene, key, spp: int = 1, spp_grad: int = 1) -> 
     the two estimates are independent, so loss gradients are unbiased (module
     docstring). ``spp`` and ``spp_grad`` are static. Reverse mode only (``jax.grad``,
     ``jax.vjp``): the derivative is a custom VJP; for forward mode use :func:`estimate`.
+
+    Args:
+      alpha: ``(H, W)`` GGX roughness (the parameter).
+      scene: the :class:`TextureScene`.
+      key: a PRNG key.
+      spp: samples per pixel of the value (>= 1, default 1: the paper's noisy setting).
+      spp_grad: samples per pixel of the gradient (>= 1, default 1).
+
+    Returns:
+      The ``(H, W)`` image, ``alpha``'s float dtype.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> scene = tex.make_scene(8, env_size=32)      # 8x8 texels (the paper: 512)
+        >>> alpha, target = jnp.full((8, 8), 0.1), jnp.full((8, 8), 0.5)
+        >>> loss = lambda a: tex.loss_fn(tex.render(a, scene, jax.random.key(1)), target)
+        >>> grads = jax.grad(loss)(alpha)                  # one noisy gradient
+        >>> grads.shape, bool(jnp.all(jnp.isfinite(grads)))
+        ((8, 8), True)
     """
     _check(alpha, scene, spp)
     _check(alpha, scene, spp_grad, "spp_grad")
@@ -427,7 +649,25 @@ def render_reference(
 
     Unbiased (each shifted point is uniform); with smooth integrands the error falls
     faster than i.i.d. sampling's ``spp^-1/2``. ``spp`` is rounded up to a power of 2
-    (Sobol balance) and to a multiple of ``batch``.
+    (Sobol balance) and to a multiple of ``batch``. Needs SciPy (``scipy.stats.qmc``).
+
+    Args:
+      alpha: ``(H, W)`` GGX roughness.
+      scene: the :class:`TextureScene`.
+      spp: samples per pixel (>= 1, default 1024).
+      seed: scrambling and shift seed (default 0): the same seed, the same image.
+      batch: samples evaluated at a time (bounded memory; default 16).
+
+    Returns:
+      The ``(H, W)`` float32 image.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> scene = tex.make_scene(8, env_size=32)      # 8x8 texels (the paper: 512)
+        >>> tex.render_reference(jnp.full((8, 8), 0.1), scene, spp=16).shape
+        (8, 8)
     """
     from scipy.stats import qmc
 
@@ -451,7 +691,25 @@ def _reference(alpha, scene, points, shift):
 
 
 def loss_fn(image, reference, eps: float = LOSS_EPS):
-    """The paper's texture loss ``mean((I - I_ref)^2 / (I_ref^2 + eps))`` (relative MSE)."""
+    """The paper's texture loss ``mean((I - I_ref)^2 / (I_ref^2 + eps))`` (relative MSE).
+
+    No gradient flows into ``reference``.
+
+    Args:
+      image: the rendered image.
+      reference: the target image, ``image``'s shape.
+      eps: the denominator's offset (default :data:`LOSS_EPS`, 0.01).
+
+    Returns:
+      A scalar.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import texture as tex
+        >>> float(tex.loss_fn(jnp.array([1.0, 2.0]), jnp.array([1.0, 1.0]), eps=0.0))
+        0.5
+    """
     ref = jax.lax.stop_gradient(reference)
     return jnp.mean(jnp.square(image - ref) / (jnp.square(ref) + eps))
 

@@ -108,6 +108,16 @@ class VolumeScene:
       n_scatter: in-scattering distances per camera ray.
       truncation_probability: bound on the probability that a process on the
         longest chord needs more points than its cap.
+
+    Build it with :func:`make_scene`, which derives the camera frames and the caps.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> scene = vol.make_scene(resolution=4, n_views=2)
+        >>> scene.origins.shape, scene.n_views, scene.majorant
+        ((2, 3), 2, 4.0)
     """
 
     resolution: int
@@ -146,7 +156,21 @@ def _poisson_cap(mean: float, tail: float) -> int:
 
 
 def camera_directions(n_views: int) -> np.ndarray:
-    """``(n_views, 3)`` unit vectors on a Fibonacci sphere (deterministic, near-uniform)."""
+    """``(n_views, 3)`` unit vectors on a Fibonacci sphere (deterministic, near-uniform).
+
+    Args:
+      n_views: the number of directions (>= 1).
+
+    Returns:
+      ``(n_views, 3)`` float64 unit vectors.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> vol.camera_directions(4).shape
+        (4, 3)
+    """
     i = np.arange(n_views, dtype=np.float64)
     z = 1.0 - (2.0 * i + 1.0) / n_views
     r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
@@ -181,6 +205,18 @@ def make_scene(
       truncation_probability: sets the ratio-tracking caps (see module docstring).
       sun_direction: towards the sun; normalised here. Its components must be non-zero.
       sun_radiance, sky_zenith, sky_horizon, ground: RGB radiances.
+
+    Returns:
+      A :class:`VolumeScene` (hashable by identity: build it once and reuse it, since
+      every new scene compiles the renderer anew).
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> scene = vol.make_scene(resolution=4, n_views=2)
+        >>> scene.resolution, scene.n_views
+        (4, 2)
     """
     for name, v in (("resolution", resolution), ("n_views", n_views), ("n_scatter", n_scatter)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -281,6 +317,22 @@ def reference_volume(size: int = 64, *, checker_cells: int = 4) -> dict[str, np.
       (``(i + j + k) mod 3`` of the cell indices): sharp edges. Finer checkers
       (8 cells) average out along camera rays through the semi-transparent
       medium and are not recoverable from 32-pixel images.
+
+    Args:
+      size: the grid's side ``n`` (>= 2, default 64).
+      checker_cells: checker cells per axis of the albedo (default 4).
+
+    Returns:
+      ``{"density": (n, n, n, 1), "albedo": (n, n, n, 3)}``, float32, density in
+      ``[0, 0.9]``, albedo in ``[0, 1]``.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> target = vol.reference_volume(8)
+        >>> target["density"].shape, target["albedo"].shape
+        ((8, 8, 8, 1), (8, 8, 8, 3))
     """
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 2:
         raise ValueError(f"size must be an int >= 2, got {size!r}")
@@ -309,7 +361,23 @@ def reference_volume(size: int = 64, *, checker_cells: int = 4) -> dict[str, np.
 def initial_volume(
     size: int = 64, *, density: float = 0.05, albedo: float = 0.5
 ) -> dict[str, np.ndarray]:
-    """A constant starting volume of the same structure as :func:`reference_volume`."""
+    """A constant starting volume of the same structure as :func:`reference_volume`.
+
+    Args:
+      size: the grid's side ``n`` (>= 2, default 64).
+      density: the constant density (default 0.05).
+      albedo: the constant albedo of every RGB channel (default 0.5).
+
+    Returns:
+      ``{"density": (n, n, n, 1), "albedo": (n, n, n, 3)}``, float32.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> {k: v.shape for k, v in vol.initial_volume(8).items()}
+        {'density': (8, 8, 8, 1), 'albedo': (8, 8, 8, 3)}
+    """
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 2:
         raise ValueError(f"size must be an int >= 2, got {size!r}")
     return {
@@ -320,7 +388,28 @@ def initial_volume(
 
 def project(params: Params, scene: VolumeScene | None = None, *, density_max: float | None = None):
     """Clips the parameters to the valid domain: ``0 <= density <= density_max``,
-    ``0 <= albedo <= 1``."""
+    ``0 <= albedo <= 1``.
+
+    Args:
+      params: ``{"density": (D, H, W, 1), "albedo": (D, H, W, 3)}``.
+      scene: its ``density_max`` is the bound when ``density_max`` is not given.
+      density_max: the density's upper bound (default: the scene's, else 1).
+
+    Returns:
+      The clipped parameters (same structure and shapes).
+
+    Raises:
+      TypeError, ValueError: ``params`` is not such a dict of those shapes.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> p = vol.project({"density": jnp.full((4, 4, 4, 1), 2.0),
+        ...                  "albedo": jnp.full((4, 4, 4, 3), -1.0)}, density_max=1.0)
+        >>> float(p["density"].max()), float(p["albedo"].min())
+        (1.0, 0.0)
+    """
     if density_max is None:
         density_max = 1.0 if scene is None else scene.density_max
     _check_params(params)
@@ -353,6 +442,21 @@ def param_errors(params: Params, target: Params) -> dict[str, jax.Array]:
     * ``albedo_error``: mean absolute albedo error (over RGB), weighted by the
       target density: albedo is unobservable (and irrelevant) where there is no medium.
     * ``param_error``: the mean of the two (both are in the same [0, 1] units).
+
+    Args:
+      params: ``{"density": (D, H, W, 1), "albedo": (D, H, W, 3)}``.
+      target: the same structure and shapes (e.g. :func:`reference_volume`).
+
+    Returns:
+      ``{"density_error", "albedo_error", "param_error"}``, scalars.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> errors = vol.param_errors(vol.initial_volume(8), vol.reference_volume(8))
+        >>> sorted(errors), round(float(errors["param_error"]), 4)
+        (['albedo_error', 'density_error', 'param_error'], 0.2175)
     """
     d = jnp.mean(jnp.abs(params["density"] - target["density"]))
     w = target["density"][..., 0]
@@ -558,7 +662,28 @@ def render(
     Each sample is one jittered ray through the pixel with the estimator of the
     module docstring; the same ``key`` gives the same image. ``jitter=False``
     shoots every sample through the pixel centre (the pixel's radiance at its
-    centre instead of its box-filtered radiance; used by the tests).
+    centre instead of its box-filtered radiance; used by the tests). Jitted, with
+    ``scene``, ``spp`` and ``jitter`` static.
+
+    Args:
+      params: ``{"density": (D, H, W, 1), "albedo": (D, H, W, 3)}``.
+      scene: the :class:`VolumeScene`.
+      key: a PRNG key.
+      views: int array of camera indices into the scene's views.
+      spp: samples per pixel (>= 1, default 1).
+      jitter: jitter each sample within its pixel (default True).
+
+    Returns:
+      ``(len(views), resolution, resolution, 3)`` float32 RGB.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> scene = vol.make_scene(resolution=4, n_views=2)   # 4x4 images (the paper: 64 views)
+        >>> params = vol.initial_volume(8)                     # an 8^3 grid
+        >>> vol.render(params, scene, jax.random.key(0), jnp.array([0, 1])).shape
+        (2, 4, 4, 3)
     """
     _check_params(params)
     views = _check_views(scene, views)
@@ -589,6 +714,27 @@ def render_mean(
     (bounded memory).
 
     ``spp`` is rounded up to a multiple of ``batch``.
+
+    Args:
+      params: ``{"density": (D, H, W, 1), "albedo": (D, H, W, 3)}``.
+      scene: the :class:`VolumeScene`.
+      key: a PRNG key.
+      views: int array of camera indices.
+      spp: samples per pixel (default 256).
+      batch: samples rendered at a time (default 16).
+      jitter: as in :func:`render`.
+
+    Returns:
+      ``(len(views), resolution, resolution, 3)`` float32 RGB.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> scene = vol.make_scene(resolution=4, n_views=2)   # 4x4 images (the paper: 64 views)
+        >>> params = vol.initial_volume(8)                     # an 8^3 grid
+        >>> vol.render_mean(params, scene, jax.random.key(0), jnp.array([0]), spp=4, batch=2).shape
+        (1, 4, 4, 3)
     """
     if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
         raise ValueError(f"batch must be a positive int, got {batch!r}")
@@ -624,11 +770,29 @@ def loss_and_grad(
     (it includes the estimator's variance).
 
     Args:
+      params: ``{"density": (D, H, W, 1), "albedo": (D, H, W, 3)}``.
+      scene: the :class:`VolumeScene`.
+      key: a PRNG key (split into the primal's and the gradient's).
+      views: int array of camera indices.
       targets: ``(len(views), resolution, resolution, 3)`` reference images.
+      spp: samples per pixel of the primal ``I_a`` (default 1).
+      spp_grad: samples per pixel of ``I_b``, whose derivative is used (default 1).
       jitter: as in :func:`render`.
 
     Returns:
       ``(loss, grads, image)``: grads has the structure of ``params``; image is ``I_a``.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> from optax_bilateral.toy import volume as vol
+        >>> scene = vol.make_scene(resolution=4, n_views=2)   # 4x4 images (the paper: 64 views)
+        >>> params = vol.initial_volume(8)                     # an 8^3 grid
+        >>> targets = jnp.zeros((2, 4, 4, 3))
+        >>> loss, grads, image = vol.loss_and_grad(params, scene, jax.random.key(0),
+        ...                                        jnp.array([0, 1]), targets)
+        >>> grads["density"].shape, grads["albedo"].shape, image.shape
+        ((8, 8, 8, 1), (8, 8, 8, 3), (2, 4, 4, 3))
     """
     k_a, k_b = jax.random.split(key)
     image = render(params, scene, k_a, views, spp=spp, jitter=jitter)
