@@ -22,7 +22,8 @@ Methods (as experiments/volume.py; both grids, ``sigma_d`` given per key):
 
 * ``adam``: ``optax.adam`` (b1 0.9, b2 0.999), a small learning-rate sweep.
 * ``low-pass``: ``bilateral_adam`` with ``sigma_d = inf``.
-* ``bilateral``: ``guide="self"`` with a log guide (m guided by m, v by v).
+* ``bilateral``: ``guide="self"`` with a log guide (m guided by m, v by v, every
+  level by its own partially filtered input: the authors' ``cross_term_off``).
 * ``cross-bilateral``: ``guide="params"`` (linear guide), the paper's method.
 * ``auto``: cross-bilateral with ``sigma_d="auto"`` once the library has it.
 

@@ -8,10 +8,12 @@ noisy. Methods (all see the same noise: one PRNG key per iteration, shared):
 
 * ``adam``: ``optax.adam``; a small learning-rate / ``b1`` sweep, best reported.
 * ``low-pass``: ``bilateral_adam`` with ``sigma_d = inf`` (a B-spline blur of m, v).
-* ``bilateral``: ``bilateral_adam(guide="self", log_guide=True)``: each moment is
-  guided by its own log-magnitude (a scale-free guide; with the raw moments as
-  guides ``sigma_d`` would be in gradient units and ``m`` (units g) and ``v``
-  (units g^2) would need different values).
+* ``bilateral``: ``bilateral_adam(guide="self", log_guide=True)``, the paper's
+  bilateral baseline as the authors' code runs it (``cross_term_off``): each moment
+  guides itself, every a-trous level by the log-magnitude of its own input (the
+  moment as the previous levels left it). The log makes the guide scale-free: with
+  the raw moments as guides ``sigma_d`` would be in gradient units and ``m`` (units
+  g) and ``v`` (units g^2) would need different values.
 * ``cross-bilateral``: ``bilateral_adam(guide="params", log_guide=True)``, the
   paper's method: guided by ``log alpha``.
 
@@ -90,8 +92,8 @@ def default_config(quick: bool = False) -> Config:
             "adam": [dict(learning_rate=0.003, b1=0.9), dict(learning_rate=0.01, b1=0.9),
                      dict(learning_rate=0.03, b1=0.9), dict(learning_rate=0.01, b1=0.5)],
             "low-pass": [dict(learning_rate=0.01), dict(learning_rate=0.02)],
-            "bilateral": [dict(learning_rate=0.02, sigma_d=0.5),
-                          dict(learning_rate=0.02, sigma_d=2.0)],
+            # Wide enough that the best sigma_d lies inside the sweep, not at its edge.
+            "bilateral": [dict(learning_rate=0.02, sigma_d=s) for s in (0.5, 1.0, 2.0, 4.0, 8.0)],
             "cross-bilateral": [dict(learning_rate=0.02, sigma_d=0.05),
                                 dict(learning_rate=0.02, sigma_d=0.1)],
         })

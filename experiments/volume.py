@@ -17,9 +17,11 @@ pytree prefix of the parameters, ``{"density": s_d, "albedo": s_a}``):
 * ``adam``: ``optax.adam``; the best of a small learning-rate / ``b1`` sweep
   (every sweep entry is reported).
 * ``low-pass``: ``bilateral_adam`` with ``sigma_d = inf`` (a plain B-spline low-pass).
-* ``bilateral``: ``guide="self"``: ``m`` guided by ``m`` and ``v`` by ``v``, in
-  the log domain (moments have no fixed scale, so a log guide is the unit-free
-  choice); the best of a small ``sigma_d`` sweep (every entry is reported).
+* ``bilateral``: ``guide="self"``, the paper's bilateral baseline as the authors'
+  code runs it (``cross_term_off``): ``m`` guided by ``m`` and ``v`` by ``v``, every
+  a-trous level by its own partially filtered input, in the log domain (moments
+  have no fixed scale, so a log guide is the unit-free choice); the best of a
+  small ``sigma_d`` sweep (every entry is reported).
 * ``cross-bilateral``: ``guide="params"`` (the paper's method).
 
 The filtered methods use the paper's ``b1 = 0.2``, ``b2 = 1 - (1 - b1)^2``, postfilter

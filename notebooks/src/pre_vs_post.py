@@ -194,6 +194,13 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # 1050** steps, with steps up to **7.82** (7.4 `c_t`): `m` and `v` get different weights. In this
 # scene the larger steps did not hurt its final error.
 #
+# How often the self-guided filter breaks the bound depends on its σ_d. A second full-size run
+# the same day (`SIGMA_D_SELF = 2`, the best of `python -m experiments.texture`'s bilateral sweep
+# 0.5 / 1 / 2 / 4 / 8 on this scene; 1718 s, load 10–16; this page shows the σ_d = 1 run) gave
+# the same rows for Adam, prefilter, postfilter and both, a self-guided error of **0.00787** at
+# lr 0.04 (the lowest of all, image loss 0.026), and **65 of 1050** steps over the bound, up to
+# 1.88 (1.77 `c_t`).
+#
 # (An earlier run, 2026-11-22, before the library's redesign and before `guide="self"` was
 # re-guided per level, gave the same Adam numbers, prefilter 0.00867, postfilter 0.00825 at
 # lr 0.04, and a self-guided filter that broke the bound on 944 of 1050 steps, up to 3.71.)

@@ -97,9 +97,10 @@ def bilateral_adam(
       separable: one normalised 1-D pass per spatial axis (True) or all ``5^n`` taps
         per level (False, the authors' kernels).
       guide: ``"params"`` (cross-bilateral: the current parameters, the paper's
-        method), ``"self"`` (bilateral: each filtered field guides itself; ``m`` and
-        ``v`` then get different weights), or a callable ``params -> guide pytree``
-        (a prefix of the parameters).
+        method), ``"self"`` (bilateral, the authors' ``cross_term_off``: each
+        filtered field guides itself, every level by its own, partially filtered,
+        input; ``m`` and ``v`` then get different weights), or a callable
+        ``params -> guide pytree`` (a prefix of the parameters).
       log_guide: guide with ``log(|guide| + 1e-8)`` (the paper's texture runs).
       spatial_axes: ``None`` (the default leaf rule, :func:`default_spatial_axes`), a
         tuple of axes for every leaf, a pytree prefix of tuples (``()`` = not
