@@ -16,7 +16,7 @@ LINT_PATHS := \
 	optax_bilateral/_src/filter.py \
 	optax_bilateral/_src/layout.py \
 	optax_bilateral/_src/leaves.py \
-	optax_bilateral/_src/mesh.py \
+	optax_bilateral/_src/triangle_mesh.py \
 	optax_bilateral/_src/numerics.py \
 	optax_bilateral/_src/sharded.py \
 	optax_bilateral/_src/state_io.py \

@@ -18,7 +18,7 @@ with the inner optimiser's state (Adam's moments) held per coefficient. The
 step does not depend on ``c`` itself, so projecting ``theta`` onto a valid
 domain after the update (clipping) gives the same iterates as clipping the
 reconstructed grid and writing the difference back into the coefficients.
-This is how :func:`optax_bilateral.mesh.large_steps` writes a
+This is how :func:`optax_bilateral.triangle_mesh.large_steps` writes a
 reparameterisation, too.
 
 ``U`` doubles every spatial axis with linear interpolation on cell centres

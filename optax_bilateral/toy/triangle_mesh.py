@@ -158,7 +158,7 @@ class Scene(NamedTuple):
 def make_scene(num_views: int = 16, resolution: int = 64, extent: float = 1.2,
                cube_half: float = 0.55, views_per_iteration: int = 2, seed: int = 1) -> Scene:
     """Cameras on quasi-random directions (scrambled Sobol, ``scipy.stats.qmc``)."""
-    from optax_bilateral.mesh import sphere_directions
+    from optax_bilateral.triangle_mesh import sphere_directions
 
     d = sphere_directions(num_views, seed=seed, lloyd=False)
     helper = np.where(np.abs(d[:, 2:3]) < 0.9, [[0, 0, 1.0]], [[1.0, 0, 0]])

@@ -1,4 +1,4 @@
-"""Mesh transforms (Large Steps, bilateral normal filter) and the toy mesh scene."""
+"""Triangle-mesh transforms (Large Steps, bilateral normal filter) and the toy mesh scene."""
 
 import jax
 import jax.numpy as jnp
@@ -6,8 +6,8 @@ import numpy as np
 import optax
 import pytest
 
-from optax_bilateral._src import mesh as M
-from optax_bilateral.toy import mesh as toy
+from optax_bilateral._src import triangle_mesh as M
+from optax_bilateral.toy import triangle_mesh as toy
 
 LAM = 7.0
 
@@ -461,9 +461,15 @@ def test_render_target_and_gradient_are_finite():
     assert 0 < (img.sum(-1) > 0).mean() < 1
 
 
-def test_public_mesh_module_exports_the_transforms():
+def test_public_module_exports_the_transforms_and_mesh_is_its_alias():
     import optax_bilateral as ob
     import optax_bilateral.mesh as obm
-    assert ob.mesh is obm
-    for name in obm.__all__:
-        assert getattr(obm, name) is getattr(M, name), name
+    import optax_bilateral.triangle_mesh as obtm
+    from optax_bilateral.mesh import large_steps  # the former spelling keeps working
+
+    assert ob.triangle_mesh is obtm and ob.mesh is obm
+    assert obm.__all__ == obtm.__all__
+    assert {n for n in vars(obm) if not n.startswith("_")} == set(obtm.__all__)
+    for name in obtm.__all__:
+        assert getattr(obm, name) is getattr(obtm, name) is getattr(M, name), name
+    assert large_steps is M.large_steps

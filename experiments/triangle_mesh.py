@@ -1,10 +1,10 @@
 """Mesh recovery: Large Steps vs the paper's cross-bilateral normal filter (supplement §3-4).
 
-    python -m experiments.mesh [--quick] [--out DIR]          # Fig. 2 grid + Fig. 6 (lambda=999)
-    python -m experiments.mesh --overhead [--quick] [--out DIR]  # Table 2 analogue: both methods x solvers
+    python -m experiments.triangle_mesh [--quick] [--out DIR]          # Fig. 2 grid + Fig. 6 (lambda=999)
+    python -m experiments.triangle_mesh --overhead [--quick] [--out DIR]  # Table 2 analogue: both methods x solvers
 
 A sphere (icosphere) is deformed into a cube from noisy multi-view renders
-(``optax_bilateral.toy.mesh``: one jittered sample and one light sample per pixel,
+(``optax_bilateral.toy.triangle_mesh``: one jittered sample and one light sample per pixel,
 two random views of 16 per iteration, soft silhouettes). Methods:
 
 * ``large-steps``: ``x <- x - lr M^-1 AdamUniform(M^-1 g)``, ``M = I + lambda L``.
@@ -13,7 +13,7 @@ two random views of 16 per iteration, soft silhouettes). Methods:
   (``sigma_d``); uniform second moment.
 
 Geometry error: symmetric Hausdorff distance to the cube (dense surface samples).
-Outputs in ``--out`` (default ``results/mesh``): ``summary.json`` (``methods`` at
+Outputs in ``--out`` (default ``results/triangle_mesh``): ``summary.json`` (``methods`` at
 the paper's defaults ``lambda=19``, ``sigma_d=0.5``; the full ``sweep``; the
 ``extreme`` lambda=999 runs), ``results.md``, ``grid.png`` (Fig. 2), ``extreme.png``
 (Fig. 6), Hausdorff / loss curves. ``--overhead`` writes ``overhead.json`` /
@@ -34,8 +34,8 @@ import numpy as np
 import optax
 
 from experiments import common
-from optax_bilateral import mesh as mesh_lib
-from optax_bilateral.toy import mesh as toy
+from optax_bilateral import triangle_mesh
+from optax_bilateral.toy import triangle_mesh as toy
 
 DEFAULT_LAMBDA = 19.0
 DEFAULT_SIGMA_D = 0.5
@@ -58,8 +58,8 @@ class Problem:
         self.scene = toy.make_scene(resolution=resolution)
         self.v0, self.faces = toy.icosphere(frequency)
         self.renderer = toy.MeshRenderer(self.scene, self.faces)
-        self.mesh = mesh_lib.mesh_laplacian(self.faces)
-        self.directions = jnp.asarray(mesh_lib.sphere_directions(mesh_lib.DEFAULT_DIRECTIONS))
+        self.mesh = triangle_mesh.mesh_laplacian(self.faces)
+        self.directions = jnp.asarray(triangle_mesh.sphere_directions(triangle_mesh.DEFAULT_DIRECTIONS))
         self.lr = lr
         self.seed = seed
         renderer = self.renderer
@@ -70,8 +70,8 @@ class Problem:
 
     def transform(self, method: str, lam, sigma_d=None):
         if method == "large-steps":
-            return mesh_lib.large_steps(self.lr, self.mesh, lam)
-        return mesh_lib.bilateral_large_steps(self.lr, self.mesh, lam, sigma_d,
+            return triangle_mesh.large_steps(self.lr, self.mesh, lam)
+        return triangle_mesh.bilateral_large_steps(self.lr, self.mesh, lam, sigma_d,
                                               directions=self.directions)
 
     def _update_large_steps(self, g, state, params, lam, sigma_d):
@@ -113,8 +113,8 @@ def run_one(problem: Problem, method: str, lam: float, sigma_d: float | None, it
     hp = {"lambda": lam, "learning_rate": problem.lr, "b1": 0.9, "b2": 0.999,
           "vertices": int(len(problem.v0))}
     if sigma_d is not None:
-        hp.update(sigma_d=sigma_d, sigma_phi=mesh_lib.DEFAULT_SIGMA_PHI, postfilter_v="uniform",
-                  directions=mesh_lib.DEFAULT_DIRECTIONS)
+        hp.update(sigma_d=sigma_d, sigma_phi=triangle_mesh.DEFAULT_SIGMA_PHI, postfilter_v="uniform",
+                  directions=triangle_mesh.DEFAULT_DIRECTIONS)
     return common.run_method(
         f"{name} lambda={lam:g}", problem.step_fn(method, lam, sigma_d), problem.initial_carry(method),
         iterations, record_every=record_every, hyperparameters=hp,
@@ -275,7 +275,7 @@ def _solver_timings(problem: Problem, repeats: int, superlu_128: bool) -> list[d
     chol = cholespy.CholeskySolverD(m.shape[0], coo.row.astype(np.int32), coo.col.astype(np.int32),
                                     coo.data.astype(np.float64), cholespy.MatrixType.COO)
     chol_factor = time.perf_counter() - t0
-    solve = jax.jit(lambda b: mesh_lib.smoothing_solve(problem.mesh, b, DEFAULT_LAMBDA))
+    solve = jax.jit(lambda b: triangle_mesh.smoothing_solve(problem.mesh, b, DEFAULT_LAMBDA))
     out = []
     rng = np.random.default_rng(0)
     for c in (3, 128):
@@ -320,9 +320,9 @@ def run_overhead(args) -> dict:
         runs = {}
         for name, (method, sd, opts) in OVERHEAD_METHODS.items():
             if method == "large-steps":
-                tx = mesh_lib.large_steps(problem.lr, problem.mesh, lam, **opts)
+                tx = triangle_mesh.large_steps(problem.lr, problem.mesh, lam, **opts)
             else:
-                tx = mesh_lib.bilateral_large_steps(problem.lr, problem.mesh, lam, jnp.float32(sd),
+                tx = triangle_mesh.bilateral_large_steps(problem.lr, problem.mesh, lam, jnp.float32(sd),
                                                     directions=problem.directions, **opts)
             update = jax.jit(lambda g, s, p, tx=tx: _apply(tx, g, s, p))
             runs[name] = {"update": update, "params": x0, "state": tx.init(x0),
@@ -362,8 +362,8 @@ def run_overhead(args) -> dict:
         solver_rows += _solver_timings(problem, repeats, superlu_128=not args.quick)
     result = {"iteration": rows, "solver": solver_rows,
               "setting": {"lambda": DEFAULT_LAMBDA, "sigma_d": DEFAULT_SIGMA_D,
-                          "sigma_phi": mesh_lib.DEFAULT_SIGMA_PHI,
-                          "directions": mesh_lib.DEFAULT_DIRECTIONS, "tol": mesh_lib.DEFAULT_TOL,
+                          "sigma_phi": triangle_mesh.DEFAULT_SIGMA_PHI,
+                          "directions": triangle_mesh.DEFAULT_DIRECTIONS, "tol": triangle_mesh.DEFAULT_TOL,
                           "methods": {k: dict(v[2], optimizer=v[0]) for k, v in OVERHEAD_METHODS.items()},
                           "resolution": res, "views_per_iteration": 2, "repeats": repeats,
                           "quick": args.quick, "devices": str(jax.devices())}}
@@ -378,7 +378,7 @@ def run_overhead(args) -> dict:
           f"Medians of {repeats} repeats, the methods interleaved within each repeat, each on its "
           f"own trajectory. An iteration = render 2 views at {res}^2 (NumPy visibility + JAX "
           "gradient) + the optimizer update. lambda=19, sigma_d=0.5, sigma_phi=0.4, "
-          f"{mesh_lib.DEFAULT_DIRECTIONS} directions, CG tol {mesh_lib.DEFAULT_TOL:g}; "
+          f"{triangle_mesh.DEFAULT_DIRECTIONS} directions, CG tol {triangle_mesh.DEFAULT_TOL:g}; "
           "cholesky = CHOLMOD via cholespy (factorised once, outside the timed steps); warm = CG "
           "started from the previous step's solution. CPU: the paper's +2.7-9.3% (Table 2) is "
           "a GPU number.\n\n## Iteration (ms)\n\n" + common.markdown_table(short, floatfmt=".4g")
@@ -398,7 +398,7 @@ def _apply(tx, g, state, params):
 
 def main(argv=None):
     args = common.parse_args(
-        "Mesh recovery: Large Steps vs cross-bilateral normal filtering", "results/mesh", argv,
+        "Mesh recovery: Large Steps vs cross-bilateral normal filtering", "results/triangle_mesh", argv,
         extra=lambda p: p.add_argument("--overhead", action="store_true",
                                        help="only measure per-iteration time at ~10k/35k/166k "
                                             "vertices (Table 2 analogue) and solver timings"))

@@ -37,7 +37,7 @@ CHOLMOD through ``cholespy`` (the ``cholesky`` extra) and called through
 ``jax.pure_callback`` inside ``lax.custom_linear_solve``, so ``jit``, ``grad``
 (w.r.t. the right-hand side, the vertices and lambda) and ``vmap`` keep working.
 ``warm_start=True`` keeps each CG solution in the transform's state and starts the
-next step's CG there. docs/mesh.md has the measured costs of each.
+next step's CG there. docs/triangle_mesh.md has the measured costs of each.
 
 Seams: a mesh with duplicated vertices (UV or normal seams) is welded by
 ``mesh_laplacian(faces, weld_positions=vertices)``: the Laplacian, the normals and
@@ -72,7 +72,7 @@ DEFAULT_SIGMA_D = 0.5
 DEFAULT_SIGMA_PHI = 0.4
 # "A few dozen" directions (the authors' n_filter_samples); a power of two keeps Sobol's balance.
 DEFAULT_DIRECTIONS = 32
-# Relative residual per right-hand side (docs/mesh.md: iterations against tol).
+# Relative residual per right-hand side (docs/triangle_mesh.md: iterations against tol).
 DEFAULT_TOL = 1e-4
 DEFAULT_MAXITER = 2000
 
@@ -424,7 +424,7 @@ def vertex_normals(vertices, faces, weighting: str = "area"):
         :class:`MeshLaplacian` (then ``vertices`` are the input vertices, seams included).
       weighting: how face normals are averaged: ``"area"`` (by face area),
         ``"uniform"`` (unit face normals, unweighted: what the authors' code computes,
-        up to ``O(1/F)``; docs/mesh.md) or ``"angle"`` (by the corner angles).
+        up to ``O(1/F)``; docs/triangle_mesh.md) or ``"angle"`` (by the corner angles).
     """
     if weighting not in NORMALS:
         raise ValueError(f"weighting (normals) must be one of {NORMALS}, got {weighting!r}")
@@ -963,7 +963,7 @@ def mesh_postfilter(
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian`.
       lambda_: smoothing weight of ``M = I + lambda L`` (may be traced). The authors'
         ``compute_matrix(alpha=lambda/(1+lambda))`` is ``M / (1 + lambda)``
-        (docs/mesh.md maps the two).
+        (docs/triangle_mesh.md maps the two).
       sigma_d: splat width on normals (``> 0``, ``inf`` = Large Steps; may be traced).
       b1: Adam's first-moment decay rate (Large Steps uses 0.9).
       b2: Adam's second-moment decay rate (Large Steps uses 0.999).
