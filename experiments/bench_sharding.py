@@ -84,10 +84,10 @@ def default_cases(quick: bool) -> list[Case]:
     ]
 
 
-MESHES = ((1, 1), (2, 1), (4, 1), (8, 1), (4, 2))
+MESH_SHAPES = ((1, 1), (2, 1), (4, 1), (8, 1), (4, 2))
 
 
-def _mesh(shape, axis_type):
+def _device_mesh(shape, axis_type):
     devices = np.array(jax.devices()[:math.prod(shape)]).reshape(shape)
     return Mesh(devices, ("x", "y"), axis_types=(axis_type, axis_type))
 
@@ -129,27 +129,27 @@ def run_case(case: Case, repeats: int, quick: bool = False, progress: bool = Tru
     configs = {"unsharded": (step.lower(grads, state, params).compile(),
                              (grads, state, params), None)}
     rows = []
-    meshes = MESHES[:4] if quick else MESHES
-    todo = [(path, m) for path in case.paths for m in meshes]
-    for path, mshape in tqdm(todo, desc=case.name, disable=not progress, leave=False):
-        mesh = _mesh(mshape, AxisType.Explicit if path == "shard_map" else AxisType.Auto)
-        sh = NamedSharding(mesh, P("x", "y"))
+    mesh_shapes = MESH_SHAPES[:4] if quick else MESH_SHAPES
+    todo = [(path, m) for path in case.paths for m in mesh_shapes]
+    for path, mesh_shape in tqdm(todo, desc=case.name, disable=not progress, leave=False):
+        device_mesh = _device_mesh(mesh_shape, AxisType.Explicit if path == "shard_map" else AxisType.Auto)
+        sh = NamedSharding(device_mesh, P("x", "y"))
         put = lambda t: jax.tree.map(lambda a: jax.device_put(a, sh) if np.ndim(a) == ndim
-                                     else jax.device_put(a, NamedSharding(mesh, P())), t)
+                                     else jax.device_put(a, NamedSharding(device_mesh, P())), t)
         args = (put(grads), put(state), put(params))
         t0 = time.perf_counter()
         compiled = jax.jit(tx.update).lower(*args).compile()
         compile_s = time.perf_counter() - t0
         out = compiled(*args)
         stats = collective_stats(compiled.as_text())
-        blocks = tuple(mshape) + (1,) * (len(case.shape) - 2)
+        blocks = tuple(mesh_shape) + (1,) * (len(case.shape) - 2)
         # postfilter: fields m and v (2C channels), guide theta (C channels)
         halo = halo_bytes(case.shape, blocks, case.levels, fields=2 * case.channels,
                           guide=case.channels, separable=case.separable)
         moved = sum(v["bytes"] for v in stats.values())
         grid_bytes = math.prod(case.shape) * case.channels * 4
-        row = dict(case=case.name, path=path, devices=math.prod(mshape),
-                   mesh="x".join(map(str, mshape)),
+        row = dict(case=case.name, path=path, devices=math.prod(mesh_shape),
+                   mesh="x".join(map(str, mesh_shape)),
                    max_abs_diff=_max_diff(out, ref_out),
                    sharding_kept=_keeps_sharding(out, sh, ndim),
                    compile_s=compile_s,

@@ -56,7 +56,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         records.append(rec)
         print(json.dumps(rec), flush=True)
 
-    def mesh_of(shape, axis_type):
+    def device_mesh_of(shape, axis_type):
         devs = np.array(jax.devices()[:math.prod(shape)]).reshape(shape)
         return Mesh(devs, ("x", "y"), axis_types=(axis_type,) * 2)
 
@@ -78,7 +78,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
 
     # --- The filter itself, explicit meshes: every spatial split, multi-hop halos, masks.
     filter_cases = [
-        # (grid, mesh, spec over (x, y), levels, separable, mask). 16 rows in 8 blocks of 2
+        # (grid, mesh shape, spec over (x, y), levels, separable, mask). 16 rows in 8 blocks of 2
         # with offsets up to 8: halos of 4 hops.
         ((16, 12), (8, 1), P("x", "y"), 3, False, True),
         ((16, 16), (4, 2), P("y", "x"), 2, False, False),
@@ -88,9 +88,9 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         # block rescales its own guide (a power of two: same weights, no all-reduce).
         ((16, 16), (4, 2), P("x", "y"), 2, True, False, 2.0 ** 100),
     ]
-    for i, (shape, mshape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
+    for i, (shape, mesh_shape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
         scale = scale[0] if scale else 1.0
-        mesh = mesh_of(mshape, AxisType.Explicit)
+        device_mesh = device_mesh_of(mesh_shape, AxisType.Explicit)
         k = jax.random.fold_in(key, i)
         m = jax.random.normal(k, shape + (2,))
         v = jax.random.uniform(jax.random.fold_in(k, 1), shape + (3,))
@@ -99,9 +99,9 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         axes = tuple(range(len(shape)))
         kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep)
         ref = ob.atrous_bilateral((m, v), guide, mask=mask, **kw)
-        sh = NamedSharding(mesh, spec)
+        sh = NamedSharding(device_mesh, spec)
         args = [jax.device_put(a, sh) for a in (m, v, guide)]
-        margs = [jax.device_put(mask, NamedSharding(mesh, P(*tuple(spec)[:len(shape)])))] \
+        margs = [jax.device_put(mask, NamedSharding(device_mesh, P(*tuple(spec)[:len(shape)])))] \
             if use_mask else [None]
         kw_s = dict(kw, sigma_d=kw["sigma_d"] * scale)
         args[2] = args[2] * scale
@@ -112,10 +112,10 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         blocks = [1] * len(shape)
         for a, e in enumerate(tuple(spec)[:len(shape)]):
             if e is not None:
-                blocks[a] = mesh.shape[e]
+                blocks[a] = device_mesh.shape[e]
         # Fields per level plus the guide once at the widest radius: what must move.
         halo = collectives.halo_bytes(shape, blocks, levels, fields=5, guide=3, separable=sep)
-        emit(check="filter", case=f"{shape} {mshape} {spec} F={levels} "
+        emit(check="filter", case=f"{shape} {mesh_shape} {spec} F={levels} "
                                    f"{'sep' if sep else 'full'}{' mask' if use_mask else ''}"
                                    f"{f' guide x{scale:g}' if scale != 1 else ''}",
              separable=sep, max_diff=max_diff(out, ref),
@@ -126,15 +126,15 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
 
     # --- guide="self": every level guided by its own input; a field whose channels are split
     # too (they are gathered per block for the guide's norm, and split again after).
-    mesh = mesh_of((4, 2), AxisType.Explicit)
+    device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
     x = jax.random.normal(jax.random.fold_in(key, 99), (16, 12, 4))
     mask = jax.random.uniform(jax.random.fold_in(key, 98), (16, 12)) > 0.2
     for sep in (True, False):
         kw = dict(sigma_d=0.3, levels=3, spatial_axes=(0, 1), separable=sep, log_guide=True)
         ref = ob.atrous_bilateral((x, x * x), "self", mask=mask, **kw)
-        sh = NamedSharding(mesh, P("x", None, "y"))
+        sh = NamedSharding(device_mesh, P("x", None, "y"))
         xs = jax.device_put(x, sh)
-        ms = jax.device_put(mask, NamedSharding(mesh, P("x", None)))
+        ms = jax.device_put(mask, NamedSharding(device_mesh, P("x", None)))
         out = jax.jit(lambda a, mk, kw=kw: ob.atrous_bilateral((a, a * a), "self", mask=mk, **kw))(
             xs, ms)
         emit(check="filter_self", case=f"(16, 12, 4) 4x2 P('x', None, 'y') F=3 "
@@ -168,7 +168,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     every = ("prefilter", "postfilter", "scale_by_adam", "bilateral_adam")
     specs = {"tex": P("x", "y"), "vol": P("x", "y"), "bias": P()}
     grids = ("tex", "vol", "bias")
-    configs = [  # (route, mesh, transforms, separable, levels, masked, leaves)
+    configs = [  # (route, mesh shape, transforms, separable, levels, masked, leaves)
         ("shard_map", (8, 1), every, True, 2, False, grids),
         ("shard_map", (4, 2), every, True, 2, True, grids),
         # Full 3-D (62 offset pairs per level) compiles slowly: the filter checks cover it.
@@ -177,7 +177,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         ("xla_auto", (4, 2), ("postfilter",), True, 1, False, ("tex", "bias")),
     ]
     refs = {}
-    for route, mshape, names, sep, levels, masked, keys in configs:
+    for route, mesh_shape, names, sep, levels, masked, keys in configs:
         txs = make(names, sep, levels, masked)
         fn = jax.jit(lambda g, p, txs=txs: one_step(txs, g, p))
         sub = lambda t: {k: t[k] for k in keys}
@@ -185,8 +185,8 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         if cfg not in refs:
             refs[cfg] = fn(sub(grads), sub(params))
         atype = AxisType.Explicit if route == "shard_map" else AxisType.Auto
-        mesh = mesh_of(mshape, atype)
-        put = lambda t: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)),
+        device_mesh = device_mesh_of(mesh_shape, atype)
+        put = lambda t: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(device_mesh, s)),
                                      sub(t), sub(specs))
         g_s, p_s = put(grads), put(params)
         t0 = time.perf_counter()
@@ -202,7 +202,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
                 if leaf.shape in by_shape:
                     kept &= leaf.sharding.is_equivalent_to(by_shape[leaf.shape], leaf.ndim)
         st = stats(compiled)
-        emit(check="transforms", route=route, mesh="x".join(map(str, mshape)),
+        emit(check="transforms", route=route, mesh="x".join(map(str, mesh_shape)),
              transforms=list(names), leaves=list(keys), separable=sep, levels=levels,
              max_diff=max_diff(out, refs[cfg]), sharding_kept=bool(kept),
              compile_s=round(compile_s, 1),
