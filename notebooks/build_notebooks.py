@@ -84,8 +84,9 @@ def execute(name: str, timeout: int = 7200) -> pathlib.Path:
 
     nb = nbformat.read(HERE / f"{name}.ipynb", as_version=4)
     t0 = time.perf_counter()
-    NotebookClient(nb, timeout=timeout, kernel_name="python3",
-                   resources={"metadata": {"path": str(HERE)}}).execute()
+    NotebookClient(
+        nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
+    ).execute()
     quick = os.environ.get("OPTAX_BILATERAL_QUICK", "") not in ("", "0")
     out = HERE.parent / "results" / "notebooks" / ("quick" if quick else "") / f"{name}.ipynb"
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -97,8 +98,13 @@ def execute(name: str, timeout: int = 7200) -> pathlib.Path:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="fail if a notebook is out of date")
-    parser.add_argument("--execute", nargs="+", metavar="NAME", choices=NAMES,
-                        help="run these notebooks (executed copies go to results/notebooks/)")
+    parser.add_argument(
+        "--execute",
+        nargs="+",
+        metavar="NAME",
+        choices=NAMES,
+        help="run these notebooks (executed copies go to results/notebooks/)",
+    )
     args = parser.parse_args(argv)
     if args.execute:
         for name in args.execute:

@@ -543,7 +543,9 @@ def cube():
 
     v, f = toy.icosphere(2)
     v = v.astype(np.float64) / np.abs(v).max(1, keepdims=True) * 0.5
-    return dict(v=v, f=f, mesh=ob.triangle_mesh.mesh_laplacian(f), M=ref.compute_matrix(f, len(v), LAM))
+    return dict(
+        v=v, f=f, mesh=ob.triangle_mesh.mesh_laplacian(f), M=ref.compute_matrix(f, len(v), LAM)
+    )
 
 
 def test_directions_are_the_authors():

@@ -35,10 +35,12 @@ import jax.numpy as jnp
 import numpy as np
 
 # Light directions and colours: channel c sees axis c, weight 1 on +, 0.4 on -.
-LIGHT_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
-                      np.float32)
-LIGHT_COLORS = np.array([[1, 0, 0], [0.4, 0, 0], [0, 1, 0], [0, 0.4, 0], [0, 0, 1], [0, 0, 0.4]],
-                        np.float32)
+LIGHT_DIRS = np.array(
+    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32
+)
+LIGHT_COLORS = np.array(
+    [[1, 0, 0], [0.4, 0, 0], [0, 1, 0], [0, 0.4, 0], [0, 0, 1], [0, 0, 0.4]], np.float32
+)
 # Silhouette softness in pixels, and the band (in pixels) where it is evaluated:
 # sigmoid(4 / 0.5) = 0.9997, so outside the band coverage is binary to 3e-4.
 TAU_PX = 0.5
@@ -57,13 +59,47 @@ def icosphere(frequency: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarr
     """
     if isinstance(frequency, bool) or not isinstance(frequency, int) or frequency < 1:
         raise ValueError(f"frequency must be a positive int, got {frequency!r}")
-    t = (1 + 5 ** 0.5) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]])
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
-                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
-                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-                  [8, 6, 7], [9, 8, 1]])
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [
+            [-1, t, 0],
+            [1, t, 0],
+            [-1, -t, 0],
+            [1, -t, 0],
+            [0, -1, t],
+            [0, 1, t],
+            [0, -1, -t],
+            [0, 1, -t],
+            [t, 0, -1],
+            [t, 0, 1],
+            [-t, 0, -1],
+            [-t, 0, 1],
+        ]
+    )
+    f = np.array(
+        [
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ]
+    )
     k = frequency
     ii, jj = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
     keep = (ii + jj) <= k
@@ -73,13 +109,25 @@ def icosphere(frequency: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarr
     i, j = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
     up = (i + j) <= k - 1
     down = (i + j) <= k - 2
-    tri = np.concatenate([
-        np.stack([local[i[up], j[up]], local[i[up] + 1, j[up]], local[i[up], j[up] + 1]], -1),
-        np.stack([local[i[down] + 1, j[down]], local[i[down] + 1, j[down] + 1],
-                  local[i[down], j[down] + 1]], -1)])
+    tri = np.concatenate(
+        [
+            np.stack([local[i[up], j[up]], local[i[up] + 1, j[up]], local[i[up], j[up] + 1]], -1),
+            np.stack(
+                [
+                    local[i[down] + 1, j[down]],
+                    local[i[down] + 1, j[down] + 1],
+                    local[i[down], j[down] + 1],
+                ],
+                -1,
+            ),
+        ]
+    )
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    pts = (a[:, None] + (b - a)[:, None] * (ii / k)[None, :, None]
-           + (c - a)[:, None] * (jj / k)[None, :, None]).reshape(-1, 3)
+    pts = (
+        a[:, None]
+        + (b - a)[:, None] * (ii / k)[None, :, None]
+        + (c - a)[:, None] * (jj / k)[None, :, None]
+    ).reshape(-1, 3)
     pts /= np.linalg.norm(pts, axis=-1, keepdims=True)
     faces = (tri[None] + len(ii) * np.arange(20)[:, None, None]).reshape(-1, 3)
     # Points on shared icosahedron edges appear twice; merge them.
@@ -155,8 +203,14 @@ class Scene(NamedTuple):
         return 2 * self.extent / self.resolution
 
 
-def make_scene(num_views: int = 16, resolution: int = 64, extent: float = 1.2,
-               cube_half: float = 0.55, views_per_iteration: int = 2, seed: int = 1) -> Scene:
+def make_scene(
+    num_views: int = 16,
+    resolution: int = 64,
+    extent: float = 1.2,
+    cube_half: float = 0.55,
+    views_per_iteration: int = 2,
+    seed: int = 1,
+) -> Scene:
     """Cameras on quasi-random directions (scrambled Sobol, ``scipy.stats.qmc``)."""
     from optax_bilateral.triangle_mesh import sphere_directions
 
@@ -234,8 +288,8 @@ def _rasterize(scene: Scene, frame, vertices, faces, xy):
     pix = rows[fi, k] * r + cols[fi, k]
     s = xy[pix]
     ta, tb, tc = tri[fi, 0], tri[fi, 1], tri[fi, 2]
-    w0 = ((tb[:, 0] - s[:, 0]) * (tc[:, 1] - s[:, 1]) - (tb[:, 1] - s[:, 1]) * (tc[:, 0] - s[:, 0]))
-    w1 = ((tc[:, 0] - s[:, 0]) * (ta[:, 1] - s[:, 1]) - (tc[:, 1] - s[:, 1]) * (ta[:, 0] - s[:, 0]))
+    w0 = (tb[:, 0] - s[:, 0]) * (tc[:, 1] - s[:, 1]) - (tb[:, 1] - s[:, 1]) * (tc[:, 0] - s[:, 0])
+    w1 = (tc[:, 0] - s[:, 0]) * (ta[:, 1] - s[:, 1]) - (tc[:, 1] - s[:, 1]) * (ta[:, 0] - s[:, 0])
     w2 = area_f[fi] - w0 - w1
     inside = (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
     fi, pix = fi[inside], pix[inside]
@@ -292,7 +346,7 @@ class MeshRenderer:
         v = np.asarray(vertices, np.float64)
         if views is None:
             views = rng.choice(len(sc.frames), size=sc.views_per_iteration, replace=False)
-        n = sc.resolution ** 2
+        n = sc.resolution**2
         per_view, bands = [], []
         for view in views:
             frame = sc.frames[view].astype(np.float64)
@@ -306,17 +360,28 @@ class MeshRenderer:
         while self._band_cap < q:  # grow in steps of 2x so jit recompiles rarely
             self._band_cap *= 2
         q = self._band_cap
-        band = [np.zeros((len(views), q, 2), np.float32), np.zeros((len(views), q, 2), np.int32),
-                np.zeros((len(views), q), np.float32), np.zeros((len(views), q), np.float32),
-                np.zeros((len(views), q), np.float32)]
+        band = [
+            np.zeros((len(views), q, 2), np.float32),
+            np.zeros((len(views), q, 2), np.int32),
+            np.zeros((len(views), q), np.float32),
+            np.zeros((len(views), q), np.float32),
+            np.zeros((len(views), q), np.float32),
+        ]
         for i, b in enumerate(bands):
             m = len(b[0])
             for arr, val in zip(band, b):
                 arr[i, :m] = val
             band[4][i, :m] = 1.0
         stack = lambda k, dt: np.stack([p[k] for p in per_view]).astype(dt)  # noqa: E731
-        return Frame(stack(0, np.float32), stack(1, np.float32), stack(2, np.int32),
-                     stack(3, bool), stack(4, np.float32), stack(5, np.int32), *band)
+        return Frame(
+            stack(0, np.float32),
+            stack(1, np.float32),
+            stack(2, np.int32),
+            stack(3, bool),
+            stack(4, np.float32),
+            stack(5, np.int32),
+            *band,
+        )
 
     def _band(self, v, frame, area, xy, face, hit):
         """Samples within BAND_PX of the mesh's outline, each with its nearest silhouette edge."""
@@ -330,8 +395,10 @@ class MeshRenderer:
         if len(sil) == 0:
             return (np.zeros((0, 2)), np.zeros((0, 2), int), np.zeros(0), np.zeros(0))
         st = np.ones((3, 3), bool)
-        near = (binary_dilation(covered, st, iterations=BAND_PX)
-                & ~binary_erosion(covered, st, iterations=BAND_PX, border_value=0)).ravel()
+        near = (
+            binary_dilation(covered, st, iterations=BAND_PX)
+            & ~binary_erosion(covered, st, iterations=BAND_PX, border_value=0)
+        ).ravel()
         idx = np.nonzero(near)[0]
         p = xy[idx]
         p2 = v @ frame[:2].T
@@ -371,7 +438,7 @@ class MeshRenderer:
         both = ((frame.face >= 0) & frame.target_hit)[..., None]
         resid = jnp.where(both, i1 - frame.target_rgb, 0.0)
         shade_sur = jnp.sum(jax.lax.stop_gradient(resid) * i2) / n_pix
-        shade_loss = 0.5 * jnp.sum(resid ** 2) / n_pix
+        shade_loss = 0.5 * jnp.sum(resid**2) / n_pix
         # Soft silhouette in the band around the outline.
         frames = jnp.asarray(frame.frames)
         e = vertices[frame.band_edge]  # (B, Q, 2, 3)
@@ -409,7 +476,8 @@ def render(scene: Scene, vertices, faces, view: int) -> np.ndarray:
 
 def image_error(scene: Scene, vertices, faces) -> float:
     """Mean squared error of noise-free renders against the target over all views."""
-    errs = [np.mean((render(scene, vertices, faces, i) - render_target(scene, i)) ** 2)
-            for i in range(len(scene.frames))]
+    errs = [
+        np.mean((render(scene, vertices, faces, i) - render_target(scene, i)) ** 2)
+        for i in range(len(scene.frames))
+    ]
     return float(np.mean(errs))
-
