@@ -63,7 +63,8 @@ def main():
     for sig in (0.0, 1e-30, 1e30, np.inf):
         u, _ = run(ob.bilateral_adam(LR, sigma_d=sig, levels=2), [NOISE])
         print(
-            f"sigma_d={sig:g}: max|u|/lr {umax(u[0]):.6f}, mean|u|/lr {float(jnp.mean(jnp.abs(u[0]))) / LR:.4f}"
+            f"sigma_d={sig:g}: max|u|/lr {umax(u[0]):.6f}, "
+            f"mean|u|/lr {float(jnp.mean(jnp.abs(u[0]))) / LR:.4f}"
         )
 
     # One finite outlier: v ~ 1e38 in its footprint shrinks the neighbours' steps until b2^t
@@ -117,7 +118,8 @@ def main():
     (theta, state), (um, err) = long(THETA)
     err = np.asarray(err)
     print(
-        f"10k steps: finite {finite(theta) and finite(state)}, max|u|/lr {float(jnp.max(um)) / (LR / 10):.4f}, "
+        f"10k steps: finite {finite(theta) and finite(state)}, "
+        f"max|u|/lr {float(jnp.max(um)) / (LR / 10):.4f}, "
         f"rms error step 1 {err[0]:.4f}, mean over 4000-5000 {err[4000:5000].mean():.4f}, "
         f"over 9000-10000 {err[-1000:].mean():.4f}"
     )

@@ -26,14 +26,15 @@ import re
 import subprocess
 import sys
 import tempfile
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import numpy as np
 import optax
 
 import optax_bilateral as ob
-from experiments import benchmark as bm, common
+from experiments import benchmark as bm
+from experiments import common
 
 AB_PACKAGE = "optax_bilateral_ab"
 

@@ -53,7 +53,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import AxisType, Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 import optax_bilateral as ob
 from experiments import common
@@ -107,6 +108,13 @@ def _problem(case: Case):
     return tx, params, grads, state
 
 
+def _put(tree, ndim, grid_sharding, replicated):
+    """``tree`` on the devices: grid-shaped leaves split, the others replicated."""
+    return jax.tree.map(
+        lambda a: jax.device_put(a, grid_sharding if np.ndim(a) == ndim else replicated), tree
+    )
+
+
 def _max_diff(a, b) -> float:
     return max(
         float(jnp.max(jnp.abs(jnp.asarray(x, jnp.float32) - jnp.asarray(y, jnp.float32))))
@@ -143,15 +151,8 @@ def run_case(case: Case, repeats: int, quick: bool = False, progress: bool = Tru
             mesh_shape, AxisType.Explicit if path == "shard_map" else AxisType.Auto
         )
         sh = NamedSharding(device_mesh, P("x", "y"))
-        put = lambda t: jax.tree.map(
-            lambda a: (
-                jax.device_put(a, sh)
-                if np.ndim(a) == ndim
-                else jax.device_put(a, NamedSharding(device_mesh, P()))
-            ),
-            t,
-        )
-        args = (put(grads), put(state), put(params))
+        replicated = NamedSharding(device_mesh, P())
+        args = tuple(_put(t, ndim, sh, replicated) for t in (grads, state, params))
         t0 = time.perf_counter()
         compiled = jax.jit(tx.update).lower(*args).compile()
         compile_s = time.perf_counter() - t0
@@ -260,7 +261,7 @@ def _plot(rows, path):
     cases = list(dict.fromkeys(r["case"] for r in rows))
     fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.4), dpi=110, squeeze=False)
     for ax, case in zip(axes[0], cases):
-        base = [r for r in rows if r["case"] == case and r["path"] == "unsharded"][0]["step_ms"]
+        base = next(r for r in rows if r["case"] == case and r["path"] == "unsharded")["step_ms"]
         ax.axhline(base, color="k", lw=1, ls=":", label="unsharded")
         for p in ("shard_map", "xla_auto"):
             pts = [

@@ -37,7 +37,7 @@ import platform
 import subprocess
 import sys
 import time
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -186,7 +186,7 @@ def update_only(
         res = interleaved(fns, rounds, inner, desc=f"update {name}")
         samples = {k: v["samples"] for k, v in res.items()}
         adam = res["adam"]["median"]
-        for label, kind, levels, separable in variants:
+        for label, *_ in variants:
             r = res[label]
             row = {
                 "grid": name,
@@ -693,7 +693,8 @@ def temp_mb(compiled) -> float:
     """XLA's planned temporary memory of a compiled program, in MiB (NaN if not reported).
 
     On CPU this is one allocation per call; above glibc's largest mmap threshold (32 MiB)
-    it is mapped and page-faulted afresh on every call (BENCHMARKS.md, "Two speeds: the allocator")."""
+    it is mapped and page-faulted afresh on every call (BENCHMARKS.md, "Two speeds: the
+    allocator")."""
     m = compiled.memory_analysis()
     return float("nan") if m is None else m.temp_size_in_bytes / 2**20
 
@@ -765,12 +766,15 @@ def compile_times(out: pathlib.Path, quick: bool) -> dict:
     data = {"rows": rows, "recompile_check": check, "eager": eager}
     md = "\n".join(
         [
-            "### Compile time of one update step (jit(opt.update), cold), and its planned temporary memory",
+            "### Compile time of one update step (jit(opt.update), cold), "
+            "and its planned temporary memory",
             "",
             common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]),
             "",
-            f'Recompilation check: `optax.inject_hyperparams(bilateral_adam, static_args=("levels",))` '
-            f"with a decaying sigma_d schedule and a learning-rate schedule, {check['steps']} steps on "
+            "Recompilation check: "
+            '`optax.inject_hyperparams(bilateral_adam, static_args=("levels",))` '
+            "with a decaying sigma_d schedule and a learning-rate schedule, "
+            f"{check['steps']} steps on "
             f"{'x'.join(map(str, shape))}: {check['compiled programs']} compiled "
             f"program(s) (sigma_d went {sigmas[0]:.3g} -> {sigmas[-1]:.3g}).",
             "",

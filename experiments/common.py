@@ -32,7 +32,8 @@ import math
 import os
 import pathlib
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, ClassVar
 
 import jax
 import numpy as np
@@ -41,7 +42,8 @@ QUICK_ENV = "OPTAX_BILATERAL_QUICK"
 
 
 def quick_from_env() -> bool:
-    """True when ``OPTAX_BILATERAL_QUICK`` is set to a non-empty value other than ``0`` (tests set it)."""
+    """True when ``OPTAX_BILATERAL_QUICK`` is set to a non-empty value other than ``0``
+    (tests set it)."""
     return os.environ.get(QUICK_ENV, "") not in ("", "0")
 
 
@@ -51,7 +53,8 @@ def parse_args(
     argv: Sequence[str] | None = None,
     extra: Callable[[argparse.ArgumentParser], None] | None = None,
 ) -> argparse.Namespace:
-    """Common command line: ``--quick`` (also implied by ``OPTAX_BILATERAL_QUICK=1``) and ``--out DIR``.
+    """Common command line: ``--quick`` (also implied by ``OPTAX_BILATERAL_QUICK=1``) and
+    ``--out DIR``.
 
     ``extra(parser)`` may add experiment-specific options. ``args.out`` is a ``pathlib.Path``.
     """
@@ -487,11 +490,11 @@ class CompileCounter:
     program handed to XLA), so cache hits do not count.
     """
 
-    _active: list = []
+    _active: ClassVar[list] = []
     _registered = False
     EVENT = "/jax/core/compile/backend_compile_duration"
 
-    def __enter__(self) -> "CompileCounter":
+    def __enter__(self) -> CompileCounter:
         if not CompileCounter._registered:
             jax.monitoring.register_event_duration_secs_listener(CompileCounter._listen)
             CompileCounter._registered = True

@@ -20,7 +20,8 @@ import subprocess
 import sys
 import textwrap
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 import optax
@@ -77,7 +78,8 @@ def probe(variant: str = VARIANT, timeout: float = 300.0) -> str | None:
 
 
 def setup(variant: str = VARIANT):
-    """Imports Mitsuba and Dr.Jit, sets ``variant`` and checks that it can render; returns (mi, dr)."""
+    """Imports Mitsuba and Dr.Jit, sets ``variant`` and checks that it can render; returns
+    (mi, dr)."""
     import drjit as dr
     import mitsuba as mi
 

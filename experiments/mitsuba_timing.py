@@ -32,10 +32,8 @@ import time
 import optax
 
 import optax_bilateral as ob
-from experiments import common
+from experiments import common, mitsuba_texture, mitsuba_volume
 from experiments import mitsuba_common as mc
-from experiments import mitsuba_texture
-from experiments import mitsuba_volume
 
 LEVELS = (3, 5)
 SCENES = ("texture", "volume")

@@ -26,13 +26,14 @@ import gzip
 import json
 import re
 import tempfile
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import optax
 
 import optax_bilateral as ob
-from experiments import ab_update, benchmark as bm, common
+from experiments import ab_update, common
+from experiments import benchmark as bm
 
 _FUSION = re.compile(r"%([\w.\-]+) = [^=]*? fusion\(")
 

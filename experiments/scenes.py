@@ -1,4 +1,5 @@
-"""The problems of the tuning benchmark (:mod:`experiments.tuning`): grids recovered from noisy gradients.
+"""The problems of the tuning benchmark (:mod:`experiments.tuning`): grids recovered from noisy
+gradients.
 
 A :class:`Scene` is one inverse problem written as pure JAX functions, so that the
 benchmark can compile one program that runs many optimisers, hyperparameters and
@@ -42,7 +43,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -251,7 +253,7 @@ def piecewise_smooth_signal(n: int) -> np.ndarray:
 
 def gaussian_kernel(sigma: float) -> np.ndarray:
     """Normalised 1-D Gaussian taps of radius ``ceil(3 sigma)``."""
-    r = int(math.ceil(3 * sigma))
+    r = math.ceil(3 * sigma)
     k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
     return (k / k.sum()).astype(np.float32)
 
@@ -347,12 +349,13 @@ def _scaled_error(data, x):
 
 
 def deblur(quick: bool, scale: float = 1.0) -> Scene:
-    """Deblurring from random 5% pixel subsets (issue #17's problem); ``scale`` multiplies the image."""
+    """Deblurring from random 5% pixel subsets (issue #17's problem); ``scale`` multiplies the
+    image."""
     size, iterations = (32, 40) if quick else (128, 300)
     blur_sigma, fraction, noise = 1.5, 0.05, 0.02
     k = jnp.asarray(gaussian_kernel(blur_sigma))
     x_t = jnp.asarray(shapes_image(size)) * scale
-    blur = lambda x, k: _blur_axis(_blur_axis(x, k, 0), k, 1)  # noqa: E731
+    blur = lambda x, k: _blur_axis(_blur_axis(x, k, 0), k, 1)
     # The blurred image with fixed (not per-step) measurement noise: the data of the problem.
     y = blur(x_t, k) + scale * noise * jax.random.normal(jax.random.key(99), x_t.shape)
 

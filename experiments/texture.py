@@ -27,8 +27,8 @@ best Adam run is continued for as many iterations as that budget buys (Adam's
 steps are cheaper: the filter costs more than this toy's render). The "time" axis
 of the plots is iterations x that step time.
 
-``python -m experiments.texture [--quick] [--out DIR] [--target camera|noise|phantom]`` writes to DIR
-(default ``results/texture``): ``summary.json``, ``table.md``, ``images.png``
+``python -m experiments.texture [--quick] [--out DIR] [--target camera|noise|phantom]``
+writes to DIR (default ``results/texture``): ``summary.json``, ``table.md``, ``images.png``
 (renders, error images, recovered textures), ``{loss,param_error}_vs_{iteration,time}.png``.
 """
 
@@ -39,7 +39,6 @@ import functools
 import math
 import pathlib
 import time
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -314,7 +313,7 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     # continued for as many iterations as that budget buys at Adam's step cost.
     budget = cfg.iterations * spi["cross-bilateral"]
     adam_best = best["adam"]
-    adam_iters = int(round(budget / spi["adam"]))
+    adam_iters = round(budget / spi["adam"])
     adam_long = adam_best
     if adam_iters > cfg.iterations:
         more = common.run_method(
@@ -418,7 +417,8 @@ def markdown(summary: dict) -> str:
         )
     n = next(iter(summary["methods"].values()))["iterations"]
     head = (
-        f"Texture recovery ({summary['setting']['target']} target), {summary['setting']['size']}^2, spp {summary['setting']['spp']}"
+        f"Texture recovery ({summary['setting']['target']} target), "
+        f"{summary['setting']['size']}^2, spp {summary['setting']['spp']}"
         f"/{summary['setting']['spp_grad']}: best of each sweep at {n} iterations; equal "
         f"wall time = {eq['budget_seconds']:.2f} s = {n} cross-bilateral steps at the step costs "
         f"timed in alternation (column s/iter). "
@@ -488,7 +488,7 @@ def _plot_images(prob: Problem, best: dict, adam_long, path: pathlib.Path) -> pa
         axes[r, 0].imshow(tone(img), cmap="gray", vmin=0, vmax=1)
         axes[r, 0].set_title(f"{label}: render")
         axes[r, 1].imshow(rel, cmap="magma", vmin=0, vmax=0.5)
-        axes[r, 1].set_title(f"relative image error (0..0.5)")
+        axes[r, 1].set_title("relative image error (0..0.5)")
         axes[r, 2].imshow(alpha, cmap="viridis", norm=norm)
         axes[r, 2].set_title(f"roughness, err {tr.final_metric('param_error'):.4f}")
         axes[r, 3].imshow(np.abs(alpha - tgt), cmap="magma", vmin=0, vmax=0.1)

@@ -1,7 +1,10 @@
 """Mesh recovery: Large Steps vs the paper's cross-bilateral normal filter (supplement §3-4).
 
-    python -m experiments.triangle_mesh [--quick] [--out DIR]          # Fig. 2 grid + Fig. 6 (lambda=999)
-    python -m experiments.triangle_mesh --overhead [--quick] [--out DIR]  # Table 2 analogue: both methods x solvers
+    python -m experiments.triangle_mesh [--quick] [--out DIR]             # Fig. 2 grid, Fig. 6
+    python -m experiments.triangle_mesh --overhead [--quick] [--out DIR]  # Table 2 analogue
+
+The first runs the Fig. 2 grid and Fig. 6 (lambda=999); the second times both methods
+with each solver.
 
 A sphere (icosphere) is deformed into a cube from noisy multi-view renders
 (``optax_bilateral.toy.triangle_mesh``: one jittered sample and one light sample per pixel,
@@ -106,7 +109,8 @@ class Problem:
         return optax.apply_updates(params, updates), state
 
     def step_fn(self, method: str, lam: float, sigma_d: float | None):
-        """``step(carry, i)`` for :func:`experiments.common.run_method`; carry = (params, state, rng)."""
+        """``step(carry, i)`` for :func:`experiments.common.run_method`; carry = (params, state,
+        rng)."""
         update = self._update[method]
         lam_a = jnp.float32(lam)
         sig_a = jnp.float32(np.inf if sigma_d is None else sigma_d)
@@ -144,7 +148,7 @@ def run_one(
         "learning_rate": problem.lr,
         "b1": 0.9,
         "b2": 0.999,
-        "vertices": int(len(problem.v0)),
+        "vertices": len(problem.v0),
     }
     if sigma_d is not None:
         hp.update(
@@ -297,7 +301,7 @@ def run_sweep(args) -> dict:
             cfg,
             lambda_default=lam0,
             sigma_d_default=sd0,
-            vertices=int(len(problem.v0)),
+            vertices=len(problem.v0),
             initial_hausdorff=initial,
             quick=args.quick,
         ),
@@ -419,6 +423,19 @@ def _solver_timings(problem: Problem, repeats: int, superlu_128: bool) -> list[d
     return out
 
 
+def _timed_step(problem: Problem, run: dict) -> tuple[float, float]:
+    """One iteration of ``run`` (updated in place): (gradient seconds, update seconds)."""
+    frame = problem.renderer.frame(np.asarray(run["params"]), run["rng"])
+    t0 = time.perf_counter()
+    (_, _), g = problem.grad(run["params"], frame)
+    g = jax.block_until_ready(g)
+    t1 = time.perf_counter()
+    run["params"], run["state"] = jax.block_until_ready(
+        run["update"](g, run["state"], run["params"])
+    )
+    return t1 - t0, time.perf_counter() - t1
+
+
 def run_overhead(args) -> dict:
     """Per-iteration and per-update times of Large Steps and ours with each solver, at
     ~10k, ~35k and ~166k vertices; methods interleaved within every repeat."""
@@ -455,28 +472,19 @@ def run_overhead(args) -> dict:
                 "upd": [],
             }
 
-        def one_step(r):
-            frame = problem.renderer.frame(np.asarray(r["params"]), r["rng"])
-            t0 = time.perf_counter()
-            (_, _), g = problem.grad(r["params"], frame)
-            g = jax.block_until_ready(g)
-            t1 = time.perf_counter()
-            r["params"], r["state"] = jax.block_until_ready(r["update"](g, r["state"], r["params"]))
-            return t1 - t0, time.perf_counter() - t1
-
         for r in runs.values():  # compile, and one step so warm starts have a solution
-            one_step(r)
+            _timed_step(problem, r)
         for _ in range(repeats):
             for r in runs.values():
                 t0 = time.perf_counter()
-                _, upd = one_step(r)
+                _, upd = _timed_step(problem, r)
                 r["it"].append(time.perf_counter() - t0)
                 r["upd"].append(upd)
         it = {k: 1e3 * float(np.median(r["it"])) for k, r in runs.items()}
         upd = {k: 1e3 * float(np.median(r["upd"])) for k, r in runs.items()}
         ls = it["large-steps"]
         row = {
-            "vertices": int(len(problem.v0)),
+            "vertices": len(problem.v0),
             "large_steps_ms": ls,
             "ours_ms": it["ours"],
             "overhead_pct": 100 * (it["ours"] / ls - 1),

@@ -42,9 +42,9 @@ with its ratios to the best-tuned and to Adam's error. From Python::
 
     from experiments import scenes, tuning
     scene = scenes.make("deblur")
-    errors = tuning.evaluate(scene, lambda learning_rate, sigma_d: ob.bilateral_adam(
-        learning_rate, sigma_d=sigma_d), [{"learning_rate": 0.02, "sigma_d": s} for s in (0.02, 0.1)],
-        seeds=(0, 1, 2))                       # (2 settings, 3 seeds) final errors
+    factory = lambda learning_rate, sigma_d: ob.bilateral_adam(learning_rate, sigma_d=sigma_d)
+    settings = [{"learning_rate": 0.02, "sigma_d": s} for s in (0.02, 0.1)]
+    errors = tuning.evaluate(scene, factory, settings, seeds=(0, 1, 2))  # (2, 3) final errors
     result = tuning.tune(scene, tuning.Family("mine", factory))   # learning rate swept
     result.best.median, result.best.hyper
 
@@ -68,6 +68,7 @@ as horizontal lines; 0 and inf at the ends of the log axis) and ``cache/``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import importlib
 import inspect
@@ -76,7 +77,8 @@ import math
 import os
 import pathlib
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -218,7 +220,7 @@ class Runner:
                 h = np.concatenate([h, np.repeat(h[-1:], b - real, 0)])
                 s = np.concatenate([s, np.repeat(s[-1:], b - real, 0)])
             h, s = jnp.asarray(h), jnp.asarray(s)
-            params = jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), scene.init)
+            params = _batched(scene.init, b)
             state = self._init(h, scene.init)
             recs = []
             for i in range(scene.iterations):
@@ -372,23 +374,24 @@ class Record:
         }
 
     @classmethod
-    def from_json(cls, d: dict) -> "Record":
+    def from_json(cls, d: dict) -> Record:
         return cls(
             static=d["static"],
-            hyper={k: _num(v) for k, v in d["hyper"].items()},
-            errors=[_num(e) for e in d["errors"]],
-            curve=[_num(e) for e in d["curve"]],
+            hyper={k: float(v) for k, v in d["hyper"].items()},
+            errors=[float(e) for e in d["errors"]],
+            curve=[float(e) for e in d["curve"]],
         )
+
+
+def _batched(tree, b: int):
+    """Every leaf of ``tree`` repeated along a new leading axis of size ``b``."""
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), tree)
 
 
 def _nan_median(values) -> float:
     v = np.asarray(values, np.float64)
     # A diverged run (NaN) counts as infinitely bad, so a median over seeds stays honest.
     return float(np.median(np.where(np.isfinite(v), v, np.inf)))
-
-
-def _num(v):
-    return float(v) if not isinstance(v, str) else float(v)
 
 
 @dataclasses.dataclass
@@ -465,7 +468,7 @@ def tune(
                     pending.append((k, _round(lrs[0] / LR_RATIO)))
                 elif best == lrs[-1]:
                     pending.append((k, _round(lrs[-1] * LR_RATIO)))
-        for k, by_lr in tried.items():
+        for by_lr in tried.values():
             records.extend(by_lr.values())
             lrs = sorted(by_lr)
             best = min(lrs, key=lambda lr: by_lr[lr].median)
@@ -858,8 +861,8 @@ def sensitivity(entry: dict, log_guide: bool) -> dict[int, list[tuple[float, flo
     for r in entry["grid"]["bilateral"]:
         if bool(r["static"]["log_guide"]) != log_guide:
             continue
-        key = (int(r["static"]["levels"]), _num(r["hyper"]["sigma_d"]))
-        best[key] = min(best.get(key, math.inf), _num(r["median"]))
+        key = (int(r["static"]["levels"]), float(r["hyper"]["sigma_d"]))
+        best[key] = min(best.get(key, math.inf), float(r["median"]))
     out: dict[int, list] = {}
     for (lev, sig), err in sorted(best.items()):
         out.setdefault(lev, []).append((sig, err))
@@ -867,6 +870,11 @@ def sensitivity(entry: dict, log_guide: bool) -> dict[int, list[tuple[float, flo
         if same in out:
             out[int(lev)] = list(out[same])
     return dict(sorted(out.items()))
+
+
+def _xpos(sig: float, lo: float, hi: float) -> float:
+    """Where a sigma_d is drawn on a log axis: 0 at ``lo``, inf at ``hi``."""
+    return lo if sig == 0 else hi if sig == math.inf else sig
 
 
 def plot_scene(entry: dict, path: pathlib.Path) -> pathlib.Path:
@@ -894,12 +902,9 @@ def plot_scene(entry: dict, path: pathlib.Path) -> pathlib.Path:
             continue
         lo, hi = finite[0] / 10, finite[-1] * 10  # where 0 and inf are drawn
 
-        def xpos(sig):
-            return lo if sig == 0 else hi if sig == math.inf else sig
-
         for lev, pts in curves.items():
             ax.plot(
-                [xpos(s) for s, _ in pts],
+                [_xpos(s, lo, hi) for s, _ in pts],
                 [e for _, e in pts],
                 marker="o",
                 ms=3,
@@ -958,6 +963,14 @@ def _hp(h: Mapping[str, Any], keys=None) -> str:
     return ", ".join(out)
 
 
+def _cell(methods: dict, k: str, keys=None) -> str:
+    """Method ``k``'s error for the table, with the hyperparameters ``keys``."""
+    x = methods[k]
+    if x.get("error") is None:
+        return "not available"
+    return f"{x['error']:.4g} ({_hp(x['hyperparameters'], keys)})" if keys else f"{x['error']:.4g}"
+
+
 def markdown(summary: dict) -> str:
     """``table.md``: scenes x methods, ratios and the issue's targets."""
     scenes = summary["scenes"]
@@ -974,18 +987,7 @@ def markdown(summary: dict) -> str:
     ] + cand
     rows = []
     for name, e in scenes.items():
-        m = e["methods"]
-
-        def cell(k, keys=None):
-            x = m[k]
-            if x.get("error") is None:
-                return "not available"
-            return (
-                f"{x['error']:.4g} ({_hp(x['hyperparameters'], keys)})"
-                if keys
-                else f"{x['error']:.4g}"
-            )
-
+        cell = functools.partial(_cell, e["methods"])
         rows.append(
             [
                 name,
@@ -1149,6 +1151,7 @@ def _use_xla_cache(path: str | None) -> None:
 
 def _as_done(futures, progress: bool):
     import concurrent.futures
+
     from tqdm.auto import tqdm
 
     bar = tqdm(total=len(futures), desc="scenes", unit="scene", disable=not progress)

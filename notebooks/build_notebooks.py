@@ -1,7 +1,9 @@
-"""Builds ``notebooks/*.ipynb`` (outputs stripped) from the sources in ``notebooks/src/``, or runs them.
+"""Builds ``notebooks/*.ipynb`` (outputs stripped) from the sources in ``notebooks/src/``, or
+runs them.
 
     python notebooks/build_notebooks.py                 # write every notebook from its source
-    python notebooks/build_notebooks.py --check         # exit 1 if a notebook differs from its source
+    python notebooks/build_notebooks.py --check         # exit 1 if a notebook and its source
+                                                        # differ
     python notebooks/build_notebooks.py --execute NAME  # run notebooks/NAME.ipynb; the executed
                                                         # copy goes to results/notebooks/NAME.ipynb
                                                         # (results/notebooks/quick/ when quick)
@@ -79,7 +81,8 @@ def dumps(nb: nbformat.NotebookNode) -> str:
 
 
 def execute(name: str, timeout: int = 7200) -> pathlib.Path:
-    """Runs ``notebooks/name.ipynb`` with its working directory ``notebooks/``; returns the executed copy."""
+    """Runs ``notebooks/name.ipynb`` with its working directory ``notebooks/``; returns the
+    executed copy."""
     from nbclient import NotebookClient
 
     nb = nbformat.read(HERE / f"{name}.ipynb", as_version=4)

@@ -1,4 +1,5 @@
-"""Helpers shared by the notebooks in ``notebooks/``: batched texture runs, step statistics, figures.
+"""Helpers shared by the notebooks in ``notebooks/``: batched texture runs, step statistics,
+figures.
 
 Imported by the notebooks as ``notebook_utils`` (their working directory is ``notebooks/``).
 
@@ -32,7 +33,8 @@ import functools
 import pathlib
 import sys
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -44,7 +46,7 @@ from optax_bilateral.toy import texture as tex
 # Only optax_bilateral is installed; experiments/ is imported from the repository.
 if str(pathlib.Path(__file__).resolve().parents[1]) not in sys.path:
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from experiments import common  # noqa: E402
+from experiments import common
 
 #: True when ``OPTAX_BILATERAL_QUICK=1`` (the test suite): notebooks then run at a small size.
 QUICK = common.quick_from_env()
@@ -66,7 +68,8 @@ def results_dir(name: str = "notebooks") -> pathlib.Path:
 
 
 def save_figure(fig, name: str, folder: str = "notebooks") -> pathlib.Path:
-    """Saves ``fig`` as ``results/<folder>/<name>.png`` and returns the path (the notebook still shows it).
+    """Saves ``fig`` as ``results/<folder>/<name>.png`` and returns the path (the notebook still
+    shows it).
 
     At the quick size the figure goes to ``results/<folder>/quick/`` instead, so that
     the test suite never overwrites the figures of a full-size run.
@@ -275,7 +278,7 @@ class Runs:
         v = self.metrics[metric][:, -1]
         return int(np.argmin(np.where(np.isnan(v), np.inf, v)))
 
-    def select(self, r: int, name: str | None = None) -> "Runs":
+    def select(self, r: int, name: str | None = None) -> Runs:
         """Run ``r`` alone (R = 1), named ``name`` (default: its label)."""
         return Runs(
             name=name or self.label(r),
@@ -296,7 +299,8 @@ class Timing:
 
 
 def _chunks(iterations: int, target: int = 25) -> int:
-    """The largest divisor of ``iterations`` not above ``target`` (one compile serves every chunk)."""
+    """The largest divisor of ``iterations`` not above ``target`` (one compile serves every
+    chunk)."""
     return max(d for d in range(1, min(target, iterations) + 1) if iterations % d == 0)
 
 
@@ -502,7 +506,8 @@ def _batched_init(opt, init, hp: Mapping[str, np.ndarray]):
 
 
 def find_moments(state) -> Any:
-    """The first sub-state with ``count``, ``mu`` and ``nu`` (Adam's or the postfilter's moments)."""
+    """The first sub-state with ``count``, ``mu`` and ``nu`` (Adam's or the postfilter's
+    moments)."""
 
     def has(x):
         return all(hasattr(x, a) for a in ("count", "mu", "nu"))
@@ -602,7 +607,7 @@ def plot_metric(
     ax.legend(fontsize=7)
 
 
-def sweep_rows(runs: Mapping[str, "Runs"], extra: Callable | None = None) -> list[dict]:
+def sweep_rows(runs: Mapping[str, Runs], extra: Callable | None = None) -> list[dict]:
     """One table row per method and learning rate of a sweep, the best marked ``*``.
 
     ``extra(name, runs, i)`` may add columns (a dict), placed before ``best``.
@@ -631,7 +636,7 @@ def sweep_report(problem: TextureProblem, timing, rows: Sequence[Mapping[str, An
     )
 
 
-def plot_best_curves(best: Mapping[str, "Runs"], suptitle: str):
+def plot_best_curves(best: Mapping[str, Runs], suptitle: str):
     """Training loss and parameter error of each method's best run, side by side."""
     import matplotlib.pyplot as plt
 

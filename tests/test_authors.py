@@ -18,13 +18,13 @@ their coupled ``weight_decay`` against a chain with ``optax.add_decayed_weights`
 the library's decoupled one against ``optax.adamw``.
 """
 
-import authors_reference as ref
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+import authors_reference as ref
 import optax_bilateral as ob
 
 TOL = 1e-12

@@ -39,7 +39,7 @@ def test_writes_every_output(quick_run):
 
 
 def test_summary_has_every_method_with_finite_metrics(quick_run):
-    out, methods = quick_run
+    out, _ = quick_run
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["methods"]) == list(experiment.METHODS)
     for name, entry in summary["methods"].items():

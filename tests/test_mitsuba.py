@@ -62,10 +62,11 @@ def test_llvm_variant_renders_a_16x16_scene(mi):
 
 def test_check_variant_rejects_an_old_libllvm(mi, monkeypatch):
     import drjit as dr
+
     from optax_bilateral.mitsuba import check_variant
 
     monkeypatch.setattr(dr.detail, "llvm_version", lambda: (15, 0, 7))
-    with pytest.raises(RuntimeError, match="libLLVM 15.0.7.*>= 16.*DRJIT_LIBLLVM_PATH"):
+    with pytest.raises(RuntimeError, match=r"libLLVM 15\.0\.7.*>= 16.*DRJIT_LIBLLVM_PATH"):
         check_variant()
 
 
@@ -159,7 +160,7 @@ class _Probe:
 def test_step_passes_gradients_state_and_current_values(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     keys = (TEX, DENSITY, ALBEDO)
     opt = SceneOptimizer(_Probe(), params, keys)
     state = opt.init()
@@ -176,7 +177,7 @@ def test_step_passes_gradients_state_and_current_values(tiny):
 def test_bilateral_adam_step_is_the_librarys_update(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     tx = ob.bilateral_adam(0.05, levels=2, sigma_d=0.1, log_guide=True)
     opt = SceneOptimizer(tx, params, TEX)
     state = opt.init()
@@ -198,9 +199,10 @@ def test_bilateral_adam_step_is_the_librarys_update(tiny):
 
 def test_plain_sgd_step_is_exact_and_writes_back_to_the_scene(tiny):
     import drjit as dr
+
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     opt = SceneOptimizer(optax.sgd(0.25), params, [DENSITY])
     state = opt.init()
     x0 = np.array(dr.detach(params[DENSITY]))
@@ -217,12 +219,13 @@ def test_plain_sgd_step_is_exact_and_writes_back_to_the_scene(tiny):
 
 def test_values_and_gradients_cross_without_copies(tiny):
     import drjit as dr
+
     from optax_bilateral.mitsuba import SceneOptimizer, to_jax
 
     def shared(jax_array, dr_tensor):
         return jax_array.unsafe_buffer_pointer() == np.from_dlpack(dr_tensor).ctypes.data
 
-    scene, params = tiny
+    _, params = tiny
     opt = SceneOptimizer(optax.sgd(0.1), params, [TEX, ALBEDO])
     state = opt.init()
     for _ in range(2):
@@ -239,7 +242,7 @@ def test_values_and_gradients_cross_without_copies(tiny):
 def test_projection_clamps_after_the_update(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     opt = SceneOptimizer(
         optax.sgd(10.0),
         params,
@@ -257,7 +260,7 @@ def test_projection_clamps_after_the_update(tiny):
 def test_callable_projection(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     opt = SceneOptimizer(
         optax.sgd(0.1),
         params,
@@ -273,7 +276,7 @@ def test_callable_projection(tiny):
 def test_mask_unobserved_keeps_value_and_moments_of_zero_gradient_texels(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     # Texels of the first slice get no gradient in any channel; in step 2 one more texel
     # gets a gradient in one channel only (it counts as observed).
     scale = {ALBEDO: np.ones((4, 3, 5, 3), np.float32)}
@@ -306,7 +309,7 @@ def test_mask_unobserved_keeps_value_and_moments_of_zero_gradient_texels(tiny):
 def test_without_mask_unobserved_adam_momentum_moves_zero_gradient_texels(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     scale = {TEX: np.zeros((6, 5, 1), np.float32)}
     opt = SceneOptimizer(optax.adam(0.05), params, [TEX])
     state = opt.init()
@@ -321,7 +324,7 @@ def test_without_mask_unobserved_adam_momentum_moves_zero_gradient_texels(tiny):
 def test_checkpoint_round_trip_resumes_identically(tiny, tmp_path, mi):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     keys = [TEX, DENSITY, ALBEDO]
     tx = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels",))(
         learning_rate=optax.cosine_decay_schedule(0.1, 10), levels=1
@@ -357,9 +360,9 @@ def test_checkpoint_round_trip_resumes_identically(tiny, tmp_path, mi):
 def test_bad_keys_name_the_problem(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     tx = optax.adam(0.1)
-    with pytest.raises(KeyError, match="did you mean.*plane.bsdf.alpha.data"):
+    with pytest.raises(KeyError, match=r"did you mean.*plane\.bsdf\.alpha\.data"):
         SceneOptimizer(tx, params, "plane.bsdf.alpha.dat")
     with pytest.raises(TypeError, match="not a tensor"):
         SceneOptimizer(tx, params, "plane.to_world")
@@ -369,7 +372,7 @@ def test_bad_keys_name_the_problem(tiny):
         SceneOptimizer(tx, params, [TEX, TEX])
     with pytest.raises(TypeError, match="strings"):
         SceneOptimizer(tx, params, [TEX, 3])
-    with pytest.raises(TypeError, match="mi.traverse"):
+    with pytest.raises(TypeError, match=r"mi\.traverse"):
         SceneOptimizer(tx, {TEX: None}, TEX)
     with pytest.raises(TypeError, match="GradientTransformation"):
         SceneOptimizer(lambda g: g, params, TEX)
@@ -396,14 +399,14 @@ def test_an_8_bit_texture_is_rejected_with_a_hint(mi):
             },
         }
     )
-    with pytest.raises(TypeError, match="uint8.*mi.TensorXf"):
+    with pytest.raises(TypeError, match=r"uint8.*mi\.TensorXf"):
         SceneOptimizer(optax.adam(0.1), mi.traverse(scene), TEX)
 
 
 def test_bad_projection_names_the_problem(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     tx = optax.adam(0.1)
     with pytest.raises(ValueError, match="not one of the optimized keys"):
         SceneOptimizer(tx, params, TEX, project={DENSITY: (0, 1)})
@@ -425,7 +428,7 @@ def test_bad_projection_names_the_problem(tiny):
 def test_resized_parameter_and_bad_values_are_reported(tiny, mi):
     from optax_bilateral.mitsuba import SceneOptimizer
 
-    scene, params = tiny
+    _, params = tiny
     opt = SceneOptimizer(optax.adam(0.1), params, TEX)
     state = opt.init()
     with pytest.raises(ValueError, match="keys"):
@@ -434,7 +437,7 @@ def test_resized_parameter_and_bad_values_are_reported(tiny, mi):
         opt.set_values({TEX: np.zeros((3, 3, 1))})
     params[TEX] = mi.TensorXf(np.full((6, 5, 1), 0.2, np.float32))  # replaced, no gradients
     params.update()
-    with pytest.raises(ValueError, match="does not track gradients.*set_values"):
+    with pytest.raises(ValueError, match=r"does not track gradients.*set_values"):
         opt.step(state)
     params[TEX] = mi.TensorXf(np.zeros((12, 10, 1), np.float32))  # upsampled texture
     params.update()
@@ -551,8 +554,8 @@ def _docs_block(name):
 
 
 def test_docs_loop_runs_verbatim(mi, tmp_path, monkeypatch):
-    from experiments import mitsuba_texture
     import optax_bilateral as ob
+    from experiments import mitsuba_texture
 
     # The docs' blocks, unchanged, on the quick configuration (32^2 texture, 6 iterations).
     quick = mitsuba_texture.default_config(quick=True)

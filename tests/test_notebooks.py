@@ -62,7 +62,8 @@ def test_notebook_in_git_is_stripped_and_matches_its_source(name):
                 "python notebooks/build_notebooks.py"
             )
     assert path.read_text() == build_notebooks.dumps(build_notebooks.build(name)), (
-        f"{name}.ipynb differs from notebooks/src/{name}.py; run python notebooks/build_notebooks.py"
+        f"{name}.ipynb differs from notebooks/src/{name}.py; "
+        "run python notebooks/build_notebooks.py"
     )
 
 

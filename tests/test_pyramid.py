@@ -1,4 +1,5 @@
-"""Laplacian-pyramid parameterisation (Weier et al. 2025): the operator, its transpose, the transform."""
+"""Laplacian-pyramid parameterisation (Weier et al. 2025): the operator, its transpose, the
+transform."""
 
 import jax
 import jax.numpy as jnp
@@ -98,7 +99,8 @@ def test_one_level_is_adam():
 
 
 def test_equals_adam_on_the_coefficients():
-    """Optimising c with optax.adam on f(P c) gives the iterates theta_t = P c_t of the transform."""
+    """Optimising c with optax.adam on f(P c) gives the iterates theta_t = P c_t of the
+    transform."""
     axes, levels, shape = (0, 1), 3, (12, 9, 2)
     target = jnp.asarray(np.random.default_rng(4).random(shape, np.float32))
 

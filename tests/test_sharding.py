@@ -32,6 +32,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _child() -> None:  # pragma: no cover - runs in the subprocess
+    import functools
     import math
     import time
 
@@ -39,7 +40,8 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     import jax.numpy as jnp
     import numpy as np
     import optax
-    from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
+    from jax.sharding import AxisType, Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
 
     import optax_bilateral as ob
     from experiments import bench_sharding as bench
@@ -73,6 +75,9 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
 
     def stats(compiled):
         return collectives.collective_stats(compiled.as_text(), branch=None)  # worst branch
+
+    def filter_pair(m, v, g, mk, **kw):
+        return ob.atrous_bilateral((m, v), g, mask=mk, **kw)
 
     key = jax.random.PRNGKey(0)
 
@@ -108,7 +113,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         )
         kw_s = dict(kw, sigma_d=kw["sigma_d"] * scale)
         args[2] = args[2] * scale
-        fn = jax.jit(lambda m, v, g, mk: ob.atrous_bilateral((m, v), g, mask=mk, **kw_s))
+        fn = jax.jit(functools.partial(filter_pair, **kw_s))
         compiled = fn.lower(*args, *margs).compile()
         out = compiled(*args, *margs)
         st = stats(compiled)
@@ -182,6 +187,13 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     def one_step(txs, g, p):
         return {name: tx.update(g, tx.init(p), p) for name, tx in txs.items()}
 
+    def subset(tree, keys):
+        return {k: tree[k] for k in keys}
+
+    def put(tree, device_mesh, keys):
+        shard = lambda a, s: jax.device_put(a, NamedSharding(device_mesh, s))
+        return jax.tree.map(shard, subset(tree, keys), subset(specs, keys))
+
     every = ("prefilter", "postfilter", "scale_by_adam", "bilateral_adam")
     specs = {"tex": P("x", "y"), "vol": P("x", "y"), "bias": P()}
     grids = ("tex", "vol", "bias")
@@ -197,23 +209,19 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     for route, mesh_shape, names, sep, levels, masked, keys in configs:
         txs = make(names, sep, levels, masked)
         fn = jax.jit(lambda g, p, txs=txs: one_step(txs, g, p))
-        sub = lambda t: {k: t[k] for k in keys}
         cfg = (names, sep, levels, masked, keys)
         if cfg not in refs:
-            refs[cfg] = fn(sub(grads), sub(params))
+            refs[cfg] = fn(subset(grads, keys), subset(params, keys))
         atype = AxisType.Explicit if route == "shard_map" else AxisType.Auto
         device_mesh = device_mesh_of(mesh_shape, atype)
-        put = lambda t: jax.tree.map(
-            lambda a, s: jax.device_put(a, NamedSharding(device_mesh, s)), sub(t), sub(specs)
-        )
-        g_s, p_s = put(grads), put(params)
+        g_s, p_s = put(grads, device_mesh, keys), put(params, device_mesh, keys)
         t0 = time.perf_counter()
         compiled = fn.lower(g_s, p_s).compile()
         compile_s = time.perf_counter() - t0
         out = compiled(g_s, p_s)
         kept = True
         by_shape = {p.shape: p.sharding for p in p_s.values() if p.ndim >= 2}
-        for name, (u, s) in out.items():
+        for u, s in out.values():
             for leaf, p in zip(jax.tree.leaves(u), jax.tree.leaves(p_s)):
                 kept &= leaf.sharding.is_equivalent_to(p.sharding, p.ndim)
             for leaf in jax.tree.leaves(s):  # grid-shaped state: m, v

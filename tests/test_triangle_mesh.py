@@ -498,7 +498,7 @@ def test_render_target_and_gradient_are_finite():
     v, f = toy.icosphere(4)
     r = toy.MeshRenderer(scene, f)
     frame = r.frame(v, np.random.default_rng(0))
-    (sur, loss), g = jax.value_and_grad(lambda x: r.loss(x, frame), has_aux=True)(jnp.asarray(v))
+    (_, loss), g = jax.value_and_grad(lambda x: r.loss(x, frame), has_aux=True)(jnp.asarray(v))
     assert np.isfinite(loss) and np.all(np.isfinite(g)) and np.abs(g).max() > 0
     img = toy.render_target(scene, 0)
     # The cube covers some pixels but not all; covered pixels have a lit colour.

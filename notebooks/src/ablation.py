@@ -5,7 +5,8 @@
 #
 # 1. (§3, Fig. 3) The filter size `F` and the data-term scale `σ_d` trade Monte Carlo noise for
 #    smoothing bias: small `F` → close to Adam, noisy recovery; large `F` → close to a low-pass
-#    filter, little noise but blurred; smaller `σ_d` preserves edges better at the cost of more noise.
+#    filter, little noise but blurred; smaller `σ_d` preserves edges better at the cost of more
+#    noise.
 # 2. (§4, Fig. 4) On a high-frequency target (a noise texture), with the *same* hyperparameters,
 #    Adam has the smallest error, the low-pass filter the largest, and the bilateral and
 #    cross-bilateral filters lie in between.
@@ -14,7 +15,8 @@
 #    volume; here it is the texture scene at a higher sample count.)
 # 4. (§4) "It may help to start optimization with our method and progressively update the filtering
 #    parameters so that our method approaches Adam near the end." We schedule `σ_d` with
-#    `optax.inject_hyperparams(bilateral_adam, static_args=("levels",))` and measure it against both.
+#    `optax.inject_hyperparams(bilateral_adam, static_args=("levels",))` and measure it against
+#    both.
 #
 # All runs: toy texture scene (`optax_bilateral.toy.texture`), start from constant roughness 0.1,
 # β1 = 0.2, β2 = 0.36, postfilter only, log-domain guide, one learning rate for every filtered run
@@ -22,7 +24,8 @@
 # the best of a small learning-rate sweep. `F = 0` is exactly Adam with β1 = 0.2.
 #
 # Run: `OPTAX_BILATERAL_QUICK=1` for the test-suite size (32², 40 iterations); without it the
-# paper-like size (512², 150 iterations, 1 spp / 1 spp; the low-noise runs average 8 such gradients):
+# paper-like size (512², 150 iterations, 1 spp / 1 spp; the low-noise runs average 8 such
+# gradients):
 # `python notebooks/build_notebooks.py --execute ablation`. Figures are saved in
 # `results/notebooks/` (`results/notebooks/quick/` at the quick size).
 
@@ -35,8 +38,8 @@ import numpy as np
 import optax
 from IPython.display import Markdown, display
 
-import optax_bilateral as ob
 import notebook_utils as nu
+import optax_bilateral as ob
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK
@@ -156,7 +159,8 @@ def grid_table(runs, problem):
     adam = runs["Adam"]
     return (
         f"Final parameter error (initial {problem.initial_error:.4f}); Adam (b1=0.9) best: "
-        f"{adam.final_error()[adam.best()]:.4f} at lr {adam.hyperparams['learning_rate'][adam.best()]:g}."
+        f"{adam.final_error()[adam.best()]:.4f} "
+        f"at lr {adam.hyperparams['learning_rate'][adam.best()]:g}."
         "\n\n" + nu.table(rows)
     )
 
@@ -385,6 +389,6 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 #
 # On the noise target the schedule repairs the fixed filter (0.2336 → 0.0376 at 1 spp; at low noise
 # 0.0150, the best of all). On the camera target it ends close to Adam instead of keeping the
-# filter's 2–3× lower error: its error falls with the filter until σ_d ≈ 0.02 (iteration ≈ 100), then
-# rises again as the steps become Adam's (see the curves). A schedule inherits the error of
+# filter's 2–3× lower error: its error falls with the filter until σ_d ≈ 0.02 (iteration ≈ 100),
+# then rises again as the steps become Adam's (see the curves). A schedule inherits the error of
 # whichever method it ends as; its end value should depend on how much detail the target has.

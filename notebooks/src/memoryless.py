@@ -38,8 +38,8 @@ import numpy as np
 import optax
 from IPython.display import Markdown, display
 
-import optax_bilateral as ob
 import notebook_utils as nu
+import optax_bilateral as ob
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK
@@ -426,5 +426,5 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # views per iteration, 300 iterations, F = 4, σ_d = {density 0.05, albedo 0.1}; start error 0.2162.
 # Sign-step Adam never improves on the start at any learning rate tried (best 0.2178 at lr 0.003;
 # 0.2276 at 0.01; 0.2535 at 0.03) and its training loss rises; the memoryless postfilter lowers
-# the error to **0.1878** (lr 0.01; density error 0.145 at the start → 0.115). Neither is converged after 300
-# iterations.
+# the error to **0.1878** (lr 0.01; density error 0.145 at the start → 0.115). Neither is
+# converged after 300 iterations.

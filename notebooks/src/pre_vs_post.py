@@ -5,8 +5,8 @@
 # (prefilter `A`, eq. 13), on the moments *after* them (postfilter `B`, eq. 14), or both (eq. 11);
 # neither is Adam (eq. 12):
 #
-# * prefilter: `Δ = Σ_i (1−β1) β1^{t−i} A_i g_i / sqrt(Σ_i (1−β2) β2^{t−i} (A_i g_i)²)` — the moments
-#   accumulate *every past* filter `A_i`;
+# * prefilter: `Δ = Σ_i (1−β1) β1^{t−i} A_i g_i / sqrt(Σ_i (1−β2) β2^{t−i} (A_i g_i)²)` — the
+#   moments accumulate *every past* filter `A_i`;
 # * postfilter: `Δ = B_t m_t / sqrt(B_t v_t)` — only the current filter, applied to the unfiltered
 #   moments, never fed back.
 #
@@ -36,8 +36,8 @@ import numpy as np
 import optax
 from IPython.display import Markdown, display
 
-import optax_bilateral as ob
 import notebook_utils as nu
+import optax_bilateral as ob
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK
@@ -61,8 +61,8 @@ print(
 # %% [markdown]
 # ## The four update rules, and the self-guided variant
 #
-# `bilateral_adam(prefilter=…, postfilter=…)` gives eqs. 11–14; with both filters off it is Adam. The
-# probe records, inside every step, `max |Δ|` and Adam's own ratio `c_t` of the moments the
+# `bilateral_adam(prefilter=…, postfilter=…)` gives eqs. 11–14; with both filters off it is Adam.
+# The probe records, inside every step, `max |Δ|` and Adam's own ratio `c_t` of the moments the
 # optimizer keeps: for the prefilter those are the moments of `A g`, for the postfilter the
 # unfiltered moments of `g`.
 

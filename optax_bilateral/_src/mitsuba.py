@@ -19,7 +19,8 @@ from __future__ import annotations
 import difflib
 import functools
 import numbers
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -84,10 +85,10 @@ def check_variant() -> str:
             raise RuntimeError(
                 f"Dr.Jit loaded libLLVM {'.'.join(map(str, version))}, but Mitsuba "
                 f"{mi.__version__} needs libLLVM >= {MIN_LLVM_MAJOR} (older ones abort the first "
-                f"render with 'LLVM ERROR: Cannot select: ... fminimum'). Install a newer one "
-                f"(Debian/Ubuntu: apt-get install libllvm19); if Dr.Jit still picks the old one, set "
-                f"DRJIT_LIBLLVM_PATH to the new library (e.g. /usr/lib/x86_64-linux-gnu/"
-                f"libLLVM.so.19.1) before importing drjit"
+                "render with 'LLVM ERROR: Cannot select: ... fminimum'). Install a newer one "
+                "(Debian/Ubuntu: apt-get install libllvm19); if Dr.Jit still picks the old one, "
+                "set DRJIT_LIBLLVM_PATH to the new library (e.g. /usr/lib/x86_64-linux-gnu/"
+                "libLLVM.so.19.1) before importing drjit"
             )
     return variant
 
@@ -163,7 +164,8 @@ class _ById:
 
 
 class _Clamp:
-    """``project`` given as ``{key: (lo, hi)}``: hashable, so equal ranges share one compiled step."""
+    """``project`` given as ``{key: (lo, hi)}``: hashable, so equal ranges share one compiled
+    step."""
 
     def __init__(self, ranges: Mapping[str, tuple[Any, Any]]):
         self.ranges = tuple(sorted(ranges.items()))

@@ -31,8 +31,10 @@ samples along an axis of ``n``, so any grid size works.
 from __future__ import annotations
 
 import functools
+import itertools
 import numbers
-from typing import Any, NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -111,7 +113,7 @@ def pyramid_transpose(grid, levels: int, axes: Sequence[int]) -> tuple:
 def _transpose(grid, levels, axes):
     shapes = level_shapes(np.shape(grid), levels, axes)
     out = [grid]
-    for fine, coarse in zip(shapes[:-1], shapes[1:]):
+    for fine, coarse in itertools.pairwise(shapes):
         up_t = jax.linear_transpose(
             lambda c, fine=fine: upsample(c, fine, axes), jax.ShapeDtypeStruct(coarse, grid.dtype)
         )

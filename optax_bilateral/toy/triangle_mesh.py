@@ -372,7 +372,7 @@ class MeshRenderer:
             for arr, val in zip(band, b):
                 arr[i, :m] = val
             band[4][i, :m] = 1.0
-        stack = lambda k, dt: np.stack([p[k] for p in per_view]).astype(dt)  # noqa: E731
+        stack = lambda k, dt: np.stack([p[k] for p in per_view]).astype(dt)
         return Frame(
             stack(0, np.float32),
             stack(1, np.float32),
@@ -417,7 +417,8 @@ class MeshRenderer:
 
     @functools.partial(jax.jit, static_argnums=0)
     def loss(self, vertices, frame: Frame, silhouette_weight: float = 1.0):
-        """Surrogate loss whose gradient is the noisy Monte Carlo gradient; returns (surrogate, loss).
+        """Surrogate loss whose gradient is the noisy Monte Carlo gradient; returns (surrogate,
+        loss).
 
         ``loss`` is the single-sample image loss ``mean (I1 - I*)^2`` plus the silhouette
         term, what a user of a real Monte Carlo renderer would see (noisy).
