@@ -8,4 +8,5 @@ also mean a JAX device mesh, hence the new name).
 from optax_bilateral import triangle_mesh as _triangle_mesh
 from optax_bilateral.triangle_mesh import *
 
-__all__ = _triangle_mesh.__all__
+__all__: tuple[str, ...] = ()
+__all__ += _triangle_mesh.__all__

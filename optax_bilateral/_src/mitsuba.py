@@ -20,11 +20,15 @@ import difflib
 import functools
 import numbers
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import jax.numpy as jnp
 import optax
+
+if TYPE_CHECKING:
+    import drjit as dr
+    import mitsuba as mi
 
 #: Mitsuba 3.9's LLVM kernels use ``fminimum``, which libLLVM 14 and 15 cannot compile
 #: (the first render aborts the process with ``LLVM ERROR: Cannot select ... fminimum``).
@@ -54,8 +58,8 @@ def _modules():
 def llvm_version() -> tuple[int, int, int] | None:
     """The libLLVM version Dr.Jit loaded, or ``None`` when it found none."""
     _, dr = _modules()
-    version = tuple(int(v) for v in dr.detail.llvm_version())
-    return version if version[0] >= 0 else None
+    major, minor, patch = (int(v) for v in dr.detail.llvm_version())
+    return (major, minor, patch) if major >= 0 else None
 
 
 def check_variant() -> str:
@@ -93,7 +97,7 @@ def check_variant() -> str:
     return variant
 
 
-def to_jax(tensor) -> jax.Array:
+def to_jax(tensor: dr.ArrayBase) -> jax.Array:
     """A Dr.Jit tensor as a JAX array through DLPack: no copy on the CPU when the buffer is
     64-byte aligned (Dr.Jit's own buffers are), else JAX copies it."""
     return jnp.from_dlpack(tensor)
@@ -181,7 +185,9 @@ class _Clamp:
         return hash(self.ranges)
 
 
-def _projection(project, keys) -> Callable[[dict], dict] | None:
+def _projection(
+    project: Callable[[dict], dict] | Mapping[str, tuple] | None, keys
+) -> Callable[[dict], dict] | None:
     """``project`` as a function of the value dict, or None."""
     if project is None:
         return None
@@ -230,7 +236,7 @@ def _keep_unobserved(new_state, old_state, observed: Mapping[str, jax.Array], sh
     def keep(path, new, old):
         last = path[-1] if path else None
         key = getattr(last, "key", None)
-        if key in observed and tuple(jnp.shape(new)) == shapes[key]:
+        if isinstance(key, str) and key in observed and tuple(jnp.shape(new)) == shapes[key]:
             return jnp.where(observed[key], new, old)
         return new
 
@@ -243,7 +249,7 @@ def _update(transform, project, mask_unobserved, shapes, grads, state, values):
     same transform object, projection and shapes share the compiled program."""
     shapes = dict(shapes)
     updates, new_state = transform.obj.update(grads, state, values)
-    new_values = optax.apply_updates(values, updates)
+    new_values = cast(dict, optax.apply_updates(values, updates))  # the dict of values
     if project is not None:
         new_values = project(new_values)
         if not isinstance(new_values, Mapping) or set(new_values) != set(values):
@@ -317,12 +323,12 @@ class SceneOptimizer:
     def __init__(
         self,
         transform: optax.GradientTransformation,
-        params,
+        params: mi.SceneParameters,
         keys: str | Sequence[str],
         *,
         project: Mapping[str, tuple[Any, Any]] | Callable[[dict], dict] | None = None,
         mask_unobserved: bool = False,
-    ):
+    ) -> None:
         mi, dr = _modules()
         check_variant()
         if not (hasattr(transform, "init") and hasattr(transform, "update")):
@@ -362,9 +368,9 @@ class SceneOptimizer:
 
     # -- scene side --------------------------------------------------------------------
 
-    def _current(self, key):
+    def _current(self, key) -> Any:
         _, dr = _modules()
-        value = self.params[key]
+        value: Any = self.params[key]  # a Dr.Jit tensor (the stubs say object)
         shape = tuple(int(s) for s in value.shape) if dr.is_tensor_v(value) else None
         if shape != self.shapes[key]:
             raise ValueError(
@@ -426,7 +432,9 @@ class SceneOptimizer:
         """The transform's initial state for the current values (a pytree of JAX arrays)."""
         return self.transform.init(self.values())
 
-    def update(self, grads, state: optax.OptState, values) -> tuple[dict, optax.OptState]:
+    def update(
+        self, grads: Mapping[str, jax.Array], state: optax.OptState, values: Mapping[str, jax.Array]
+    ) -> tuple[dict, optax.OptState]:
         """The compiled step without the scene: ``(new_values, new_state)`` from ``{key: array}``
         gradients and values (the update, the projection and the masking of :meth:`step`)."""
         # States from init() or load_state are uncommitted; committing them to the values'

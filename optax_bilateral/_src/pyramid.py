@@ -34,7 +34,7 @@ import functools
 import itertools
 import numbers
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +42,9 @@ import numpy as np
 import optax
 
 from optax_bilateral._src import leaves as lv
+
+if TYPE_CHECKING:
+    from optax_bilateral._src.leaves import SpatialAxesSetting
 
 
 def _check_levels(levels) -> int:
@@ -135,7 +138,10 @@ def _leaf_axes(tree, spatial_axes) -> list[tuple[int, ...]]:
 
 
 def laplacian_pyramid(
-    inner: optax.GradientTransformation, levels: int, *, spatial_axes=None
+    inner: optax.GradientTransformation,
+    levels: int,
+    *,
+    spatial_axes: SpatialAxesSetting = None,
 ) -> optax.GradientTransformationExtraArgs:
     r"""Runs ``inner`` on Laplacian-pyramid coefficients of every grid leaf (Weier et al. 2025).
 
@@ -188,7 +194,7 @@ def laplacian_pyramid(
         )
         out = [
             pyramid_reconstruct(s, ax).astype(u.dtype) if ax else s[0].astype(u.dtype)
-            for s, ax, u in zip(steps, axes, jax.tree.leaves(updates))
+            for s, ax, u in zip(cast(list, steps), axes, jax.tree.leaves(updates))
         ]
         return jax.tree.unflatten(treedef, out), LaplacianPyramidState(inner_state=inner_state)
 
@@ -196,7 +202,13 @@ def laplacian_pyramid(
 
 
 def pyramid_adam(
-    learning_rate, levels: int, b1=0.9, b2=0.999, eps=1e-8, *, spatial_axes=None
+    learning_rate: optax.ScalarOrSchedule,
+    levels: int,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
+    *,
+    spatial_axes: SpatialAxesSetting = None,
 ) -> optax.GradientTransformationExtraArgs:
     """Adam on Laplacian-pyramid coefficients: ``laplacian_pyramid(optax.adam(...), levels)``.
 

@@ -49,12 +49,13 @@ merged vertex's update, so seams do not open (as Mitsuba's Large Steps does).
 from __future__ import annotations
 
 import collections
+import functools
 import hashlib
 import math
 import numbers
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, get_args
 
 import jax
 import jax.numpy as jnp
@@ -76,10 +77,15 @@ DEFAULT_DIRECTIONS = 32
 DEFAULT_TOL = 1e-4
 DEFAULT_MAXITER = 2000
 
-SOLVERS = ("cg", "cholesky")
-NORMALS = ("area", "uniform", "angle")
-PREFILTERS = ("smooth", "bilateral", "off")
-POSTFILTERS_V = ("uniform", "bilateral", "smooth")
+Solver = Literal["cg", "cholesky"]
+NormalWeighting = Literal["area", "uniform", "angle"]
+Prefilter = Literal["smooth", "bilateral", "off"]
+PostfilterV = Literal["uniform", "bilateral", "smooth"]
+
+SOLVERS: tuple[Solver, ...] = get_args(Solver)
+NORMALS: tuple[NormalWeighting, ...] = get_args(NormalWeighting)
+PREFILTERS: tuple[Prefilter, ...] = get_args(Prefilter)
+POSTFILTERS_V: tuple[PostfilterV, ...] = get_args(PostfilterV)
 
 
 # ----------------------------------------------------------------------------
@@ -115,6 +121,20 @@ class MeshLaplacian(NamedTuple):
         return self.degree.shape[0]
 
 
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float, Int
+
+    Faces = Int[ArrayLike, "F 3"] | MeshLaplacian
+    Positions = Float[ArrayLike, "V 3"]  # vertex positions or unit normals
+    UnitNormals = Float[Array, "V 3"]
+    Field = Float[ArrayLike, "V *C"]
+    FieldOut = Float[Array, "V *C"]
+    Directions = int | Float[ArrayLike, "K 3"]
+    Normals = NormalWeighting | Callable[[Array], UnitNormals]
+else:
+    Faces = Positions = UnitNormals = Field = FieldOut = Directions = Normals = Any
+
+
 def _concrete_faces(faces) -> np.ndarray:
     try:
         return np.asarray(faces)
@@ -126,7 +146,9 @@ def _concrete_faces(faces) -> np.ndarray:
         ) from None
 
 
-def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=None) -> MeshLaplacian:
+def mesh_laplacian(
+    faces: Faces, num_vertices: int | None = None, *, weld_positions: Positions | None = None
+) -> MeshLaplacian:
     """Builds the combinatorial Laplacian ``L = D - A`` of a triangle mesh.
 
     Args:
@@ -231,7 +253,7 @@ class _Cholesky:
                 "solver='cholesky' needs cholespy: pip install "
                 "'optax_bilateral[cholesky]' (or use solver='cg')"
             ) from e
-        self._cholespy = cholespy
+        self._cholespy: Any = cholespy  # a compiled extension without type information
         u = len(degree)
         rows = np.repeat(np.arange(u), neighbors.shape[1])
         keep = neighbors.ravel() < u
@@ -360,14 +382,14 @@ def _solve_merged(mesh, host, b, lambda_, tol, maxiter, x0=None):
 
 def smoothing_solve(
     mesh: MeshLaplacian,
-    b,
-    lambda_,
+    b: Field,
+    lambda_: jax.typing.ArrayLike,
     *,
-    solver: str = "cg",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
-    x0=None,
-):
+    x0: Field | None = None,
+) -> FieldOut:
     """Solves ``(I + lambda L) x = b`` (Large Steps' "smooth").
 
     Args:
@@ -415,7 +437,9 @@ def _unit(x):
     return x / jnp.where(norm > 0, norm, 1.0)
 
 
-def vertex_normals(vertices, faces, weighting: str = "area"):
+def vertex_normals(
+    vertices: Positions, faces: Faces, weighting: NormalWeighting = "area"
+) -> UnitNormals:
     """Unit vertex normals (the guide of the bilateral filter).
 
     Args:
@@ -476,7 +500,14 @@ def sphere_directions(
             "sphere_directions needs scipy (scipy.stats.qmc); install scipy or "
             "pass directions= as a (K, 3) array of unit vectors"
         ) from e
-    sampler = qmc.Sobol(d=2, scramble=True, seed=seed, optimization="lloyd" if lloyd else None)
+    # seed=, not rng=: the legacy stream, the authors' directions (SciPy's decorator that keeps
+    # seed= hides it from type checkers).
+    sampler = qmc.Sobol(
+        d=2,
+        scramble=True,
+        seed=seed,  # pyright: ignore[reportCallIssue]
+        optimization="lloyd" if lloyd else None,
+    )
     u = sampler.random_base2(math.ceil(math.log2(num)))[
         :num
     ]  # a power-of-two prefix keeps the balance
@@ -571,18 +602,18 @@ def _bilateral_fields(
 
 
 def bilateral_normal_filter(
-    fields: Sequence[Any],
-    normals,
+    fields: Sequence[Field],
+    normals: Positions,
     mesh: MeshLaplacian,
     *,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    directions=DEFAULT_DIRECTIONS,
-    solver: str = "cg",
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    directions: Directions = DEFAULT_DIRECTIONS,
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
-) -> list:
+) -> list[jax.Array]:
     """Applies the paper's mesh cross-bilateral operator ``B`` to every field.
 
     ``(B x)_i = sum_k phi_k(i) [M^-1 (w_k * x)]_i / sum_k phi_k(i) [M^-1 w_k]_i`` with
@@ -715,7 +746,13 @@ def _smoothing_init(warm_start: bool, columns: Callable[[Any], int]):
     return init_fn
 
 
-def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
+def _weld(mesh: MeshLaplacian, index: jax.Array, g):
+    """The copies' gradients summed on their merged vertex, and the sum given to every copy."""
+    _check_leaf(g, mesh, "weld_gradients")
+    return _spread(mesh, jax.ops.segment_sum(g, index, num_segments=mesh.num_merged))
+
+
+def weld_gradients(faces: Faces) -> optax.GradientTransformationExtraArgs:
     """Sums the gradients of a welded vertex's copies and gives every copy the sum.
 
     ``x = x_merged[index]`` (copies of a seam vertex) gives
@@ -729,21 +766,16 @@ def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
         del params, extra_args
         if mesh.index is None:
             return updates, state
-
-        def weld(g):
-            _check_leaf(g, mesh, "weld_gradients")
-            return _spread(mesh, jax.ops.segment_sum(g, mesh.index, num_segments=mesh.num_merged))
-
-        return jax.tree.map(weld, updates), state
+        return jax.tree.map(functools.partial(_weld, mesh, mesh.index), updates), state
 
     return optax.GradientTransformationExtraArgs(lambda params: optax.EmptyState(), update_fn)
 
 
 def laplacian_smoothing(
-    faces,
-    lambda_=DEFAULT_LAMBDA,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
     *,
-    solver: str = "cg",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -788,7 +820,7 @@ def laplacian_smoothing(
             sols.append(_spread(mesh, sol))
             out.append(sols[-1].astype(x.dtype))
         new = SmoothingState(
-            optax.safe_increment(state.count),
+            jnp.asarray(optax.safe_increment(state.count)),
             jax.tree.unflatten(treedef, sols) if warm_start else None,
         )
         return jax.tree.unflatten(treedef, out), new
@@ -805,14 +837,14 @@ def _normals_fn(normals, mesh):
 
 
 def bilateral_smoothing(
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
     *,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    directions=DEFAULT_DIRECTIONS,
-    normals="area",
-    solver: str = "cg",
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    directions: Directions = DEFAULT_DIRECTIONS,
+    normals: Normals = "area",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -854,7 +886,7 @@ def bilateral_smoothing(
             sols.append(flat)
             out.append(gf.astype(g.dtype))
         new = SmoothingState(
-            optax.safe_increment(state.count),
+            jnp.asarray(optax.safe_increment(state.count)),
             jax.tree.unflatten(treedef, sols) if warm_start else None,
         )
         return jax.tree.unflatten(treedef, out), new
@@ -893,14 +925,18 @@ def _moments(updates, mu, nu, count, b1, b2):
     a1, a2 = numerics.one_minus(b1), numerics.one_minus(b2)
     mu = jax.tree.map(lambda g, m: b1 * m + a1 * g, updates, mu)
     nu = jax.tree.map(lambda g, v: b2 * v + a2 * g * g, updates, nu)
-    return optax.safe_increment(count), mu, nu
+    return jnp.asarray(optax.safe_increment(count)), mu, nu
 
 
 def _zeros_like_tree(params):
     return jax.tree.map(jnp.zeros_like, params)
 
 
-def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransformationExtraArgs:
+def scale_by_uniform_adam(
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
+) -> optax.GradientTransformationExtraArgs:
     """Large Steps' ``AdamUniform``: Adam with one second moment per leaf.
 
         m_t = b1 m_{t-1} + (1-b1) g_t,   v_t = b2 v_{t-1} + (1-b2) g_t^2
@@ -932,18 +968,18 @@ def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransform
 
 
 def mesh_postfilter(
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
-    b1=0.9,
-    b2=0.999,
-    eps=1e-8,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
     *,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    postfilter_v: str = "uniform",
-    directions=DEFAULT_DIRECTIONS,
-    normals="area",
-    solver: str = "cg",
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    postfilter_v: PostfilterV = "uniform",
+    directions: Directions = DEFAULT_DIRECTIONS,
+    normals: Normals = "area",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -1078,14 +1114,14 @@ def mesh_postfilter(
 
 
 def large_steps(
-    learning_rate,
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    b1=0.9,
-    b2=0.999,
-    eps=1e-8,
+    learning_rate: optax.ScalarOrSchedule,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
     *,
-    solver: str = "cg",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -1113,7 +1149,7 @@ def large_steps(
       warm_start: keep the last solutions in the state and start the CG there.
     """
     mesh = mesh_laplacian(faces)
-    kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
+    kw: dict[str, Any] = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
     return optax.chain(
         weld_gradients(mesh),
         laplacian_smoothing(mesh, lambda_, **kw),
@@ -1124,20 +1160,20 @@ def large_steps(
 
 
 def bilateral_large_steps(
-    learning_rate,
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
-    b1=0.9,
-    b2=0.999,
-    eps=1e-8,
+    learning_rate: optax.ScalarOrSchedule,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
     *,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    prefilter: str = "smooth",
-    postfilter_v: str = "uniform",
-    directions=DEFAULT_DIRECTIONS,
-    normals="area",
-    solver: str = "cg",
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    prefilter: Prefilter = "smooth",
+    postfilter_v: PostfilterV = "uniform",
+    directions: Directions = DEFAULT_DIRECTIONS,
+    normals: Normals = "area",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -1162,8 +1198,8 @@ def bilateral_large_steps(
     """
     mesh = mesh_laplacian(faces)
     _check_choice(prefilter, "prefilter", PREFILTERS)
-    kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
-    bil = dict(sigma_phi=sigma_phi, directions=directions, normals=normals)
+    kw: dict[str, Any] = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
+    bil: dict[str, Any] = dict(sigma_phi=sigma_phi, directions=directions, normals=normals)
     parts = [weld_gradients(mesh)]
     if prefilter == "smooth":
         parts.append(laplacian_smoothing(mesh, lambda_, **kw))

@@ -160,10 +160,10 @@ def hausdorff_to_cube(vertices, faces, half: float, count: int = 20000, seed: in
     """Symmetric Hausdorff distance between a mesh and the cube ``[-half, half]^3``.
 
     Mesh -> cube uses the exact distance of each mesh sample (and vertex) to the
-    cube surface; cube -> mesh the nearest mesh sample (``scipy.spatial.cKDTree``),
+    cube surface; cube -> mesh the nearest mesh sample (``scipy.spatial.KDTree``),
     so that direction is accurate to about the sample spacing.
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import KDTree
 
     rng = np.random.default_rng(seed)
     a = np.concatenate([sample_surface(vertices, faces, count, rng), np.asarray(vertices, float)])
@@ -172,7 +172,7 @@ def hausdorff_to_cube(vertices, faces, half: float, count: int = 20000, seed: in
     inside = np.minimum(q.max(axis=1), 0)
     d_mesh_to_cube = np.abs(outside + inside).max()
     b = sample_cube_surface(half, count, rng)
-    d_cube_to_mesh = cKDTree(a).query(b)[0].max()
+    d_cube_to_mesh = KDTree(a).query(b)[0].max()
     return float(max(d_mesh_to_cube, d_cube_to_mesh))
 
 
@@ -386,7 +386,7 @@ class MeshRenderer:
     def _band(self, v, frame, area, xy, face, hit):
         """Samples within BAND_PX of the mesh's outline, each with its nearest silhouette edge."""
         from scipy.ndimage import binary_dilation, binary_erosion
-        from scipy.spatial import cKDTree
+        from scipy.spatial import KDTree
 
         r = self.scene.resolution
         front = area[self.edge_faces] > 0
@@ -397,7 +397,7 @@ class MeshRenderer:
         st = np.ones((3, 3), bool)
         near = (
             binary_dilation(covered, st, iterations=BAND_PX)
-            & ~binary_erosion(covered, st, iterations=BAND_PX, border_value=0)
+            & np.logical_not(binary_erosion(covered, st, iterations=BAND_PX, border_value=0))
         ).ravel()
         idx = np.nonzero(near)[0]
         p = xy[idx]
@@ -406,7 +406,7 @@ class MeshRenderer:
         # Candidates: the edges with the closest midpoints (edges are ~pixel-sized),
         # then the exact point-segment distance picks among them.
         k = min(6, len(sil))
-        cand = cKDTree(0.5 * (a + b)).query(p, k=k)[1].reshape(len(p), k)
+        cand = KDTree(0.5 * (a + b)).query(p, k=k)[1].reshape(len(p), k)
         ca, cb = a[cand], b[cand]
         ab = cb - ca
         t = np.clip(((p[:, None] - ca) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-20), 0, 1)
