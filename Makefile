@@ -5,41 +5,9 @@ PY := $(VENV)/bin/python
 
 .PHONY: demo test lint docs install install-dev clean
 
-# The paths `make lint` checks (ruff lint + format, pyright): the library (but the
-# Mitsuba and pyramid modules) and the tests written to its standards.
-# Extend as other files are brought up to them.
-LINT_PATHS := \
-	optax_bilateral/__init__.py \
-	optax_bilateral/_src/alias.py \
-	optax_bilateral/_src/atrous.py \
-	optax_bilateral/_src/bilateral.py \
-	optax_bilateral/_src/filter.py \
-	optax_bilateral/_src/layout.py \
-	optax_bilateral/_src/leaves.py \
-	optax_bilateral/_src/mesh.py \
-	optax_bilateral/_src/numerics.py \
-	optax_bilateral/_src/sharded.py \
-	optax_bilateral/_src/state_io.py \
-	optax_bilateral/_src/step.py \
-	optax_bilateral/_src/transforms.py \
-	optax_bilateral/_src/validation.py \
-	optax_bilateral/toy/__init__.py \
-	optax_bilateral/toy/texture.py \
-	optax_bilateral/toy/volume.py \
-	experiments/collectives.py \
-	tests/conftest.py \
-	tests/goldens.py \
-	tests/snapshots.py \
-	tests/reference.py \
-	tests/test_atrous.py \
-	tests/test_authors.py \
-	tests/test_goldens.py \
-	tests/test_packaging.py \
-	tests/test_properties.py \
-	tests/test_robustness.py \
-	tests/test_snapshots.py \
-	tests/test_transforms.py
-TYPECHECK_PATHS := $(filter optax_bilateral/%,$(LINT_PATHS))
+# `make lint`: ruff (lint and format) on every Python source of the repository, pyright on
+# the library (its settings in pyproject.toml).
+LINT_PATHS := optax_bilateral tests experiments notebooks docs
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -68,7 +36,7 @@ test: $(VENV)/.installed-dev
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check $(LINT_PATHS)
 	$(VENV)/bin/ruff format --check $(LINT_PATHS)
-	$(VENV)/bin/pyright $(TYPECHECK_PATHS)
+	$(VENV)/bin/pyright optax_bilateral
 
 # The docs site (mkdocs.yml) into site/; --strict: any warning (a broken link or anchor, a
 # docstring griffe cannot parse) fails the build.

@@ -15,7 +15,7 @@ import textwrap
 
 import griffe
 
-PUBLIC_MODULES = ("optax_bilateral", "optax_bilateral.mesh", "optax_bilateral.mitsuba")
+PUBLIC_MODULES = ("optax_bilateral", "optax_bilateral.triangle_mesh", "optax_bilateral.mitsuba")
 ROLE = re.compile(r":(?:func|class|meth|data|mod|attr|obj):`~?([\w.]+)`")
 MATH_ROLE = re.compile(r":math:`([^`]+)`")
 MATH_BLOCK = re.compile(

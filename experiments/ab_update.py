@@ -17,6 +17,7 @@ traced ``learning_rate`` and ``sigma_d``, ``b1 = 0.2``; ``--log-guide`` for its 
 ``--shape`` follows the default leaf rule (``HxW``: 2-D; ``...xC``: all but the last axis
 spatial).
 """
+
 from __future__ import annotations
 
 import importlib
@@ -25,14 +26,15 @@ import re
 import subprocess
 import sys
 import tempfile
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import numpy as np
 import optax
 
 import optax_bilateral as ob
-from experiments import benchmark as bm, common
+from experiments import benchmark as bm
+from experiments import common
 
 AB_PACKAGE = "optax_bilateral_ab"
 
@@ -45,8 +47,11 @@ def export_revision(rev: str, dest: pathlib.Path, repo: pathlib.Path | None = No
     """
     repo = repo or pathlib.Path(ob.__file__).resolve().parents[1]
     try:
-        tar = subprocess.run(["git", "-C", str(repo), "archive", rev, "optax_bilateral"],
-                             check=True, capture_output=True).stdout
+        tar = subprocess.run(
+            ["git", "-C", str(repo), "archive", rev, "optax_bilateral"],
+            check=True,
+            capture_output=True,
+        ).stdout
     except subprocess.CalledProcessError as e:
         raise ValueError(f"--rev {rev!r}: git archive failed: {e.stderr.decode().strip()}") from e
     subprocess.run(["tar", "-x", "-C", str(dest)], input=tar, check=True)
@@ -66,16 +71,23 @@ def parse_shape(text: str) -> tuple[int, ...]:
     except ValueError:
         shape = ()
     if len(shape) < 2 or min(shape) < 1:
-        raise ValueError(f"--shape must be sizes joined by 'x' (at least 2), e.g. 512x512x1; "
-                         f"got {text!r}")
+        raise ValueError(
+            f"--shape must be sizes joined by 'x' (at least 2), e.g. 512x512x1; got {text!r}"
+        )
     return shape
 
 
 def optimizer(lib, levels: int, separable: bool, log_guide: bool):
-    return optax.inject_hyperparams(lib.bilateral_adam,
-                                    static_args=("levels", "b1", "separable", "log_guide"))(
-        learning_rate=0.02, sigma_d=0.1, levels=levels, b1=0.2, separable=separable,
-        log_guide=log_guide)
+    return optax.inject_hyperparams(
+        lib.bilateral_adam, static_args=("levels", "b1", "separable", "log_guide")
+    )(
+        learning_rate=0.02,
+        sigma_d=0.1,
+        levels=levels,
+        b1=0.2,
+        separable=separable,
+        log_guide=log_guide,
+    )
 
 
 def arrays(shape):
@@ -83,16 +95,26 @@ def arrays(shape):
     params, grad = bm.update_arrays(shape if len(shape) > 2 else shape + (1,))
     if len(shape) == 2:
         params, grad = params[..., 0], grad[..., 0]
-    return abs(params) + 0.05, grad                 # positive: the log guide is defined
+    return abs(params) + 0.05, grad  # positive: the log guide is defined
 
 
-def compare(old_lib, shape, levels: int, separable: bool, log_guide: bool, repeats: int,
-            rounds: int, inner: int) -> list[dict]:
+def compare(
+    old_lib,
+    shape,
+    levels: int,
+    separable: bool,
+    log_guide: bool,
+    repeats: int,
+    rounds: int,
+    inner: int,
+) -> list[dict]:
     """``repeats`` rows of side-by-side medians: adam, old and new updates (ms), ratios."""
     params, grad = arrays(shape)
-    opts = {"adam": optax.adam(1e-2),
-            "old": optimizer(old_lib, levels, separable, log_guide),
-            "new": optimizer(ob, levels, separable, log_guide)}
+    opts = {
+        "adam": optax.adam(1e-2),
+        "old": optimizer(old_lib, levels, separable, log_guide),
+        "new": optimizer(ob, levels, separable, log_guide),
+    }
     fns = {}
     for k, opt in opts.items():
         prog = bm.update_program(opt)
@@ -101,11 +123,20 @@ def compare(old_lib, shape, levels: int, separable: bool, log_guide: bool, repea
     for rep in range(repeats):
         r = bm.interleaved(fns, rounds, inner, desc=f"repeat {rep + 1}/{repeats}")
         ms = {k: 1e3 * v["median"] for k, v in r.items()}
-        rows.append({"repeat": rep + 1, "adam ms": ms["adam"], "old ms": ms["old"],
-                     "new ms": ms["new"], "old x adam": ms["old"] / ms["adam"],
-                     "new x adam": ms["new"] / ms["adam"], "new / old": ms["new"] / ms["old"],
-                     "new / old (paired)": common.paired_ratio(
-                         {k: v["samples"] for k, v in r.items()}, "new", "old")})
+        rows.append(
+            {
+                "repeat": rep + 1,
+                "adam ms": ms["adam"],
+                "old ms": ms["old"],
+                "new ms": ms["new"],
+                "old x adam": ms["old"] / ms["adam"],
+                "new x adam": ms["new"] / ms["adam"],
+                "new / old": ms["new"] / ms["old"],
+                "new / old (paired)": common.paired_ratio(
+                    {k: v["samples"] for k, v in r.items()}, "new", "old"
+                ),
+            }
+        )
         print(" | ".join(f"{k} {common.fmt(v)}" for k, v in rows[-1].items()), flush=True)
     return rows
 
@@ -120,7 +151,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         p.add_argument("--repeats", type=int, default=3)
         p.add_argument("--rounds", type=int, default=11)
         p.add_argument("--inner", type=int, default=3)
-    args = common.parse_args("A/B of the update against another revision", "results/ab", argv, extra)
+
+    args = common.parse_args(
+        "A/B of the update against another revision", "results/ab", argv, extra
+    )
     shape = parse_shape(args.shape)
     for name in ("levels", "repeats", "rounds", "inner"):
         v = getattr(args, name)
@@ -131,18 +165,34 @@ def main(argv: Sequence[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         try:
             old = export_revision(args.rev, pathlib.Path(tmp))
-            rows = compare(old, shape, args.levels, not args.full, args.log_guide,
-                           args.repeats, args.rounds, args.inner)
-        finally:                                # the folder is deleted: forget it
+            rows = compare(
+                old,
+                shape,
+                args.levels,
+                not args.full,
+                args.log_guide,
+                args.repeats,
+                args.rounds,
+                args.inner,
+            )
+        finally:  # the folder is deleted: forget it
             if tmp in sys.path:
                 sys.path.remove(tmp)
-    summary = {"rev": args.rev, "shape": shape, "levels": args.levels,
-               "separable": not args.full, "log_guide": args.log_guide, "rows": rows,
-               "new / old (median)": float(np.median([r["new / old"] for r in rows])),
-               "jax": jax.__version__}
-    md = (f"new (working tree) vs old ({args.rev}), shape {args.shape}, F={args.levels}, "
-          f"{'full' if args.full else 'separable'}\n\n"
-          + common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]))
+    summary = {
+        "rev": args.rev,
+        "shape": shape,
+        "levels": args.levels,
+        "separable": not args.full,
+        "log_guide": args.log_guide,
+        "rows": rows,
+        "new / old (median)": float(np.median([r["new / old"] for r in rows])),
+        "jax": jax.__version__,
+    }
+    md = (
+        f"new (working tree) vs old ({args.rev}), shape {args.shape}, F={args.levels}, "
+        f"{'full' if args.full else 'separable'}\n\n"
+        + common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows])
+    )
     common.write_results(args.out, "ab_update", summary, md)
     print(f"new / old, median over repeats: {summary['new / old (median)']:.3f}")
     return summary

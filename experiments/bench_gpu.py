@@ -25,14 +25,13 @@ from collections.abc import Iterator, Sequence
 
 import jax
 import matplotlib
-import numpy as np
 import optax
 
 import optax_bilateral as ob
 from experiments import benchmark, common
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
 KERNELS = ("xla_cpu", "plain")
 KERNEL_ENV = "OPTAX_BILATERAL_KERNEL"
@@ -73,29 +72,42 @@ def filter_rows(quick: bool, levels: int, rounds: int, inner: int) -> list[dict]
         for separable in _modes(quick):
             for kernel in KERNELS:
 
-                def f(x, g, separable=separable, kernel=kernel):
+                def f(x, g, separable=separable, kernel=kernel, axes=axes):
                     return ob.atrous_bilateral(
-                        (x, x * x), g, sigma_d=0.1, levels=levels, spatial_axes=axes,
-                        separable=separable, kernel=kernel)
+                        (x, x * x),
+                        g,
+                        sigma_d=0.1,
+                        levels=levels,
+                        spatial_axes=axes,
+                        separable=separable,
+                        kernel=kernel,
+                    )
 
                 fns[(kernel, separable)] = (jax.jit(f), (grad, params))
         res = common_interleaved(fns, rounds, inner, f"filter {name}")
         for (kernel, separable), r in res.items():
-            rows.append({
-                "grid": name, "mode": "separable" if separable else "full", "kernel": kernel,
-                "ms (median)": 1e3 * r["median"],
-                "x xla_cpu (paired)": common.paired_ratio(
-                    {k: v["samples"] for k, v in res.items()}, (kernel, separable),
-                    ("xla_cpu", separable)),
-            })
+            rows.append(
+                {
+                    "grid": name,
+                    "mode": "separable" if separable else "full",
+                    "kernel": kernel,
+                    "ms (median)": 1e3 * r["median"],
+                    "x xla_cpu (paired)": common.paired_ratio(
+                        {k: v["samples"] for k, v in res.items()},
+                        (kernel, separable),
+                        ("xla_cpu", separable),
+                    ),
+                }
+            )
     return rows
 
 
 def common_interleaved(fns, rounds, inner, desc):
     """benchmark.interleaved with any hashable names."""
     keys = list(fns)
-    res = benchmark.interleaved({str(i): fns[k] for i, k in enumerate(keys)}, rounds, inner,
-                                desc=desc)
+    res = benchmark.interleaved(
+        {str(i): fns[k] for i, k in enumerate(keys)}, rounds, inner, desc=desc
+    )
     return {k: res[str(i)] for i, k in enumerate(keys)}
 
 
@@ -110,7 +122,8 @@ def update_rows(quick: bool, levels: int, rounds: int, inner: int) -> list[dict]
             for separable in _modes(quick):
                 for sigma_d in (0.1,) if quick else (0.1, "auto"):
                     opt = ob.bilateral_adam(
-                        1e-2, sigma_d=sigma_d, levels=levels, separable=separable)
+                        1e-2, sigma_d=sigma_d, levels=levels, separable=separable
+                    )
                     prog = benchmark.update_program(opt)
                     with kernel_env(kernel):  # traced here, under this kernel
                         state = opt.init(params)
@@ -124,12 +137,17 @@ def update_rows(quick: bool, levels: int, rounds: int, inner: int) -> list[dict]
             if key == "adam":
                 continue
             kernel, separable, sigma_d = key
-            rows.append({
-                "grid": name, "mode": "separable" if separable else "full", "kernel": kernel,
-                "sigma_d": sigma_d, "ms (median)": 1e3 * r["median"],
-                "adam ms (median)": 1e3 * res["adam"]["median"],
-                "x adam (paired)": common.paired_ratio(samples, key, "adam"),
-            })
+            rows.append(
+                {
+                    "grid": name,
+                    "mode": "separable" if separable else "full",
+                    "kernel": kernel,
+                    "sigma_d": sigma_d,
+                    "ms (median)": 1e3 * r["median"],
+                    "adam ms (median)": 1e3 * res["adam"]["median"],
+                    "x adam (paired)": common.paired_ratio(samples, key, "adam"),
+                }
+            )
     return rows
 
 
@@ -158,8 +176,9 @@ def _plot(rows: Sequence[dict], path) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    args = common.parse_args("The filter and the update on an accelerator, both kernels",
-                             "results/bench_gpu", argv)
+    args = common.parse_args(
+        "The filter and the update on an accelerator, both kernels", "results/bench_gpu", argv
+    )
     quick = args.quick
     levels = 1 if quick else 5
     rounds, inner = (2, 1) if quick else (21, 5)
@@ -171,8 +190,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     }
     md = [f"Device: {data['machine']['device']}, jax {data['machine']['jax']}", ""]
     for section in ("filter", "update", "texture"):
-        md += [f"### {section}", "", common.markdown_table(
-            [{k: common.fmt(v) for k, v in r.items()} for r in data[section]]), ""]
+        md += [
+            f"### {section}",
+            "",
+            common.markdown_table(
+                [{k: common.fmt(v) for k, v in r.items()} for r in data[section]]
+            ),
+            "",
+        ]
     md = "\n".join(md)
     common.write_results(args.out, "bench_gpu", data, md)
     _plot(data["update"], args.out / "bench_gpu.png")

@@ -42,8 +42,9 @@ import sys
 
 if "jax" not in sys.modules:
     # Must precede the first jax import: the device count is fixed at start-up.
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                               + " --xla_force_host_platform_device_count=8").strip()
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=8"
+    ).strip()
 
 import dataclasses
 import math
@@ -52,7 +53,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import AxisType, Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 import optax_bilateral as ob
 from experiments import common
@@ -65,18 +67,20 @@ from experiments.collectives import collective_stats, halo_bytes
 @dataclasses.dataclass(frozen=True)
 class Case:
     name: str
-    shape: tuple        # spatial shape
+    shape: tuple  # spatial shape
     channels: int
     levels: int
     separable: bool
-    paths: tuple        # ("shard_map", "xla_auto")
+    paths: tuple  # ("shard_map", "xla_auto")
 
 
 def default_cases(quick: bool) -> list[Case]:
     if quick:
         return [Case("texture 32^2x3, F=2, separable", (32, 32), 3, 2, True, ("shard_map",))]
     return [
-        Case("texture 1024^2x3, F=5, separable", (1024, 1024), 3, 5, True, ("shard_map", "xla_auto")),
+        Case(
+            "texture 1024^2x3, F=5, separable", (1024, 1024), 3, 5, True, ("shard_map", "xla_auto")
+        ),
         Case("texture 512^2x3, F=5, full", (512, 512), 3, 5, False, ("shard_map", "xla_auto")),
         Case("volume 64^3x4, F=4, separable", (64, 64, 64), 4, 4, True, ("shard_map", "xla_auto")),
         # XLA's partitioner needs minutes to compile full 3-D (measured 92 s for 16^3, F=2).
@@ -84,11 +88,11 @@ def default_cases(quick: bool) -> list[Case]:
     ]
 
 
-MESHES = ((1, 1), (2, 1), (4, 1), (8, 1), (4, 2))
+MESH_SHAPES = ((1, 1), (2, 1), (4, 1), (8, 1), (4, 2))
 
 
-def _mesh(shape, axis_type):
-    devices = np.array(jax.devices()[:math.prod(shape)]).reshape(shape)
+def _device_mesh(shape, axis_type):
+    devices = np.array(jax.devices()[: math.prod(shape)]).reshape(shape)
     return Mesh(devices, ("x", "y"), axis_types=(axis_type, axis_type))
 
 
@@ -104,9 +108,19 @@ def _problem(case: Case):
     return tx, params, grads, state
 
 
+def _put(tree, ndim, grid_sharding, replicated):
+    """``tree`` on the devices: grid-shaped leaves split, the others replicated."""
+    return jax.tree.map(
+        lambda a: jax.device_put(a, grid_sharding if np.ndim(a) == ndim else replicated), tree
+    )
+
+
 def _max_diff(a, b) -> float:
-    return max(float(jnp.max(jnp.abs(jnp.asarray(x, jnp.float32) - jnp.asarray(y, jnp.float32))))
-               for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)) if np.size(x))
+    return max(
+        float(jnp.max(jnp.abs(jnp.asarray(x, jnp.float32) - jnp.asarray(y, jnp.float32))))
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b))
+        if np.size(x)
+    )
 
 
 def _keeps_sharding(tree, sharding_of_grid, ndim) -> bool:
@@ -126,43 +140,57 @@ def run_case(case: Case, repeats: int, quick: bool = False, progress: bool = Tru
     ref_out = step(grads, state, params)
     ndim = len(case.shape) + 1
     # name -> (compiled step, its arguments, its table row)
-    configs = {"unsharded": (step.lower(grads, state, params).compile(),
-                             (grads, state, params), None)}
+    configs = {
+        "unsharded": (step.lower(grads, state, params).compile(), (grads, state, params), None)
+    }
     rows = []
-    meshes = MESHES[:4] if quick else MESHES
-    todo = [(path, m) for path in case.paths for m in meshes]
-    for path, mshape in tqdm(todo, desc=case.name, disable=not progress, leave=False):
-        mesh = _mesh(mshape, AxisType.Explicit if path == "shard_map" else AxisType.Auto)
-        sh = NamedSharding(mesh, P("x", "y"))
-        put = lambda t: jax.tree.map(lambda a: jax.device_put(a, sh) if np.ndim(a) == ndim
-                                     else jax.device_put(a, NamedSharding(mesh, P())), t)
-        args = (put(grads), put(state), put(params))
+    mesh_shapes = MESH_SHAPES[:4] if quick else MESH_SHAPES
+    todo = [(path, m) for path in case.paths for m in mesh_shapes]
+    for path, mesh_shape in tqdm(todo, desc=case.name, disable=not progress, leave=False):
+        device_mesh = _device_mesh(
+            mesh_shape, AxisType.Explicit if path == "shard_map" else AxisType.Auto
+        )
+        sh = NamedSharding(device_mesh, P("x", "y"))
+        replicated = NamedSharding(device_mesh, P())
+        args = tuple(_put(t, ndim, sh, replicated) for t in (grads, state, params))
         t0 = time.perf_counter()
         compiled = jax.jit(tx.update).lower(*args).compile()
         compile_s = time.perf_counter() - t0
         out = compiled(*args)
         stats = collective_stats(compiled.as_text())
-        blocks = tuple(mshape) + (1,) * (len(case.shape) - 2)
+        blocks = tuple(mesh_shape) + (1,) * (len(case.shape) - 2)
         # postfilter: fields m and v (2C channels), guide theta (C channels)
-        halo = halo_bytes(case.shape, blocks, case.levels, fields=2 * case.channels,
-                          guide=case.channels, separable=case.separable)
+        halo = halo_bytes(
+            case.shape,
+            blocks,
+            case.levels,
+            fields=2 * case.channels,
+            guide=case.channels,
+            separable=case.separable,
+        )
         moved = sum(v["bytes"] for v in stats.values())
         grid_bytes = math.prod(case.shape) * case.channels * 4
-        row = dict(case=case.name, path=path, devices=math.prod(mshape),
-                   mesh="x".join(map(str, mshape)),
-                   max_abs_diff=_max_diff(out, ref_out),
-                   sharding_kept=_keeps_sharding(out, sh, ndim),
-                   compile_s=compile_s,
-                   permute_bytes=stats["collective-permute"]["bytes"],
-                   permute_count=stats["collective-permute"]["count"],
-                   all_gather_bytes=stats["all-gather"]["bytes"],
-                   all_gather_count=stats["all-gather"]["count"],
-                   largest_all_gather_vs_grid=stats["all-gather"]["max_bytes"] / grid_bytes,
-                   all_reduce_bytes=stats["all-reduce"]["bytes"],
-                   bytes_moved=moved, halo_per_level=halo["per_level"],
-                   halo_minimum=halo["minimum"],
-                   moved_over_minimum=(moved / halo["minimum"]) if halo["minimum"]
-                   else (0.0 if moved == 0 else math.inf))
+        row = dict(
+            case=case.name,
+            path=path,
+            devices=math.prod(mesh_shape),
+            mesh="x".join(map(str, mesh_shape)),
+            max_abs_diff=_max_diff(out, ref_out),
+            sharding_kept=_keeps_sharding(out, sh, ndim),
+            compile_s=compile_s,
+            permute_bytes=stats["collective-permute"]["bytes"],
+            permute_count=stats["collective-permute"]["count"],
+            all_gather_bytes=stats["all-gather"]["bytes"],
+            all_gather_count=stats["all-gather"]["count"],
+            largest_all_gather_vs_grid=stats["all-gather"]["max_bytes"] / grid_bytes,
+            all_reduce_bytes=stats["all-reduce"]["bytes"],
+            bytes_moved=moved,
+            halo_per_level=halo["per_level"],
+            halo_minimum=halo["minimum"],
+            moved_over_minimum=(moved / halo["minimum"])
+            if halo["minimum"]
+            else (0.0 if moved == 0 else math.inf),
+        )
         rows.append(row)
         configs[(path, row["mesh"])] = (compiled, args, row)
 
@@ -180,34 +208,65 @@ def run_case(case: Case, repeats: int, quick: bool = False, progress: bool = Tru
         if row is not None:
             row["step_ms"] = 1e3 * float(np.median(times[k]))
             row["vs_unsharded"] = row["step_ms"] / (1e3 * base)
-    rows.insert(0, dict(case=case.name, path="unsharded", devices=1, mesh="-", step_ms=1e3 * base,
-                        vs_unsharded=1.0, max_abs_diff=0.0, sharding_kept=True, bytes_moved=0))
+    rows.insert(
+        0,
+        dict(
+            case=case.name,
+            path="unsharded",
+            devices=1,
+            mesh="-",
+            step_ms=1e3 * base,
+            vs_unsharded=1.0,
+            max_abs_diff=0.0,
+            sharding_kept=True,
+            bytes_moved=0,
+        ),
+    )
     return rows
 
 
-NOTE = ("Devices are virtual CPU devices (XLA_FLAGS=--xla_force_host_platform_device_count=8) "
-        "sharing this machine's 2 cores with other jobs: splitting cannot speed a step up here, "
-        "so step_ms shows the cost of splitting, not a speed-up. Bytes are read from the "
-        "compiled HLO and are what a real multi-device run would move per step.")
+NOTE = (
+    "Devices are virtual CPU devices (XLA_FLAGS=--xla_force_host_platform_device_count=8) "
+    "sharing this machine's 2 cores with other jobs: splitting cannot speed a step up here, "
+    "so step_ms shows the cost of splitting, not a speed-up. Bytes are read from the "
+    "compiled HLO and are what a real multi-device run would move per step."
+)
 
-COLUMNS = ("case", "path", "mesh", "devices", "step_ms", "vs_unsharded", "compile_s",
-           "max_abs_diff", "sharding_kept", "bytes_moved", "halo_per_level", "halo_minimum",
-           "moved_over_minimum",
-           "permute_count", "all_gather_count", "largest_all_gather_vs_grid")
+COLUMNS = (
+    "case",
+    "path",
+    "mesh",
+    "devices",
+    "step_ms",
+    "vs_unsharded",
+    "compile_s",
+    "max_abs_diff",
+    "sharding_kept",
+    "bytes_moved",
+    "halo_per_level",
+    "halo_minimum",
+    "moved_over_minimum",
+    "permute_count",
+    "all_gather_count",
+    "largest_all_gather_vs_grid",
+)
 
 
 def _plot(rows, path):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     cases = list(dict.fromkeys(r["case"] for r in rows))
     fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.4), dpi=110, squeeze=False)
     for ax, case in zip(axes[0], cases):
-        base = [r for r in rows if r["case"] == case and r["path"] == "unsharded"][0]["step_ms"]
+        base = next(r for r in rows if r["case"] == case and r["path"] == "unsharded")["step_ms"]
         ax.axhline(base, color="k", lw=1, ls=":", label="unsharded")
         for p in ("shard_map", "xla_auto"):
-            pts = [r for r in rows if r["case"] == case and r["path"] == p and r["mesh"].endswith("x1")]
+            pts = [
+                r for r in rows if r["case"] == case and r["path"] == p and r["mesh"].endswith("x1")
+            ]
             if pts:
                 ax.plot([r["devices"] for r in pts], [r["step_ms"] for r in pts], "o-", label=p)
         ax.set_xscale("log", base=2)
@@ -222,18 +281,26 @@ def _plot(rows, path):
 
 
 def main(argv=None) -> dict:
-    args = common.parse_args("sharded bilateral_adam step: time and bytes moved",
-                             "results/bench_sharding", argv)
+    args = common.parse_args(
+        "sharded bilateral_adam step: time and bytes moved", "results/bench_sharding", argv
+    )
     if jax.device_count() < 8:
-        raise RuntimeError("bench_sharding needs 8 devices: run it as its own process (it sets "
-                           "XLA_FLAGS=--xla_force_host_platform_device_count=8 before importing jax)")
+        raise RuntimeError(
+            "bench_sharding needs 8 devices: run it as its own process (it sets "
+            "XLA_FLAGS=--xla_force_host_platform_device_count=8 before importing jax)"
+        )
     repeats = 3 if args.quick else 7
     rows = []
     for case in default_cases(args.quick):
         rows += run_case(case, repeats, args.quick)
     args.out.mkdir(parents=True, exist_ok=True)
-    summary = {"note": NOTE, "quick": args.quick, "rows": rows,
-               "jax": jax.__version__, "devices": jax.device_count()}
+    summary = {
+        "note": NOTE,
+        "quick": args.quick,
+        "rows": rows,
+        "jax": jax.__version__,
+        "devices": jax.device_count(),
+    }
     path = common.write_summary(args.out, {}, **summary)
     table = common.markdown_table(rows, COLUMNS)
     (args.out / "table.md").write_text(f"{NOTE}\n\n{table}\n")

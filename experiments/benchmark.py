@@ -37,7 +37,7 @@ import platform
 import subprocess
 import sys
 import time
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -56,8 +56,10 @@ _ORDER = ("compile", "overhead", "accuracy", "scaling")
 
 # --------------------------------------------------------------------------- timing
 
-def interleaved(fns: Mapping[str, tuple[Callable, tuple]], rounds: int, inner: int = 1,
-                desc: str = "timing") -> dict[str, dict]:
+
+def interleaved(
+    fns: Mapping[str, tuple[Callable, tuple]], rounds: int, inner: int = 1, desc: str = "timing"
+) -> dict[str, dict]:
     """Median (and min) seconds per call of each ``fn(*args)``, timed in rotating rounds.
 
     Every function is called once first (compilation, excluded). Round ``r`` calls each
@@ -70,15 +72,17 @@ def interleaved(fns: Mapping[str, tuple[Callable, tuple]], rounds: int, inner: i
         jax.block_until_ready(f(*args))
     samples: dict[str, list[float]] = {k: [] for k in names}
     for r in tqdm(range(rounds), desc=desc, leave=False):
-        for k in names[r % len(names):] + names[:r % len(names)]:
+        for k in names[r % len(names) :] + names[: r % len(names)]:
             f, args = fns[k]
             t0 = time.perf_counter()
             for _ in range(inner):
                 out = f(*args)
             jax.block_until_ready(out)
             samples[k].append((time.perf_counter() - t0) / inner)
-    return {k: {"median": float(np.median(v)), "min": float(np.min(v)), "samples": v}
-            for k, v in samples.items()}
+    return {
+        k: {"median": float(np.median(v)), "min": float(np.min(v)), "samples": v}
+        for k, v in samples.items()
+    }
 
 
 def machine() -> dict:
@@ -92,16 +96,22 @@ def machine() -> dict:
                     break
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version(), "jax": jax.__version__,
-            "optax": optax.__version__, "device": str(jax.devices()[0]),
-            "xla_flags": os.environ.get("XLA_FLAGS", ""),
-            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "optax": optax.__version__,
+        "device": str(jax.devices()[0]),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
 
 
 # --------------------------------------------------------------------------- update programs
 
-B1 = 0.2                       # the paper's grid runs (bilateral_adam's default)
+B1 = 0.2  # the paper's grid runs (bilateral_adam's default)
 B2 = 1 - (1 - B1) ** 2
 
 
@@ -110,8 +120,10 @@ def update_arrays(shape, seed=0, dtype=jnp.float32):
     k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
     idx = np.indices(shape[:-1]).sum(0)
     blocks = ((np.indices(shape[:-1]) // max(1, shape[0] // 8)).sum(0) % 2).astype(np.float32)
-    params = jnp.asarray(0.2 + 0.6 * blocks[..., None] + 0.02 * np.sin(idx)[..., None]
-                         * np.ones(shape[-1]), jnp.float32)
+    params = jnp.asarray(
+        0.2 + 0.6 * blocks[..., None] + 0.02 * np.sin(idx)[..., None] * np.ones(shape[-1]),
+        jnp.float32,
+    )
     params = params + 0.01 * jax.random.normal(k1, shape)
     grad = (0.1 * jax.random.normal(k2, shape)).astype(dtype)
     return params, grad
@@ -159,8 +171,10 @@ def warm_state(opt, params, grad, steps=2):
 
 # --------------------------------------------------------------------------- (a) overhead
 
-def update_only(shapes: Mapping[str, tuple], variants: Sequence[tuple], rounds: int,
-                inner: int) -> list[dict]:
+
+def update_only(
+    shapes: Mapping[str, tuple], variants: Sequence[tuple], rounds: int, inner: int
+) -> list[dict]:
     """Update-only time of each variant against ``optax.adam`` on the same arrays."""
     rows = []
     for name, shape in shapes.items():
@@ -172,12 +186,17 @@ def update_only(shapes: Mapping[str, tuple], variants: Sequence[tuple], rounds: 
         res = interleaved(fns, rounds, inner, desc=f"update {name}")
         samples = {k: v["samples"] for k, v in res.items()}
         adam = res["adam"]["median"]
-        for label, kind, levels, separable in variants:
+        for label, *_ in variants:
             r = res[label]
-            row = {"grid": name, "method": label, "ms (median)": 1e3 * r["median"],
-                   "ms (min)": 1e3 * r["min"], "x adam (median)": r["median"] / adam,
-                   "x adam (min)": r["min"] / res["adam"]["min"],
-                   "x adam (paired)": common.paired_ratio(samples, label, "adam")}
+            row = {
+                "grid": name,
+                "method": label,
+                "ms (median)": 1e3 * r["median"],
+                "ms (min)": 1e3 * r["min"],
+                "x adam (median)": r["median"] / adam,
+                "x adam (min)": r["min"] / res["adam"]["min"],
+                "x adam (paired)": common.paired_ratio(samples, label, "adam"),
+            }
             sep = label.replace(" full", " separable")
             if label.endswith(" full") and sep in samples:
                 row["x separable (paired)"] = common.paired_ratio(samples, label, sep)
@@ -191,6 +210,7 @@ _PROBLEMS: dict = {}
 def _texture_problem(cfg):
     """The texture experiment's problem (scene, target, reference render), built once."""
     from experiments import texture as texp
+
     key = (cfg.size, cfg.target, cfg.reference_spp, cfg.seed, cfg.spp, cfg.spp_grad)
     if key not in _PROBLEMS:
         _PROBLEMS[key] = texp.Problem(cfg)
@@ -213,11 +233,14 @@ def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[
     only.
     """
     from experiments import texture as texp
+
     cfg = texp.default_config(quick)
     prob = _texture_problem(cfg)
     steps = {}
-    hp = {"adam": cfg.sweeps["adam"][1] if len(cfg.sweeps["adam"]) > 1 else cfg.sweeps["adam"][0],
-          "cross-bilateral": cfg.sweeps["cross-bilateral"][-1]}
+    hp = {
+        "adam": cfg.sweeps["adam"][1] if len(cfg.sweeps["adam"]) > 1 else cfg.sweeps["adam"][0],
+        "cross-bilateral": cfg.sweeps["cross-bilateral"][-1],
+    }
     methods = {"Adam": ("adam", cfg)}
     for f in levels:
         methods[f"Ours (F = {f})"] = ("cross-bilateral", texp.dataclasses.replace(cfg, levels=f))
@@ -226,37 +249,52 @@ def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[
         state = texp.set_hyperparams(opt.init(prob.init), hp[m])
         for kind in TEXTURE_STEP_KINDS:
             steps[(name, kind)] = (prob.step_fn(opt, fused=kind == "fused"), (prob.init, state))
-    for k, (fn, carry) in steps.items():                 # compile, and move off the start
+    for k, (fn, carry) in steps.items():  # compile, and move off the start
         for i in range(2):
             carry, _ = fn(carry, i)
         jax.block_until_ready(carry)
         steps[k] = (fn, carry)
-    samples = common.time_steps_samples(steps, rounds=rounds, first_iteration=1000,
-                                        inner=1 if quick else 5)
+    samples = common.time_steps_samples(
+        steps, rounds=rounds, first_iteration=1000, inner=1 if quick else 5
+    )
     rows = []
     scene = f"texture {cfg.size}^2 (spp={cfg.spp}, spp_grad={cfg.spp_grad})"
     for name in methods:
         for kind in TEXTURE_STEP_KINDS:
             t, t_adam = np.median(samples[(name, kind)]), np.median(samples[("Adam", kind)])
-            rows.append({"scene": scene, "method": name, "step": kind, "ms per iteration": 1e3 * t,
-                         "% vs Adam": 100.0 * (t / t_adam - 1.0),
-                         "% vs Adam (paired)": 100.0 * (common.paired_ratio(
-                             samples, (name, kind), ("Adam", kind)) - 1.0)})
+            rows.append(
+                {
+                    "scene": scene,
+                    "method": name,
+                    "step": kind,
+                    "ms per iteration": 1e3 * t,
+                    "% vs Adam": 100.0 * (t / t_adam - 1.0),
+                    "% vs Adam (paired)": 100.0
+                    * (common.paired_ratio(samples, (name, kind), ("Adam", kind)) - 1.0),
+                }
+            )
     return rows
 
 
 def volume_iterations(quick: bool, repeats: int, steps: int, levels: Sequence[int]) -> list[dict]:
     """Per-iteration time of the volume experiment (its own interleaved timing table)."""
     from experiments import volume as vexp
+
     cfg = vexp.config(quick)
     prob = vexp.Problem(cfg)
     table = vexp.timing_table(prob, tuple(levels), repeats, steps)
     rows = []
     for r in table["rows"]:
-        rows.append({"scene": f"volume {cfg['size']}^3 (density + RGB albedo, "
-                              f"{cfg['views_per_step']} views of {cfg['resolution']}^2 px)",
-                     "method": r["Method"], "ms per iteration": r["ms per iteration"],
-                     "% vs Adam": r["% change"], "update ms": r["update ms"]})
+        rows.append(
+            {
+                "scene": f"volume {cfg['size']}^3 (density + RGB albedo, "
+                f"{cfg['views_per_step']} views of {cfg['resolution']}^2 px)",
+                "method": r["Method"],
+                "ms per iteration": r["ms per iteration"],
+                "% vs Adam": r["% change"],
+                "update ms": r["update ms"],
+            }
+        )
     return rows
 
 
@@ -270,16 +308,23 @@ def _overhead_setting(quick: bool):
     lv = (3, 5)
     variants += [(f"ours F={f} separable", "ours", f, True) for f in lv]
     variants += [(f"ours F={f} full", "ours", f, False) for f in lv]
-    return ({"texture 512x512x3": (512, 512, 3), "volume 64^3x1": (64, 64, 64, 1)},
-            variants, 21, 3, lv)
+    return (
+        {"texture 512x512x3": (512, 512, 3), "volume 64^3x1": (64, 64, 64, 1)},
+        variants,
+        21,
+        3,
+        lv,
+    )
 
 
 def target_measurements(quick: bool) -> dict:
     """What :func:`targets` needs: the update-only ratios and the texture experiment's
     per-iteration times, all measured side by side in this process."""
     shapes, variants, rounds, inner, lv = _overhead_setting(quick)
-    return {"update_only": update_only(shapes, variants, rounds, inner),
-            "texture": texture_iterations(quick, rounds=2 if quick else 30, levels=lv)}
+    return {
+        "update_only": update_only(shapes, variants, rounds, inner),
+        "texture": texture_iterations(quick, rounds=2 if quick else 30, levels=lv),
+    }
 
 
 def overhead(out: pathlib.Path, quick: bool) -> dict:
@@ -289,12 +334,19 @@ def overhead(out: pathlib.Path, quick: bool) -> dict:
     # The volume experiment's own timing table (tested with that experiment; skipped by --quick).
     vol_rows = [] if quick else volume_iterations(quick, repeats=7, steps=5, levels=lv)
     data = {"update_only": upd, "texture": tex_rows, "volume": vol_rows}
-    md = ["### Update only (`bilateral_adam(...).update` vs `optax.adam(...).update`, same arrays)", "",
-          common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in upd]), "",
-          "### Per iteration (render + gradient + update), texture experiment defaults", "",
-          common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in tex_rows]), "",
-          "### Per iteration (render + gradient + update), volume experiment", "",
-          common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in vol_rows])]
+    md = [
+        "### Update only (`bilateral_adam(...).update` vs `optax.adam(...).update`, same arrays)",
+        "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in upd]),
+        "",
+        "### Per iteration (render + gradient + update), texture experiment defaults",
+        "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in tex_rows]),
+        "",
+        "### Per iteration (render + gradient + update), volume experiment",
+        "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in vol_rows]),
+    ]
     md = "\n".join(md)
     common.write_results(out, "overhead", data, md)
     return {"data": data, "md": md}
@@ -302,10 +354,12 @@ def overhead(out: pathlib.Path, quick: bool) -> dict:
 
 # --------------------------------------------------------------------------- (b) accuracy
 
+
 def _texture_fields(size: int, seed: int = 0, reference_spp: int = 64):
     """A noisy Monte Carlo gradient of the texture problem, at the target (as late in a
     run), and the log-roughness guide the texture experiment uses."""
     from optax_bilateral.toy import texture as tex
+
     scene = tex.make_scene(size)
     target = jnp.asarray(tex.target_roughness("camera", size))
     reference = tex.render_reference(target, scene, reference_spp, seed=seed)
@@ -324,32 +378,52 @@ def filter_accuracy(size: int, levels: Sequence[int], sigma_d: float, rounds: in
     with jax.enable_x64(True):
         ref = {}
         for f in levels:
-            mf, vf = ob.atrous_bilateral((jnp.asarray(m), jnp.asarray(v)), jnp.asarray(guide),
-                                         sigma_d=sigma_d, levels=f, spatial_axes=(0, 1),
-                                         separable=False)
+            mf, vf = ob.atrous_bilateral(
+                (jnp.asarray(m), jnp.asarray(v)),
+                jnp.asarray(guide),
+                sigma_d=sigma_d,
+                levels=f,
+                spatial_axes=(0, 1),
+                separable=False,
+            )
             ref[f] = (np.asarray(mf), np.asarray(vf))
     rows, fns = [], {}
     for f in levels:
         for separable in (True, False):
             for dtype in ("float32", "bfloat16"):
                 if size < 64 and not separable and dtype == "bfloat16":
-                    continue                     # --quick: fewer programs to compile
+                    continue  # --quick: fewer programs to compile
                 dt = jnp.dtype(dtype)
                 fields = (jnp.asarray(m, dt), jnp.asarray(v, dt))
                 gd = jnp.asarray(guide, jnp.float32)
-                fn = jax.jit(lambda a, b, gd, f=f, separable=separable: ob.atrous_bilateral(
-                    (a, b), gd, sigma_d=sigma_d, levels=f, spatial_axes=(0, 1), separable=separable))
+                fn = jax.jit(
+                    lambda a, b, gd, f=f, separable=separable: ob.atrous_bilateral(
+                        (a, b),
+                        gd,
+                        sigma_d=sigma_d,
+                        levels=f,
+                        spatial_axes=(0, 1),
+                        separable=separable,
+                    )
+                )
                 mf, vf = (np.asarray(x, np.float64) for x in fn(*fields, gd))
                 mr, vr = ref[f]
                 step, step_ref = mf / np.sqrt(vf + 1e-30), mr / np.sqrt(vr + 1e-30)
                 label = f"F={f} {'separable' if separable else 'full'} {dtype}"
                 fns[label] = (fn, (*fields, gd))
-                rows.append({"F": f, "mode": "separable" if separable else "full", "dtype": dtype,
-                             "m rel. L2 error": float(np.linalg.norm(mf - mr) / np.linalg.norm(mr)),
-                             "v rel. L2 error": float(np.linalg.norm(vf - vr) / np.linalg.norm(vr)),
-                             "step rel. L2 error": float(np.linalg.norm(step - step_ref)
-                                                         / np.linalg.norm(step_ref)),
-                             "label": label})
+                rows.append(
+                    {
+                        "F": f,
+                        "mode": "separable" if separable else "full",
+                        "dtype": dtype,
+                        "m rel. L2 error": float(np.linalg.norm(mf - mr) / np.linalg.norm(mr)),
+                        "v rel. L2 error": float(np.linalg.norm(vf - vr) / np.linalg.norm(vr)),
+                        "step rel. L2 error": float(
+                            np.linalg.norm(step - step_ref) / np.linalg.norm(step_ref)
+                        ),
+                        "label": label,
+                    }
+                )
     times = interleaved(fns, rounds, desc="filter accuracy")
     base = times[f"F={levels[0]} separable float32"]["median"]
     for r in rows:
@@ -362,6 +436,7 @@ def filter_accuracy(size: int, levels: Sequence[int], sigma_d: float, rounds: in
 def texture_runs(quick: bool, levels: Sequence[int], iterations: int | None) -> list[dict]:
     """Final texture error of the texture experiment's cross-bilateral method per setting."""
     from experiments import texture as texp
+
     cfg = texp.default_config(quick)
     if iterations is not None:
         cfg = texp.dataclasses.replace(cfg, iterations=iterations)
@@ -370,30 +445,52 @@ def texture_runs(quick: bool, levels: Sequence[int], iterations: int | None) -> 
     if quick:
         settings = [(levels[-1], True, jnp.bfloat16)]
     else:
-        settings = [(f, sep, mu) for mu in (None, jnp.bfloat16) for sep in (True, False)
-                    for f in levels]
+        settings = [
+            (f, sep, mu) for mu in (None, jnp.bfloat16) for sep in (True, False) for f in levels
+        ]
     rows = []
     adam_opt = texp.make_optimizer("adam", cfg)
     adam_hp = cfg.sweeps["adam"][1] if len(cfg.sweeps["adam"]) > 1 else cfg.sweeps["adam"][0]
     runs = [] if quick else [("adam", None, None, None, adam_opt, adam_hp)]
     for f, separable, mu in settings:
-        opt = optax.inject_hyperparams(ob.bilateral_adam, static_args=(
-            "levels", "b1", "guide", "log_guide", "separable", "mu_dtype"))(
-            learning_rate=0.01, sigma_d=0.1, b1=cfg.b1_filtered, levels=f, guide="params",
-            log_guide=True, separable=separable, mu_dtype=mu)
+        opt = optax.inject_hyperparams(
+            ob.bilateral_adam,
+            static_args=("levels", "b1", "guide", "log_guide", "separable", "mu_dtype"),
+        )(
+            learning_rate=0.01,
+            sigma_d=0.1,
+            b1=cfg.b1_filtered,
+            levels=f,
+            guide="params",
+            log_guide=True,
+            separable=separable,
+            mu_dtype=mu,
+        )
         runs.append(("cross-bilateral", f, separable, mu, opt, hp))
     for method, f, separable, mu, opt, h in runs:
         state = texp.set_hyperparams(opt.init(prob.init), h)
-        name = method if f is None else (f"F={f} {'separable' if separable else 'full'}"
-                                         f"{' bf16 m' if mu is not None else ''}")
-        tr = common.run_method(name, prob.step_fn(opt), (prob.init, state), cfg.iterations,
-                               progress=True)
+        name = (
+            method
+            if f is None
+            else (
+                f"F={f} {'separable' if separable else 'full'}{' bf16 m' if mu is not None else ''}"
+            )
+        )
+        tr = common.run_method(
+            name, prob.step_fn(opt), (prob.init, state), cfg.iterations, progress=True
+        )
         err = float(np.mean(np.abs(np.asarray(tr.final[0]) - np.asarray(prob.target))))
-        rows.append({"run": name, "F": f if f is not None else 0,
-                     "mode": "-" if separable is None else ("separable" if separable else "full"),
-                     "moment dtype": "float32" if mu is None else "bfloat16 (m)",
-                     "iterations": cfg.iterations, "final mean |alpha - target|": err,
-                     "s per iteration (run clock)": float(np.median(tr.step_seconds))})
+        rows.append(
+            {
+                "run": name,
+                "F": f if f is not None else 0,
+                "mode": "-" if separable is None else ("separable" if separable else "full"),
+                "moment dtype": "float32" if mu is None else "bfloat16 (m)",
+                "iterations": cfg.iterations,
+                "final mean |alpha - target|": err,
+                "s per iteration (run clock)": float(np.median(tr.step_seconds)),
+            }
+        )
     return rows
 
 
@@ -402,32 +499,49 @@ def accuracy(out: pathlib.Path, quick: bool) -> dict:
     size = 16 if quick else 512
     flt = filter_accuracy(size, levels, sigma_d=0.1, rounds=2 if quick else 11)
     runs = texture_runs(quick, levels, iterations=3 if quick else None)
-    data = {"filter": flt, "texture_runs": runs, "filter_grid": f"{size}x{size}, m = g, v = g^2 "
-            "(one 1-spp gradient of the texture problem at the target), guide log(alpha_target), "
-            "sigma_d = 0.1"}
+    data = {
+        "filter": flt,
+        "texture_runs": runs,
+        "filter_grid": f"{size}x{size}, m = g, v = g^2 "
+        "(one 1-spp gradient of the texture problem at the target), guide log(alpha_target), "
+        "sigma_d = 0.1",
+    }
     _plot_accuracy(flt, out / "accuracy.png")
-    md = "\n".join([
-        f"### Filter time and error vs the full float64 filter ({data['filter_grid']})", "",
-        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in flt]), "",
-        "### Texture experiment, cross-bilateral (its default hyperparameters), final error", "",
-        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in runs])])
+    md = "\n".join(
+        [
+            f"### Filter time and error vs the full float64 filter ({data['filter_grid']})",
+            "",
+            common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in flt]),
+            "",
+            "### Texture experiment, cross-bilateral (its default hyperparameters), final error",
+            "",
+            common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in runs]),
+        ]
+    )
     common.write_results(out, "accuracy", data, md)
     return {"data": data, "md": md}
 
 
 def _plot_accuracy(rows, path):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(5.5, 4), dpi=110)
     for mode in ("separable", "full"):
         for dtype, mk in (("float32", "o"), ("bfloat16", "x")):
             sel = [r for r in rows if r["mode"] == mode and r["dtype"] == dtype]
-            ax.plot([r["filter ms"] for r in sel], [max(r["step rel. L2 error"], 1e-9) for r in sel],
-                    marker=mk, label=f"{mode} {dtype}")
+            ax.plot(
+                [r["filter ms"] for r in sel],
+                [max(r["step rel. L2 error"], 1e-9) for r in sel],
+                marker=mk,
+                label=f"{mode} {dtype}",
+            )
             for r in sel:
-                ax.annotate(f"F={r['F']}", (r["filter ms"], max(r["step rel. L2 error"], 1e-9)),
-                            fontsize=6)
+                ax.annotate(
+                    f"F={r['F']}", (r["filter ms"], max(r["step rel. L2 error"], 1e-9)), fontsize=6
+                )
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("filter time (ms, median)")
@@ -441,10 +555,15 @@ def _plot_accuracy(rows, path):
 
 # --------------------------------------------------------------------------- (c) scaling
 
+
 def _peak_bytes(compiled) -> int:
     ma = compiled.memory_analysis()
-    return int(ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes
-               - ma.alias_size_in_bytes)
+    return int(
+        ma.temp_size_in_bytes
+        + ma.argument_size_in_bytes
+        + ma.output_size_in_bytes
+        - ma.alias_size_in_bytes
+    )
 
 
 def scaling(out: pathlib.Path, quick: bool) -> dict:
@@ -452,8 +571,10 @@ def scaling(out: pathlib.Path, quick: bool) -> dict:
         grids = {"2d": [(16, 16, 3), (32, 32, 3)]}
         fs, f_grid, rounds = (1,), (16, 16, 3), 2
     else:
-        grids = {"2d": [(n, n, 3) for n in (128, 256, 512, 1024, 2048)],
-                 "3d": [(n, n, n, 1) for n in (32, 48, 64, 96, 128)]}
+        grids = {
+            "2d": [(n, n, 3) for n in (128, 256, 512, 1024, 2048)],
+            "3d": [(n, n, n, 1) for n in (32, 48, 64, 96, 128)],
+        }
         fs, f_grid, rounds = (1, 2, 3, 4, 5, 6), (512, 512, 3), 7
     f_main = 1 if quick else 5
     ours = f"ours F={f_main} separable"
@@ -470,12 +591,19 @@ def scaling(out: pathlib.Path, quick: bool) -> dict:
             res = interleaved(fns, rounds, desc=f"scaling {shape}")
             n = int(np.prod(shape))
             for label in fns:
-                rows.append({"sweep": f"grid {dim}", "shape": "x".join(map(str, shape)),
-                             "elements": n, "method": label, "F": 0 if label == "adam" else f_main,
-                             "ms": 1e3 * res[label]["median"],
-                             "ns per element": 1e9 * res[label]["median"] / n,
-                             "peak MB (XLA plan)": peaks[label] / 1e6,
-                             "x adam": res[label]["median"] / res["adam"]["median"]})
+                rows.append(
+                    {
+                        "sweep": f"grid {dim}",
+                        "shape": "x".join(map(str, shape)),
+                        "elements": n,
+                        "method": label,
+                        "F": 0 if label == "adam" else f_main,
+                        "ms": 1e3 * res[label]["median"],
+                        "ns per element": 1e9 * res[label]["median"] / n,
+                        "peak MB (XLA plan)": peaks[label] / 1e6,
+                        "x adam": res[label]["median"] / res["adam"]["median"],
+                    }
+                )
             del fns
     params, grad = update_arrays(f_grid)
     fns, peaks = {}, {}
@@ -486,44 +614,67 @@ def scaling(out: pathlib.Path, quick: bool) -> dict:
         fns[f] = (prog, (grad, state, params))
     res = interleaved(fns, rounds, desc="scaling F")
     for f in fs:
-        rows.append({"sweep": "F", "shape": "x".join(map(str, f_grid)),
-                     "elements": int(np.prod(f_grid)), "method": f"ours F={f} separable", "F": f,
-                     "ms": 1e3 * res[f]["median"], "ns per element": 1e9 * res[f]["median"]
-                     / np.prod(f_grid), "peak MB (XLA plan)": peaks[f] / 1e6, "x adam": float("nan")})
+        rows.append(
+            {
+                "sweep": "F",
+                "shape": "x".join(map(str, f_grid)),
+                "elements": int(np.prod(f_grid)),
+                "method": f"ours F={f} separable",
+                "F": f,
+                "ms": 1e3 * res[f]["median"],
+                "ns per element": 1e9 * res[f]["median"] / np.prod(f_grid),
+                "peak MB (XLA plan)": peaks[f] / 1e6,
+                "x adam": float("nan"),
+            }
+        )
     slopes = {}
     for dim in grids:
         for label in ("adam", ours):
             sel = [r for r in rows if r["sweep"] == f"grid {dim}" and r["method"] == label]
             x = np.log([r["elements"] for r in sel])
-            slopes[f"{dim} {label} time"] = float(np.polyfit(x, np.log([r["ms"] for r in sel]), 1)[0])
-            slopes[f"{dim} {label} peak memory"] = float(np.polyfit(
-                x, np.log([r["peak MB (XLA plan)"] for r in sel]), 1)[0])
+            slopes[f"{dim} {label} time"] = float(
+                np.polyfit(x, np.log([r["ms"] for r in sel]), 1)[0]
+            )
+            slopes[f"{dim} {label} peak memory"] = float(
+                np.polyfit(x, np.log([r["peak MB (XLA plan)"] for r in sel]), 1)[0]
+            )
     sel = [r for r in rows if r["sweep"] == "F"]
     if len(sel) > 1:
-        slopes["time vs F (ms per extra level)"] = float(np.polyfit([r["F"] for r in sel],
-                                                                    [r["ms"] for r in sel], 1)[0])
+        slopes["time vs F (ms per extra level)"] = float(
+            np.polyfit([r["F"] for r in sel], [r["ms"] for r in sel], 1)[0]
+        )
     _plot_scaling(rows, out / "scaling.png", ours)
     data = {"rows": rows, "loglog_slopes": slopes}
-    md = "\n".join([
-        f"### Separable F = {f_main} update vs optax.adam, time and XLA's planned peak memory", "",
-        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]), "",
-        "Log-log slopes against the number of elements (1 = linear):", "",
-        common.markdown_table([{"fit": k, "slope": common.fmt(v)} for k, v in slopes.items()])])
+    md = "\n".join(
+        [
+            f"### Separable F = {f_main} update vs optax.adam, time and XLA's planned peak memory",
+            "",
+            common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]),
+            "",
+            "Log-log slopes against the number of elements (1 = linear):",
+            "",
+            common.markdown_table([{"fit": k, "slope": common.fmt(v)} for k, v in slopes.items()]),
+        ]
+    )
     common.write_results(out, "scaling", data, md)
     return {"data": data, "md": md}
 
 
 def _plot_scaling(rows, path, ours):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=110)
     for dim, mk in (("2d", "o"), ("3d", "s")):
         for label, ls in (("adam", "--"), (ours, "-")):
             sel = [r for r in rows if r["sweep"] == f"grid {dim}" and r["method"] == label]
             x = [r["elements"] for r in sel]
             axes[0].plot(x, [r["ms"] for r in sel], ls, marker=mk, label=f"{dim} {label}")
-            axes[1].plot(x, [r["peak MB (XLA plan)"] for r in sel], ls, marker=mk, label=f"{dim} {label}")
+            axes[1].plot(
+                x, [r["peak MB (XLA plan)"] for r in sel], ls, marker=mk, label=f"{dim} {label}"
+            )
     for ax, yl in zip(axes, ("ms per update (median)", "peak MB (XLA plan)")):
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -537,29 +688,35 @@ def _plot_scaling(rows, path, ours):
 
 # --------------------------------------------------------------------------- (d) compile
 
+
 def temp_mb(compiled) -> float:
     """XLA's planned temporary memory of a compiled program, in MiB (NaN if not reported).
 
     On CPU this is one allocation per call; above glibc's largest mmap threshold (32 MiB)
-    it is mapped and page-faulted afresh on every call (BENCHMARKS.md, "Two speeds: the allocator")."""
+    it is mapped and page-faulted afresh on every call (BENCHMARKS.md, "Two speeds: the
+    allocator")."""
     m = compiled.memory_analysis()
-    return float("nan") if m is None else m.temp_size_in_bytes / 2 ** 20
+    return float("nan") if m is None else m.temp_size_in_bytes / 2**20
 
 
 def compile_times(out: pathlib.Path, quick: bool) -> dict:
     if quick:
         cases = [("texture 16x16x3", (16, 16, 3), 1, True)]
     else:
-        cases = [("texture 512x512x3", (512, 512, 3), 5, True),
-                 ("texture 512x512x3", (512, 512, 3), 5, False),
-                 ("volume 64^3x1", (64, 64, 64, 1), 5, True),
-                 ("volume 64^3x1", (64, 64, 64, 1), 3, False),
-                 ("volume 64^3x1", (64, 64, 64, 1), 5, False)]
+        cases = [
+            ("texture 512x512x3", (512, 512, 3), 5, True),
+            ("texture 512x512x3", (512, 512, 3), 5, False),
+            ("volume 64^3x1", (64, 64, 64, 1), 5, True),
+            ("volume 64^3x1", (64, 64, 64, 1), 3, False),
+            ("volume 64^3x1", (64, 64, 64, 1), 5, False),
+        ]
     rows = []
     for name, shape, f, separable in tqdm(cases, desc="compile", leave=False):
         params, grad = update_arrays(shape)
-        for label, opt in (("adam", _opt("adam")), (f"ours F={f} {'separable' if separable else 'full'}",
-                                                    _opt("ours", f, separable))):
+        for label, opt in (
+            ("adam", _opt("adam")),
+            (f"ours F={f} {'separable' if separable else 'full'}", _opt("ours", f, separable)),
+        ):
             if label == "adam" and any(r["grid"] == name and r["method"] == "adam" for r in rows):
                 continue
             state = opt.init(params)
@@ -569,14 +726,22 @@ def compile_times(out: pathlib.Path, quick: bool) -> dict:
             t1 = time.perf_counter()
             compiled = lowered.compile()
             t2 = time.perf_counter()
-            rows.append({"grid": name, "method": label, "trace + lower s": t1 - t0,
-                         "compile s": t2 - t1, "temp MB": temp_mb(compiled)})
+            rows.append(
+                {
+                    "grid": name,
+                    "method": label,
+                    "trace + lower s": t1 - t0,
+                    "compile s": t2 - t1,
+                    "temp MB": temp_mb(compiled),
+                }
+            )
     # No recompilation: steps (count changes) and a traced sigma_d schedule.
     shape = (8, 8, 3) if quick else (128, 128, 3)
     params, grad = update_arrays(shape)
     sched = optax.exponential_decay(0.2, transition_steps=1, decay_rate=0.8)
     opt = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=optax.linear_schedule(1e-2, 1e-3, 10), sigma_d=sched, levels=1 if quick else 3)
+        learning_rate=optax.linear_schedule(1e-2, 1e-3, 10), sigma_d=sched, levels=1 if quick else 3
+    )
 
     @jax.jit
     def step(g, s, p):
@@ -586,25 +751,39 @@ def compile_times(out: pathlib.Path, quick: bool) -> dict:
     state = opt.init(params)
     grads = [grad * (1 + 0.1 * i) for i in range(8)]
     states = []
-    with common.CompileCounter() as compiles:      # the first step compiles, no other may
+    with common.CompileCounter() as compiles:  # the first step compiles, no other may
         for g in grads:
             params, state = step(g, state, params)
             states.append(state)
     sigmas = [float(s.hyperparams["sigma_d"]) for s in states]
-    check = {"steps": 8, "compiled programs": compiles.count,
-             "sigma_d seen by the steps": sigmas, "no recompilation": compiles.count == 1}
+    check = {
+        "steps": 8,
+        "compiled programs": compiles.count,
+        "sigma_d seen by the steps": sigmas,
+        "no recompilation": compiles.count == 1,
+    }
     eager = eager_updates(quick)
     data = {"rows": rows, "recompile_check": check, "eager": eager}
-    md = "\n".join([
-        "### Compile time of one update step (jit(opt.update), cold), and its planned temporary memory", "",
-        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]), "",
-        f"Recompilation check: `optax.inject_hyperparams(bilateral_adam, static_args=(\"levels\",))` "
-        f"with a decaying sigma_d schedule and a learning-rate schedule, {check['steps']} steps on "
-        f"{'x'.join(map(str, shape))}: {check['compiled programs']} compiled "
-        f"program(s) (sigma_d went {sigmas[0]:.3g} -> {sigmas[-1]:.3g}).", "",
-        f"### Eager updates (no jax.jit around `update`), after the first call, "
-        f"{eager[0]['grid']}", "",
-        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in eager])])
+    md = "\n".join(
+        [
+            "### Compile time of one update step (jit(opt.update), cold), "
+            "and its planned temporary memory",
+            "",
+            common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows]),
+            "",
+            "Recompilation check: "
+            '`optax.inject_hyperparams(bilateral_adam, static_args=("levels",))` '
+            "with a decaying sigma_d schedule and a learning-rate schedule, "
+            f"{check['steps']} steps on "
+            f"{'x'.join(map(str, shape))}: {check['compiled programs']} compiled "
+            f"program(s) (sigma_d went {sigmas[0]:.3g} -> {sigmas[-1]:.3g}).",
+            "",
+            f"### Eager updates (no jax.jit around `update`), after the first call, "
+            f"{eager[0]['grid']}",
+            "",
+            common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in eager]),
+        ]
+    )
     common.write_results(out, "compile", data, md)
     return {"data": data, "md": md}
 
@@ -618,15 +797,18 @@ def eager_updates(quick: bool, calls: int = 7) -> list[dict]:
     (0: every program is cached; one per call would mean a recompilation every step)."""
     shape = (16, 16, 3) if quick else (32, 32, 3)
     params, grad = update_arrays(shape)
-    opts = {"adam": optax.adam(1e-2, b1=B1, b2=B2),
-            "bilateral_adam": ob.bilateral_adam(1e-2),
-            "prefilter + postfilter": ob.bilateral_adam(1e-2, prefilter=True),
-            "memoryless postfilter": optax.chain(ob.postfilter(0.0, 0.0),
-                                                 optax.scale_by_learning_rate(1e-2))}
+    opts = {
+        "adam": optax.adam(1e-2, b1=B1, b2=B2),
+        "bilateral_adam": ob.bilateral_adam(1e-2),
+        "prefilter + postfilter": ob.bilateral_adam(1e-2, prefilter=True),
+        "memoryless postfilter": optax.chain(
+            ob.postfilter(0.0, 0.0), optax.scale_by_learning_rate(1e-2)
+        ),
+    }
     rows = []
     for name, opt in opts.items():
         state = opt.init(params)
-        upd, state = opt.update(grad, state, params)      # the first call compiles
+        upd, state = opt.update(grad, state, params)  # the first call compiles
         jax.block_until_ready(upd)
         times = []
         with common.CompileCounter() as compiles:
@@ -636,14 +818,23 @@ def eager_updates(quick: bool, calls: int = 7) -> list[dict]:
                 jax.block_until_ready(upd)
                 times.append(time.perf_counter() - t0)
         ms = 1e3 * float(np.median(times))
-        rows.append({"grid": "x".join(map(str, shape)), "method": name, "calls": calls,
-                     "eager ms (median)": ms, "eager ms (max)": 1e3 * max(times),
-                     "compilations": compiles.count, "limit ms": EAGER_LIMIT_MS,
-                     "met": bool(ms <= EAGER_LIMIT_MS and compiles.count == 0)})
+        rows.append(
+            {
+                "grid": "x".join(map(str, shape)),
+                "method": name,
+                "calls": calls,
+                "eager ms (median)": ms,
+                "eager ms (max)": 1e3 * max(times),
+                "compilations": compiles.count,
+                "limit ms": EAGER_LIMIT_MS,
+                "met": bool(ms <= EAGER_LIMIT_MS and compiles.count == 0),
+            }
+        )
     return rows
 
 
 # --------------------------------------------------------------------------- targets
+
 
 def targets(overhead_data: dict) -> list[dict]:
     """The issue's performance targets, checked against this run's overhead section.
@@ -661,26 +852,50 @@ def targets(overhead_data: dict) -> list[dict]:
     def add(name, value, limit, unit=""):
         if value is None:
             return
-        rows.append({"target": name, "measured": value, "limit": limit, "unit": unit,
-                     "met": bool(value <= limit)})
+        rows.append(
+            {
+                "target": name,
+                "measured": value,
+                "limit": limit,
+                "unit": unit,
+                "met": bool(value <= limit),
+            }
+        )
 
     for grid, limit in (("texture 512x512x3", 20.0), ("volume 64^3x1", 30.0)):
         r = upd.get((grid, "ours F=5 separable"))
-        add(f"separable F=5 update / adam update, {grid}",
-            r and r.get("x adam (paired)", r["x adam (median)"]), limit, "x")
+        add(
+            f"separable F=5 update / adam update, {grid}",
+            r and r.get("x adam (paired)", r["x adam (median)"]),
+            limit,
+            "x",
+        )
     for grid, n in (("texture 512x512x3", 2), ("volume 64^3x1", 3)):
         for f in (3, 5):
-            full, sep = upd.get((grid, f"ours F={f} full")), upd.get((grid, f"ours F={f} separable"))
+            full, sep = (
+                upd.get((grid, f"ours F={f} full")),
+                upd.get((grid, f"ours F={f} separable")),
+            )
             if full and sep:
-                add(f"full / separable update, F={f}, {grid}",
+                add(
+                    f"full / separable update, F={f}, {grid}",
                     full.get("x separable (paired)", full["ms (median)"] / sep["ms (median)"]),
-                    1.5 * 5 ** n / (5 * n), "x")
-    tex = {r["method"]: r for r in overhead_data["texture"]
-           if r.get("step", TEXTURE_STEP_KINDS[0]) == TEXTURE_STEP_KINDS[0]}
+                    1.5 * 5**n / (5 * n),
+                    "x",
+                )
+    tex = {
+        r["method"]: r
+        for r in overhead_data["texture"]
+        if r.get("step", TEXTURE_STEP_KINDS[0]) == TEXTURE_STEP_KINDS[0]
+    }
     if "Ours (F = 5)" in tex:
         r = tex["Ours (F = 5)"]
-        add("texture experiment per-iteration overhead, F=5",
-            r.get("% vs Adam (paired)", r["% vs Adam"]), 10.0, "%")
+        add(
+            "texture experiment per-iteration overhead, F=5",
+            r.get("% vs Adam (paired)", r["% vs Adam"]),
+            10.0,
+            "%",
+        )
     return rows
 
 
@@ -701,9 +916,19 @@ def aggregate_targets(per_process: Sequence[Sequence[Mapping]]) -> list[dict]:
         v = values[name]
         limit, unit = info[name]
         med = float(np.median(v))
-        out.append({"target": name, "measured": med, "min": float(min(v)), "max": float(max(v)),
-                    "limit": limit, "unit": unit, "met": bool(med <= limit),
-                    "met in": f"{sum(x <= limit for x in v)}/{len(v)}", "per process": v})
+        out.append(
+            {
+                "target": name,
+                "measured": med,
+                "min": float(min(v)),
+                "max": float(max(v)),
+                "limit": limit,
+                "unit": unit,
+                "met": bool(med <= limit),
+                "met in": f"{sum(x <= limit for x in v)}/{len(v)}",
+                "per process": v,
+            }
+        )
     return out
 
 
@@ -724,8 +949,12 @@ def repeated_targets(out: pathlib.Path, quick: bool, processes: int) -> list[dic
     for i in tqdm(range(processes), desc="target processes"):
         d = out / "processes" / str(i)
         cmd = [sys.executable, "-m", "experiments.benchmark", "--worker", "--out", str(d)]
-        subprocess.run(cmd + (["--quick"] if quick else []), check=True, env=env,
-                       cwd=pathlib.Path(__file__).resolve().parent.parent)
+        subprocess.run(
+            cmd + (["--quick"] if quick else []),
+            check=True,
+            env=env,
+            cwd=pathlib.Path(__file__).resolve().parent.parent,
+        )
         per_process.append(json.loads((d / "measurements.json").read_text())["targets"])
     return aggregate_targets(per_process)
 
@@ -737,17 +966,29 @@ def _targets_md(rows: Sequence[Mapping]) -> str:
 
 # --------------------------------------------------------------------------- main
 
+
 def main(argv: Sequence[str] | None = None) -> dict:
     def extra(p):
-        p.add_argument("--only", default=",".join(SECTIONS),
-                       help=f"comma-separated sections to run, of {SECTIONS}")
-        p.add_argument("--processes", type=int, default=1,
-                       help="check the targets on the median over this many fresh processes "
-                            "(each timing everything side by side); 1: this process's overhead "
-                            "section")
-        p.add_argument("--worker", action="store_true",
-                       help="internal: measure the targets' inputs once, write "
-                            "measurements.json to --out and exit")
+        p.add_argument(
+            "--only",
+            default=",".join(SECTIONS),
+            help=f"comma-separated sections to run, of {SECTIONS}",
+        )
+        p.add_argument(
+            "--processes",
+            type=int,
+            default=1,
+            help="check the targets on the median over this many fresh processes "
+            "(each timing everything side by side); 1: this process's overhead "
+            "section",
+        )
+        p.add_argument(
+            "--worker",
+            action="store_true",
+            help="internal: measure the targets' inputs once, write "
+            "measurements.json to --out and exit",
+        )
+
     args = common.parse_args("optax_bilateral benchmarks", "results/bench", argv, extra)
     quick = args.quick or common.quick_from_env()
     if args.processes < 1:
@@ -766,23 +1007,36 @@ def main(argv: Sequence[str] | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     info = machine()
     t0 = time.perf_counter()
-    runners = {"overhead": overhead, "accuracy": accuracy, "scaling": scaling,
-               "compile": compile_times}
+    runners = {
+        "overhead": overhead,
+        "accuracy": accuracy,
+        "scaling": scaling,
+        "compile": compile_times,
+    }
     results = {}
     for s in sorted(only, key=_ORDER.index):
         results[s] = runners[s](out, quick)
     info["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     info["seconds"] = time.perf_counter() - t0
-    info["command"] = "python -m experiments.benchmark" + (" --quick" if quick else "") + (
-        f" --only {args.only}" if args.only != ",".join(SECTIONS) else "") + (
-        f" --processes {args.processes}" if args.processes > 1 else "")
-    md = [f"# Benchmarks ({'quick: not meaningful' if quick else 'full'})", "",
-          "Machine: " + ", ".join(f"{k}={v}" for k, v in info.items()), ""]
+    info["command"] = (
+        "python -m experiments.benchmark"
+        + (" --quick" if quick else "")
+        + (f" --only {args.only}" if args.only != ",".join(SECTIONS) else "")
+        + (f" --processes {args.processes}" if args.processes > 1 else "")
+    )
+    md = [
+        f"# Benchmarks ({'quick: not meaningful' if quick else 'full'})",
+        "",
+        "Machine: " + ", ".join(f"{k}={v}" for k, v in info.items()),
+        "",
+    ]
     if "overhead" in results:
         if args.processes > 1:
             checked = repeated_targets(out, quick, args.processes)
-            note = (f"Median over {args.processes} fresh processes, each timing everything "
-                    "side by side (`--processes`); `met in`: processes where the target held.")
+            note = (
+                f"Median over {args.processes} fresh processes, each timing everything "
+                "side by side (`--processes`); `met in`: processes where the target held."
+            )
         else:
             checked = targets(results["overhead"]["data"])
             note = "From this process's overhead section (one process; see `--processes`)."

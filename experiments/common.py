@@ -32,7 +32,8 @@ import math
 import os
 import pathlib
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, ClassVar
 
 import jax
 import numpy as np
@@ -41,21 +42,34 @@ QUICK_ENV = "OPTAX_BILATERAL_QUICK"
 
 
 def quick_from_env() -> bool:
-    """True when ``OPTAX_BILATERAL_QUICK`` is set to a non-empty value other than ``0`` (tests set it)."""
+    """True when ``OPTAX_BILATERAL_QUICK`` is set to a non-empty value other than ``0``
+    (tests set it)."""
     return os.environ.get(QUICK_ENV, "") not in ("", "0")
 
 
-def parse_args(description: str, default_out: str, argv: Sequence[str] | None = None,
-               extra: Callable[[argparse.ArgumentParser], None] | None = None) -> argparse.Namespace:
-    """Common command line: ``--quick`` (also implied by ``OPTAX_BILATERAL_QUICK=1``) and ``--out DIR``.
+def parse_args(
+    description: str,
+    default_out: str,
+    argv: Sequence[str] | None = None,
+    extra: Callable[[argparse.ArgumentParser], None] | None = None,
+) -> argparse.Namespace:
+    """Common command line: ``--quick`` (also implied by ``OPTAX_BILATERAL_QUICK=1``) and
+    ``--out DIR``.
 
     ``extra(parser)`` may add experiment-specific options. ``args.out`` is a ``pathlib.Path``.
     """
     parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--quick", action="store_true",
-                        help=f"small, fast setting (also set by {QUICK_ENV}=1); used by the tests")
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path(default_out),
-                        help=f"output directory (default: {default_out})")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"small, fast setting (also set by {QUICK_ENV}=1); used by the tests",
+    )
+    parser.add_argument(
+        "--out",
+        type=pathlib.Path,
+        default=pathlib.Path(default_out),
+        help=f"output directory (default: {default_out})",
+    )
     if extra is not None:
         extra(parser)
     args = parser.parse_args(argv)
@@ -148,12 +162,20 @@ class Trace:
         return self.rebased_wall_time
 
 
-def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any]]], carry: Any,
-               iterations: int, *, evaluate: Callable[[Any], Mapping[str, Any]] | None = None,
-               record_every: int = 1, evaluate_every: int | None = None,
-               hyperparameters: Mapping[str, Any] | None = None,
-               progress: bool = True, first_iteration: int = 0,
-               time_budget: float | None = None) -> Trace:
+def run_method(
+    name: str,
+    step: Callable[[Any, int], tuple[Any, Mapping[str, Any]]],
+    carry: Any,
+    iterations: int,
+    *,
+    evaluate: Callable[[Any], Mapping[str, Any]] | None = None,
+    record_every: int = 1,
+    evaluate_every: int | None = None,
+    hyperparameters: Mapping[str, Any] | None = None,
+    progress: bool = True,
+    first_iteration: int = 0,
+    time_budget: float | None = None,
+) -> Trace:
     """Runs ``carry, aux = step(carry, i)`` for ``i = first_iteration ..`` and records metrics.
 
     Args:
@@ -180,10 +202,11 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
     if not isinstance(record_every, int) or record_every < 1:
         raise ValueError(f"record_every must be a positive int, got {record_every!r}")
     evaluate_every = record_every if evaluate_every is None else evaluate_every
-    if (not isinstance(evaluate_every, int) or evaluate_every < 1
-            or evaluate_every % record_every):
-        raise ValueError(f"evaluate_every must be a positive multiple of record_every="
-                         f"{record_every}, got {evaluate_every!r}")
+    if not isinstance(evaluate_every, int) or evaluate_every < 1 or evaluate_every % record_every:
+        raise ValueError(
+            f"evaluate_every must be a positive multiple of record_every="
+            f"{record_every}, got {evaluate_every!r}"
+        )
     step_seconds = np.zeros(iterations)
     records: dict[str, list[float]] = {}
     rec_iter, rec_time = [], []
@@ -198,7 +221,7 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
         elapsed += dt
         last = i == iterations - 1
         if time_budget is not None and i >= 1:
-            compile_extra = max(step_seconds[0] - float(np.median(step_seconds[1:i + 1])), 0.0)
+            compile_extra = max(step_seconds[0] - float(np.median(step_seconds[1 : i + 1])), 0.0)
             last = last or elapsed - compile_extra >= time_budget
         if (i + 1) % record_every == 0 or last:
             values = {k: float(v) for k, v in dict(aux).items()}
@@ -214,14 +237,23 @@ def run_method(name: str, step: Callable[[Any, int], tuple[Any, Mapping[str, Any
         if last:
             break
     bar.close()
-    return Trace(name=name, hyperparameters=dict(hyperparameters or {}),
-                 iterations=np.asarray(rec_iter), wall_time=np.asarray(rec_time),
-                 metrics={k: np.asarray(v) for k, v in records.items()},
-                 step_seconds=step_seconds[:i + 1], final=carry)
+    return Trace(
+        name=name,
+        hyperparameters=dict(hyperparameters or {}),
+        iterations=np.asarray(rec_iter),
+        wall_time=np.asarray(rec_time),
+        metrics={k: np.asarray(v) for k, v in records.items()},
+        step_seconds=step_seconds[: i + 1],
+        final=carry,
+    )
 
 
-def time_steps_interleaved(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 7,
-                           first_iteration: int = 0, inner: int = 1) -> dict[str, float]:
+def time_steps_interleaved(
+    steps: Mapping[str, tuple[Callable, Any]],
+    rounds: int = 7,
+    first_iteration: int = 0,
+    inner: int = 1,
+) -> dict[str, float]:
     """Median seconds per step of each ``step(carry, i)``, timed in alternation
     (:func:`time_steps_samples`, whose rounds these are the medians of)."""
     samples = time_steps_samples(steps, rounds, first_iteration, inner)
@@ -234,13 +266,19 @@ def paired_ratio(samples: Mapping[Any, Sequence[float]], a, b) -> float:
     Less noisy than the ratio of the two medians when the load drifts between rounds."""
     x, y = np.asarray(samples[a], float), np.asarray(samples[b], float)
     if x.shape != y.shape or x.size == 0:
-        raise ValueError(f"paired_ratio needs the same non-zero number of rounds for {a!r} "
-                         f"and {b!r}, got {x.size} and {y.size}")
+        raise ValueError(
+            f"paired_ratio needs the same non-zero number of rounds for {a!r} "
+            f"and {b!r}, got {x.size} and {y.size}"
+        )
     return float(np.median(x / y))
 
 
-def time_steps_samples(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 7,
-                       first_iteration: int = 0, inner: int = 1) -> dict[str, list[float]]:
+def time_steps_samples(
+    steps: Mapping[str, tuple[Callable, Any]],
+    rounds: int = 7,
+    first_iteration: int = 0,
+    inner: int = 1,
+) -> dict[str, list[float]]:
     """Seconds per step of each ``step(carry, i)`` in every round, timed in alternation.
 
     Round ``r`` runs every step ``inner`` times in a row, in turn, on its own evolving
@@ -258,7 +296,7 @@ def time_steps_samples(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 
     times: dict[str, list[float]] = {k: [] for k in steps}
     names = list(steps)
     for r in range(rounds):
-        for k in names[r % len(names):] + names[:r % len(names)]:
+        for k in names[r % len(names) :] + names[: r % len(names)]:
             fn = steps[k][0]
             t0 = time.perf_counter()
             for j in range(inner):
@@ -268,22 +306,30 @@ def time_steps_samples(steps: Mapping[str, tuple[Callable, Any]], rounds: int = 
     return times
 
 
-def concat_traces(first: Trace, second: Trace, name: str | None = None,
-                  hyperparameters: Mapping[str, Any] | None = None) -> Trace:
+def concat_traces(
+    first: Trace,
+    second: Trace,
+    name: str | None = None,
+    hyperparameters: Mapping[str, Any] | None = None,
+) -> Trace:
     """``second`` (run with ``first_iteration`` = the end of ``first``) appended to ``first``."""
     keys = set(first.metrics) | set(second.metrics)
 
     def get(tr, k):
         return tr.metrics.get(k, np.full(len(tr.iterations), np.nan))
 
-    return Trace(name=name or first.name,
-                 hyperparameters=dict(hyperparameters if hyperparameters is not None
-                                      else first.hyperparameters),
-                 iterations=np.concatenate([first.iterations, second.iterations]),
-                 wall_time=np.concatenate([first.wall_time, first.wall_time[-1] + second.wall_time]),
-                 metrics={k: np.concatenate([get(first, k), get(second, k)]) for k in keys},
-                 step_seconds=np.concatenate([first.step_seconds, second.step_seconds]),
-                 final=second.final, timed_seconds_per_iteration=first.timed_seconds_per_iteration)
+    return Trace(
+        name=name or first.name,
+        hyperparameters=dict(
+            hyperparameters if hyperparameters is not None else first.hyperparameters
+        ),
+        iterations=np.concatenate([first.iterations, second.iterations]),
+        wall_time=np.concatenate([first.wall_time, first.wall_time[-1] + second.wall_time]),
+        metrics={k: np.concatenate([get(first, k), get(second, k)]) for k in keys},
+        step_seconds=np.concatenate([first.step_seconds, second.step_seconds]),
+        final=second.final,
+        timed_seconds_per_iteration=first.timed_seconds_per_iteration,
+    )
 
 
 def summary_entry(trace: Trace, metric_keys: Mapping[str, str] | None = None) -> dict:
@@ -311,7 +357,9 @@ def best_trace(traces: Sequence[Trace], metric: str) -> Trace:
     return min(traces, key=lambda t: (math.isnan(t.final_metric(metric)), t.final_metric(metric)))
 
 
-def write_summary(out_dir: str | os.PathLike, methods: Mapping[str, dict], **extra: Any) -> pathlib.Path:
+def write_summary(
+    out_dir: str | os.PathLike, methods: Mapping[str, dict], **extra: Any
+) -> pathlib.Path:
     """Writes ``{"methods": methods, **extra}`` to ``out_dir/summary.json``; returns the path."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -320,8 +368,9 @@ def write_summary(out_dir: str | os.PathLike, methods: Mapping[str, dict], **ext
     return path
 
 
-def markdown_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None,
-                   floatfmt: str = ".4g") -> str:
+def markdown_table(
+    rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None, floatfmt: str = ".4g"
+) -> str:
     """A GitHub Markdown table; ``columns`` defaults to the keys of the first row."""
     if not rows:
         return ""
@@ -337,11 +386,19 @@ def markdown_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | N
     return "\n".join(lines)
 
 
-def plot_curves(traces: Mapping[str, Trace], metric: str, path: str | os.PathLike, *,
-                x: str = "iteration", log_y: bool = True, title: str | None = None,
-                ylabel: str | None = None) -> pathlib.Path:
+def plot_curves(
+    traces: Mapping[str, Trace],
+    metric: str,
+    path: str | os.PathLike,
+    *,
+    x: str = "iteration",
+    log_y: bool = True,
+    title: str | None = None,
+    ylabel: str | None = None,
+) -> pathlib.Path:
     """One line per trace of ``metric`` against ``x`` ("iteration" or "time"); saves a PNG."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -358,9 +415,13 @@ def plot_curves(traces: Mapping[str, Trace], metric: str, path: str | os.PathLik
         keep = np.isfinite(ys)
         ax.plot(xs[keep], ys[keep], label=label, lw=1.4, marker="." if keep.sum() < 30 else None)
     timed = any(t.timed_seconds_per_iteration is not None for t in traces.values())
-    ax.set_xlabel("iteration" if x == "iteration" else
-                  "seconds (iterations x interleaved step time)" if timed else
-                  "wall-clock seconds (steps only, no compile)")
+    ax.set_xlabel(
+        "iteration"
+        if x == "iteration"
+        else "seconds (iterations x interleaved step time)"
+        if timed
+        else "wall-clock seconds (steps only, no compile)"
+    )
     ax.set_ylabel(ylabel or metric)
     if log_y:
         ax.set_yscale("log")
@@ -373,12 +434,18 @@ def plot_curves(traces: Mapping[str, Trace], metric: str, path: str | os.PathLik
     return path
 
 
-def plot_all_curves(traces: Mapping[str, Trace], out_dir: str | os.PathLike,
-                    metrics: Sequence[str] = ("loss", "param_error")) -> list[pathlib.Path]:
+def plot_all_curves(
+    traces: Mapping[str, Trace],
+    out_dir: str | os.PathLike,
+    metrics: Sequence[str] = ("loss", "param_error"),
+) -> list[pathlib.Path]:
     """``{metric}_vs_{iteration,time}.png`` for every metric; returns the paths."""
     out = pathlib.Path(out_dir)
-    return [plot_curves(traces, m, out / f"{m}_vs_{x}.png", x=x)
-            for m in metrics for x in ("iteration", "time")]
+    return [
+        plot_curves(traces, m, out / f"{m}_vs_{x}.png", x=x)
+        for m in metrics
+        for x in ("iteration", "time")
+    ]
 
 
 def jsonable(obj: Any) -> Any:
@@ -423,11 +490,11 @@ class CompileCounter:
     program handed to XLA), so cache hits do not count.
     """
 
-    _active: list = []
+    _active: ClassVar[list] = []
     _registered = False
     EVENT = "/jax/core/compile/backend_compile_duration"
 
-    def __enter__(self) -> "CompileCounter":
+    def __enter__(self) -> CompileCounter:
         if not CompileCounter._registered:
             jax.monitoring.register_event_duration_secs_listener(CompileCounter._listen)
             CompileCounter._registered = True
@@ -443,4 +510,3 @@ class CompileCounter:
         if event == CompileCounter.EVENT:
             for counter in CompileCounter._active:
                 counter.count += 1
-

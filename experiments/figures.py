@@ -65,8 +65,9 @@ def texture(out: pathlib.Path, quick: bool) -> dict:
     target = np.asarray(prob.target)
     finals, errors = {}, {}
     for name, opt in opts.items():
-        trace = common.run_method(name, prob.step_fn(opt), (prob.init, opt.init(prob.init)),
-                                  cfg.iterations)
+        trace = common.run_method(
+            name, prob.step_fn(opt), (prob.init, opt.init(prob.init)), cfg.iterations
+        )
         finals[name] = np.asarray(trace.final[0])
         errors[name] = float(np.mean(np.abs(finals[name] - target)))
         print(f"{name}: mean |alpha - target| after {cfg.iterations} iterations {errors[name]:.4f}")
@@ -74,15 +75,18 @@ def texture(out: pathlib.Path, quick: bool) -> dict:
     fig, axes = plt.subplots(1, 3, figsize=(7.5, 2.7), dpi=72)
     norm = LogNorm(tex.ALPHA_MIN, tex.ALPHA_MAX)
     panels = [("target roughness", target)] + [
-        (f"{name}: error {errors[name]:.4f}", finals[name]) for name in opts]
+        (f"{name}: error {errors[name]:.4f}", finals[name]) for name in opts
+    ]
     for ax, (title, img) in zip(axes, panels):
         ax.imshow(img, cmap="viridis", norm=norm, interpolation="lanczos")
         ax.set_title(title, fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle(f"{cfg.size}² texture, {cfg.spp} spp, {cfg.iterations} iterations "
-                 f"(start error {float(np.mean(np.abs(np.asarray(prob.init) - target))):.4f})",
-                 fontsize=9)
+    fig.suptitle(
+        f"{cfg.size}² texture, {cfg.spp} spp, {cfg.iterations} iterations "
+        f"(start error {float(np.mean(np.abs(np.asarray(prob.init) - target))):.4f})",
+        fontsize=9,
+    )
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
     path = out / "texture_recovery.png"
@@ -139,17 +143,29 @@ def speed_accuracy(out: pathlib.Path, source: pathlib.Path) -> pathlib.Path:
     adam = [_final_error(r) for r in runs if r["run"] == "adam"]
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 3.4), dpi=90)
-    styles = {("separable", "float32"): ("C0", "o", "-"), ("full", "float32"): ("C1", "s", "-"),
-              ("separable", "bfloat16 (m)"): ("C0", "x", ":"),
-              ("full", "bfloat16 (m)"): ("C1", "+", ":")}
+    styles = {
+        ("separable", "float32"): ("C0", "o", "-"),
+        ("full", "float32"): ("C1", "s", "-"),
+        ("separable", "bfloat16 (m)"): ("C0", "x", ":"),
+        ("full", "bfloat16 (m)"): ("C1", "+", ":"),
+    }
     for (mode, dtype), (color, marker, line) in styles.items():
-        sel = sorted((int(r["F"]), _final_error(r)) for r in runs
-                     if r["mode"] == mode and r["moment dtype"] == dtype)
+        sel = sorted(
+            (int(r["F"]), _final_error(r))
+            for r in runs
+            if r["mode"] == mode and r["moment dtype"] == dtype
+        )
         if not sel:
             continue
         xs = [ms[(f, mode, "float32")] for f, _ in sel]
-        ax.plot(xs, [e for _, e in sel], color=color, marker=marker, linestyle=line,
-                label=f"{mode}, {'bfloat16' if 'bfloat16' in dtype else 'float32'} m")
+        ax.plot(
+            xs,
+            [e for _, e in sel],
+            color=color,
+            marker=marker,
+            linestyle=line,
+            label=f"{mode}, {'bfloat16' if 'bfloat16' in dtype else 'float32'} m",
+        )
         if dtype == "float32":
             for x, (f, e) in zip(xs, sel):
                 ax.annotate(f"F={f}", (x, e), textcoords="offset points", xytext=(3, 3), fontsize=7)
@@ -175,8 +191,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("figure", choices=("texture", "speed_accuracy"))
     parser.add_argument("--out", type=pathlib.Path, default=ROOT / "results" / "figures")
     parser.add_argument("--quick", action="store_true", help="texture: the 64² test size")
-    parser.add_argument("--source", type=pathlib.Path, default=ROOT / "BENCHMARKS.md",
-                        help="speed_accuracy: BENCHMARKS.md or an accuracy.json")
+    parser.add_argument(
+        "--source",
+        type=pathlib.Path,
+        default=ROOT / "BENCHMARKS.md",
+        help="speed_accuracy: BENCHMARKS.md or an accuracy.json",
+    )
     args = parser.parse_args(argv)
     if args.figure == "texture":
         texture(args.out, args.quick or common.quick_from_env())

@@ -20,7 +20,8 @@ import subprocess
 import sys
 import textwrap
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 import optax
@@ -56,22 +57,29 @@ def probe(variant: str = VARIANT, timeout: float = 300.0) -> str | None:
     else a one-line reason. A separate process because an unusable libLLVM aborts the
     process that renders (no Python exception to catch)."""
     try:
-        run = subprocess.run([sys.executable, "-c", _PROBE.format(variant=variant)],
-                             capture_output=True, text=True, timeout=timeout)
+        run = subprocess.run(
+            [sys.executable, "-c", _PROBE.format(variant=variant)],
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
     except subprocess.TimeoutExpired:
         return f"rendering a 16x16 scene with {variant} took over {timeout:.0f} s"
     if run.returncode == 0:
         return None
     lines = [ln.strip() for ln in (run.stderr + run.stdout).splitlines() if ln.strip()]
     # An aborting libLLVM says why on its "LLVM ERROR" line; a Python error on its last line.
-    hint = next((ln for ln in lines if ln.startswith("LLVM ERROR")),
-                lines[-1] if lines else "no output")
-    return (f"Mitsuba {variant} cannot render a 16x16 scene here (exit {run.returncode}): "
-            f"{hint[:300]}")
+    hint = next(
+        (ln for ln in lines if ln.startswith("LLVM ERROR")), lines[-1] if lines else "no output"
+    )
+    return (
+        f"Mitsuba {variant} cannot render a 16x16 scene here (exit {run.returncode}): {hint[:300]}"
+    )
 
 
 def setup(variant: str = VARIANT):
-    """Imports Mitsuba and Dr.Jit, sets ``variant`` and checks that it can render; returns (mi, dr)."""
+    """Imports Mitsuba and Dr.Jit, sets ``variant`` and checks that it can render; returns
+    (mi, dr)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -112,14 +120,19 @@ def learning_rate(lr: float, decay: str, iterations: int):
         return optax.cosine_decay_schedule(lr, iterations)
     if decay == "hold-cosine":
         hold = (2 * iterations) // 3
-        return optax.join_schedules([optax.constant_schedule(lr),
-                                     optax.cosine_decay_schedule(lr, max(iterations - hold, 1))],
-                                    [hold])
+        return optax.join_schedules(
+            [
+                optax.constant_schedule(lr),
+                optax.cosine_decay_schedule(lr, max(iterations - hold, 1)),
+            ],
+            [hold],
+        )
     raise ValueError(f"decay must be one of {DECAYS}, got {decay!r}")
 
 
-def make_transform(method: str, hp: Mapping[str, Any], iterations: int
-                   ) -> optax.GradientTransformation:
+def make_transform(
+    method: str, hp: Mapping[str, Any], iterations: int
+) -> optax.GradientTransformation:
     """The method's optimizer from its hyperparameters (see each experiment's table).
 
     ``hp`` holds ``learning_rate`` and ``decay`` and, for Adam, ``b1``; for the
@@ -150,13 +163,26 @@ def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:g}"
     if isinstance(v, Mapping):
-        return "{" + ", ".join(f"{str(k).split('.')[-2] if '.' in str(k) else k}: {_fmt(x)}"
-                               for k, x in v.items()) + "}"
+        return (
+            "{"
+            + ", ".join(
+                f"{str(k).split('.')[-2] if '.' in str(k) else k}: {_fmt(x)}" for k, x in v.items()
+            )
+            + "}"
+        )
     return str(v)
 
 
-def run_method(problem, name: str, transform, iterations: int, *, hyperparameters: dict,
-               record_every: int = 1, progress: bool = True) -> common.Trace:
+def run_method(
+    problem,
+    name: str,
+    transform,
+    iterations: int,
+    *,
+    hyperparameters: dict,
+    record_every: int = 1,
+    progress: bool = True,
+) -> common.Trace:
     """One optimisation from ``problem.init`` with :class:`SceneOptimizer`; returns the trace.
 
     The step is render + backward + update (timed); the final values are copied into
@@ -175,17 +201,32 @@ def run_method(problem, name: str, transform, iterations: int, *, hyperparameter
         dr.sync_thread()
         return state, {"loss": loss, **problem.param_errors(opt.values())}
 
-    trace = common.run_method(name, step, opt.init(), iterations, record_every=record_every,
-                              evaluate=lambda _: problem.evaluate(opt.values(), name),
-                              evaluate_every=iterations, hyperparameters=hyperparameters,
-                              progress=progress)
+    trace = common.run_method(
+        name,
+        step,
+        opt.init(),
+        iterations,
+        record_every=record_every,
+        evaluate=lambda _: problem.evaluate(opt.values(), name),
+        evaluate_every=iterations,
+        hyperparameters=hyperparameters,
+        progress=progress,
+    )
     trace.final = {k: np.array(v) for k, v in opt.values().items()}
     return trace
 
 
-def run_sweeps(prob, sweeps: Mapping[str, list[dict]], hyperparameters: Callable[[str, dict], dict],
-               swept: tuple[str, ...], *, iterations: int, record_every: int, timing_rounds: int,
-               progress: bool = True):
+def run_sweeps(
+    prob,
+    sweeps: Mapping[str, list[dict]],
+    hyperparameters: Callable[[str, dict], dict],
+    swept: tuple[str, ...],
+    *,
+    iterations: int,
+    record_every: int,
+    timing_rounds: int,
+    progress: bool = True,
+):
     """Every method's sweep on ``prob``, then the best entries' steps timed interleaved.
 
     ``auto`` is skipped, with the reason, while the library lacks it. Returns
@@ -207,20 +248,34 @@ def run_sweeps(prob, sweeps: Mapping[str, list[dict]], hyperparameters: Callable
             hp = hyperparameters(method, entry)
             name = run_id(method, hp, swept)
             transforms[name] = make_transform(method, hp, iterations)
-            traces[method].append(run_method(prob, name, transforms[name], iterations,
-                                             hyperparameters=hp, record_every=record_every,
-                                             progress=progress))
+            traces[method].append(
+                run_method(
+                    prob,
+                    name,
+                    transforms[name],
+                    iterations,
+                    hyperparameters=hp,
+                    record_every=record_every,
+                    progress=progress,
+                )
+            )
     # The same transform objects as the runs: their compiled updates are reused.
-    samples = time_interleaved(prob, {m: transforms[best(traces[m]).name] for m in methods},
-                               rounds=timing_rounds, warmup=1)
+    samples = time_interleaved(
+        prob, {m: transforms[best(traces[m]).name] for m in methods}, rounds=timing_rounds, warmup=1
+    )
     for m in methods:
         for tr in traces[m]:
             tr.timed_seconds_per_iteration = float(np.median(samples[m]["total"]))
     return traces, samples, skipped
 
 
-def time_interleaved(problem, transforms: Mapping[str, optax.GradientTransformation], rounds: int,
-                     warmup: int = 2, first_seed: int = 500_000) -> dict[str, dict[str, list[float]]]:
+def time_interleaved(
+    problem,
+    transforms: Mapping[str, optax.GradientTransformation],
+    rounds: int,
+    warmup: int = 2,
+    first_seed: int = 500_000,
+) -> dict[str, dict[str, list[float]]]:
     """Seconds per iteration of each method's render + backward, update, and their total.
 
     Every method runs its own optimisation from ``problem.init`` on ``problem``'s one
@@ -251,7 +306,7 @@ def time_interleaved(problem, transforms: Mapping[str, optax.GradientTransformat
     names = list(transforms)
     seed = first_seed
     for r in range(warmup + rounds):
-        for name in names[r % len(names):] + names[:r % len(names)]:
+        for name in names[r % len(names) :] + names[: r % len(names)]:
             opt, state, values = runs[name]
             opt.set_values(values)
             dr.sync_thread()
@@ -277,14 +332,23 @@ def timing_rows(samples: Mapping[str, Mapping[str, list[float]]], baseline: str)
     totals = {k: v["total"] for k, v in samples.items()}
     rows = []
     for name, s in samples.items():
-        render, update, jit, total = (1e3 * float(np.median(s[p]))
-                                      for p in ("render", "update", "jit", "total"))
-        rows.append({
-            "method": name, "render + backward ms": render, "update ms": update,
-            "of which jitted ms": jit, "total ms": total, "update share %": 100.0 * float(np.median(
-                np.asarray(s["update"]) / np.asarray(s["total"]))),
-            "total vs " + baseline + " %": 100.0 * (common.paired_ratio(totals, name, baseline) - 1.0),
-            "rounds": len(s["total"])})
+        render, update, jit, total = (
+            1e3 * float(np.median(s[p])) for p in ("render", "update", "jit", "total")
+        )
+        rows.append(
+            {
+                "method": name,
+                "render + backward ms": render,
+                "update ms": update,
+                "of which jitted ms": jit,
+                "total ms": total,
+                "update share %": 100.0
+                * float(np.median(np.asarray(s["update"]) / np.asarray(s["total"]))),
+                "total vs " + baseline + " %": 100.0
+                * (common.paired_ratio(totals, name, baseline) - 1.0),
+                "rounds": len(s["total"]),
+            }
+        )
     return rows
 
 
@@ -304,14 +368,16 @@ def best(traces: list[common.Trace]) -> common.Trace:
     return common.best_trace(traces, "param_error")
 
 
-def summary_methods(traces: Mapping[str, list[common.Trace]], metric_keys: Mapping[str, str]
-                    ) -> dict[str, dict]:
+def summary_methods(
+    traces: Mapping[str, list[common.Trace]], metric_keys: Mapping[str, str]
+) -> dict[str, dict]:
     """``summary.json``'s ``methods``: the best sweep entry per method, with every entry listed."""
+
     def entry(t):
         e = {"run": t.name, **common.summary_entry(t, metric_keys)}
         errors = t.metrics["param_error"]
         i = int(np.nanargmin(errors))
-        e["lowest_param_error"] = float(errors[i])            # a run that drifts up after it
+        e["lowest_param_error"] = float(errors[i])  # a run that drifts up after it
         e["lowest_param_error_iteration"] = int(t.iterations[i])
         return e
 
@@ -326,23 +392,45 @@ def time_budget(traces: Mapping[str, list[common.Trace]]) -> float:
     return min(float(best(trs).time_axis[-1]) for trs in traces.values())
 
 
-def write_tables(out, title: str, methods: Mapping[str, dict], budget: float,
-                 traces: Mapping[str, list[common.Trace]], extra_columns: Callable[[dict], dict],
-                 notes: str = "") -> str:
+def write_tables(
+    out,
+    title: str,
+    methods: Mapping[str, dict],
+    budget: float,
+    traces: Mapping[str, list[common.Trace]],
+    extra_columns: Callable[[dict], dict],
+    notes: str = "",
+) -> str:
     """``table.md``: the best run per method, then every sweep entry; returns the text."""
     rows = []
     for m, e in methods.items():
-        rows.append({"method": m, "best run": e["run"], "param error": e["final_param_error"],
-                     **extra_columns(e), "image loss": e["final_loss"],
-                     f"param error @ {budget:.1f} s": best(traces[m]).metric_at_time(
-                         "param_error", budget),
-                     "s/iter": e["seconds_per_iteration"]})
-    sweep_rows = [{"run": s["run"], "param error": s["final_param_error"],
-                   "lowest (iteration)": f"{s['lowest_param_error']:.4g} "
-                                         f"({s['lowest_param_error_iteration']})",
-                   "image loss": s["final_loss"]}
-                  for e in methods.values() for s in e["sweep"]]
-    text = (f"{title}\n\n{notes}{common.markdown_table(rows)}\n\nEvery sweep entry:\n\n"
-            f"{common.markdown_table(sweep_rows)}\n")
+        rows.append(
+            {
+                "method": m,
+                "best run": e["run"],
+                "param error": e["final_param_error"],
+                **extra_columns(e),
+                "image loss": e["final_loss"],
+                f"param error @ {budget:.1f} s": best(traces[m]).metric_at_time(
+                    "param_error", budget
+                ),
+                "s/iter": e["seconds_per_iteration"],
+            }
+        )
+    sweep_rows = [
+        {
+            "run": s["run"],
+            "param error": s["final_param_error"],
+            "lowest (iteration)": f"{s['lowest_param_error']:.4g} "
+            f"({s['lowest_param_error_iteration']})",
+            "image loss": s["final_loss"],
+        }
+        for e in methods.values()
+        for s in e["sweep"]
+    ]
+    text = (
+        f"{title}\n\n{notes}{common.markdown_table(rows)}\n\nEvery sweep entry:\n\n"
+        f"{common.markdown_table(sweep_rows)}\n"
+    )
     (out / "table.md").write_text(text)
     return text

@@ -55,58 +55,92 @@ from optax_bilateral.toy import texture as tex
 KEY = "plane.bsdf.alpha.data"
 ALPHA_MIN, ALPHA_MAX = tex.ALPHA_MIN, tex.ALPHA_MAX
 LOSS_EPS = tex.LOSS_EPS
-CAMERA_ELEVATION = 60.0      # degrees above the plane
+CAMERA_ELEVATION = 60.0  # degrees above the plane
 CAMERA_DISTANCE = 3.0
 CAMERA_FOV = 42.0
-REFERENCE_SEED = 1 << 20     # render seeds: iterations use 0, 1, ...; these stay clear of them
+REFERENCE_SEED = 1 << 20  # render seeds: iterations use 0, 1, ...; these stay clear of them
 EVAL_SEED = 1 << 21
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    texture_size: int         # roughness texture side, texels
-    image_size: int           # rendered image side, pixels
+    texture_size: int  # roughness texture side, texels
+    image_size: int  # rendered image side, pixels
     iterations: int
-    spp: int                  # samples per pixel per iteration
+    spp: int  # samples per pixel per iteration
     reference_spp: int
-    eval_spp: int             # final renders (image loss, figures)
-    env_height: int           # environment map rows (columns: twice as many)
+    eval_spp: int  # final renders (image loss, figures)
+    env_height: int  # environment map rows (columns: twice as many)
     init_alpha: float
-    levels: int               # F of the filtered methods
+    levels: int  # F of the filtered methods
     b1_filtered: float
     record_every: int
-    timing_rounds: int        # interleaved rounds behind seconds_per_iteration
-    sweeps: dict              # method -> list of swept hyperparameter dicts
+    timing_rounds: int  # interleaved rounds behind seconds_per_iteration
+    sweeps: dict  # method -> list of swept hyperparameter dicts
 
 
 def default_config(quick: bool = False) -> Config:
     """The issue's setting (256^2 texture, 128^2 image, spp 1, 300 iterations), or a test size."""
     if quick:
         one = dict(learning_rate=0.02, decay="cosine")
-        return Config(texture_size=32, image_size=32, iterations=6, spp=1, reference_spp=16,
-                      eval_spp=4, env_height=32, init_alpha=0.1, levels=3, b1_filtered=0.2,
-                      record_every=1, timing_rounds=1,
-                      sweeps={"adam": [dict(learning_rate=0.01, decay="cosine"),
-                                       dict(learning_rate=0.03, decay="constant")],
-                              "low-pass": [one], "bilateral": [dict(one, sigma_d=1.0)],
-                              "cross-bilateral": [dict(one, sigma_d=0.05)],
-                              "auto": [one]})
-    return Config(texture_size=256, image_size=128, iterations=300, spp=1, reference_spp=512,
-                  eval_spp=64, env_height=256, init_alpha=0.1, levels=5, b1_filtered=0.2,
-                  record_every=5, timing_rounds=12,
-                  sweeps={"adam": [dict(learning_rate=0.001, decay="constant"),
-                                   dict(learning_rate=0.003, decay="constant"),
-                                   dict(learning_rate=0.01, decay="constant"),
-                                   dict(learning_rate=0.003, decay="hold-cosine")],
-                          "low-pass": [dict(learning_rate=0.02, decay="hold-cosine")],
-                          "bilateral": [dict(learning_rate=0.02, decay="hold-cosine", sigma_d=s)
-                                        for s in (0.5, 2.0)],
-                          "cross-bilateral": [
-                              dict(learning_rate=0.02, decay=d, sigma_d=0.1)
-                              for d in ("constant", "cosine", "hold-cosine")] + [
-                              dict(learning_rate=0.02, decay=d, sigma_d=0.05)
-                              for d in ("constant", "hold-cosine")],
-                          "auto": [dict(learning_rate=0.02, decay="hold-cosine")]})
+        return Config(
+            texture_size=32,
+            image_size=32,
+            iterations=6,
+            spp=1,
+            reference_spp=16,
+            eval_spp=4,
+            env_height=32,
+            init_alpha=0.1,
+            levels=3,
+            b1_filtered=0.2,
+            record_every=1,
+            timing_rounds=1,
+            sweeps={
+                "adam": [
+                    dict(learning_rate=0.01, decay="cosine"),
+                    dict(learning_rate=0.03, decay="constant"),
+                ],
+                "low-pass": [one],
+                "bilateral": [dict(one, sigma_d=1.0)],
+                "cross-bilateral": [dict(one, sigma_d=0.05)],
+                "auto": [one],
+            },
+        )
+    return Config(
+        texture_size=256,
+        image_size=128,
+        iterations=300,
+        spp=1,
+        reference_spp=512,
+        eval_spp=64,
+        env_height=256,
+        init_alpha=0.1,
+        levels=5,
+        b1_filtered=0.2,
+        record_every=5,
+        timing_rounds=12,
+        sweeps={
+            "adam": [
+                dict(learning_rate=0.001, decay="constant"),
+                dict(learning_rate=0.003, decay="constant"),
+                dict(learning_rate=0.01, decay="constant"),
+                dict(learning_rate=0.003, decay="hold-cosine"),
+            ],
+            "low-pass": [dict(learning_rate=0.02, decay="hold-cosine")],
+            "bilateral": [
+                dict(learning_rate=0.02, decay="hold-cosine", sigma_d=s) for s in (0.5, 2.0)
+            ],
+            "cross-bilateral": [
+                dict(learning_rate=0.02, decay=d, sigma_d=0.1)
+                for d in ("constant", "cosine", "hold-cosine")
+            ]
+            + [
+                dict(learning_rate=0.02, decay=d, sigma_d=0.05) for d in ("constant", "hold-cosine")
+            ],
+            "auto": [dict(learning_rate=0.02, decay="hold-cosine")],
+        },
+    )
 
 
 SWEPT = ("learning_rate", "decay", "sigma_d")
@@ -116,8 +150,13 @@ def hyperparameters(method: str, entry: dict, cfg: Config) -> dict:
     """A sweep entry completed with the method's fixed settings."""
     if method == "adam":
         return dict(entry, b1=0.9, b2=0.999)
-    hp = dict(entry, b1=cfg.b1_filtered, b2=1 - (1 - cfg.b1_filtered) ** 2, levels=cfg.levels,
-              log_guide=method != "low-pass")
+    hp = dict(
+        entry,
+        b1=cfg.b1_filtered,
+        b2=1 - (1 - cfg.b1_filtered) ** 2,
+        levels=cfg.levels,
+        log_guide=method != "low-pass",
+    )
     if method == "low-pass":
         hp["sigma_d"] = math.inf
     if method == "auto":
@@ -127,6 +166,7 @@ def hyperparameters(method: str, entry: dict, cfg: Config) -> dict:
 
 
 # ----------------------------------------------------------------------------- scene
+
 
 def mirror_direction() -> np.ndarray:
     """The camera's mirror direction at the plane's centre (y up)."""
@@ -165,16 +205,34 @@ def scene_dict(alpha: np.ndarray, image_size: int, env: np.ndarray) -> dict:
     return {
         "type": "scene",
         "integrator": {"type": "prb", "max_depth": 3},
-        "sensor": {"type": "perspective", "fov": CAMERA_FOV,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=origin, target=[0, 0, 0],
-                                                              up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": image_size, "height": image_size,
-                            "rfilter": {"type": "box"}, "pixel_format": "rgb"}},
-        "plane": {"type": "rectangle",
-                  "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),   # normal +y
-                  "bsdf": {"type": "roughconductor", "distribution": "ggx", "material": "none",
-                           "alpha": {"type": "bitmap", "raw": True,
-                                     "data": mi.TensorXf(np.asarray(alpha, np.float32)[..., None])}}},
+        "sensor": {
+            "type": "perspective",
+            "fov": CAMERA_FOV,
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=origin, target=[0, 0, 0], up=[0, 1, 0]
+            ),
+            "film": {
+                "type": "hdrfilm",
+                "width": image_size,
+                "height": image_size,
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgb",
+            },
+        },
+        "plane": {
+            "type": "rectangle",
+            "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),  # normal +y
+            "bsdf": {
+                "type": "roughconductor",
+                "distribution": "ggx",
+                "material": "none",
+                "alpha": {
+                    "type": "bitmap",
+                    "raw": True,
+                    "data": mi.TensorXf(np.asarray(alpha, np.float32)[..., None]),
+                },
+            },
+        },
         "emitter": {"type": "envmap", "bitmap": mi.Bitmap(env)},
     }
 
@@ -190,8 +248,9 @@ class Problem:
         self.target_alpha = tex.target_roughness("camera", cfg.texture_size)
         self.target = {KEY: self.target_alpha[..., None]}
         self.init = {KEY: np.full_like(self.target[KEY], cfg.init_alpha)}
-        self.scene = mi.load_dict(scene_dict(self.target_alpha, cfg.image_size,
-                                             environment_map(cfg.env_height)))
+        self.scene = mi.load_dict(
+            scene_dict(self.target_alpha, cfg.image_size, environment_map(cfg.env_height))
+        )
         self.params = mi.traverse(self.scene)
         t0 = time.perf_counter()
         self.reference = mi.render(self.scene, spp=cfg.reference_spp, seed=REFERENCE_SEED)
@@ -212,8 +271,9 @@ class Problem:
     def loss(self, image):
         import drjit as dr
 
-        return dr.mean(dr.square(image - self.reference) / (dr.square(self.reference) + LOSS_EPS),
-                       axis=None)
+        return dr.mean(
+            dr.square(image - self.reference) / (dr.square(self.reference) + LOSS_EPS), axis=None
+        )
 
     def render_and_backward(self, i: int) -> float:
         import drjit as dr
@@ -271,11 +331,14 @@ class Problem:
         img = self.render_values(values, self.cfg.eval_spp, EVAL_SEED)
         self.images[run_id] = img
         ref = np.asarray(self.reference)
-        return {"image_loss": float(np.mean((img - ref) ** 2 / (ref ** 2 + LOSS_EPS)))}
+        return {"image_loss": float(np.mean((img - ref) ** 2 / (ref**2 + LOSS_EPS)))}
 
 
-METRIC_KEYS = {"final_param_error": "param_error", "final_loss": "image_loss",
-               "final_train_loss": "loss"}
+METRIC_KEYS = {
+    "final_param_error": "param_error",
+    "final_loss": "image_loss",
+    "final_train_loss": "loss",
+}
 
 
 def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
@@ -285,46 +348,79 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     prob = Problem(cfg)
     observed = prob.observed_fractions(20)
     traces, samples, skipped = mc.run_sweeps(
-        prob, cfg.sweeps, lambda m, e: hyperparameters(m, e, cfg), SWEPT, iterations=cfg.iterations,
-        record_every=cfg.record_every, timing_rounds=cfg.timing_rounds, progress=progress)
+        prob,
+        cfg.sweeps,
+        lambda m, e: hyperparameters(m, e, cfg),
+        SWEPT,
+        iterations=cfg.iterations,
+        record_every=cfg.record_every,
+        timing_rounds=cfg.timing_rounds,
+        progress=progress,
+    )
     methods = list(traces)
     summary_methods = mc.summary_methods(traces, METRIC_KEYS)
     best = {m: mc.best(traces[m]) for m in methods}
-    labels = {"loss": f"training loss ({cfg.spp}-spp render)",
-              "param_error": "param error: mean |alpha - target|"}
-    pngs = [common.plot_curves(best, m, out / f"{m}_vs_{x}.png", x=x, ylabel=labels[m],
-                               title=f"Mitsuba texture {cfg.texture_size}^2: {m} vs {x}")
-            for m in ("loss", "param_error") for x in ("iteration", "time")]
+    labels = {
+        "loss": f"training loss ({cfg.spp}-spp render)",
+        "param_error": "param error: mean |alpha - target|",
+    }
+    pngs = [
+        common.plot_curves(
+            best,
+            m,
+            out / f"{m}_vs_{x}.png",
+            x=x,
+            ylabel=labels[m],
+            title=f"Mitsuba texture {cfg.texture_size}^2: {m} vs {x}",
+        )
+        for m in ("loss", "param_error")
+        for x in ("iteration", "time")
+    ]
     pngs.append(plot_images(prob, best, out / "images.png"))
     budget = mc.time_budget(traces)
     initial = float(np.mean(np.abs(prob.init[KEY] - prob.target[KEY])))
-    title = (f"Mitsuba 3 texture recovery: {cfg.texture_size}^2 GGX roughness, {cfg.image_size}^2 "
-             f"image, prb, spp {cfg.spp}, {cfg.iterations} iterations (initial param error "
-             f"{initial:.4f}). Best entry of each sweep by final param error.")
-    notes = (f"Texels with a gradient: {100 * observed[0]:.1f}% per iteration, "
-             f"{100 * observed[1]:.2f}% within 20 iterations (spp {cfg.spp}).\n\n")
-    notes += (f"Skipped: {skipped}\n\n" if skipped else "")
+    title = (
+        f"Mitsuba 3 texture recovery: {cfg.texture_size}^2 GGX roughness, {cfg.image_size}^2 "
+        f"image, prb, spp {cfg.spp}, {cfg.iterations} iterations (initial param error "
+        f"{initial:.4f}). Best entry of each sweep by final param error."
+    )
+    notes = (
+        f"Texels with a gradient: {100 * observed[0]:.1f}% per iteration, "
+        f"{100 * observed[1]:.2f}% within 20 iterations (spp {cfg.spp}).\n\n"
+    )
+    notes += f"Skipped: {skipped}\n\n" if skipped else ""
     table = mc.write_tables(out, title, summary_methods, budget, traces, lambda e: {}, notes)
     total = time.perf_counter() - t_start
     common.write_summary(
-        out, summary_methods, skipped=skipped, pngs=[str(p) for p in pngs], total_seconds=total,
-        timing_ms={m: {p: 1e3 * float(np.median(v)) for p, v in samples[m].items()}
-                   for m in methods},
+        out,
+        summary_methods,
+        skipped=skipped,
+        pngs=[str(p) for p in pngs],
+        total_seconds=total,
+        timing_ms={
+            m: {p: 1e3 * float(np.median(v)) for p, v in samples[m].items()} for m in methods
+        },
         load_average=mc.load_average(),
-        setting={**dataclasses.asdict(cfg), "key": KEY, "initial_param_error": initial,
-                 "reference_seconds": prob.reference_seconds,
-                 "observed_texels_per_iteration": observed[0],
-                 "observed_texels_within_20_iterations": observed[1],
-                 "loss": "mean((I - I_ref)^2 / (I_ref^2 + 1e-2))",
-                 "final_loss": f"that loss of a {cfg.eval_spp}-spp render of the final texture",
-                 "final_train_loss": f"the loss of the last iteration's {cfg.spp}-spp render",
-                 "final_param_error": "mean |alpha - alpha_target| over texels"})
+        setting={
+            **dataclasses.asdict(cfg),
+            "key": KEY,
+            "initial_param_error": initial,
+            "reference_seconds": prob.reference_seconds,
+            "observed_texels_per_iteration": observed[0],
+            "observed_texels_within_20_iterations": observed[1],
+            "loss": "mean((I - I_ref)^2 / (I_ref^2 + 1e-2))",
+            "final_loss": f"that loss of a {cfg.eval_spp}-spp render of the final texture",
+            "final_train_loss": f"the loss of the last iteration's {cfg.spp}-spp render",
+            "final_param_error": "mean |alpha - alpha_target| over texels",
+        },
+    )
     return {"table": table, "total_seconds": total, "pngs": pngs, "methods": summary_methods}
 
 
 def plot_images(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
     """Reference, target and initial; per method its render, relative error, roughness and error."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
@@ -346,7 +442,7 @@ def plot_images(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
     for r, (method, tr) in enumerate(best.items(), start=1):
         alpha = tr.final[KEY][..., 0]
         img = prob.images[tr.name]
-        rel = np.mean(np.abs(img - ref) / np.sqrt(ref ** 2 + LOSS_EPS), axis=-1)
+        rel = np.mean(np.abs(img - ref) / np.sqrt(ref**2 + LOSS_EPS), axis=-1)
         axes[r, 0].imshow(mc.tone_map(img, lo, hi))
         axes[r, 0].set_title(f"{method}: render ({prob.cfg.eval_spp} spp)")
         axes[r, 1].imshow(rel, cmap="magma", vmin=0, vmax=0.5)
@@ -365,9 +461,12 @@ def plot_images(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
 
 
 def main(argv=None) -> dict:
-    args = common.parse_args("Texture recovery in Mitsuba 3 (paper Fig. 5 analogue): adam, "
-                             "low-pass, bilateral, cross-bilateral, auto.",
-                             default_out="results/mitsuba_texture", argv=argv)
+    args = common.parse_args(
+        "Texture recovery in Mitsuba 3 (paper Fig. 5 analogue): adam, "
+        "low-pass, bilateral, cross-bilateral, auto.",
+        default_out="results/mitsuba_texture",
+        argv=argv,
+    )
     summary = run(default_config(args.quick), args.out)
     print(summary["table"])
     print(f"Total {summary['total_seconds']:.1f} s. Summary: {args.out / 'summary.json'}")

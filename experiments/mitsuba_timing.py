@@ -32,10 +32,8 @@ import time
 import optax
 
 import optax_bilateral as ob
-from experiments import common
+from experiments import common, mitsuba_texture, mitsuba_volume
 from experiments import mitsuba_common as mc
-from experiments import mitsuba_texture
-from experiments import mitsuba_volume
 
 LEVELS = (3, 5)
 SCENES = ("texture", "volume")
@@ -46,12 +44,16 @@ def transforms(scene: str, cfg) -> dict[str, optax.GradientTransformation]:
     out = {"Adam": optax.adam(0.01)}
     for f in LEVELS:
         if scene == "texture":
-            out[f"Ours (F = {f})"] = ob.bilateral_adam(0.02, cfg.b1_filtered, levels=f,
-                                                       sigma_d=0.05, log_guide=True)
+            out[f"Ours (F = {f})"] = ob.bilateral_adam(
+                0.02, cfg.b1_filtered, levels=f, sigma_d=0.05, log_guide=True
+            )
         else:
             out[f"Ours (F = {f})"] = ob.bilateral_adam(
-                0.05, cfg.b1_filtered, levels=f,
-                sigma_d={mitsuba_volume.DENSITY: 0.05, mitsuba_volume.ALBEDO: 0.1})
+                0.05,
+                cfg.b1_filtered,
+                levels=f,
+                sigma_d={mitsuba_volume.DENSITY: 0.05, mitsuba_volume.ALBEDO: 0.1},
+            )
     return out
 
 
@@ -64,46 +66,88 @@ def time_scene(scene: str, quick: bool, rounds: int) -> dict:
     samples = mc.time_interleaved(problem, transforms(scene, cfg), rounds=rounds)
     seconds = time.perf_counter() - t0
     rows = mc.timing_rows(samples, "Adam")
-    size = (f"{cfg.texture_size}^2 texture, {cfg.image_size}^2 image" if scene == "texture" else
-            f"{cfg.size}^3 grids, {cfg.n_views} views of {cfg.image_size}^2")
+    size = (
+        f"{cfg.texture_size}^2 texture, {cfg.image_size}^2 image"
+        if scene == "texture"
+        else f"{cfg.size}^3 grids, {cfg.n_views} views of {cfg.image_size}^2"
+    )
     for r in rows:
         r["scene"] = f"{scene} ({size})"
-    return {"rows": rows, "samples_s": samples, "seconds": seconds,
-            "load_average_before": load_before, "load_average_after": mc.load_average(),
-            "config": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "sweeps"}}
+    return {
+        "rows": rows,
+        "samples_s": samples,
+        "seconds": seconds,
+        "load_average_before": load_before,
+        "load_average_after": mc.load_average(),
+        "config": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "sweeps"},
+    }
 
 
 def markdown(result: dict) -> str:
-    cols = ["scene", "method", "render + backward ms", "update ms", "of which jitted ms",
-            "total ms", "update share %", "total vs Adam %", "rounds"]
+    cols = [
+        "scene",
+        "method",
+        "render + backward ms",
+        "update ms",
+        "of which jitted ms",
+        "total ms",
+        "update share %",
+        "total vs Adam %",
+        "rounds",
+    ]
     rows = [r for s in result["scenes"].values() for r in s["rows"]]
-    loads = "; ".join(f"{k}: {v['load_average_before']} -> {v['load_average_after']}"
-                      for k, v in result["scenes"].items())
-    return (f"Per-iteration time, Mitsuba 3 {result['versions']['mitsuba']} "
-            f"({result['variant']}, libLLVM {result['versions']['libllvm']}) on "
-            f"{result['cpus']} CPU cores; medians over interleaved rounds in one process. "
-            f"Load averages (1, 5, 15 min) before -> after: {loads}.\n\n"
-            + common.markdown_table(rows, columns=cols, floatfmt=".3g") + "\n")
+    loads = "; ".join(
+        f"{k}: {v['load_average_before']} -> {v['load_average_after']}"
+        for k, v in result["scenes"].items()
+    )
+    return (
+        f"Per-iteration time, Mitsuba 3 {result['versions']['mitsuba']} "
+        f"({result['variant']}, libLLVM {result['versions']['libllvm']}) on "
+        f"{result['cpus']} CPU cores; medians over interleaved rounds in one process. "
+        f"Load averages (1, 5, 15 min) before -> after: {loads}.\n\n"
+        + common.markdown_table(rows, columns=cols, floatfmt=".3g")
+        + "\n"
+    )
 
 
 def main(argv=None) -> dict:
     def extra(parser):
-        parser.add_argument("--rounds", type=int, default=None,
-                            help="interleaved rounds per scene (default: 30, quick: 2)")
-        parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES,
-                            help="which scenes to time (default: both)")
+        parser.add_argument(
+            "--rounds",
+            type=int,
+            default=None,
+            help="interleaved rounds per scene (default: 30, quick: 2)",
+        )
+        parser.add_argument(
+            "--scenes",
+            nargs="+",
+            default=list(SCENES),
+            choices=SCENES,
+            help="which scenes to time (default: both)",
+        )
 
-    args = common.parse_args("Per-iteration time of Adam vs ours with Mitsuba 3 (supplement "
-                             "Table 1 analogue).", default_out="results/mitsuba_timing",
-                             argv=argv, extra=extra)
+    args = common.parse_args(
+        "Per-iteration time of Adam vs ours with Mitsuba 3 (supplement Table 1 analogue).",
+        default_out="results/mitsuba_timing",
+        argv=argv,
+        extra=extra,
+    )
     rounds = args.rounds or (2 if args.quick else 30)
     mi, dr = mc.setup()
     from optax_bilateral.mitsuba import llvm_version
-    result = {"variant": mc.VARIANT, "cpus": os.cpu_count(), "rounds": rounds,
-              "versions": {"mitsuba": mi.__version__, "drjit": dr.__version__,
-                           "libllvm": ".".join(map(str, llvm_version() or ())),
-                           "python": platform.python_version()},
-              "scenes": {s: time_scene(s, args.quick, rounds) for s in args.scenes}}
+
+    result = {
+        "variant": mc.VARIANT,
+        "cpus": os.cpu_count(),
+        "rounds": rounds,
+        "versions": {
+            "mitsuba": mi.__version__,
+            "drjit": dr.__version__,
+            "libllvm": ".".join(map(str, llvm_version() or ())),
+            "python": platform.python_version(),
+        },
+        "scenes": {s: time_scene(s, args.quick, rounds) for s in args.scenes},
+    }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "timing.json").write_text(json.dumps(result, indent=2) + "\n")
     table = markdown(result)

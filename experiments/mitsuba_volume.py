@@ -63,15 +63,15 @@ EVAL_SEED = 1 << 21
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    size: int                 # grid side, voxels
-    image_size: int           # side of each view, pixels
-    n_views: int              # cameras, all rendered every iteration
+    size: int  # grid side, voxels
+    image_size: int  # side of each view, pixels
+    n_views: int  # cameras, all rendered every iteration
     iterations: int
     spp: int
     reference_spp: int
     eval_spp: int
-    density_scale: float      # extinction = density_scale * density (cube side 2)
-    max_depth: int            # prbvolpath path length
+    density_scale: float  # extinction = density_scale * density (cube side 2)
+    max_depth: int  # prbvolpath path length
     env_height: int
     levels: int
     b1_filtered: float
@@ -85,25 +85,62 @@ def default_config(quick: bool = False) -> Config:
     sd = {DENSITY: 0.05, ALBEDO: 0.1}
     if quick:
         one = dict(learning_rate=0.05, decay="cosine")
-        return Config(size=8, image_size=16, n_views=2, iterations=4, spp=1, reference_spp=16,
-                      eval_spp=4, density_scale=4.0, max_depth=2, env_height=16, levels=1,
-                      b1_filtered=0.2, record_every=1, timing_rounds=1,
-                      sweeps={"adam": [dict(learning_rate=0.01, decay="cosine")],
-                              "low-pass": [one], "bilateral": [dict(one, sigma_d=1.0)],
-                              "cross-bilateral": [dict(one, sigma_d=sd)], "auto": [one]})
-    return Config(size=32, image_size=40, n_views=8, iterations=200, spp=1, reference_spp=256,
-                  eval_spp=32, density_scale=4.0, max_depth=4, env_height=64, levels=3,
-                  b1_filtered=0.2, record_every=5, timing_rounds=12,
-                  sweeps={"adam": [dict(learning_rate=0.002, decay="constant"),
-                                   dict(learning_rate=0.005, decay="constant"),
-                                   dict(learning_rate=0.01, decay="constant"),
-                                   dict(learning_rate=0.005, decay="hold-cosine")],
-                          "low-pass": [dict(learning_rate=0.2, decay="hold-cosine")],
-                          "bilateral": [dict(learning_rate=0.2, decay="hold-cosine", sigma_d=s)
-                                        for s in (1.0, 10.0)],
-                          "cross-bilateral": [dict(learning_rate=0.2, decay=d, sigma_d=sd)
-                                              for d in ("constant", "cosine", "hold-cosine")],
-                          "auto": [dict(learning_rate=0.2, decay="hold-cosine")]})
+        return Config(
+            size=8,
+            image_size=16,
+            n_views=2,
+            iterations=4,
+            spp=1,
+            reference_spp=16,
+            eval_spp=4,
+            density_scale=4.0,
+            max_depth=2,
+            env_height=16,
+            levels=1,
+            b1_filtered=0.2,
+            record_every=1,
+            timing_rounds=1,
+            sweeps={
+                "adam": [dict(learning_rate=0.01, decay="cosine")],
+                "low-pass": [one],
+                "bilateral": [dict(one, sigma_d=1.0)],
+                "cross-bilateral": [dict(one, sigma_d=sd)],
+                "auto": [one],
+            },
+        )
+    return Config(
+        size=32,
+        image_size=40,
+        n_views=8,
+        iterations=200,
+        spp=1,
+        reference_spp=256,
+        eval_spp=32,
+        density_scale=4.0,
+        max_depth=4,
+        env_height=64,
+        levels=3,
+        b1_filtered=0.2,
+        record_every=5,
+        timing_rounds=12,
+        sweeps={
+            "adam": [
+                dict(learning_rate=0.002, decay="constant"),
+                dict(learning_rate=0.005, decay="constant"),
+                dict(learning_rate=0.01, decay="constant"),
+                dict(learning_rate=0.005, decay="hold-cosine"),
+            ],
+            "low-pass": [dict(learning_rate=0.2, decay="hold-cosine")],
+            "bilateral": [
+                dict(learning_rate=0.2, decay="hold-cosine", sigma_d=s) for s in (1.0, 10.0)
+            ],
+            "cross-bilateral": [
+                dict(learning_rate=0.2, decay=d, sigma_d=sd)
+                for d in ("constant", "cosine", "hold-cosine")
+            ],
+            "auto": [dict(learning_rate=0.2, decay="hold-cosine")],
+        },
+    )
 
 
 SWEPT = ("learning_rate", "decay", "sigma_d")
@@ -113,8 +150,13 @@ def hyperparameters(method: str, entry: dict, cfg: Config) -> dict:
     """A sweep entry completed with the method's fixed settings."""
     if method == "adam":
         return dict(entry, b1=0.9, b2=0.999)
-    hp = dict(entry, b1=cfg.b1_filtered, b2=1 - (1 - cfg.b1_filtered) ** 2, levels=cfg.levels,
-              log_guide=method == "bilateral")
+    hp = dict(
+        entry,
+        b1=cfg.b1_filtered,
+        b2=1 - (1 - cfg.b1_filtered) ** 2,
+        levels=cfg.levels,
+        log_guide=method == "bilateral",
+    )
     if method == "low-pass":
         hp["sigma_d"] = math.inf
     if method == "auto":
@@ -137,7 +179,9 @@ def environment_map(height: int = 64) -> np.ndarray:
     phi = (np.arange(2 * height) + 0.5) / (2 * height) * 2 * np.pi
     theta, phi = np.meshgrid(theta, phi, indexing="ij")
     d = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
-    sky = np.where(d[..., 1] > 0, 0.1 + 0.2 * d[..., 1], 0.05)[..., None] * np.array([0.5, 0.7, 1.0])
+    sky = np.where(d[..., 1] > 0, 0.1 + 0.2 * d[..., 1], 0.05)[..., None] * np.array(
+        [0.5, 0.7, 1.0]
+    )
     sun = 300.0 * np.exp(-(1 - d @ SUN_DIRECTION) / 0.002)[..., None] * np.array([1.0, 0.9, 0.8])
     return (sky + sun).astype(np.float32)
 
@@ -146,41 +190,65 @@ def camera_positions(n_views: int, distance: float = CAMERA_DISTANCE) -> np.ndar
     """``(n, 3)`` points of a Fibonacci sphere of radius ``distance`` (y up)."""
     i = np.arange(n_views) + 0.5
     polar = np.arccos(1 - 2 * i / n_views)
-    azimuth = np.pi * (1 + 5 ** 0.5) * i
-    return distance * np.stack([np.cos(azimuth) * np.sin(polar), np.cos(polar),
-                                np.sin(azimuth) * np.sin(polar)], -1)
+    azimuth = np.pi * (1 + 5**0.5) * i
+    return distance * np.stack(
+        [np.cos(azimuth) * np.sin(polar), np.cos(polar), np.sin(azimuth) * np.sin(polar)], -1
+    )
 
 
 def target_volume(size: int) -> dict[str, np.ndarray]:
     """The toy's analytic target, axes (x, y, z) -> Mitsuba's grid order (z, y, x)."""
     t = toy.reference_volume(size)
-    return {DENSITY: np.ascontiguousarray(t["density"].transpose(2, 1, 0, 3)),
-            ALBEDO: np.ascontiguousarray(t["albedo"].transpose(2, 1, 0, 3))}
+    return {
+        DENSITY: np.ascontiguousarray(t["density"].transpose(2, 1, 0, 3)),
+        ALBEDO: np.ascontiguousarray(t["albedo"].transpose(2, 1, 0, 3)),
+    }
 
 
 def scene_dict(values: dict, cfg: Config) -> dict:
     import mitsuba as mi
 
     T = mi.ScalarTransform4f
-    sensor = {"type": "batch",
-              "film": {"type": "hdrfilm", "width": cfg.image_size * cfg.n_views,
-                       "height": cfg.image_size, "rfilter": {"type": "box"}, "pixel_format": "rgb"}}
+    sensor = {
+        "type": "batch",
+        "film": {
+            "type": "hdrfilm",
+            "width": cfg.image_size * cfg.n_views,
+            "height": cfg.image_size,
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgb",
+        },
+    }
     for j, origin in enumerate(camera_positions(cfg.n_views)):
         up = [0, 0, 1] if abs(origin[1]) > 0.95 * CAMERA_DISTANCE else [0, 1, 0]
-        sensor[f"view{j}"] = {"type": "perspective", "fov": CAMERA_FOV,
-                              "to_world": T().look_at(origin=origin.tolist(), target=[0, 0, 0], up=up)}
-    unit_to_cube = T().translate([-1, -1, -1]).scale(2)      # grid [0,1]^3 -> cube [-1,1]^3
+        sensor[f"view{j}"] = {
+            "type": "perspective",
+            "fov": CAMERA_FOV,
+            "to_world": T().look_at(origin=origin.tolist(), target=[0, 0, 0], up=up),
+        }
+    unit_to_cube = T().translate([-1, -1, -1]).scale(2)  # grid [0,1]^3 -> cube [-1,1]^3
 
     def grid(v):
-        return {"type": "gridvolume", "grid": mi.VolumeGrid(mi.TensorXf(np.asarray(v, np.float32))),
-                "to_world": unit_to_cube}
+        return {
+            "type": "gridvolume",
+            "grid": mi.VolumeGrid(mi.TensorXf(np.asarray(v, np.float32))),
+            "to_world": unit_to_cube,
+        }
+
     return {
         "type": "scene",
         "integrator": {"type": "prbvolpath", "max_depth": cfg.max_depth},
         "sensor": sensor,
-        "cube": {"type": "cube", "bsdf": {"type": "null"},
-                 "interior": {"type": "heterogeneous", "sigma_t": grid(values[DENSITY]),
-                              "albedo": grid(values[ALBEDO]), "scale": cfg.density_scale}},
+        "cube": {
+            "type": "cube",
+            "bsdf": {"type": "null"},
+            "interior": {
+                "type": "heterogeneous",
+                "sigma_t": grid(values[DENSITY]),
+                "albedo": grid(values[ALBEDO]),
+                "scale": cfg.density_scale,
+            },
+        },
         "emitter": {"type": "envmap", "bitmap": mi.Bitmap(environment_map(cfg.env_height))},
     }
 
@@ -230,8 +298,12 @@ class Problem:
         return float(loss.numpy())
 
     def param_errors(self, values) -> dict:
-        return dict(toy.param_errors({"density": values[DENSITY], "albedo": values[ALBEDO]},
-                                     {"density": self.target[DENSITY], "albedo": self.target[ALBEDO]}))
+        return dict(
+            toy.param_errors(
+                {"density": values[DENSITY], "albedo": values[ALBEDO]},
+                {"density": self.target[DENSITY], "albedo": self.target[ALBEDO]},
+            )
+        )
 
     def render_values(self, values, spp: int, seed: int) -> np.ndarray:
         """All views of ``values`` (untimed; leaves the scene's values as they were)."""
@@ -241,6 +313,7 @@ class Problem:
         self._write(values)
         with dr.suspend_grad():
             import mitsuba as mi
+
             image = np.array(mi.render(self.scene, spp=spp, seed=seed))
         self._write(current)
         for k in KEYS:
@@ -254,9 +327,13 @@ class Problem:
         return {"image_loss": float(np.mean((img - np.asarray(self.reference)) ** 2))}
 
 
-METRIC_KEYS = {"final_param_error": "param_error", "final_loss": "image_loss",
-               "final_train_loss": "loss", "final_density_error": "density_error",
-               "final_albedo_error": "albedo_error"}
+METRIC_KEYS = {
+    "final_param_error": "param_error",
+    "final_loss": "image_loss",
+    "final_train_loss": "loss",
+    "final_density_error": "density_error",
+    "final_albedo_error": "albedo_error",
+}
 
 
 def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
@@ -265,37 +342,69 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     prob = Problem(cfg)
     traces, samples, skipped = mc.run_sweeps(
-        prob, cfg.sweeps, lambda m, e: hyperparameters(m, e, cfg), SWEPT, iterations=cfg.iterations,
-        record_every=cfg.record_every, timing_rounds=cfg.timing_rounds, progress=progress)
+        prob,
+        cfg.sweeps,
+        lambda m, e: hyperparameters(m, e, cfg),
+        SWEPT,
+        iterations=cfg.iterations,
+        record_every=cfg.record_every,
+        timing_rounds=cfg.timing_rounds,
+        progress=progress,
+    )
     methods = list(traces)
     summary_methods = mc.summary_methods(traces, METRIC_KEYS)
     best = {m: mc.best(traces[m]) for m in methods}
-    pngs = [common.plot_curves(best, m, out / f"{m}_vs_{x}.png", x=x,
-                               title=f"Mitsuba volume {cfg.size}^3: {m} vs {x}")
-            for m in ("loss", "param_error", "density_error", "albedo_error")
-            for x in ("iteration", "time")]
+    pngs = [
+        common.plot_curves(
+            best, m, out / f"{m}_vs_{x}.png", x=x, title=f"Mitsuba volume {cfg.size}^3: {m} vs {x}"
+        )
+        for m in ("loss", "param_error", "density_error", "albedo_error")
+        for x in ("iteration", "time")
+    ]
     pngs.append(plot_views(prob, best, out / "views.png"))
     pngs.append(plot_slices(prob, best, out / "slices.png"))
     budget = mc.time_budget(traces)
     initial = {k: float(v) for k, v in prob.param_errors(prob.init).items()}
-    title = (f"Mitsuba 3 volume recovery: {cfg.size}^3 density + RGB albedo grids, {cfg.n_views} "
-             f"views of {cfg.image_size}^2 px, prbvolpath (max_depth {cfg.max_depth}), spp "
-             f"{cfg.spp}, {cfg.iterations} iterations (initial param error "
-             f"{initial['param_error']:.4f}). Best entry of each sweep by final param error.")
-    notes = (f"Skipped: {skipped}\n\n" if skipped else "")
-    table = mc.write_tables(out, title, summary_methods, budget, traces,
-                            lambda e: {"density MAE": e["final_density_error"],
-                                       "albedo MAE (weighted)": e["final_albedo_error"]}, notes)
+    title = (
+        f"Mitsuba 3 volume recovery: {cfg.size}^3 density + RGB albedo grids, {cfg.n_views} "
+        f"views of {cfg.image_size}^2 px, prbvolpath (max_depth {cfg.max_depth}), spp "
+        f"{cfg.spp}, {cfg.iterations} iterations (initial param error "
+        f"{initial['param_error']:.4f}). Best entry of each sweep by final param error."
+    )
+    notes = f"Skipped: {skipped}\n\n" if skipped else ""
+    table = mc.write_tables(
+        out,
+        title,
+        summary_methods,
+        budget,
+        traces,
+        lambda e: {
+            "density MAE": e["final_density_error"],
+            "albedo MAE (weighted)": e["final_albedo_error"],
+        },
+        notes,
+    )
     total = time.perf_counter() - t_start
     common.write_summary(
-        out, summary_methods, skipped=skipped, pngs=[str(p) for p in pngs], total_seconds=total,
-        timing_ms={m: {p: 1e3 * float(np.median(v)) for p, v in samples[m].items()}
-                   for m in methods},
+        out,
+        summary_methods,
+        skipped=skipped,
+        pngs=[str(p) for p in pngs],
+        total_seconds=total,
+        timing_ms={
+            m: {p: 1e3 * float(np.median(v)) for p, v in samples[m].items()} for m in methods
+        },
         load_average=mc.load_average(),
-        setting={**dataclasses.asdict(cfg), "keys": list(KEYS), "initial": initial,
-                 "reference_seconds": prob.reference_seconds, "loss": "mean((I - I_ref)^2)",
-                 "final_loss": f"that loss of a {cfg.eval_spp}-spp render of every view",
-                 "final_param_error": "mean of the density MAE and the density-weighted albedo MAE"})
+        setting={
+            **dataclasses.asdict(cfg),
+            "keys": list(KEYS),
+            "initial": initial,
+            "reference_seconds": prob.reference_seconds,
+            "loss": "mean((I - I_ref)^2)",
+            "final_loss": f"that loss of a {cfg.eval_spp}-spp render of every view",
+            "final_param_error": "mean of the density MAE and the density-weighted albedo MAE",
+        },
+    )
     return {"table": table, "total_seconds": total, "pngs": pngs, "methods": summary_methods}
 
 
@@ -306,24 +415,37 @@ def _tiles(img: np.ndarray, n_views: int) -> list[np.ndarray]:
 def plot_views(prob: Problem, best: dict, path: pathlib.Path, max_views: int = 4) -> pathlib.Path:
     """Per row (reference, initial, each method): renders of a few views and |error| images."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     cfg = prob.cfg
     views = np.linspace(0, cfg.n_views - 1, min(max_views, cfg.n_views)).round().astype(int)
     ref = _tiles(prob.reference, cfg.n_views)
-    rows = {"reference": np.asarray(prob.reference),
-            "initial": prob.render_values(prob.init, cfg.eval_spp, EVAL_SEED)}
+    rows = {
+        "reference": np.asarray(prob.reference),
+        "initial": prob.render_values(prob.init, cfg.eval_spp, EVAL_SEED),
+    }
     rows.update({m: prob.images[tr.name] for m, tr in best.items()})
     hi = float(np.percentile(np.asarray(prob.reference), 99.5)) or 1.0
-    fig, axes = plt.subplots(len(rows), 2 * len(views), figsize=(2.0 * 2 * len(views), 2.0 * len(rows)),
-                             dpi=80, squeeze=False)
+    fig, axes = plt.subplots(
+        len(rows),
+        2 * len(views),
+        figsize=(2.0 * 2 * len(views), 2.0 * len(rows)),
+        dpi=80,
+        squeeze=False,
+    )
     for r, (name, img) in enumerate(rows.items()):
         tiles = _tiles(img, cfg.n_views)
         for c, v in enumerate(views):
             axes[r, 2 * c].imshow(np.clip(tiles[v] / hi, 0, 1), interpolation="nearest")
-            axes[r, 2 * c + 1].imshow(np.abs(tiles[v] - ref[v]).mean(-1), cmap="magma", vmin=0,
-                                      vmax=0.25 * hi, interpolation="nearest")
+            axes[r, 2 * c + 1].imshow(
+                np.abs(tiles[v] - ref[v]).mean(-1),
+                cmap="magma",
+                vmin=0,
+                vmax=0.25 * hi,
+                interpolation="nearest",
+            )
             if r == 0:
                 axes[r, 2 * c].set_title(f"view {v}", fontsize=8)
                 axes[r, 2 * c + 1].set_title(f"|error| view {v}", fontsize=8)
@@ -331,8 +453,9 @@ def plot_views(prob: Problem, best: dict, path: pathlib.Path, max_views: int = 4
     for ax in axes.ravel():
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle(f"renders ({cfg.eval_spp} spp) and |render - reference| (0..{0.25 * hi:.2g})",
-                 fontsize=9)
+    fig.suptitle(
+        f"renders ({cfg.eval_spp} spp) and |render - reference| (0..{0.25 * hi:.2g})", fontsize=9
+    )
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -342,6 +465,7 @@ def plot_views(prob: Problem, best: dict, path: pathlib.Path, max_views: int = 4
 def plot_slices(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
     """Density and albedo (where the target has medium) at two depths, per row."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -349,15 +473,18 @@ def plot_slices(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
     zs = (int(0.4 * n), int(0.65 * n))
     rows = {"target": prob.target, "initial": prob.init, **{m: tr.final for m, tr in best.items()}}
     medium = prob.target[DENSITY][..., 0] > 0.02
-    fig, axes = plt.subplots(len(rows), 2 * len(zs), figsize=(7.5, 1.9 * len(rows)), dpi=90,
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(rows), 2 * len(zs), figsize=(7.5, 1.9 * len(rows)), dpi=90, squeeze=False
+    )
     for r, (name, p) in enumerate(rows.items()):
         d, a = np.asarray(p[DENSITY][..., 0]), np.clip(np.asarray(p[ALBEDO]), 0, 1)
         for j, z in enumerate(zs):
-            axes[r, 2 * j].imshow(d[z], origin="lower", cmap="magma", vmin=0, vmax=1,
-                                  interpolation="nearest")
-            axes[r, 2 * j + 1].imshow(np.where(medium[z, ..., None], a[z], 0.0), origin="lower",
-                                      interpolation="nearest")
+            axes[r, 2 * j].imshow(
+                d[z], origin="lower", cmap="magma", vmin=0, vmax=1, interpolation="nearest"
+            )
+            axes[r, 2 * j + 1].imshow(
+                np.where(medium[z, ..., None], a[z], 0.0), origin="lower", interpolation="nearest"
+            )
             if r == 0:
                 axes[r, 2 * j].set_title(f"density, slice {z}", fontsize=8)
                 axes[r, 2 * j + 1].set_title(f"albedo, slice {z}", fontsize=8)
@@ -372,9 +499,12 @@ def plot_slices(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
 
 
 def main(argv=None) -> dict:
-    args = common.parse_args("Volume recovery in Mitsuba 3 (paper Figs. 8-9 analogue): adam, "
-                             "low-pass, bilateral, cross-bilateral, auto.",
-                             default_out="results/mitsuba_volume", argv=argv)
+    args = common.parse_args(
+        "Volume recovery in Mitsuba 3 (paper Figs. 8-9 analogue): adam, "
+        "low-pass, bilateral, cross-bilateral, auto.",
+        default_out="results/mitsuba_volume",
+        argv=argv,
+    )
     summary = run(default_config(args.quick), args.out)
     print(summary["table"])
     print(f"Total {summary['total_seconds']:.1f} s. Summary: {args.out / 'summary.json'}")

@@ -17,6 +17,7 @@ The profiler slows every kernel (here by ~1.5-3x, unevenly), so compare the fami
 one run with each other, not with untraced timings; the untraced medians are printed
 beside them for scale. Run it under ``taskset -c 0`` to see what one core does.
 """
+
 from __future__ import annotations
 
 import collections
@@ -25,13 +26,14 @@ import gzip
 import json
 import re
 import tempfile
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import optax
 
 import optax_bilateral as ob
-from experiments import ab_update, benchmark as bm, common
+from experiments import ab_update, common
+from experiments import benchmark as bm
 
 _FUSION = re.compile(r"%([\w.\-]+) = [^=]*? fusion\(")
 
@@ -63,23 +65,26 @@ def traced_kernels(fn, args, names: set[str], calls: int) -> dict[str, dict]:
         if e.get("ph") == "X" and e.get("name") in names:
             count[family(e["name"])] += 1
             dur[family(e["name"])] += e["dur"]
-    return {k: {"kernels per call": count[k] / calls, "us per call": dur[k] / calls}
-            for k in count}
+    return {k: {"kernels per call": count[k] / calls, "us per call": dur[k] / calls} for k in count}
 
 
-def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int,
-            rounds: int) -> dict:
+def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int, rounds: int) -> dict:
     params, grad = ab_update.arrays(shape)
-    opts = {"adam": optax.adam(1e-2),
-            "ours": ab_update.optimizer(ob, levels, separable, log_guide)}
+    opts = {"adam": optax.adam(1e-2), "ours": ab_update.optimizer(ob, levels, separable, log_guide)}
     progs = {}
     for k, opt in opts.items():
         prog = bm.update_program(opt)
         state = bm.warm_state(opt, params, grad)
         progs[k] = (prog, (grad, state, params))
     wall = bm.interleaved(progs, rounds, 3, desc="untraced")
-    out = {"shape": list(shape), "levels": levels, "separable": separable,
-           "log_guide": log_guide, "calls": calls, "programs": {}}
+    out = {
+        "shape": list(shape),
+        "levels": levels,
+        "separable": separable,
+        "log_guide": log_guide,
+        "calls": calls,
+        "programs": {},
+    }
     for k, (prog, args) in progs.items():
         compiled = prog.lower(*args).compile()
         names = kernel_names(compiled)
@@ -91,22 +96,46 @@ def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int,
             "kernels compiled": len(names),
             "kernels run per call": sum(v["kernels per call"] for v in fams.values()),
             "temp MB": bm.temp_mb(compiled),
-            "families": {f: dict(v, share=v["us per call"] / total if total else float("nan"))
-                         for f, v in sorted(fams.items(), key=lambda kv: -kv[1]["us per call"])},
+            "families": {
+                f: dict(v, share=v["us per call"] / total if total else float("nan"))
+                for f, v in sorted(fams.items(), key=lambda kv: -kv[1]["us per call"])
+            },
         }
     return out
 
 
 def markdown(result: dict) -> str:
-    head = (f"update kernels, shape {'x'.join(map(str, result['shape']))}, F={result['levels']}, "
-            f"{'separable' if result['separable'] else 'full'}"
-            f"{', log guide' if result['log_guide'] else ''}, {result['calls']} traced calls\n\n")
-    summary = [{"program": k, **{c: common.fmt(v[c]) for c in (
-        "untraced ms (median)", "traced kernel ms per call", "kernels run per call", "temp MB")}}
-        for k, v in result["programs"].items()]
-    rows = [{"program": k, "kernel family": f, "kernels per call": common.fmt(v["kernels per call"]),
-             "us per call (traced)": common.fmt(v["us per call"]), "share": f"{100 * v['share']:.0f}%"}
-            for k, p in result["programs"].items() for f, v in p["families"].items()]
+    head = (
+        f"update kernels, shape {'x'.join(map(str, result['shape']))}, F={result['levels']}, "
+        f"{'separable' if result['separable'] else 'full'}"
+        f"{', log guide' if result['log_guide'] else ''}, {result['calls']} traced calls\n\n"
+    )
+    summary = [
+        {
+            "program": k,
+            **{
+                c: common.fmt(v[c])
+                for c in (
+                    "untraced ms (median)",
+                    "traced kernel ms per call",
+                    "kernels run per call",
+                    "temp MB",
+                )
+            },
+        }
+        for k, v in result["programs"].items()
+    ]
+    rows = [
+        {
+            "program": k,
+            "kernel family": f,
+            "kernels per call": common.fmt(v["kernels per call"]),
+            "us per call (traced)": common.fmt(v["us per call"]),
+            "share": f"{100 * v['share']:.0f}%",
+        }
+        for k, p in result["programs"].items()
+        for f, v in p["families"].items()
+    ]
     return head + common.markdown_table(summary) + "\n\n" + common.markdown_table(rows)
 
 
@@ -118,6 +147,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         p.add_argument("--log-guide", action="store_true")
         p.add_argument("--calls", type=int, default=20, help="traced calls per program")
         p.add_argument("--rounds", type=int, default=11, help="untraced timing rounds")
+
     args = common.parse_args("Per-kernel profile of the update", "results/profile", argv, extra)
     shape = ab_update.parse_shape(args.shape)
     for name in ("levels", "calls", "rounds"):

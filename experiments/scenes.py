@@ -1,4 +1,5 @@
-"""The problems of the tuning benchmark (:mod:`experiments.tuning`): grids recovered from noisy gradients.
+"""The problems of the tuning benchmark (:mod:`experiments.tuning`): grids recovered from noisy
+gradients.
 
 A :class:`Scene` is one inverse problem written as pure JAX functions, so that the
 benchmark can compile one program that runs many optimisers, hyperparameters and
@@ -42,7 +43,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -106,8 +108,14 @@ def _around(lr: float) -> tuple[float, ...]:
 # ----------------------------------------------------------------------------- texture
 
 
-def texture(quick: bool, target: str = "camera", spp: int = 1, spp_grad: int = 1,
-            name: str = "texture", description: str | None = None) -> Scene:
+def texture(
+    quick: bool,
+    target: str = "camera",
+    spp: int = 1,
+    spp_grad: int = 1,
+    name: str = "texture",
+    description: str | None = None,
+) -> Scene:
     """The toy texture scene (:mod:`optax_bilateral.toy.texture`), seed 0, from a
     constant roughness of 0.1."""
     from optax_bilateral.toy import texture as tex
@@ -116,24 +124,41 @@ def texture(quick: bool, target: str = "camera", spp: int = 1, spp_grad: int = 1
     reference_spp = 64 if quick else 256
     target_alpha = jnp.asarray(tex.target_roughness(target, size, seed=0))
     scene = tex.make_scene(size)
-    data = {"scene": scene, "target": target_alpha,
-            "reference": tex.render_reference(target_alpha, scene, reference_spp, seed=0)}
+    data = {
+        "scene": scene,
+        "target": target_alpha,
+        "reference": tex.render_reference(target_alpha, scene, reference_spp, seed=0),
+    }
 
     def grad(data, alpha, key):
         def loss(a):
             return tex.loss_fn(tex.render(a, data["scene"], key, spp, spp_grad), data["reference"])
+
         return jax.grad(loss)(alpha)
 
     return Scene(
         name=name,
         description=description or f"toy texture {size}^2, {target} target, {spp}/{spp_grad} spp",
-        init=jnp.full((size, size), 0.1, jnp.float32), data=data, grad=grad,
+        init=jnp.full((size, size), 0.1, jnp.float32),
+        data=data,
+        grad=grad,
         project=lambda data, a: jnp.clip(a, tex.ALPHA_MIN, tex.ALPHA_MAX),
         error=lambda data, a: jnp.mean(jnp.abs(a - data["target"])),
-        iterations=iterations, learning_rates=_around(0.02), log_guide=True,
+        iterations=iterations,
+        learning_rates=_around(0.02),
+        log_guide=True,
         error_name="mean |alpha - alpha_target| (roughness)",
-        config=dict(kind="texture", size=size, target=target, spp=spp, spp_grad=spp_grad,
-                    reference_spp=reference_spp, init_alpha=0.1, iterations=iterations))
+        config=dict(
+            kind="texture",
+            size=size,
+            target=target,
+            spp=spp,
+            spp_grad=spp_grad,
+            reference_spp=reference_spp,
+            init_alpha=0.1,
+            iterations=iterations,
+        ),
+    )
 
 
 # ----------------------------------------------------------------------------- volume
@@ -144,19 +169,43 @@ def volume(quick: bool) -> Scene:
     from optax_bilateral.toy import volume as vol
 
     if quick:
-        cfg = dict(size=8, resolution=8, n_views=8, views_per_step=1, n_scatter=1, target_spp=16,
-                   iterations=20)
+        cfg = dict(
+            size=8,
+            resolution=8,
+            n_views=8,
+            views_per_step=1,
+            n_scatter=1,
+            target_spp=16,
+            iterations=20,
+        )
     else:
-        cfg = dict(size=16, resolution=12, n_views=32, views_per_step=1, n_scatter=1,
-                   target_spp=64, iterations=120)
-    scene = vol.make_scene(resolution=cfg["resolution"], n_views=cfg["n_views"],
-                           n_scatter=cfg["n_scatter"])
+        cfg = dict(
+            size=16,
+            resolution=12,
+            n_views=32,
+            views_per_step=1,
+            n_scatter=1,
+            target_spp=64,
+            iterations=120,
+        )
+    scene = vol.make_scene(
+        resolution=cfg["resolution"], n_views=cfg["n_views"], n_scatter=cfg["n_scatter"]
+    )
     target = {k: jnp.asarray(v) for k, v in vol.reference_volume(cfg["size"]).items()}
     init = {k: jnp.asarray(v) for k, v in vol.initial_volume(cfg["size"]).items()}
     views = jnp.arange(scene.n_views)
-    images = jnp.concatenate([
-        vol.render_mean(target, scene, jax.random.fold_in(jax.random.key(12345), i),
-                        views[i:i + 4], spp=cfg["target_spp"]) for i in range(0, scene.n_views, 4)])
+    images = jnp.concatenate(
+        [
+            vol.render_mean(
+                target,
+                scene,
+                jax.random.fold_in(jax.random.key(12345), i),
+                views[i : i + 4],
+                spp=cfg["target_spp"],
+            )
+            for i in range(0, scene.n_views, 4)
+        ]
+    )
     b = cfg["views_per_step"]
 
     def grad(data, params, key):
@@ -166,14 +215,20 @@ def volume(quick: bool) -> Scene:
 
     return Scene(
         name="volume",
-        description=(f"toy volume {cfg['size']}^3 (density + RGB albedo), {b} of "
-                     f"{cfg['n_views']} views of {cfg['resolution']}^2 px per step, 1/1 spp"),
-        init=init, data={"images": images, "target": target}, grad=grad,
+        description=(
+            f"toy volume {cfg['size']}^3 (density + RGB albedo), {b} of "
+            f"{cfg['n_views']} views of {cfg['resolution']}^2 px per step, 1/1 spp"
+        ),
+        init=init,
+        data={"images": images, "target": target},
+        grad=grad,
         project=lambda data, p: vol.project(p, scene),
         error=lambda data, p: vol.param_errors(p, data["target"])["param_error"],
-        iterations=cfg["iterations"], learning_rates=_around(0.05),
+        iterations=cfg["iterations"],
+        learning_rates=_around(0.05),
         error_name="(density MAE + density-weighted albedo MAE) / 2",
-        config=dict(kind="volume", **cfg))
+        config=dict(kind="volume", **cfg),
+    )
 
 
 # ----------------------------------------------------------------------------- 1-D signal
@@ -184,15 +239,21 @@ def piecewise_smooth_signal(n: int) -> np.ndarray:
     t = (np.arange(n) + 0.5) / n
     x = np.select(
         [t < 0.2, t < 0.35, t < 0.6, t < 0.7, t < 0.9],
-        [0.2 + 3.0 * t, np.full_like(t, 0.85), 0.5 + 0.3 * np.sin(2 * np.pi * 6 * (t - 0.35)),
-         np.full_like(t, 0.1), 0.95 - 12.0 * (t - 0.8) ** 2],
-        0.4)
+        [
+            0.2 + 3.0 * t,
+            np.full_like(t, 0.85),
+            0.5 + 0.3 * np.sin(2 * np.pi * 6 * (t - 0.35)),
+            np.full_like(t, 0.1),
+            0.95 - 12.0 * (t - 0.8) ** 2,
+        ],
+        0.4,
+    )
     return x.astype(np.float32)
 
 
 def gaussian_kernel(sigma: float) -> np.ndarray:
     """Normalised 1-D Gaussian taps of radius ``ceil(3 sigma)``."""
-    r = int(math.ceil(3 * sigma))
+    r = math.ceil(3 * sigma)
     k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
     return (k / k.sum()).astype(np.float32)
 
@@ -233,14 +294,29 @@ def signal1d(quick: bool) -> Scene:
 
     return Scene(
         name="signal1d",
-        description=(f"1-D piecewise-smooth signal, {n} samples (N, 1), blur sigma {blur_sigma:g}, "
-                     f"{fraction:.0%} samples per step, noise {noise:g}"),
-        init=jnp.full((n, 1), 0.5, jnp.float32), data={"y": y, "k": k, "target": x_t}, grad=grad,
+        description=(
+            f"1-D piecewise-smooth signal, {n} samples (N, 1), blur sigma {blur_sigma:g}, "
+            f"{fraction:.0%} samples per step, noise {noise:g}"
+        ),
+        init=jnp.full((n, 1), 0.5, jnp.float32),
+        data={"y": y, "k": k, "target": x_t},
+        grad=grad,
         project=lambda data, x: jnp.clip(x, 0.0, 1.0),
         error=lambda data, x: jnp.mean(jnp.abs(x - data["target"])),
-        iterations=iterations, learning_rates=_around(0.02), spatial_axes=(0,),
-        config=dict(kind="signal1d", n=n, blur_sigma=blur_sigma, fraction=fraction, noise=noise,
-                    iterations=iterations, init=0.5, spatial_axes=[0]))
+        iterations=iterations,
+        learning_rates=_around(0.02),
+        spatial_axes=(0,),
+        config=dict(
+            kind="signal1d",
+            n=n,
+            blur_sigma=blur_sigma,
+            fraction=fraction,
+            noise=noise,
+            iterations=iterations,
+            init=0.5,
+            spatial_axes=[0],
+        ),
+    )
 
 
 # ----------------------------------------------------------------------------- deblurring
@@ -273,12 +349,13 @@ def _scaled_error(data, x):
 
 
 def deblur(quick: bool, scale: float = 1.0) -> Scene:
-    """Deblurring from random 5% pixel subsets (issue #17's problem); ``scale`` multiplies the image."""
+    """Deblurring from random 5% pixel subsets (issue #17's problem); ``scale`` multiplies the
+    image."""
     size, iterations = (32, 40) if quick else (128, 300)
     blur_sigma, fraction, noise = 1.5, 0.05, 0.02
     k = jnp.asarray(gaussian_kernel(blur_sigma))
     x_t = jnp.asarray(shapes_image(size)) * scale
-    blur = lambda x, k: _blur_axis(_blur_axis(x, k, 0), k, 1)  # noqa: E731
+    blur = lambda x, k: _blur_axis(_blur_axis(x, k, 0), k, 1)
     # The blurred image with fixed (not per-step) measurement noise: the data of the problem.
     y = blur(x_t, k) + scale * noise * jax.random.normal(jax.random.key(99), x_t.shape)
 
@@ -289,17 +366,31 @@ def deblur(quick: bool, scale: float = 1.0) -> Scene:
     name = "deblur" if scale == 1.0 else f"deblur_x{scale:g}"
     return Scene(
         name=name,
-        description=(f"deblurring {size}^2 in [0, {scale:g}], blur sigma {blur_sigma:g}, "
-                     f"{fraction:.0%} pixels per step, noise {noise:g}"),
+        description=(
+            f"deblurring {size}^2 in [0, {scale:g}], blur sigma {blur_sigma:g}, "
+            f"{fraction:.0%} pixels per step, noise {noise:g}"
+        ),
         init=jnp.full((size, size), 0.5 * scale, jnp.float32),
         # The scale is data, not a constant: both scales then share compiled programs.
-        data={"y": y, "k": k, "target": x_t, "scale": jnp.float32(scale)}, grad=grad,
-        project=_clip_to_scale, error=_scaled_error,
-        iterations=iterations, learning_rates=tuple(scale * lr for lr in _around(0.02)),
+        data={"y": y, "k": k, "target": x_t, "scale": jnp.float32(scale)},
+        grad=grad,
+        project=_clip_to_scale,
+        error=_scaled_error,
+        iterations=iterations,
+        learning_rates=tuple(scale * lr for lr in _around(0.02)),
         scale=scale,
         error_name="mean |x - x_target|" + ("" if scale == 1.0 else f" / {scale:g}"),
-        config=dict(kind="deblur", size=size, blur_sigma=blur_sigma, fraction=fraction,
-                    noise=noise, scale=scale, iterations=iterations, init=0.5))
+        config=dict(
+            kind="deblur",
+            size=size,
+            blur_sigma=blur_sigma,
+            fraction=fraction,
+            noise=noise,
+            scale=scale,
+            iterations=iterations,
+            init=0.5,
+        ),
+    )
 
 
 SCENES: dict[str, Callable[[bool], Scene]] = {

@@ -29,8 +29,8 @@ best Adam run is continued for as many iterations as that budget buys (Adam's
 steps are cheaper: the filter costs more than this toy's render). The "time" axis
 of the plots is iterations x that step time.
 
-``python -m experiments.texture [--quick] [--out DIR] [--target camera|noise|phantom]`` writes to DIR
-(default ``results/texture``): ``summary.json``, ``table.md``, ``images.png``
+``python -m experiments.texture [--quick] [--out DIR] [--target camera|noise|phantom]``
+writes to DIR (default ``results/texture``): ``summary.json``, ``table.md``, ``images.png``
 (renders, error images, recovered textures), ``{loss,param_error}_vs_{iteration,time}.png``.
 """
 
@@ -41,7 +41,6 @@ import functools
 import math
 import pathlib
 import time
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -57,46 +56,74 @@ METHODS = ("adam", "low-pass", "bilateral", "cross-bilateral")
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    size: int                 # texture (= image) side, texels
-    iterations: int           # equal-iteration budget of every run
-    spp: int                  # primal samples per pixel per iteration
-    spp_grad: int             # gradient samples per pixel per iteration (independent)
-    reference_spp: int        # Sobol samples of the target image
-    eval_spp: int             # Sobol samples of the final renders (image loss, figures)
-    init_alpha: float         # constant initial roughness
-    levels: int               # a-trous levels F of the filtered methods
-    b1_filtered: float        # b1 of the filtered methods (b2 = 1 - (1 - b1)^2)
-    timing_rounds: int        # interleaved timing rounds per method (median; a multiple of 4 so
-                              # every method leads equally often)
-    target: str               # optax_bilateral.toy.texture.target_roughness name
+    size: int  # texture (= image) side, texels
+    iterations: int  # equal-iteration budget of every run
+    spp: int  # primal samples per pixel per iteration
+    spp_grad: int  # gradient samples per pixel per iteration (independent)
+    reference_spp: int  # Sobol samples of the target image
+    eval_spp: int  # Sobol samples of the final renders (image loss, figures)
+    init_alpha: float  # constant initial roughness
+    levels: int  # a-trous levels F of the filtered methods
+    b1_filtered: float  # b1 of the filtered methods (b2 = 1 - (1 - b1)^2)
+    timing_rounds: int  # interleaved timing rounds per method (median; a multiple of 4 so
+    # every method leads equally often)
+    target: str  # optax_bilateral.toy.texture.target_roughness name
     seed: int
-    sweeps: dict              # method -> list of hyperparameter dicts
+    sweeps: dict  # method -> list of hyperparameter dicts
 
 
 def default_config(quick: bool = False) -> Config:
     """The paper-like setting (512^2, 1 spp / 1 spp_grad), or a small one for tests."""
     if quick:
         return Config(
-            size=64, iterations=30, spp=1, spp_grad=1, reference_spp=64, eval_spp=64,
-            init_alpha=0.1, levels=3, b1_filtered=0.2, timing_rounds=4, target="camera", seed=0,
+            size=64,
+            iterations=30,
+            spp=1,
+            spp_grad=1,
+            reference_spp=64,
+            eval_spp=64,
+            init_alpha=0.1,
+            levels=3,
+            b1_filtered=0.2,
+            timing_rounds=4,
+            target="camera",
+            seed=0,
             sweeps={
                 "adam": [dict(learning_rate=0.01, b1=0.9), dict(learning_rate=0.03, b1=0.9)],
                 "low-pass": [dict(learning_rate=0.02)],
                 "bilateral": [dict(learning_rate=0.02, sigma_d=1.0)],
                 "cross-bilateral": [dict(learning_rate=0.02, sigma_d=0.1)],
-            })
+            },
+        )
     return Config(
-        size=512, iterations=150, spp=1, spp_grad=1, reference_spp=256, eval_spp=32,
-        init_alpha=0.1, levels=5, b1_filtered=0.2, timing_rounds=24, target="camera", seed=0,
+        size=512,
+        iterations=150,
+        spp=1,
+        spp_grad=1,
+        reference_spp=256,
+        eval_spp=32,
+        init_alpha=0.1,
+        levels=5,
+        b1_filtered=0.2,
+        timing_rounds=24,
+        target="camera",
+        seed=0,
         sweeps={
-            "adam": [dict(learning_rate=0.003, b1=0.9), dict(learning_rate=0.01, b1=0.9),
-                     dict(learning_rate=0.03, b1=0.9), dict(learning_rate=0.01, b1=0.5)],
+            "adam": [
+                dict(learning_rate=0.003, b1=0.9),
+                dict(learning_rate=0.01, b1=0.9),
+                dict(learning_rate=0.03, b1=0.9),
+                dict(learning_rate=0.01, b1=0.5),
+            ],
             "low-pass": [dict(learning_rate=0.01), dict(learning_rate=0.02)],
             # Wide enough that the best sigma_d lies inside the sweep, not at its edge.
             "bilateral": [dict(learning_rate=0.02, sigma_d=s) for s in (0.5, 1.0, 2.0, 4.0, 8.0)],
-            "cross-bilateral": [dict(learning_rate=0.02, sigma_d=0.05),
-                                dict(learning_rate=0.02, sigma_d=0.1)],
-        })
+            "cross-bilateral": [
+                dict(learning_rate=0.02, sigma_d=0.05),
+                dict(learning_rate=0.02, sigma_d=0.1),
+            ],
+        },
+    )
 
 
 def make_optimizer(method: str, cfg: Config) -> optax.GradientTransformation:
@@ -107,13 +134,16 @@ def make_optimizer(method: str, cfg: Config) -> optax.GradientTransformation:
     static = ("levels", "b1", "guide", "log_guide")
     if method == "low-pass":
         return optax.inject_hyperparams(ob.bilateral_adam, static_args=static + ("sigma_d",))(
-            learning_rate=0.01, sigma_d=math.inf, **fixed)
+            learning_rate=0.01, sigma_d=math.inf, **fixed
+        )
     if method == "bilateral":
         return optax.inject_hyperparams(ob.bilateral_adam, static_args=static)(
-            learning_rate=0.01, sigma_d=1.0, guide="self", log_guide=True, **fixed)
+            learning_rate=0.01, sigma_d=1.0, guide="self", log_guide=True, **fixed
+        )
     if method == "cross-bilateral":
         return optax.inject_hyperparams(ob.bilateral_adam, static_args=static)(
-            learning_rate=0.01, sigma_d=0.1, guide="params", log_guide=True, **fixed)
+            learning_rate=0.01, sigma_d=0.1, guide="params", log_guide=True, **fixed
+        )
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")
 
 
@@ -135,7 +165,7 @@ def fixed_hyperparameters(method: str, cfg: Config) -> dict:
 @functools.partial(jax.jit, static_argnames=("spp", "spp_grad"))
 def _loss_and_grad(alpha, i, scene, reference, base_key, *, spp, spp_grad):
     """Render (``spp``), loss and gradient (``spp_grad``); one program shared by all methods."""
-    key = jax.random.fold_in(base_key, i)        # one key per iteration, shared by all methods
+    key = jax.random.fold_in(base_key, i)  # one key per iteration, shared by all methods
 
     def loss(a):
         return tex.loss_fn(tex.render(a, scene, key, spp, spp_grad), reference)
@@ -154,8 +184,9 @@ def _apply(grad, carry, target, *, opt):
 
 def _step(carry, i, scene, reference, target, base_key, *, opt, spp, spp_grad):
     """One iteration: two compiled programs, or one when called under ``jax.jit``."""
-    value, grad = _loss_and_grad(carry[0], i, scene, reference, base_key, spp=spp,
-                                 spp_grad=spp_grad)
+    value, grad = _loss_and_grad(
+        carry[0], i, scene, reference, base_key, spp=spp, spp_grad=spp_grad
+    )
     carry, err = _apply(grad, carry, target, opt=opt)
     return carry, {"loss": value, "param_error": err}
 
@@ -172,7 +203,8 @@ class Problem:
         self.target = jnp.asarray(tex.target_roughness(cfg.target, cfg.size))
         t0 = time.perf_counter()
         self.reference = jax.block_until_ready(
-            tex.render_reference(self.target, self.scene, cfg.reference_spp, seed=cfg.seed))
+            tex.render_reference(self.target, self.scene, cfg.reference_spp, seed=cfg.seed)
+        )
         self.reference_seconds = time.perf_counter() - t0
         self.base_key = jax.random.PRNGKey(cfg.seed + 1)
         self.init = jnp.full((cfg.size, cfg.size), cfg.init_alpha, jnp.float32)
@@ -192,16 +224,30 @@ class Problem:
         run = _fused_step if fused else _step
 
         def step(carry, i):
-            return run(carry, i, self.scene, self.reference, self.target, self.base_key,
-                       opt=opt, spp=cfg.spp, spp_grad=cfg.spp_grad)
+            return run(
+                carry,
+                i,
+                self.scene,
+                self.reference,
+                self.target,
+                self.base_key,
+                opt=opt,
+                spp=cfg.spp,
+                spp_grad=cfg.spp_grad,
+            )
+
         return step
 
     def evaluate(self, run_id: str):
         """Untimed: the image loss of a low-noise render of the current texture."""
+
         def evaluate(carry):
-            img = tex.render_reference(carry[0], self.scene, self.cfg.eval_spp, seed=self.cfg.seed + 2)
+            img = tex.render_reference(
+                carry[0], self.scene, self.cfg.eval_spp, seed=self.cfg.seed + 2
+            )
             self.final_images[run_id] = img
             return {"image_loss": tex.loss_fn(img, self.reference)}
+
         return evaluate
 
 
@@ -215,8 +261,11 @@ def _run_id(method: str, hp: dict) -> str:
     return method + "[" + ", ".join(f"{k}={v:g}" for k, v in hp.items()) + "]"
 
 
-METRIC_KEYS = {"final_param_error": "param_error", "final_loss": "image_loss",
-               "final_train_loss": "loss"}
+METRIC_KEYS = {
+    "final_param_error": "param_error",
+    "final_loss": "image_loss",
+    "final_train_loss": "loss",
+}
 
 
 def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
@@ -235,9 +284,15 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
             run_id = _run_id(method, hp)
             state = set_hyperparams(opt.init(prob.init), hp)
             tr = common.run_method(
-                run_id, step, (prob.init, state), cfg.iterations,
-                evaluate=prob.evaluate(run_id), evaluate_every=cfg.iterations,
-                hyperparameters={**hp, **fixed_hyperparameters(method, cfg)}, progress=progress)
+                run_id,
+                step,
+                (prob.init, state),
+                cfg.iterations,
+                evaluate=prob.evaluate(run_id),
+                evaluate_every=cfg.iterations,
+                hyperparameters={**hp, **fixed_hyperparameters(method, cfg)},
+                progress=progress,
+            )
             traces[method].append(tr)
 
     best = {m: common.best_trace(traces[m], "param_error") for m in METHODS}
@@ -247,7 +302,9 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     # during each run (the runs' own clocks are kept as measured_seconds_per_iteration).
     spi = common.time_steps_interleaved(
         {m: (prob.step_fn(opts[m]), best[m].final) for m in METHODS},
-        rounds=cfg.timing_rounds, first_iteration=10 ** 6)
+        rounds=cfg.timing_rounds,
+        first_iteration=10**6,
+    )
     for m in METHODS:
         for tr in traces[m]:
             tr.timed_seconds_per_iteration = spi[m]
@@ -256,30 +313,48 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     # continued for as many iterations as that budget buys at Adam's step cost.
     budget = cfg.iterations * spi["cross-bilateral"]
     adam_best = best["adam"]
-    adam_iters = int(round(budget / spi["adam"]))
+    adam_iters = round(budget / spi["adam"])
     adam_long = adam_best
     if adam_iters > cfg.iterations:
         more = common.run_method(
-            "adam (equal time)", prob.step_fn(opts["adam"]), adam_best.final,
-            adam_iters - cfg.iterations, first_iteration=cfg.iterations,
-            evaluate=prob.evaluate("adam (equal time)"), evaluate_every=adam_iters,
-            progress=progress)
+            "adam (equal time)",
+            prob.step_fn(opts["adam"]),
+            adam_best.final,
+            adam_iters - cfg.iterations,
+            first_iteration=cfg.iterations,
+            evaluate=prob.evaluate("adam (equal time)"),
+            evaluate_every=adam_iters,
+            progress=progress,
+        )
         adam_long = common.concat_traces(adam_best, more, name="adam (equal time)")
 
     curves = {m: best[m] for m in METHODS}
     if adam_long is not adam_best:
         curves["adam (equal time)"] = adam_long
-    labels = {"loss": f"training loss ({cfg.spp}-spp render; includes MC variance)",
-              "param_error": "param error: mean |alpha - target|"}
-    pngs = [common.plot_curves(curves, m, out / f"{m}_vs_{x}.png", x=x, ylabel=labels[m],
-                               title=f"texture {cfg.size}^2 ({cfg.target}): {m} vs {x}")
-            for m in ("loss", "param_error") for x in ("iteration", "time")]
+    labels = {
+        "loss": f"training loss ({cfg.spp}-spp render; includes MC variance)",
+        "param_error": "param error: mean |alpha - target|",
+    }
+    pngs = [
+        common.plot_curves(
+            curves,
+            m,
+            out / f"{m}_vs_{x}.png",
+            x=x,
+            ylabel=labels[m],
+            title=f"texture {cfg.size}^2 ({cfg.target}): {m} vs {x}",
+        )
+        for m in ("loss", "param_error")
+        for x in ("iteration", "time")
+    ]
     pngs.append(_plot_images(prob, best, adam_long, out / "images.png"))
 
     summary = _summary(cfg, prob, traces, best, adam_long, budget)
     summary["pngs"] = [str(p) for p in pngs]
     summary["total_seconds"] = time.perf_counter() - t_start
-    common.write_summary(out, summary["methods"], **{k: v for k, v in summary.items() if k != "methods"})
+    common.write_summary(
+        out, summary["methods"], **{k: v for k, v in summary.items() if k != "methods"}
+    )
     table = markdown(summary)
     (out / "table.md").write_text(table + "\n")
     summary["table"] = table
@@ -311,12 +386,15 @@ def _summary(cfg, prob, traces, best, adam_long, budget) -> dict:
     return {
         "methods": methods,
         "equal_wall_time": {"budget_seconds": budget, "methods": equal_time},
-        "setting": {**dataclasses.asdict(cfg), "reference_seconds": prob.reference_seconds,
-                    "initial_param_error": float(jnp.mean(jnp.abs(prob.init - prob.target))),
-                    "loss": "mean((I - I_ref)^2 / (I_ref^2 + 1e-2))",
-                    "final_loss": f"loss of a {cfg.eval_spp}-spp Sobol render of the final texture",
-                    "final_train_loss": f"loss of the last iteration's {cfg.spp}-spp render",
-                    "final_param_error": "mean |alpha - alpha_target| over texels"},
+        "setting": {
+            **dataclasses.asdict(cfg),
+            "reference_seconds": prob.reference_seconds,
+            "initial_param_error": float(jnp.mean(jnp.abs(prob.init - prob.target))),
+            "loss": "mean((I - I_ref)^2 / (I_ref^2 + 1e-2))",
+            "final_loss": f"loss of a {cfg.eval_spp}-spp Sobol render of the final texture",
+            "final_train_loss": f"loss of the last iteration's {cfg.spp}-spp render",
+            "final_param_error": "mean |alpha - alpha_target| over texels",
+        },
     }
 
 
@@ -326,35 +404,58 @@ def markdown(summary: dict) -> str:
     rows = []
     for m, e in summary["methods"].items():
         et = eq["methods"][m]
-        rows.append({
-            "method": m, "hyperparameters": _hp_str(e["hyperparameters"]),
-            "s/iter": e["seconds_per_iteration"], "param error @ equal iters": e["final_param_error"],
-            "image loss @ equal iters": e["final_loss"],
-            "param error @ equal time": et["param_error"], "iters in that time": et["iterations"]})
+        rows.append(
+            {
+                "method": m,
+                "hyperparameters": _hp_str(e["hyperparameters"]),
+                "s/iter": e["seconds_per_iteration"],
+                "param error @ equal iters": e["final_param_error"],
+                "image loss @ equal iters": e["final_loss"],
+                "param error @ equal time": et["param_error"],
+                "iters in that time": et["iterations"],
+            }
+        )
     n = next(iter(summary["methods"].values()))["iterations"]
-    head = (f"Texture recovery ({summary['setting']['target']} target), {summary['setting']['size']}^2, spp {summary['setting']['spp']}"
-            f"/{summary['setting']['spp_grad']}: best of each sweep at {n} iterations; equal "
-            f"wall time = {eq['budget_seconds']:.2f} s = {n} cross-bilateral steps at the step costs "
-            f"timed in alternation (column s/iter). "
-            f"Initial param error {summary['setting']['initial_param_error']:.4f}.\n\n")
-    sweep_rows = [{"method": m, "hyperparameters": _hp_str(s["hyperparameters"], swept_only=True),
-                   "param error": s["final_param_error"], "image loss": s["final_loss"],
-                   "s/iter": s["seconds_per_iteration"]}
-                  for m, e in summary["methods"].items() for s in e["sweep"]]
-    return (head + common.markdown_table(rows) + "\n\nEvery sweep entry (equal iterations):\n\n"
-            + common.markdown_table(sweep_rows))
+    head = (
+        f"Texture recovery ({summary['setting']['target']} target), "
+        f"{summary['setting']['size']}^2, spp {summary['setting']['spp']}"
+        f"/{summary['setting']['spp_grad']}: best of each sweep at {n} iterations; equal "
+        f"wall time = {eq['budget_seconds']:.2f} s = {n} cross-bilateral steps at the step costs "
+        f"timed in alternation (column s/iter). "
+        f"Initial param error {summary['setting']['initial_param_error']:.4f}.\n\n"
+    )
+    sweep_rows = [
+        {
+            "method": m,
+            "hyperparameters": _hp_str(s["hyperparameters"], swept_only=True),
+            "param error": s["final_param_error"],
+            "image loss": s["final_loss"],
+            "s/iter": s["seconds_per_iteration"],
+        }
+        for m, e in summary["methods"].items()
+        for s in e["sweep"]
+    ]
+    return (
+        head
+        + common.markdown_table(rows)
+        + "\n\nEvery sweep entry (equal iterations):\n\n"
+        + common.markdown_table(sweep_rows)
+    )
 
 
 def _hp_str(hp: dict, swept_only: bool = False) -> str:
     keys = ("learning_rate", "b1", "sigma_d") if swept_only else tuple(hp)
     short = {"learning_rate": "lr"}
+
     def fmt(v):
         return f"{v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else f"{v}"
+
     return ", ".join(f"{short.get(k, k)}={fmt(v)}" for k, v in hp.items() if k in keys)
 
 
 def _plot_images(prob: Problem, best: dict, adam_long, path: pathlib.Path) -> pathlib.Path:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
@@ -382,12 +483,12 @@ def _plot_images(prob: Problem, best: dict, adam_long, path: pathlib.Path) -> pa
     axes[0, 3].set_title("initial roughness")
     for r, (label, tr) in enumerate(runs, start=1):
         alpha = np.asarray(tr.final[0])
-        img = np.asarray(prob.final_images[tr.name])      # run_method's name is the run id
-        rel = np.abs(img - ref) / np.sqrt(ref ** 2 + tex.LOSS_EPS)
+        img = np.asarray(prob.final_images[tr.name])  # run_method's name is the run id
+        rel = np.abs(img - ref) / np.sqrt(ref**2 + tex.LOSS_EPS)
         axes[r, 0].imshow(tone(img), cmap="gray", vmin=0, vmax=1)
         axes[r, 0].set_title(f"{label}: render")
         axes[r, 1].imshow(rel, cmap="magma", vmin=0, vmax=0.5)
-        axes[r, 1].set_title(f"relative image error (0..0.5)")
+        axes[r, 1].set_title("relative image error (0..0.5)")
         axes[r, 2].imshow(alpha, cmap="viridis", norm=norm)
         axes[r, 2].set_title(f"roughness, err {tr.final_metric('param_error'):.4f}")
         axes[r, 3].imshow(np.abs(alpha - tgt), cmap="magma", vmin=0, vmax=0.1)
@@ -403,18 +504,28 @@ def _plot_images(prob: Problem, best: dict, adam_long, path: pathlib.Path) -> pa
 
 def main(argv=None) -> dict:
     def extra(parser):
-        parser.add_argument("--target", default="camera", choices=("camera", "noise", "phantom"),
-                            help="target roughness texture (noise: high-frequency, supplement "
-                                 "Fig. 4, where spatial filtering is biased)")
+        parser.add_argument(
+            "--target",
+            default="camera",
+            choices=("camera", "noise", "phantom"),
+            help="target roughness texture (noise: high-frequency, supplement "
+            "Fig. 4, where spatial filtering is biased)",
+        )
 
-    args = common.parse_args("Texture recovery (paper Fig. 5) on the toy renderer: "
-                             "adam, low-pass, bilateral, cross-bilateral.",
-                             default_out="results/texture", argv=argv, extra=extra)
+    args = common.parse_args(
+        "Texture recovery (paper Fig. 5) on the toy renderer: "
+        "adam, low-pass, bilateral, cross-bilateral.",
+        default_out="results/texture",
+        argv=argv,
+        extra=extra,
+    )
     cfg = dataclasses.replace(default_config(args.quick), target=args.target)
     summary = run(cfg, args.out)
     print(summary["table"])
-    print(f"\nTotal {summary['total_seconds']:.1f} s (reference image "
-          f"{summary['setting']['reference_seconds']:.1f} s).")
+    print(
+        f"\nTotal {summary['total_seconds']:.1f} s (reference image "
+        f"{summary['setting']['reference_seconds']:.1f} s)."
+    )
     print(f"Summary: {args.out / 'summary.json'}")
     print("Figures:")
     for p in summary["pngs"]:

@@ -42,9 +42,9 @@ with its ratios to the best-tuned and to Adam's error. From Python::
 
     from experiments import scenes, tuning
     scene = scenes.make("deblur")
-    errors = tuning.evaluate(scene, lambda learning_rate, sigma_d: ob.bilateral_adam(
-        learning_rate, sigma_d=sigma_d), [{"learning_rate": 0.02, "sigma_d": s} for s in (0.02, 0.1)],
-        seeds=(0, 1, 2))                       # (2 settings, 3 seeds) final errors
+    factory = lambda learning_rate, sigma_d: ob.bilateral_adam(learning_rate, sigma_d=sigma_d)
+    settings = [{"learning_rate": 0.02, "sigma_d": s} for s in (0.02, 0.1)]
+    errors = tuning.evaluate(scene, factory, settings, seeds=(0, 1, 2))  # (2, 3) final errors
     result = tuning.tune(scene, tuning.Family("mine", factory))   # learning rate swept
     result.best.median, result.best.hyper
 
@@ -68,6 +68,7 @@ as horizontal lines; 0 and inf at the ends of the log axis) and ``cache/``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import importlib
 import inspect
@@ -76,7 +77,8 @@ import math
 import os
 import pathlib
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -116,13 +118,20 @@ class Settings:
     pyramid_levels: tuple[int, ...]
     seeds: tuple[int, ...]
     max_extend: int
-    lr_points: int | None = None   # keep only this many of each scene's learning rates (quick)
+    lr_points: int | None = None  # keep only this many of each scene's learning rates (quick)
 
 
 def settings(quick: bool) -> Settings:
     if quick:
-        return Settings(sigma_grid=(0.0, 0.1, math.inf), levels_grid=(5,), adam_b1=(0.9,),
-                        pyramid_levels=(3,), seeds=(0,), max_extend=0, lr_points=2)
+        return Settings(
+            sigma_grid=(0.0, 0.1, math.inf),
+            levels_grid=(5,),
+            adam_b1=(0.9,),
+            pyramid_levels=(3,),
+            seeds=(0,),
+            max_extend=0,
+            lr_points=2,
+        )
     return Settings(SIGMA_GRID, LEVELS_GRID, ADAM_B1, PYRAMID_LEVELS, SEEDS, MAX_EXTEND)
 
 
@@ -135,10 +144,14 @@ _GRAD_PROGRAMS: dict = {}
 def _grad_program(scene: sc.Scene):
     """The scene's vmapped noisy gradient, compiled once per scene (shared by every family)."""
     if scene not in _GRAD_PROGRAMS:
+
         def one(data, params, seed, i):
             return scene.grad(data, params, jax.random.fold_in(jax.random.key(seed), i))
-        _GRAD_PROGRAMS[scene] = (jax.jit(jax.vmap(one, in_axes=(None, 0, 0, None))),
-                                 jax.jit(jax.vmap(scene.error, in_axes=(None, 0))))
+
+        _GRAD_PROGRAMS[scene] = (
+            jax.jit(jax.vmap(one, in_axes=(None, 0, 0, None))),
+            jax.jit(jax.vmap(scene.error, in_axes=(None, 0))),
+        )
     return _GRAD_PROGRAMS[scene]
 
 
@@ -157,8 +170,15 @@ class Runner:
     ``lax.map``, ``"vmap"`` vectorises it.
     """
 
-    def __init__(self, scene: sc.Scene, factory: Callable[..., optax.GradientTransformation],
-                 names: Sequence[str], *, batch: int | None = None, mode: str = "map"):
+    def __init__(
+        self,
+        scene: sc.Scene,
+        factory: Callable[..., optax.GradientTransformation],
+        names: Sequence[str],
+        *,
+        batch: int | None = None,
+        mode: str = "map",
+    ):
         if mode not in ("map", "vmap"):
             raise ValueError(f"mode must be 'map' or 'vmap', got {mode!r}")
         self.scene, self.names = scene, tuple(names)
@@ -174,6 +194,7 @@ class Runner:
             return scene.project(data, optax.apply_updates(p, u)), s
 
         if mode == "map":
+
             def update(data, g, s, p, h):
                 return jax.lax.map(lambda x: update_one(data, *x), (g, s, p, h))
         else:
@@ -181,8 +202,9 @@ class Runner:
         self._update = jax.jit(update)
         self._init = jax.jit(jax.vmap(lambda h, p: build(h).init(p), in_axes=(0, None)))
 
-    def __call__(self, hypers: np.ndarray, seeds: np.ndarray, progress=None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(
+        self, hypers: np.ndarray, seeds: np.ndarray, progress=None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Final errors ``(R,)`` and error records ``(R, segments)`` of runs with
         ``hypers[r]`` (values for ``names``) and ``seeds[r]``."""
         hypers = np.asarray(hypers, np.float32).reshape(len(seeds), len(self.names))
@@ -192,13 +214,13 @@ class Runner:
         every = scene.iterations // n_seg
         curves = []
         for start, b in _chunks(len(seeds), self.batch, self.small_batch):
-            h, s = hypers[start:start + b], seeds[start:start + b]
+            h, s = hypers[start : start + b], seeds[start : start + b]
             real = len(s)
             if real < b:  # pad with copies of the last run: a compiled shape
                 h = np.concatenate([h, np.repeat(h[-1:], b - real, 0)])
                 s = np.concatenate([s, np.repeat(s[-1:], b - real, 0)])
             h, s = jnp.asarray(h), jnp.asarray(s)
-            params = jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), scene.init)
+            params = _batched(scene.init, b)
             state = self._init(h, scene.init)
             recs = []
             for i in range(scene.iterations):
@@ -228,10 +250,15 @@ def _chunks(n: int, big: int, small: int) -> list[tuple[int, int]]:
     return out
 
 
-def evaluate(scene: sc.Scene, make_optimizer: Callable[..., optax.GradientTransformation],
-             hyper_grid: Sequence[Mapping[str, float]] | Mapping[str, Sequence[float]],
-             seeds: Sequence[int] = SEEDS, *, mode: str = "map", progress: bool = False
-             ) -> np.ndarray:
+def evaluate(
+    scene: sc.Scene,
+    make_optimizer: Callable[..., optax.GradientTransformation],
+    hyper_grid: Sequence[Mapping[str, float]] | Mapping[str, Sequence[float]],
+    seeds: Sequence[int] = SEEDS,
+    *,
+    mode: str = "map",
+    progress: bool = False,
+) -> np.ndarray:
     """Final errors ``(len(grid), len(seeds))`` of ``make_optimizer(**point)`` on ``scene``.
 
     ``hyper_grid`` is a list of points (dicts with the same keys, numbers) or a dict
@@ -261,12 +288,15 @@ def _as_points(hyper_grid) -> list[dict]:
     keys = set(points[0])
     for p in points:
         if set(p) != keys:
-            raise ValueError(f"every hyper_grid point needs the same keys; got {sorted(p)} "
-                             f"and {sorted(keys)}")
+            raise ValueError(
+                f"every hyper_grid point needs the same keys; got {sorted(p)} and {sorted(keys)}"
+            )
         for k, v in p.items():
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
-                raise TypeError(f"hyper_grid values must be numbers (they are traced); "
-                                f"{k}={v!r}. Close over static settings in the factory instead.")
+                raise TypeError(
+                    f"hyper_grid values must be numbers (they are traced); "
+                    f"{k}={v!r}. Close over static settings in the factory instead."
+                )
     return points
 
 
@@ -282,8 +312,10 @@ _BAR_POSITION = 0
 
 def _bar(total: int, desc: str):
     from tqdm.auto import tqdm
-    return tqdm(total=total, desc=desc, unit="run", leave=False, dynamic_ncols=True,
-                position=_BAR_POSITION)
+
+    return tqdm(
+        total=total, desc=desc, unit="run", leave=False, dynamic_ncols=True, position=_BAR_POSITION
+    )
 
 
 def _init_worker(counter) -> None:
@@ -333,23 +365,33 @@ class Record:
         return _nan_median(self.errors)
 
     def to_json(self) -> dict:
-        return {"static": self.static, "hyper": self.hyper, "errors": self.errors,
-                "median": self.median, "curve": self.curve}
+        return {
+            "static": self.static,
+            "hyper": self.hyper,
+            "errors": self.errors,
+            "median": self.median,
+            "curve": self.curve,
+        }
 
     @classmethod
-    def from_json(cls, d: dict) -> "Record":
-        return cls(static=d["static"], hyper={k: _num(v) for k, v in d["hyper"].items()},
-                   errors=[_num(e) for e in d["errors"]], curve=[_num(e) for e in d["curve"]])
+    def from_json(cls, d: dict) -> Record:
+        return cls(
+            static=d["static"],
+            hyper={k: float(v) for k, v in d["hyper"].items()},
+            errors=[float(e) for e in d["errors"]],
+            curve=[float(e) for e in d["curve"]],
+        )
+
+
+def _batched(tree, b: int):
+    """Every leaf of ``tree`` repeated along a new leading axis of size ``b``."""
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), tree)
 
 
 def _nan_median(values) -> float:
     v = np.asarray(values, np.float64)
     # A diverged run (NaN) counts as infinitely bad, so a median over seeds stays honest.
     return float(np.median(np.where(np.isfinite(v), v, np.inf)))
-
-
-def _num(v):
-    return float(v) if not isinstance(v, str) else float(v)
 
 
 @dataclasses.dataclass
@@ -369,9 +411,16 @@ class Result:
         return min((r for r in self.records if pred(r)), key=lambda r: r.median)
 
 
-def tune(scene: sc.Scene, family: Family, seeds: Sequence[int] = SEEDS, *,
-         max_extend: int = MAX_EXTEND, learning_rates: Sequence[float] | None = None,
-         progress: bool = True, mode: str = "map") -> Result:
+def tune(
+    scene: sc.Scene,
+    family: Family,
+    seeds: Sequence[int] = SEEDS,
+    *,
+    max_extend: int = MAX_EXTEND,
+    learning_rates: Sequence[float] | None = None,
+    progress: bool = True,
+    mode: str = "map",
+) -> Result:
     """Runs ``family`` on ``scene``: every static setting and point, the learning rate swept.
 
     The sweep starts at ``learning_rates`` (default: the scene's) and adds the next
@@ -402,9 +451,12 @@ def tune(scene: sc.Scene, family: Family, seeds: Sequence[int] = SEEDS, *,
                 bar.close()
             n = len(seeds)
             for j, (k, lr) in enumerate(pending):
-                rec = Record(static=dict(static), hyper={"learning_rate": lr, **points[k]},
-                             errors=[float(e) for e in final[j * n:(j + 1) * n]],
-                             curve=[_nan_median(c) for c in curves[j * n:(j + 1) * n].T])
+                rec = Record(
+                    static=dict(static),
+                    hyper={"learning_rate": lr, **points[k]},
+                    errors=[float(e) for e in final[j * n : (j + 1) * n]],
+                    curve=[_nan_median(c) for c in curves[j * n : (j + 1) * n].T],
+                )
                 tried[k][lr] = rec
             pending = []
             for k, by_lr in tried.items():
@@ -416,14 +468,15 @@ def tune(scene: sc.Scene, family: Family, seeds: Sequence[int] = SEEDS, *,
                     pending.append((k, _round(lrs[0] / LR_RATIO)))
                 elif best == lrs[-1]:
                     pending.append((k, _round(lrs[-1] * LR_RATIO)))
-        for k, by_lr in tried.items():
+        for by_lr in tried.values():
             records.extend(by_lr.values())
             lrs = sorted(by_lr)
             best = min(lrs, key=lambda lr: by_lr[lr].median)
             if len(lrs) > 1 and best in (lrs[0], lrs[-1]):
                 at_edge.append({"static": dict(static), "hyper": by_lr[best].hyper})
-    return Result(family=family.name, records=records, seconds=time.perf_counter() - t0,
-                  at_edge=at_edge)
+    return Result(
+        family=family.name, records=records, seconds=time.perf_counter() - t0, at_edge=at_edge
+    )
 
 
 def _round(x: float) -> float:
@@ -447,6 +500,7 @@ def _bind(factory, static: Mapping[str, Any], scene: sc.Scene):
 
     def bound(**traced):
         return factory(**traced, **kwargs)
+
     return bound
 
 
@@ -464,8 +518,11 @@ def _levels_that_matter(scene: sc.Scene, levels_grid: Sequence[int]) -> tuple[li
     grid: it is the identity, so ``levels = L`` gives the results of ``L - 1``.
     """
     axes = ob.filtered_axes(scene.init, spatial_axes=scene.spatial_axes)
-    sizes = [max(np.shape(x)[a] for a in ax)
-             for x, ax in zip(jax.tree.leaves(scene.init), axes.values()) if ax]
+    sizes = [
+        max(np.shape(x)[a] for a in ax)
+        for x, ax in zip(jax.tree.leaves(scene.init), axes.values())
+        if ax
+    ]
     largest = max(sizes) if sizes else 1
     keep, same = [], {}
     for lev in sorted(levels_grid):
@@ -478,8 +535,13 @@ def _levels_that_matter(scene: sc.Scene, levels_grid: Sequence[int]) -> tuple[li
 
 def bilateral_factory(learning_rate, sigma_d, *, levels, log_guide, spatial_axes=None):
     """``bilateral_adam`` (postfilter, its default ``b1``) with a traced ``sigma_d``."""
-    return ob.bilateral_adam(learning_rate, sigma_d=sigma_d, levels=levels, log_guide=log_guide,
-                             spatial_axes=spatial_axes)
+    return ob.bilateral_adam(
+        learning_rate,
+        sigma_d=sigma_d,
+        levels=levels,
+        log_guide=log_guide,
+        spatial_axes=spatial_axes,
+    )
 
 
 def adam_factory(learning_rate, b1, b2=0.999):
@@ -526,17 +588,31 @@ def families(scene: sc.Scene, s: Settings) -> dict[str, Family]:
         # A log guide is unit-free; a linear one is in the parameters' unit.
         unit = 1.0 if static["log_guide"] else scene.scale
         return tuple({"sigma_d": _sigma(x, unit)} for x in s.sigma_grid)
+
     return {
-        "bilateral": Family("bilateral", bilateral_factory, statics, sigmas,
-                            "bilateral_adam, postfilter, b1=0.2"),
-        "adam": Family("adam", adam_factory, ({},), adam_points(s.adam_b1),
-                       "optax.adam, b2 = 0.999 or 1-(1-b1)^2"),
-        "pyramid": Family("pyramid", pyramid_factory,
-                          tuple({"levels": k} for k in s.pyramid_levels), ({},),
-                          "Laplacian pyramid + Adam (Weier et al. 2025)",
-                          lr_scale=_per_level),
-        "defaults": Family("defaults", defaults_factory, description=(
-            "bilateral_adam defaults " + json.dumps(_jsonable(bilateral_defaults())))),
+        "bilateral": Family(
+            "bilateral", bilateral_factory, statics, sigmas, "bilateral_adam, postfilter, b1=0.2"
+        ),
+        "adam": Family(
+            "adam",
+            adam_factory,
+            ({},),
+            adam_points(s.adam_b1),
+            "optax.adam, b2 = 0.999 or 1-(1-b1)^2",
+        ),
+        "pyramid": Family(
+            "pyramid",
+            pyramid_factory,
+            tuple({"levels": k} for k in s.pyramid_levels),
+            ({},),
+            "Laplacian pyramid + Adam (Weier et al. 2025)",
+            lr_scale=_per_level,
+        ),
+        "defaults": Family(
+            "defaults",
+            defaults_factory,
+            description=("bilateral_adam defaults " + json.dumps(_jsonable(bilateral_defaults()))),
+        ),
     }
 
 
@@ -559,19 +635,34 @@ def _sigma(x: float, scale: float) -> float:
 
 
 def _cache_key(scene: sc.Scene, family: Family, s: Settings) -> str:
-    spec = {"version": CACHE_VERSION, "library": ob.__version__, "scene": scene.config,
-            "learning_rates": scene.learning_rates, "family": family.name,
-            "description": family.description,
-            "grid": [[dict(x), family.points_for(x)] for x in family.statics],
-            "lr_scale": [1.0 if family.lr_scale is None else family.lr_scale(x)
-                         for x in family.statics],
-            "seeds": list(s.seeds), "max_extend": s.max_extend, "lr_points": s.lr_points}
+    spec = {
+        "version": CACHE_VERSION,
+        "library": ob.__version__,
+        "scene": scene.config,
+        "learning_rates": scene.learning_rates,
+        "family": family.name,
+        "description": family.description,
+        "grid": [[dict(x), family.points_for(x)] for x in family.statics],
+        "lr_scale": [
+            1.0 if family.lr_scale is None else family.lr_scale(x) for x in family.statics
+        ],
+        "seeds": list(s.seeds),
+        "max_extend": s.max_extend,
+        "lr_points": s.lr_points,
+    }
     return hashlib.sha256(json.dumps(_jsonable(spec), sort_keys=True).encode()).hexdigest()[:16]
 
 
-def cached_tune(scene: sc.Scene, family: Family, s: Settings, cache_dir: pathlib.Path | None,
-                *, recompute: bool = False, progress: bool = True, mode: str = "map"
-                ) -> tuple[Result, bool]:
+def cached_tune(
+    scene: sc.Scene,
+    family: Family,
+    s: Settings,
+    cache_dir: pathlib.Path | None,
+    *,
+    recompute: bool = False,
+    progress: bool = True,
+    mode: str = "map",
+) -> tuple[Result, bool]:
     """:func:`tune`, or its stored result when the scene, family and settings are unchanged.
 
     Returns ``(result, from_cache)``.
@@ -581,15 +672,38 @@ def cached_tune(scene: sc.Scene, family: Family, s: Settings, cache_dir: pathlib
     if path is not None and path.exists() and not recompute:
         stored = json.loads(path.read_text())
         if stored.get("key") == key:
-            return Result(family=family.name, records=[Record.from_json(r) for r in stored["records"]],
-                          seconds=stored["seconds"], at_edge=stored["at_edge"]), True
-    res = tune(scene, family, s.seeds, max_extend=s.max_extend, learning_rates=_lrs(scene, s),
-               progress=progress, mode=mode)
+            return Result(
+                family=family.name,
+                records=[Record.from_json(r) for r in stored["records"]],
+                seconds=stored["seconds"],
+                at_edge=stored["at_edge"],
+            ), True
+    res = tune(
+        scene,
+        family,
+        s.seeds,
+        max_extend=s.max_extend,
+        learning_rates=_lrs(scene, s),
+        progress=progress,
+        mode=mode,
+    )
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(_jsonable({
-            "key": key, "scene": scene.config, "family": family.name, "seconds": res.seconds,
-            "at_edge": res.at_edge, "records": [r.to_json() for r in res.records]})) + "\n")
+        path.write_text(
+            json.dumps(
+                _jsonable(
+                    {
+                        "key": key,
+                        "scene": scene.config,
+                        "family": family.name,
+                        "seconds": res.seconds,
+                        "at_edge": res.at_edge,
+                        "records": [r.to_json() for r in res.records],
+                    }
+                )
+            )
+            + "\n"
+        )
     return res, False
 
 
@@ -597,16 +711,23 @@ def _lrs(scene: sc.Scene, s: Settings) -> tuple[float, ...]:
     lrs = tuple(scene.learning_rates)
     if s.lr_points is not None and s.lr_points < len(lrs):
         mid = (len(lrs) - s.lr_points) // 2
-        lrs = lrs[mid:mid + s.lr_points]
+        lrs = lrs[mid : mid + s.lr_points]
     return lrs
 
 
 # ----------------------------------------------------------------------------- one scene
 
 
-def run_scene(scene: sc.Scene, s: Settings, cache_dir: pathlib.Path | None, *,
-              candidates: Mapping[str, Callable] | None = None, recompute: bool = False,
-              with_auto: bool | None = None, progress: bool = True) -> dict:
+def run_scene(
+    scene: sc.Scene,
+    s: Settings,
+    cache_dir: pathlib.Path | None,
+    *,
+    candidates: Mapping[str, Callable] | None = None,
+    recompute: bool = False,
+    with_auto: bool | None = None,
+    progress: bool = True,
+) -> dict:
     """Every method on one scene; returns its ``summary.json`` entry."""
     t0 = time.perf_counter()
     results: dict[str, Result] = {}
@@ -615,8 +736,9 @@ def run_scene(scene: sc.Scene, s: Settings, cache_dir: pathlib.Path | None, *,
         if name == "defaults" and (grid_part := _defaults_in_grid(scene, s, results["bilateral"])):
             results[name], from_cache[name] = grid_part, from_cache["bilateral"]
             continue
-        results[name], from_cache[name] = cached_tune(scene, fam, s, cache_dir,
-                                                      recompute=recompute, progress=progress)
+        results[name], from_cache[name] = cached_tune(
+            scene, fam, s, cache_dir, recompute=recompute, progress=progress
+        )
     with_auto = auto_available() if with_auto is None else with_auto
     extra = {}
     if with_auto:
@@ -628,11 +750,24 @@ def run_scene(scene: sc.Scene, s: Settings, cache_dir: pathlib.Path | None, *,
             # The defaults are bilateral_adam(lr) with sigma_d="auto": the same runs.
             results[name], from_cache[name] = results["defaults"], from_cache["defaults"]
             continue
-        results[name] = tune(scene, fam, s.seeds, max_extend=s.max_extend,
-                             learning_rates=_lrs(scene, s), progress=progress)
+        results[name] = tune(
+            scene,
+            fam,
+            s.seeds,
+            max_extend=s.max_extend,
+            learning_rates=_lrs(scene, s),
+            progress=progress,
+        )
         from_cache[name] = False
-    return summarize_scene(scene, s, results, from_cache, with_auto,
-                           list((candidates or {}).keys()), time.perf_counter() - t0)
+    return summarize_scene(
+        scene,
+        s,
+        results,
+        from_cache,
+        with_auto,
+        list((candidates or {}).keys()),
+        time.perf_counter() - t0,
+    )
 
 
 def _defaults_in_grid(scene: sc.Scene, s: Settings, grid: Result) -> Result | None:
@@ -641,7 +776,7 @@ def _defaults_in_grid(scene: sc.Scene, s: Settings, grid: Result) -> Result | No
     d = bilateral_defaults()
     sigma, levels = d["sigma_d"], d["levels"]
     keep, same = _levels_that_matter(scene, s.levels_grid)
-    levels = same.get(levels, levels)    # an identity last level: the grid's lower levels
+    levels = same.get(levels, levels)  # an identity last level: the grid's lower levels
     if isinstance(sigma, str) or levels not in keep:
         return None
     static = {"levels": levels, "log_guide": False}
@@ -653,41 +788,66 @@ def _defaults_in_grid(scene: sc.Scene, s: Settings, grid: Result) -> Result | No
 
 
 def _entry(rec: Record, result: Result) -> dict:
-    return {"error": rec.median, "hyperparameters": {**rec.static, **rec.hyper},
-            "errors": rec.errors, "curve": rec.curve,
-            "lr_at_grid_edge": any(e["static"] == rec.static and e["hyper"] == rec.hyper
-                                   for e in result.at_edge)}
+    return {
+        "error": rec.median,
+        "hyperparameters": {**rec.static, **rec.hyper},
+        "errors": rec.errors,
+        "curve": rec.curve,
+        "lr_at_grid_edge": any(
+            e["static"] == rec.static and e["hyper"] == rec.hyper for e in result.at_edge
+        ),
+    }
 
 
 def summarize_scene(scene, s, results, from_cache, with_auto, candidate_names, seconds) -> dict:
     methods = {"best_tuned": _entry(results["bilateral"].best, results["bilateral"])}
-    methods["auto"] = (_entry(results["auto"].best, results["auto"]) if with_auto else
-                       {"error": None, "note": 'not available: the installed library does not '
-                                               'accept sigma_d="auto"'})
+    methods["auto"] = (
+        _entry(results["auto"].best, results["auto"])
+        if with_auto
+        else {
+            "error": None,
+            "note": 'not available: the installed library does not accept sigma_d="auto"',
+        }
+    )
     for name in ("defaults", "adam", "pyramid", *candidate_names):
         methods[name] = _entry(results[name].best, results[name])
     methods["defaults"]["hyperparameters"].update(
-        {k: v for k, v in bilateral_defaults().items() if k != "b1"})
+        {k: v for k, v in bilateral_defaults().items() if k != "b1"}
+    )
     best, adam = methods["best_tuned"]["error"], methods["adam"]["error"]
     adam_wins = adam < best
     comparisons = {}
     for name in (["auto"] if with_auto else []) + list(candidate_names):
         err = methods[name]["error"]
         comparisons[name] = {
-            "ratio_to_best_tuned": err / best, "ratio_to_adam": err / adam,
+            "ratio_to_best_tuned": err / best,
+            "ratio_to_adam": err / adam,
             f"<= {TARGET_BEST} x best-tuned": bool(err <= TARGET_BEST * best),
-            f"<= {TARGET_ADAM} x adam (where Adam wins)": (bool(err <= TARGET_ADAM * adam)
-                                                           if adam_wins else None)}
+            f"<= {TARGET_ADAM} x adam (where Adam wins)": (
+                bool(err <= TARGET_ADAM * adam) if adam_wins else None
+            ),
+        }
     return {
-        "scene": scene.name, "description": scene.description, "error_name": scene.error_name,
-        "initial_error": scene.initial_error(), "iterations": scene.iterations,
-        "seeds": list(s.seeds), "scale": scene.scale, "log_guide_grid": scene.log_guide,
-        "adam_wins": bool(adam_wins), "methods": methods, "comparisons": comparisons,
+        "scene": scene.name,
+        "description": scene.description,
+        "error_name": scene.error_name,
+        "initial_error": scene.initial_error(),
+        "iterations": scene.iterations,
+        "seeds": list(s.seeds),
+        "scale": scene.scale,
+        "log_guide_grid": scene.log_guide,
+        "adam_wins": bool(adam_wins),
+        "methods": methods,
+        "comparisons": comparisons,
         "seconds": {"total": seconds, **{k: r.seconds for k, r in results.items()}},
         "from_cache": from_cache,
-        "levels_same_as": {str(k): v for k, v in _levels_that_matter(scene, s.levels_grid)[1].items()},
-        "grid": {k: [r.to_json() for r in results[k].records]
-                 for k in ("bilateral", "adam", "pyramid", "defaults")},
+        "levels_same_as": {
+            str(k): v for k, v in _levels_that_matter(scene, s.levels_grid)[1].items()
+        },
+        "grid": {
+            k: [r.to_json() for r in results[k].records]
+            for k in ("bilateral", "adam", "pyramid", "defaults")
+        },
         "lr_at_grid_edge": {k: r.at_edge for k, r in results.items() if r.at_edge},
     }
 
@@ -701,8 +861,8 @@ def sensitivity(entry: dict, log_guide: bool) -> dict[int, list[tuple[float, flo
     for r in entry["grid"]["bilateral"]:
         if bool(r["static"]["log_guide"]) != log_guide:
             continue
-        key = (int(r["static"]["levels"]), _num(r["hyper"]["sigma_d"]))
-        best[key] = min(best.get(key, math.inf), _num(r["median"]))
+        key = (int(r["static"]["levels"]), float(r["hyper"]["sigma_d"]))
+        best[key] = min(best.get(key, math.inf), float(r["median"]))
     out: dict[int, list] = {}
     for (lev, sig), err in sorted(best.items()):
         out.setdefault(lev, []).append((sig, err))
@@ -712,17 +872,26 @@ def sensitivity(entry: dict, log_guide: bool) -> dict[int, list[tuple[float, flo
     return dict(sorted(out.items()))
 
 
+def _xpos(sig: float, lo: float, hi: float) -> float:
+    """Where a sigma_d is drawn on a log axis: 0 at ``lo``, inf at ``hi``."""
+    return lo if sig == 0 else hi if sig == math.inf else sig
+
+
 def plot_scene(entry: dict, path: pathlib.Path) -> pathlib.Path:
     """Final error against ``sigma_d`` (one curve per ``levels``), reference methods as lines."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = [False, True] if entry["log_guide_grid"] else [False]
-    fig, axes = plt.subplots(1, len(panels), figsize=(7 * len(panels), 4.4), dpi=110,
-                             squeeze=False)
-    lines = {"adam": ("Adam (best lr, b1, b2)", "k", "-"), "auto": ('auto', "tab:red", "-"),
-             "defaults": ("defaults", "tab:gray", ":"), "pyramid": ("pyramid + Adam", "tab:green", "--")}
+    fig, axes = plt.subplots(1, len(panels), figsize=(7 * len(panels), 4.4), dpi=110, squeeze=False)
+    lines = {
+        "adam": ("Adam (best lr, b1, b2)", "k", "-"),
+        "auto": ("auto", "tab:red", "-"),
+        "defaults": ("defaults", "tab:gray", ":"),
+        "pyramid": ("pyramid + Adam", "tab:green", "--"),
+    }
     for name in entry["methods"]:
         if name not in lines and name != "best_tuned":
             lines[name] = (name, "tab:purple", "-.")
@@ -731,13 +900,17 @@ def plot_scene(entry: dict, path: pathlib.Path) -> pathlib.Path:
         finite = sorted({s for c in curves.values() for s, _ in c if 0 < s < math.inf})
         if not finite:
             continue
-        lo, hi = finite[0] / 10, finite[-1] * 10   # where 0 and inf are drawn
+        lo, hi = finite[0] / 10, finite[-1] * 10  # where 0 and inf are drawn
 
-        def xpos(sig):
-            return lo if sig == 0 else hi if sig == math.inf else sig
         for lev, pts in curves.items():
-            ax.plot([xpos(s) for s, _ in pts], [e for _, e in pts], marker="o", ms=3, lw=1.3,
-                    label=f"levels={lev}")
+            ax.plot(
+                [_xpos(s, lo, hi) for s, _ in pts],
+                [e for _, e in pts],
+                marker="o",
+                ms=3,
+                lw=1.3,
+                label=f"levels={lev}",
+            )
         for name, (label, color, style) in lines.items():
             err = entry["methods"].get(name, {}).get("error")
             if err is not None and math.isfinite(err):
@@ -753,12 +926,20 @@ def plot_scene(entry: dict, path: pathlib.Path) -> pathlib.Path:
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     if entry["methods"]["auto"].get("error") is None:
-        axes[0, 0].text(0.02, 0.02, 'auto: not available (sigma_d="auto" not accepted)',
-                        transform=axes[0, 0].transAxes, fontsize=7, color="tab:red")
+        axes[0, 0].text(
+            0.02,
+            0.02,
+            'auto: not available (sigma_d="auto" not accepted)',
+            transform=axes[0, 0].transAxes,
+            fontsize=7,
+            color="tab:red",
+        )
     import textwrap
+
     title = textwrap.fill(f"{entry['scene']}: {entry['description']}", 100 * len(panels))
-    fig.suptitle(f"{title}\nmedian of {len(entry['seeds'])} seeds, best learning rate per point",
-                 fontsize=9)
+    fig.suptitle(
+        f"{title}\nmedian of {len(entry['seeds'])} seeds, best learning rate per point", fontsize=9
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -776,9 +957,18 @@ def _hp(h: Mapping[str, Any], keys=None) -> str:
             if v:
                 out.append(short.get(k, k))
             continue
-        out.append(f"{short.get(k, k)}={v:g}" if isinstance(v, (int, float)) else
-                   f"{short.get(k, k)}={v}")
+        out.append(
+            f"{short.get(k, k)}={v:g}" if isinstance(v, (int, float)) else f"{short.get(k, k)}={v}"
+        )
     return ", ".join(out)
+
+
+def _cell(methods: dict, k: str, keys=None) -> str:
+    """Method ``k``'s error for the table, with the hyperparameters ``keys``."""
+    x = methods[k]
+    if x.get("error") is None:
+        return "not available"
+    return f"{x['error']:.4g} ({_hp(x['hyperparameters'], keys)})" if keys else f"{x['error']:.4g}"
 
 
 def markdown(summary: dict) -> str:
@@ -786,37 +976,56 @@ def markdown(summary: dict) -> str:
     scenes = summary["scenes"]
     cand = summary["candidates"]
     has_auto = summary["auto_available"]
-    head = ["scene", "initial", "best-tuned (σ_d, levels, lr)", "auto", "defaults",
-            "Adam (lr, b1, b2)", "pyramid (levels, lr)"] + cand
+    head = [
+        "scene",
+        "initial",
+        "best-tuned (σ_d, levels, lr)",
+        "auto",
+        "defaults",
+        "Adam (lr, b1, b2)",
+        "pyramid (levels, lr)",
+    ] + cand
     rows = []
     for name, e in scenes.items():
-        m = e["methods"]
-
-        def cell(k, keys=None):
-            x = m[k]
-            if x.get("error") is None:
-                return "not available"
-            return f"{x['error']:.4g} ({_hp(x['hyperparameters'], keys)})" if keys else f"{x['error']:.4g}"
-        rows.append([name, f"{e['initial_error']:.4g}",
-                     cell("best_tuned", ("sigma_d", "levels", "log_guide", "learning_rate")),
-                     cell("auto"), cell("defaults", ("learning_rate",)),
-                     cell("adam", ("learning_rate", "b1", "b2")),
-                     cell("pyramid", ("levels", "learning_rate"))] + [cell(c) for c in cand])
+        cell = functools.partial(_cell, e["methods"])
+        rows.append(
+            [
+                name,
+                f"{e['initial_error']:.4g}",
+                cell("best_tuned", ("sigma_d", "levels", "log_guide", "learning_rate")),
+                cell("auto"),
+                cell("defaults", ("learning_rate",)),
+                cell("adam", ("learning_rate", "b1", "b2")),
+                cell("pyramid", ("levels", "learning_rate")),
+            ]
+            + [cell(c) for c in cand]
+        )
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
-    auto_text = ('= bilateral_adam(sigma_d="auto")' if has_auto else
-                 "not available in the installed library")
-    text = (f"# Tuning benchmark ({'quick' if summary['quick'] else 'full'})\n\n"
-            f"Final parameter error, median over seeds {summary['settings']['seeds']}; every method "
-            f"at its best learning rate. `auto` {auto_text}; "
-            f"defaults = bilateral_adam {json.dumps(_jsonable(summary['defaults']))}.\n\n"
-            + "\n".join(lines) + "\n")
+    auto_text = (
+        '= bilateral_adam(sigma_d="auto")' if has_auto else "not available in the installed library"
+    )
+    text = (
+        f"# Tuning benchmark ({'quick' if summary['quick'] else 'full'})\n\n"
+        f"Final parameter error, median over seeds {summary['settings']['seeds']}; every method "
+        f"at its best learning rate. `auto` {auto_text}; "
+        f"defaults = bilateral_adam {json.dumps(_jsonable(summary['defaults']))}.\n\n"
+        + "\n".join(lines)
+        + "\n"
+    )
     compared = (["auto"] if has_auto else []) + cand
     targets = [f"auto/best-tuned <= {TARGET_BEST}", f"auto/Adam <= {TARGET_ADAM} where Adam wins"]
     if compared:
-        head2 = ["scene", "Adam wins"] + [c for name in compared for c in
-                                          (f"{name}/best-tuned", f"{name}/Adam",
-                                           f"{name}: ≤{TARGET_BEST}× best", f"{name}: ≤{TARGET_ADAM}× Adam")]
+        head2 = ["scene", "Adam wins"] + [
+            c
+            for name in compared
+            for c in (
+                f"{name}/best-tuned",
+                f"{name}/Adam",
+                f"{name}: ≤{TARGET_BEST}× best",
+                f"{name}: ≤{TARGET_ADAM}× Adam",
+            )
+        ]
         lines2 = ["| " + " | ".join(head2) + " |", "|" + "|".join("---" for _ in head2) + "|"]
         for name, e in scenes.items():
             row = [name, "yes" if e["adam_wins"] else "no"]
@@ -824,35 +1033,54 @@ def markdown(summary: dict) -> str:
                 cmp_ = e["comparisons"][c]
                 t1 = cmp_[f"<= {TARGET_BEST} x best-tuned"]
                 t2 = cmp_[f"<= {TARGET_ADAM} x adam (where Adam wins)"]
-                row += [f"{cmp_['ratio_to_best_tuned']:.3g}", f"{cmp_['ratio_to_adam']:.3g}",
-                        "met" if t1 else "not met",
-                        "—" if t2 is None else ("met" if t2 else "not met")]
+                row += [
+                    f"{cmp_['ratio_to_best_tuned']:.3g}",
+                    f"{cmp_['ratio_to_adam']:.3g}",
+                    "met" if t1 else "not met",
+                    "—" if t2 is None else ("met" if t2 else "not met"),
+                ]
             lines2.append("| " + " | ".join(row) + " |")
         text += "\n## Targets (issue #17)\n\n" + "\n".join(lines2) + "\n"
     else:
-        text += (f"\n## Targets (issue #17)\n\n{'; '.join(targets)}: not measurable until "
-                 f'the library accepts sigma_d="auto" (or a --candidates method is given).\n')
-    refs = ["| scene | Adam wins | defaults / best-tuned | Adam / best-tuned | pyramid / best-tuned "
-            "| defaults / Adam | s this run | s computing |", "|---|---|---|---|---|---|---|---|"]
+        text += (
+            f"\n## Targets (issue #17)\n\n{'; '.join(targets)}: not measurable until "
+            f'the library accepts sigma_d="auto" (or a --candidates method is given).\n'
+        )
+    refs = [
+        "| scene | Adam wins | defaults / best-tuned | Adam / best-tuned | pyramid / best-tuned "
+        "| defaults / Adam | s this run | s computing |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, e in scenes.items():
         m = e["methods"]
         b = m["best_tuned"]["error"]
         sec = e["seconds"]
         computing = sum(v for k, v in sec.items() if k != "total")
-        refs.append(f"| {name} | {'yes' if e['adam_wins'] else 'no'} | {m['defaults']['error'] / b:.3g} "
-                    f"| {m['adam']['error'] / b:.3g} | {m['pyramid']['error'] / b:.3g} "
-                    f"| {m['defaults']['error'] / m['adam']['error']:.3g} "
-                    f"| {sec['total']:.0f} | {computing:.0f} |")
-    text += ("\n## Without tuning\n\n" + "\n".join(refs) + "\n\n\"s computing\": the seconds "
-             "each family took when it was computed (cached grids keep theirs), with the "
-             "scene's setup; run in parallel with other scenes.\n")
-    edges = [f"- {name}/{fam}: {_hp({**x['static'], **x['hyper']})}"
-             for name, e in scenes.items() for fam, lst in e["lr_at_grid_edge"].items()
-             for x in lst if fam != "bilateral"]
+        refs.append(
+            f"| {name} | {'yes' if e['adam_wins'] else 'no'} | {m['defaults']['error'] / b:.3g} "
+            f"| {m['adam']['error'] / b:.3g} | {m['pyramid']['error'] / b:.3g} "
+            f"| {m['defaults']['error'] / m['adam']['error']:.3g} "
+            f"| {sec['total']:.0f} | {computing:.0f} |"
+        )
+    text += (
+        "\n## Without tuning\n\n" + "\n".join(refs) + '\n\n"s computing": the seconds '
+        "each family took when it was computed (cached grids keep theirs), with the "
+        "scene's setup; run in parallel with other scenes.\n"
+    )
+    edges = [
+        f"- {name}/{fam}: {_hp({**x['static'], **x['hyper']})}"
+        for name, e in scenes.items()
+        for fam, lst in e["lr_at_grid_edge"].items()
+        for x in lst
+        if fam != "bilateral"
+    ]
     n_bil = sum(len(e["lr_at_grid_edge"].get("bilateral", [])) for e in scenes.values())
-    text += (f"\nLearning rate still at a grid edge after {summary['settings']['max_extend']} "
-             f"extensions: {n_bil} bilateral grid points" + (", and:\n" + "\n".join(edges) if edges else "")
-             + "\n")
+    text += (
+        f"\nLearning rate still at a grid edge after {summary['settings']['max_extend']} "
+        f"extensions: {n_bil} bilateral grid points"
+        + (", and:\n" + "\n".join(edges) if edges else "")
+        + "\n"
+    )
     return text
 
 
@@ -875,8 +1103,15 @@ def load_candidates(specs: Sequence[str]) -> dict[str, Callable]:
 
 
 #: Rough relative cost of the full scenes (longest first when run in parallel).
-_COST_RANK = {"texture_low_noise": 6, "volume": 5, "deblur": 4, "deblur_x100": 4, "texture": 3,
-              "texture_noise": 3, "signal1d": 1}
+_COST_RANK = {
+    "texture_low_noise": 6,
+    "volume": 5,
+    "deblur": 4,
+    "deblur_x100": 4,
+    "texture": 3,
+    "texture_noise": 3,
+    "signal1d": 1,
+}
 
 
 def _scene_job(args) -> dict:
@@ -887,8 +1122,15 @@ def _scene_job(args) -> dict:
     scene = sc.make(name, quick)
     jax.block_until_ready(scene.data)
     build = time.perf_counter() - t0
-    entry = run_scene(scene, settings(quick), pathlib.Path(cache), candidates=candidates,
-                      recompute=recompute, with_auto=with_auto, progress=progress)
+    entry = run_scene(
+        scene,
+        settings(quick),
+        pathlib.Path(cache),
+        candidates=candidates,
+        recompute=recompute,
+        with_auto=with_auto,
+        progress=progress,
+    )
     entry["seconds"]["scene_setup"] = build
     entry["seconds"]["total"] += build
     return entry
@@ -909,7 +1151,9 @@ def _use_xla_cache(path: str | None) -> None:
 
 def _as_done(futures, progress: bool):
     import concurrent.futures
+
     from tqdm.auto import tqdm
+
     bar = tqdm(total=len(futures), desc="scenes", unit="scene", disable=not progress)
     for f in concurrent.futures.as_completed(futures):
         bar.update(1)
@@ -917,11 +1161,17 @@ def _as_done(futures, progress: bool):
     bar.close()
 
 
-def run_benchmark(scene_names: Sequence[str] | None = None, *, quick: bool = False,
-                  out: str | pathlib.Path = "results/tuning",
-                  candidates: Mapping[str, Callable] | None = None, recompute: bool = False,
-                  progress: bool = True, jobs: int = 1, xla_cache: str | None = "default"
-                  ) -> dict:
+def run_benchmark(
+    scene_names: Sequence[str] | None = None,
+    *,
+    quick: bool = False,
+    out: str | pathlib.Path = "results/tuning",
+    candidates: Mapping[str, Callable] | None = None,
+    recompute: bool = False,
+    progress: bool = True,
+    jobs: int = 1,
+    xla_cache: str | None = "default",
+) -> dict:
     """Runs (or loads from ``out/cache``) every scene; writes ``summary.json``, ``table.md``
     and one PNG per scene to ``out``; returns the summary.
 
@@ -943,19 +1193,24 @@ def run_benchmark(scene_names: Sequence[str] | None = None, *, quick: bool = Fal
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive int, got {jobs!r}")
     _use_xla_cache(xla_cache)
-    args = [(n, quick, str(cache), candidates, recompute, with_auto, progress, xla_cache)
-            for n in names]
+    args = [
+        (n, quick, str(cache), candidates, recompute, with_auto, progress, xla_cache) for n in names
+    ]
     if jobs == 1:
         done = map(_scene_job, args)
     else:
         import concurrent.futures
         import multiprocessing
+
         # Scenes run in worker processes (one XLA client each); costly scenes first.
         order = sorted(args, key=lambda a: -_COST_RANK.get(a[0], 0))
         ctx = multiprocessing.get_context("spawn")
         pool = concurrent.futures.ProcessPoolExecutor(
-            max_workers=min(jobs, len(names)), mp_context=ctx, initializer=_init_worker,
-            initargs=(ctx.Value("i", 0),))
+            max_workers=min(jobs, len(names)),
+            mp_context=ctx,
+            initializer=_init_worker,
+            initargs=(ctx.Value("i", 0),),
+        )
         futures = [pool.submit(_scene_job, a) for a in order]
         done = _as_done(futures, progress)
     entries = {}
@@ -963,17 +1218,27 @@ def run_benchmark(scene_names: Sequence[str] | None = None, *, quick: bool = Fal
         entries[entry["scene"]] = entry
         if progress:
             b = entry["methods"]["best_tuned"]
-            print(f"{entry['scene']}: best-tuned {b['error']:.4g} ({_hp(b['hyperparameters'])}), "
-                  f"Adam {entry['methods']['adam']['error']:.4g}, "
-                  f"{entry['seconds']['total']:.0f} s", flush=True)
+            print(
+                f"{entry['scene']}: best-tuned {b['error']:.4g} ({_hp(b['hyperparameters'])}), "
+                f"Adam {entry['methods']['adam']['error']:.4g}, "
+                f"{entry['seconds']['total']:.0f} s",
+                flush=True,
+            )
     if jobs > 1:
         pool.shutdown()
     entries = {n: entries[n] for n in names}
     pngs = [str(plot_scene(e, out / f"{n}.png")) for n, e in entries.items()]
-    summary = {"quick": quick, "auto_available": with_auto, "candidates": list(candidates or {}),
-               "defaults": bilateral_defaults(), "settings": dataclasses.asdict(s),
-               "targets": {"best_tuned": TARGET_BEST, "adam": TARGET_ADAM},
-               "scenes": entries, "pngs": pngs, "total_seconds": time.perf_counter() - t0}
+    summary = {
+        "quick": quick,
+        "auto_available": with_auto,
+        "candidates": list(candidates or {}),
+        "defaults": bilateral_defaults(),
+        "settings": dataclasses.asdict(s),
+        "targets": {"best_tuned": TARGET_BEST, "adam": TARGET_ADAM},
+        "scenes": entries,
+        "pngs": pngs,
+        "total_seconds": time.perf_counter() - t0,
+    }
     (out / "summary.json").write_text(json.dumps(_jsonable(summary), indent=1) + "\n")
     table = markdown(summary)
     (out / "table.md").write_text(table)
@@ -983,33 +1248,57 @@ def run_benchmark(scene_names: Sequence[str] | None = None, *, quick: bool = Fal
 
 def main(argv=None) -> dict:
     def extra(parser):
-        parser.add_argument("--only-scenes", default="",
-                            help=f"comma-separated subset of {','.join(sc.SCENES)}")
-        parser.add_argument("--candidates", default="",
-                            help="comma-separated [NAME=]module:factory candidate methods; "
-                                 "factory(learning_rate) -> optax transform")
-        parser.add_argument("--recompute", action="store_true",
-                            help="rerun the grids even when out/cache holds them")
-        parser.add_argument("--jobs", type=int, default=DEFAULT_JOBS,
-                            help=f"scenes run in this many worker processes (default "
-                                 f"{DEFAULT_JOBS}: the CPU count, at most 2)")
-        parser.add_argument("--xla-cache", default="default",
-                            help="JAX persistent compilation cache dir (default OUT/cache/xla; "
-                                 "'none' to disable)")
+        parser.add_argument(
+            "--only-scenes", default="", help=f"comma-separated subset of {','.join(sc.SCENES)}"
+        )
+        parser.add_argument(
+            "--candidates",
+            default="",
+            help="comma-separated [NAME=]module:factory candidate methods; "
+            "factory(learning_rate) -> optax transform",
+        )
+        parser.add_argument(
+            "--recompute",
+            action="store_true",
+            help="rerun the grids even when out/cache holds them",
+        )
+        parser.add_argument(
+            "--jobs",
+            type=int,
+            default=DEFAULT_JOBS,
+            help=f"scenes run in this many worker processes (default "
+            f"{DEFAULT_JOBS}: the CPU count, at most 2)",
+        )
+        parser.add_argument(
+            "--xla-cache",
+            default="default",
+            help="JAX persistent compilation cache dir (default OUT/cache/xla; 'none' to disable)",
+        )
 
-    args = common.parse_args("Tuning benchmark of issue #17: best-tuned grid, auto, defaults, "
-                             "Adam and the Laplacian pyramid on every scene.",
-                             default_out="results/tuning", argv=argv, extra=extra)
+    args = common.parse_args(
+        "Tuning benchmark of issue #17: best-tuned grid, auto, defaults, "
+        "Adam and the Laplacian pyramid on every scene.",
+        default_out="results/tuning",
+        argv=argv,
+        extra=extra,
+    )
     scene_names = [x for x in args.only_scenes.split(",") if x]
     candidates = load_candidates([x for x in args.candidates.split(",") if x])
-    summary = run_benchmark(scene_names, quick=args.quick, out=args.out, candidates=candidates,
-                            recompute=args.recompute, jobs=args.jobs,
-                            xla_cache=None if args.xla_cache == "none" else args.xla_cache)
+    summary = run_benchmark(
+        scene_names,
+        quick=args.quick,
+        out=args.out,
+        candidates=candidates,
+        recompute=args.recompute,
+        jobs=args.jobs,
+        xla_cache=None if args.xla_cache == "none" else args.xla_cache,
+    )
     print(summary["table"])
-    print(f"Total {summary['total_seconds']:.1f} s. Wrote {args.out}/summary.json, table.md, "
-          f"{len(summary['pngs'])} PNGs.")
+    print(
+        f"Total {summary['total_seconds']:.1f} s. Wrote {args.out}/summary.json, table.md, "
+        f"{len(summary['pngs'])} PNGs."
+    )
     return summary
-
 
 
 def _jsonable(obj):

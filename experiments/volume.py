@@ -66,17 +66,50 @@ def config(quick: bool) -> dict:
     if quick:
         # Few compilations (they dominate at this size): one Adam program, one F = 2
         # program shared by low-pass, cross-bilateral and the timing table, one self-guided.
-        return dict(size=24, resolution=16, n_views=16, views_per_step=2, iterations=30,
-                    record_every=5, evaluate_every=10, target_spp=32, eval_views=4, eval_spp=8,
-                    image_spp=32, lr=0.1, b1=0.2, sigma_d={"density": 0.05, "albedo": 0.1},
-                    self_sigma_d=[1.0], levels=2, adam_sweep=[(0.01, 0.9)],
-                    timing_levels=(2,), timing_repeats=2, timing_steps=2)
-    return dict(size=64, resolution=32, n_views=64, views_per_step=4, iterations=300,
-                record_every=5, evaluate_every=25, target_spp=64, eval_views=8, eval_spp=16,
-                image_spp=64, lr=0.1, b1=0.2, sigma_d={"density": 0.05, "albedo": 0.1},
-                self_sigma_d=[1.0, 10.0], levels=3,
-                adam_sweep=[(0.001, 0.9), (0.003, 0.9), (0.01, 0.9), (0.003, 0.2)],
-                timing_levels=(3, 5), timing_repeats=5, timing_steps=5)
+        return dict(
+            size=24,
+            resolution=16,
+            n_views=16,
+            views_per_step=2,
+            iterations=30,
+            record_every=5,
+            evaluate_every=10,
+            target_spp=32,
+            eval_views=4,
+            eval_spp=8,
+            image_spp=32,
+            lr=0.1,
+            b1=0.2,
+            sigma_d={"density": 0.05, "albedo": 0.1},
+            self_sigma_d=[1.0],
+            levels=2,
+            adam_sweep=[(0.01, 0.9)],
+            timing_levels=(2,),
+            timing_repeats=2,
+            timing_steps=2,
+        )
+    return dict(
+        size=64,
+        resolution=32,
+        n_views=64,
+        views_per_step=4,
+        iterations=300,
+        record_every=5,
+        evaluate_every=25,
+        target_spp=64,
+        eval_views=8,
+        eval_spp=16,
+        image_spp=64,
+        lr=0.1,
+        b1=0.2,
+        sigma_d={"density": 0.05, "albedo": 0.1},
+        self_sigma_d=[1.0, 10.0],
+        levels=3,
+        adam_sweep=[(0.001, 0.9), (0.003, 0.9), (0.01, 0.9), (0.003, 0.2)],
+        timing_levels=(3, 5),
+        timing_repeats=5,
+        timing_steps=5,
+    )
 
 
 class Problem:
@@ -92,13 +125,22 @@ class Problem:
         all_views = jnp.arange(scene.n_views)
         # Reference images: high-sample estimates (unbiased; their residual noise
         # is ~1/sqrt(target_spp) of one sample's).
-        self.targets = jnp.concatenate([
-            toy.render_mean(self.target, scene, jax.random.fold_in(jax.random.key(seed), 1_000_000 + i),
-                            all_views[i:i + 4], spp=cfg["target_spp"])
-            for i in range(0, scene.n_views, 4)])     # 4 views per call, as plot_views: one compile
+        self.targets = jnp.concatenate(
+            [
+                toy.render_mean(
+                    self.target,
+                    scene,
+                    jax.random.fold_in(jax.random.key(seed), 1_000_000 + i),
+                    all_views[i : i + 4],
+                    spp=cfg["target_spp"],
+                )
+                for i in range(0, scene.n_views, 4)
+            ]
+        )  # 4 views per call, as plot_views: one compile
         # Evaluation views: spread over the sphere, fixed.
-        self.eval_views = jnp.asarray(np.linspace(0, scene.n_views - 1, cfg["eval_views"]).round(),
-                                      jnp.int32)
+        self.eval_views = jnp.asarray(
+            np.linspace(0, scene.n_views - 1, cfg["eval_views"]).round(), jnp.int32
+        )
         base = jax.random.key(seed)
         b = cfg["views_per_step"]
 
@@ -110,8 +152,14 @@ class Problem:
             return loss, grads
 
         def eval_fn(params):
-            img = toy.render_mean(params, scene, jax.random.key(seed + 7), self.eval_views,
-                                  spp=cfg["eval_spp"], batch=cfg["eval_spp"])
+            img = toy.render_mean(
+                params,
+                scene,
+                jax.random.key(seed + 7),
+                self.eval_views,
+                spp=cfg["eval_spp"],
+                batch=cfg["eval_spp"],
+            )
             out = toy.param_errors(params, self.target)
             out["loss"] = jnp.mean(jnp.square(img - self.targets[self.eval_views]))
             return out
@@ -145,9 +193,15 @@ def _optimizer(kind: str, static: dict, hp: dict) -> optax.GradientTransformatio
     if kind == "adam":
         return optax.adam(hp["learning_rate"], b1=hp["b1"], b2=hp["b2"])
     levels = static["levels"]
-    levels = dict(levels) if isinstance(levels, tuple) else levels     # per-leaf, kept hashable
-    return bilateral_adam(hp["learning_rate"], static["b1"], sigma_d=hp["sigma_d"],
-                          levels=levels, guide=static["guide"], log_guide=static["log_guide"])
+    levels = dict(levels) if isinstance(levels, tuple) else levels  # per-leaf, kept hashable
+    return bilateral_adam(
+        hp["learning_rate"],
+        static["b1"],
+        sigma_d=hp["sigma_d"],
+        levels=levels,
+        guide=static["guide"],
+        log_guide=static["log_guide"],
+    )
 
 
 class Method(NamedTuple):
@@ -170,8 +224,15 @@ class Method(NamedTuple):
         return _optimizer(self.kind, dict(self.static), self.traced_hp()).init(params)
 
 
-def make_method(method: str, cfg: dict, lr: float | None = None, b1: float | None = None,
-                levels=None, name: str | None = None, self_sigma_d: float | None = None) -> Method:
+def make_method(
+    method: str,
+    cfg: dict,
+    lr: float | None = None,
+    b1: float | None = None,
+    levels=None,
+    name: str | None = None,
+    self_sigma_d: float | None = None,
+) -> Method:
     """The configuration of ``method`` (one of :data:`METHODS`) for this experiment.
 
     ``self_sigma_d`` is the log-domain ``sigma_d`` of ``bilateral`` (default: the
@@ -199,8 +260,9 @@ def make_method(method: str, cfg: dict, lr: float | None = None, b1: float | Non
         sigma_d = dict(cfg["sigma_d"])
     else:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    return Method(name, "filtered", tuple(sorted(static.items())),
-                  dict(learning_rate=lr, sigma_d=sigma_d))
+    return Method(
+        name, "filtered", tuple(sorted(static.items())), dict(learning_rate=lr, sigma_d=sigma_d)
+    )
 
 
 def run(problem: Problem, method: Method, iterations: int, progress: bool = True) -> common.Trace:
@@ -217,11 +279,17 @@ def run(problem: Problem, method: Method, iterations: int, progress: bool = True
         return (params, state), {"train_loss": loss}
 
     params = problem.init
-    trace = common.run_method(method.name, step, (params, method.init(params)), iterations,
-                              evaluate=lambda c: problem.eval_fn(c[0]),
-                              record_every=cfg["record_every"],
-                              evaluate_every=cfg["evaluate_every"],
-                              hyperparameters=method.description, progress=progress)
+    trace = common.run_method(
+        method.name,
+        step,
+        (params, method.init(params)),
+        iterations,
+        evaluate=lambda c: problem.eval_fn(c[0]),
+        record_every=cfg["record_every"],
+        evaluate_every=cfg["evaluate_every"],
+        hyperparameters=method.description,
+        progress=progress,
+    )
     trace.final = trace.final[0]
     return trace
 
@@ -243,14 +311,14 @@ def timing_table(problem: Problem, levels: tuple[int, ...], repeats: int, steps:
     states = {k: m.init(problem.init) for k, m in rows.items()}
     params = {k: problem.init for k in rows}
     _, g_fixed = problem.grad_fn(problem.init, jnp.asarray(0, jnp.int32))
-    for k in rows:                                              # warm-up / compile
+    for k in rows:  # warm-up / compile
         jax.block_until_ready(updates[k](g_fixed, states[k], params[k], hps[k]))
     iteration = {k: [] for k in rows}
     update_only = {k: [] for k in rows}
     names = list(rows)
     counter = 0
     for r in range(repeats):
-        order = names[r % len(names):] + names[:r % len(names)]
+        order = names[r % len(names) :] + names[: r % len(names)]
         for k in order:
             t0 = time.perf_counter()
             for _ in range(steps):
@@ -270,13 +338,23 @@ def timing_table(problem: Problem, levels: tuple[int, ...], repeats: int, steps:
     for k in rows:
         t = float(np.median(iteration[k]))
         u = float(np.median(update_only[k]))
-        table.append({"Method": k, "ms per iteration": 1e3 * t,
-                      "% change": 0.0 if k == "Adam" else 100.0 * (t / adam - 1.0),
-                      "update ms": 1e3 * u, "update share %": 100.0 * u / t,
-                      "Grid": f"{cfg['size']}^3 (+ {cfg['views_per_step']} views of "
-                              f"{cfg['resolution']}^2 px per iteration)"})
-    return {"rows": table, "repeats": repeats, "steps_per_repeat": steps,
-            "samples_ms": {k: [1e3 * x for x in v] for k, v in iteration.items()}}
+        table.append(
+            {
+                "Method": k,
+                "ms per iteration": 1e3 * t,
+                "% change": 0.0 if k == "Adam" else 100.0 * (t / adam - 1.0),
+                "update ms": 1e3 * u,
+                "update share %": 100.0 * u / t,
+                "Grid": f"{cfg['size']}^3 (+ {cfg['views_per_step']} views of "
+                f"{cfg['resolution']}^2 px per iteration)",
+            }
+        )
+    return {
+        "rows": table,
+        "repeats": repeats,
+        "steps_per_repeat": steps,
+        "samples_ms": {k: [1e3 * x for x in v] for k, v in iteration.items()},
+    }
 
 
 def _to_img(x):
@@ -285,13 +363,15 @@ def _to_img(x):
 
 def plot_views(problem: Problem, params_by_name: dict, path: pathlib.Path, views, spp: int) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     views = jnp.asarray(views, jnp.int32)
     rows = {"target": problem.target, "initial": problem.init, **params_by_name}
-    fig, axes = plt.subplots(len(rows), len(views), figsize=(1.8 * len(views), 1.8 * len(rows)),
-                             dpi=110, squeeze=False)
+    fig, axes = plt.subplots(
+        len(rows), len(views), figsize=(1.8 * len(views), 1.8 * len(rows)), dpi=110, squeeze=False
+    )
     key = jax.random.key(problem.seed + 11)
     for r, (name, p) in enumerate(rows.items()):
         imgs = toy.render_mean(p, problem.scene, key, views, spp=spp, batch=min(spp, 16))
@@ -313,6 +393,7 @@ def plot_views(problem: Problem, params_by_name: dict, path: pathlib.Path, views
 def plot_slices(problem: Problem, params_by_name: dict, path: pathlib.Path) -> None:
     """Density and albedo at two z-slices; albedo shown where the target has medium."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -320,18 +401,23 @@ def plot_slices(problem: Problem, params_by_name: dict, path: pathlib.Path) -> N
     zs = (int(0.4 * n), int(0.65 * n))
     rows = {"target": problem.target, "initial": problem.init, **params_by_name}
     medium = np.asarray(problem.target["density"][..., 0]) > 0.02
-    fig, axes = plt.subplots(len(rows), 2 * len(zs), figsize=(7.5, 1.9 * len(rows)), dpi=110,
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(rows), 2 * len(zs), figsize=(7.5, 1.9 * len(rows)), dpi=110, squeeze=False
+    )
     for r, (name, p) in enumerate(rows.items()):
         d = np.asarray(p["density"][..., 0])
         a = np.asarray(p["albedo"])
         for j, z in enumerate(zs):
             ax = axes[r, 2 * j]
-            ax.imshow(d[:, :, z].T, origin="lower", cmap="magma", vmin=0, vmax=1,
-                      interpolation="nearest")
+            ax.imshow(
+                d[:, :, z].T, origin="lower", cmap="magma", vmin=0, vmax=1, interpolation="nearest"
+            )
             ax2 = axes[r, 2 * j + 1]
-            ax2.imshow(np.where(medium[:, :, z, None], _to_img(a[:, :, z]), 0.0).transpose(1, 0, 2),
-                       origin="lower", interpolation="nearest")
+            ax2.imshow(
+                np.where(medium[:, :, z, None], _to_img(a[:, :, z]), 0.0).transpose(1, 0, 2),
+                origin="lower",
+                interpolation="nearest",
+            )
             for a_ in (ax, ax2):
                 a_.set_xticks([])
                 a_.set_yticks([])
@@ -345,8 +431,11 @@ def plot_slices(problem: Problem, params_by_name: dict, path: pathlib.Path) -> N
 
 
 def main(argv=None) -> dict:
-    args = common.parse_args("Volume recovery (paper Figs. 8-9, supplement Table 1)",
-                             default_out="results/volume", argv=argv)
+    args = common.parse_args(
+        "Volume recovery (paper Figs. 8-9, supplement Table 1)",
+        default_out="results/volume",
+        argv=argv,
+    )
     cfg = config(args.quick)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -358,16 +447,22 @@ def main(argv=None) -> dict:
     sweep: dict[str, dict] = {}
     adam_traces = []
     for lr, b1 in cfg["adam_sweep"]:
-        tr = run(problem, make_method("adam", cfg, lr=lr, b1=b1, name=f"adam lr={lr} b1={b1}"),
-                 cfg["iterations"])
+        tr = run(
+            problem,
+            make_method("adam", cfg, lr=lr, b1=b1, name=f"adam lr={lr} b1={b1}"),
+            cfg["iterations"],
+        )
         adam_traces.append(tr)
         sweep[tr.name] = common.summary_entry(tr)
     traces["adam"] = common.best_trace(adam_traces, "param_error")
     traces["low-pass"] = run(problem, make_method("low-pass", cfg), cfg["iterations"])
     bilateral_traces = []
     for s in cfg["self_sigma_d"]:
-        tr = run(problem, make_method("bilateral", cfg, self_sigma_d=s,
-                                      name=f"bilateral sigma_d={s}"), cfg["iterations"])
+        tr = run(
+            problem,
+            make_method("bilateral", cfg, self_sigma_d=s, name=f"bilateral sigma_d={s}"),
+            cfg["iterations"],
+        )
         bilateral_traces.append(tr)
         sweep[tr.name] = common.summary_entry(tr)
     traces["bilateral"] = common.best_trace(bilateral_traces, "param_error")
@@ -390,35 +485,58 @@ def main(argv=None) -> dict:
     timing_md = common.markdown_table(timing["rows"], floatfmt=".4g")
     (out / "timing.md").write_text(
         "Per-iteration time (rendering + update), medians of interleaved repeats\n\n"
-        + timing_md + "\n")
+        + timing_md
+        + "\n"
+    )
 
-    common.plot_all_curves(traces, out, metrics=("loss", "param_error", "density_error",
-                                                 "albedo_error"))
+    common.plot_all_curves(
+        traces, out, metrics=("loss", "param_error", "density_error", "albedo_error")
+    )
     finals = {k: tr.final for k, tr in traces.items()}
     view_ids = np.linspace(0, cfg["n_views"] - 1, 4).round().astype(int)
     plot_views(problem, finals, out / "views.png", view_ids, cfg["image_spp"])
     plot_slices(problem, finals, out / "slices.png")
 
     total = time.perf_counter() - t_start
-    rows = [{"method": k, "param error": m["final_param_error"],
-             "density MAE": m["final_density_error"], "albedo MAE (weighted)": m["final_albedo_error"],
-             "image loss": m["final_loss"], "error @ equal time": m["param_error_at_equal_time"],
-             "s / iteration": m["seconds_per_iteration"]} for k, m in methods.items()]
+    rows = [
+        {
+            "method": k,
+            "param error": m["final_param_error"],
+            "density MAE": m["final_density_error"],
+            "albedo MAE (weighted)": m["final_albedo_error"],
+            "image loss": m["final_loss"],
+            "error @ equal time": m["param_error_at_equal_time"],
+            "s / iteration": m["seconds_per_iteration"],
+        }
+        for k, m in methods.items()
+    ]
     table = common.markdown_table(rows)
-    sweep_rows = [{"run": k, "param error": v["final_param_error"], "image loss": v["final_loss"]}
-                  for k, v in sweep.items()]
-    md = (f"# Volume recovery ({cfg['size']}^3 grid, {cfg['iterations']} iterations, "
-          f"{cfg['views_per_step']} of {cfg['n_views']} views of {cfg['resolution']}^2 px per "
-          f"iteration, 1 spp primal + 1 spp gradient)\n\n"
-          f"Initial: param error {initial['param_error']:.4g}, image loss {initial['loss']:.4g}. "
-          f"Equal-time column: error after {budget:.1f} s of steps.\n\n{table}\n\n"
-          f"## Sweeps (best by parameter error: `{traces['adam'].name}`, "
-          f"`{traces['bilateral'].name}`)\n\n{common.markdown_table(sweep_rows)}\n\n"
-          f"## Per-iteration time (supplement Table 1 analogue)\n\n{timing_md}\n\n"
-          f"Total run time: {total:.0f} s.\n")
+    sweep_rows = [
+        {"run": k, "param error": v["final_param_error"], "image loss": v["final_loss"]}
+        for k, v in sweep.items()
+    ]
+    md = (
+        f"# Volume recovery ({cfg['size']}^3 grid, {cfg['iterations']} iterations, "
+        f"{cfg['views_per_step']} of {cfg['n_views']} views of {cfg['resolution']}^2 px per "
+        f"iteration, 1 spp primal + 1 spp gradient)\n\n"
+        f"Initial: param error {initial['param_error']:.4g}, image loss {initial['loss']:.4g}. "
+        f"Equal-time column: error after {budget:.1f} s of steps.\n\n{table}\n\n"
+        f"## Sweeps (best by parameter error: `{traces['adam'].name}`, "
+        f"`{traces['bilateral'].name}`)\n\n{common.markdown_table(sweep_rows)}\n\n"
+        f"## Per-iteration time (supplement Table 1 analogue)\n\n{timing_md}\n\n"
+        f"Total run time: {total:.0f} s.\n"
+    )
     (out / "results.md").write_text(md)
-    common.write_summary(out, methods, sweeps=sweep, initial=initial, timing=timing["rows"],
-                         config=cfg, total_seconds=total, equal_time_budget_seconds=budget)
+    common.write_summary(
+        out,
+        methods,
+        sweeps=sweep,
+        initial=initial,
+        timing=timing["rows"],
+        config=cfg,
+        total_seconds=total,
+        equal_time_budget_seconds=budget,
+    )
     print(md)
     print(f"Wrote {out}/summary.json, results.md, timing.md, views.png, slices.png and curves.")
     return methods

@@ -1,7 +1,9 @@
-"""Builds ``notebooks/*.ipynb`` (outputs stripped) from the sources in ``notebooks/src/``, or runs them.
+"""Builds ``notebooks/*.ipynb`` (outputs stripped) from the sources in ``notebooks/src/``, or
+runs them.
 
     python notebooks/build_notebooks.py                 # write every notebook from its source
-    python notebooks/build_notebooks.py --check         # exit 1 if a notebook differs from its source
+    python notebooks/build_notebooks.py --check         # exit 1 if a notebook and its source
+                                                        # differ
     python notebooks/build_notebooks.py --execute NAME  # run notebooks/NAME.ipynb; the executed
                                                         # copy goes to results/notebooks/NAME.ipynb
                                                         # (results/notebooks/quick/ when quick)
@@ -99,13 +101,15 @@ def dumps(nb: nbformat.NotebookNode) -> str:
 
 
 def execute(name: str, timeout: int = 7200) -> pathlib.Path:
-    """Runs ``notebooks/name.ipynb`` with its working directory ``notebooks/``; returns the executed copy."""
+    """Runs ``notebooks/name.ipynb`` with its working directory ``notebooks/``; returns the
+    executed copy."""
     from nbclient import NotebookClient
 
     nb = nbformat.read(HERE / f"{name}.ipynb", as_version=4)
     t0 = time.perf_counter()
-    NotebookClient(nb, timeout=timeout, kernel_name="python3",
-                   resources={"metadata": {"path": str(HERE)}}).execute()
+    NotebookClient(
+        nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
+    ).execute()
     out = executed_path(name, quick_from_env())
     out.parent.mkdir(parents=True, exist_ok=True)
     nbformat.write(nb, out)
@@ -133,11 +137,13 @@ def _small_png(data: bytes) -> bytes:
     while True:
         out = io.BytesIO()
         image.quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
-            out, "PNG", optimize=True)
+            out, "PNG", optimize=True
+        )
         if out.tell() <= PNG_BUDGET or image.width < 600:
             break
-        image = image.resize((round(image.width * 0.8), round(image.height * 0.8)),
-                             Image.Resampling.LANCZOS)
+        image = image.resize(
+            (round(image.width * 0.8), round(image.height * 0.8)), Image.Resampling.LANCZOS
+        )
     return out.getvalue() if out.tell() < len(data) else data
 
 
@@ -154,8 +160,10 @@ def record(name: str, quick: bool) -> pathlib.Path:
 
     executed = executed_path(name, quick)
     if not executed.exists():
-        raise FileNotFoundError(f"{executed} does not exist; run "
-                                f"python notebooks/build_notebooks.py --execute {name} first")
+        raise FileNotFoundError(
+            f"{executed} does not exist; run "
+            f"python notebooks/build_notebooks.py --execute {name} first"
+        )
     nb = nbformat.read(executed, as_version=4)
     root = str(HERE.parent) + os.sep
     figures = OUTPUTS / name
@@ -187,12 +195,18 @@ def record(name: str, quick: bool) -> pathlib.Path:
                     outputs.append({"text": data["text/plain"].replace(root, "") + "\n"})
         cells.append({"source_sha256": source_hash(cell.source), "outputs": outputs})
     executed_on = datetime.date.fromtimestamp(executed.stat().st_mtime).isoformat()
-    rec = {"notebook": name, "size": "quick" if quick else "full", "executed": executed_on,
-           "cells": cells}
+    rec = {
+        "notebook": name,
+        "size": "quick" if quick else "full",
+        "executed": executed_on,
+        "cells": cells,
+    }
     path = OUTPUTS / f"{name}.json"
     path.write_text(json.dumps(rec, indent=1, ensure_ascii=False) + "\n")
-    print(f"{name}: recorded {len(cells)} code cells, "
-          f"{len(list(figures.glob('*.png')))} figures -> {path}")
+    print(
+        f"{name}: recorded {len(cells)} code cells, "
+        f"{len(list(figures.glob('*.png')))} figures -> {path}"
+    )
     return path
 
 
@@ -213,7 +227,8 @@ def load_record(name: str) -> dict:
             f"notebooks/outputs/{name}.json was recorded from other code than "
             f"notebooks/{name}.ipynb ({len(recorded)} code cells recorded, {len(code)} now; "
             f"changed: {changed}); re-run it: "
-            f"python notebooks/build_notebooks.py --execute {name} --record {name}")
+            f"python notebooks/build_notebooks.py --execute {name} --record {name}"
+        )
     return rec
 
 
@@ -225,15 +240,20 @@ def page(name: str) -> str:
     """The docs page of ``name`` (Markdown): its cells, each code cell followed by its recorded
     outputs, with a note after the title saying which run they come from."""
     rec = load_record(name)
-    size = ("the full size (no `OPTAX_BILATERAL_QUICK`)" if rec["size"] == "full" else
-            "the quick size (`OPTAX_BILATERAL_QUICK=1`, the test suite's: small textures and few "
-            "iterations, so its numbers are not the paper-like results of the last section)")
-    note = ("!!! note \"Recorded outputs\"\n"
-            f"    The outputs below are those of one run of this notebook at {size}, executed on "
-            f"{rec['executed']} with `python notebooks/build_notebooks.py --execute {name}`; "
-            "standard error (progress bars, warnings) is not shown. The notebook in the "
-            f"repository, `notebooks/{name}.ipynb`, is stored without outputs: run it with that "
-            "command, or open it in Jupyter from the repository root after `make install-dev`.")
+    size = (
+        "the full size (no `OPTAX_BILATERAL_QUICK`)"
+        if rec["size"] == "full"
+        else "the quick size (`OPTAX_BILATERAL_QUICK=1`, the test suite's: small textures and few "
+        "iterations, so its numbers are not the paper-like results of the last section)"
+    )
+    note = (
+        '!!! note "Recorded outputs"\n'
+        f"    The outputs below are those of one run of this notebook at {size}, executed on "
+        f"{rec['executed']} with `python notebooks/build_notebooks.py --execute {name}`; "
+        "standard error (progress bars, warnings) is not shown. The notebook in the "
+        f"repository, `notebooks/{name}.ipynb`, is stored without outputs: run it with that "
+        "command, or open it in Jupyter from the repository root after `make install-dev`."
+    )
     nb = nbformat.read(HERE / f"{name}.ipynb", as_version=4)
     cells = iter(rec["cells"])
     parts = []
@@ -257,11 +277,21 @@ def page(name: str) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="fail if a notebook is out of date")
-    parser.add_argument("--execute", nargs="+", metavar="NAME", choices=NAMES,
-                        help="run these notebooks (executed copies go to results/notebooks/)")
-    parser.add_argument("--record", nargs="+", metavar="NAME", choices=NAMES,
-                        help="after --execute, if given: keep the executed copies' outputs for "
-                             "the docs site (notebooks/outputs/)")
+    parser.add_argument(
+        "--execute",
+        nargs="+",
+        metavar="NAME",
+        choices=NAMES,
+        help="run these notebooks (executed copies go to results/notebooks/)",
+    )
+    parser.add_argument(
+        "--record",
+        nargs="+",
+        metavar="NAME",
+        choices=NAMES,
+        help="after --execute, if given: keep the executed copies' outputs for "
+        "the docs site (notebooks/outputs/)",
+    )
     args = parser.parse_args(argv)
     if args.execute or args.record:
         for name in args.execute or ():

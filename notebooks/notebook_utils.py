@@ -1,4 +1,5 @@
-"""Helpers shared by the notebooks in ``notebooks/``: batched texture runs, step statistics, figures.
+"""Helpers shared by the notebooks in ``notebooks/``: batched texture runs, step statistics,
+figures.
 
 Imported by the notebooks as ``notebook_utils`` (their working directory is ``notebooks/``).
 
@@ -32,7 +33,8 @@ import functools
 import pathlib
 import sys
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -44,13 +46,14 @@ from optax_bilateral.toy import texture as tex
 # Only optax_bilateral is installed; experiments/ is imported from the repository.
 if str(pathlib.Path(__file__).resolve().parents[1]) not in sys.path:
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from experiments import common  # noqa: E402
+from experiments import common
 
 #: True when ``OPTAX_BILATERAL_QUICK=1`` (the test suite): notebooks then run at a small size.
 QUICK = common.quick_from_env()
 
 
 # ----------------------------------------------------------------------------- files
+
 
 def repo_root() -> pathlib.Path:
     """The repository root (the folder holding ``experiments/``)."""
@@ -65,7 +68,8 @@ def results_dir(name: str = "notebooks") -> pathlib.Path:
 
 
 def save_figure(fig, name: str, folder: str = "notebooks") -> pathlib.Path:
-    """Saves ``fig`` as ``results/<folder>/<name>.png`` and returns the path (the notebook still shows it).
+    """Saves ``fig`` as ``results/<folder>/<name>.png`` and returns the path (the notebook still
+    shows it).
 
     At the quick size the figure goes to ``results/<folder>/quick/`` instead, so that
     the test suite never overwrites the figures of a full-size run.
@@ -81,6 +85,7 @@ def tree_nbytes(tree: Any) -> int:
 
 
 # ----------------------------------------------------------------------------- the problem
+
 
 @dataclasses.dataclass(frozen=True)
 class TextureProblem:
@@ -100,19 +105,28 @@ class TextureProblem:
     grad_samples: int
     eval_spp: int
     scene: tex.TextureScene
-    target: jax.Array      # (H, W) roughness
-    reference: jax.Array   # (H, W) low-noise image of the target
-    init: jax.Array        # (H, W) constant initial roughness
-    key: jax.Array         # base key; iteration i uses fold_in(key, i)
+    target: jax.Array  # (H, W) roughness
+    reference: jax.Array  # (H, W) low-noise image of the target
+    init: jax.Array  # (H, W) constant initial roughness
+    key: jax.Array  # base key; iteration i uses fold_in(key, i)
 
     @property
     def initial_error(self) -> float:
         return float(jnp.mean(jnp.abs(self.init - self.target)))
 
 
-def texture_problem(size: int, target: str = "camera", *, spp: int = 1, spp_grad: int = 1,
-                    grad_samples: int = 1, reference_spp: int = 256, eval_spp: int = 32,
-                    init_alpha: float = 0.1, seed: int = 0) -> TextureProblem:
+def texture_problem(
+    size: int,
+    target: str = "camera",
+    *,
+    spp: int = 1,
+    spp_grad: int = 1,
+    grad_samples: int = 1,
+    reference_spp: int = 256,
+    eval_spp: int = 32,
+    init_alpha: float = 0.1,
+    seed: int = 0,
+) -> TextureProblem:
     """Builds the texture scene at ``size``^2 texels with a ``target`` roughness
     (:func:`optax_bilateral.toy.texture.target_roughness`: ``"camera"`` piecewise
     smooth, ``"noise"`` i.i.d. high-frequency noise, ``"phantom"``)."""
@@ -121,21 +135,31 @@ def texture_problem(size: int, target: str = "camera", *, spp: int = 1, spp_grad
     scene = tex.make_scene(size)
     alpha_t = jnp.asarray(tex.target_roughness(target, size, seed=seed))
     reference = tex.render_reference(alpha_t, scene, reference_spp, seed=seed)
-    return TextureProblem(size=size, target_name=target, spp=spp, spp_grad=spp_grad,
-                          grad_samples=grad_samples, eval_spp=eval_spp, scene=scene,
-                          target=alpha_t, reference=reference,
-                          init=jnp.full((size, size), init_alpha, jnp.float32),
-                          key=jax.random.PRNGKey(seed + 1))
+    return TextureProblem(
+        size=size,
+        target_name=target,
+        spp=spp,
+        spp_grad=spp_grad,
+        grad_samples=grad_samples,
+        eval_spp=eval_spp,
+        scene=scene,
+        target=alpha_t,
+        reference=reference,
+        init=jnp.full((size, size), init_alpha, jnp.float32),
+        key=jax.random.PRNGKey(seed + 1),
+    )
 
 
-def loss_and_grad(problem: TextureProblem, alpha, key, spp: int | None = None,
-                  spp_grad: int | None = None):
+def loss_and_grad(
+    problem: TextureProblem, alpha, key, spp: int | None = None, spp_grad: int | None = None
+):
     """The noisy training loss and its unbiased gradient at ``alpha`` (one Monte Carlo draw)."""
     spp = problem.spp if spp is None else spp
     spp_grad = problem.spp_grad if spp_grad is None else spp_grad
 
     def loss(a):
         return tex.loss_fn(tex.render(a, problem.scene, key, spp, spp_grad), problem.reference)
+
     return jax.value_and_grad(loss)(alpha)
 
 
@@ -148,16 +172,30 @@ def gradient_moments(problem: TextureProblem, alpha, n: int, key) -> tuple[jax.A
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
         raise ValueError(f"n must be an int >= 2 (the variance needs two samples), got {n!r}")
-    s, s2 = _gradient_sums(jnp.asarray(alpha), jnp.asarray(n, jnp.int32), key, problem.scene,
-                           problem.reference, spp=problem.spp, spp_grad=problem.spp_grad)
+    s, s2 = _gradient_sums(
+        jnp.asarray(alpha),
+        jnp.asarray(n, jnp.int32),
+        key,
+        problem.scene,
+        problem.reference,
+        spp=problem.spp,
+        spp_grad=problem.spp_grad,
+    )
     mean = s / n
     return mean, jnp.maximum(s2 / n - mean * mean, 0.0) * (n / (n - 1))
 
 
 def mean_gradient(problem: TextureProblem, alpha, n: int, key) -> jax.Array:
     """The average of ``n`` independent gradient estimates (keys ``fold_in(key, i)``)."""
-    s, _ = _gradient_sums(jnp.asarray(alpha), jnp.asarray(n, jnp.int32), key, problem.scene,
-                          problem.reference, spp=problem.spp, spp_grad=problem.spp_grad)
+    s, _ = _gradient_sums(
+        jnp.asarray(alpha),
+        jnp.asarray(n, jnp.int32),
+        key,
+        problem.scene,
+        problem.reference,
+        spp=problem.spp,
+        spp_grad=problem.spp_grad,
+    )
     return s / n
 
 
@@ -165,8 +203,11 @@ def mean_gradient(problem: TextureProblem, alpha, n: int, key) -> jax.Array:
 def _gradient_sums(alpha, n, key, scene, reference, *, spp, spp_grad):
     def body(i, acc):
         k = jax.random.fold_in(key, i)
-        g = jax.grad(lambda a: tex.loss_fn(tex.render(a, scene, k, spp, spp_grad), reference))(alpha)
+        g = jax.grad(lambda a: tex.loss_fn(tex.render(a, scene, k, spp, spp_grad), reference))(
+            alpha
+        )
         return acc[0] + g, acc[1] + g * g
+
     zero = jnp.zeros_like(alpha)
     return jax.lax.fori_loop(0, n, body, (zero, zero))
 
@@ -237,31 +278,40 @@ class Runs:
         v = self.metrics[metric][:, -1]
         return int(np.argmin(np.where(np.isnan(v), np.inf, v)))
 
-    def select(self, r: int, name: str | None = None) -> "Runs":
+    def select(self, r: int, name: str | None = None) -> Runs:
         """Run ``r`` alone (R = 1), named ``name`` (default: its label)."""
-        return Runs(name=name or self.label(r),
-                    hyperparams={k: v[r:r + 1] for k, v in self.hyperparams.items()},
-                    metrics={k: v[r:r + 1] for k, v in self.metrics.items()},
-                    final=self.final[r:r + 1], image_loss=self.image_loss[r:r + 1])
+        return Runs(
+            name=name or self.label(r),
+            hyperparams={k: v[r : r + 1] for k, v in self.hyperparams.items()},
+            metrics={k: v[r : r + 1] for k, v in self.metrics.items()},
+            final=self.final[r : r + 1],
+            image_loss=self.image_loss[r : r + 1],
+        )
 
 
 @dataclasses.dataclass
 class Timing:
     """Wall time of one :func:`run_texture` call."""
 
-    seconds: float          # everything: init, compilation, steps, evaluation
+    seconds: float  # everything: init, compilation, steps, evaluation
     compile_seconds: float  # first chunk minus a typical chunk (0 if the program was cached)
-    step_seconds: float     # per iteration, all runs together, compilation excluded
+    step_seconds: float  # per iteration, all runs together, compilation excluded
 
 
 def _chunks(iterations: int, target: int = 25) -> int:
-    """The largest divisor of ``iterations`` not above ``target`` (one compile serves every chunk)."""
+    """The largest divisor of ``iterations`` not above ``target`` (one compile serves every
+    chunk)."""
     return max(d for d in range(1, min(target, iterations) + 1) if iterations % d == 0)
 
 
-def run_texture(problem: TextureProblem, methods: Mapping[str, Method | optax.GradientTransformation],
-                iterations: int, *, progress: bool = True, chunk: int | None = None
-                ) -> tuple[dict[str, Runs], Timing]:
+def run_texture(
+    problem: TextureProblem,
+    methods: Mapping[str, Method | optax.GradientTransformation],
+    iterations: int,
+    *,
+    progress: bool = True,
+    chunk: int | None = None,
+) -> tuple[dict[str, Runs], Timing]:
     """Runs every method (every hyperparameter setting) on ``problem`` for ``iterations`` steps.
 
     All runs of all methods advance together in one compiled program: each
@@ -288,7 +338,9 @@ def run_texture(problem: TextureProblem, methods: Mapping[str, Method | optax.Gr
         raise ValueError(f"iterations must be a positive int, got {iterations!r}")
     chunk = _chunks(iterations) if chunk is None else chunk
     if not isinstance(chunk, int) or chunk < 1 or iterations % chunk:
-        raise ValueError(f"chunk must be a positive divisor of iterations={iterations}, got {chunk!r}")
+        raise ValueError(
+            f"chunk must be a positive divisor of iterations={iterations}, got {chunk!r}"
+        )
     if not methods:
         raise ValueError("methods must name at least one optimizer")
     methods = {k: m if isinstance(m, Method) else Method(m) for k, m in methods.items()}
@@ -303,14 +355,29 @@ def run_texture(problem: TextureProblem, methods: Mapping[str, Method | optax.Gr
     probes = tuple(methods[n].probe for n in names)
 
     outs, chunk_seconds = [], []
-    bar = tqdm(range(0, iterations, chunk), desc="iterations", unit_scale=chunk, leave=False,
-               disable=not progress)
+    bar = tqdm(
+        range(0, iterations, chunk),
+        desc="iterations",
+        unit_scale=chunk,
+        leave=False,
+        disable=not progress,
+    )
     for start in bar:
         t0 = time.perf_counter()
-        carry, out = _run_chunk(carry, jnp.asarray(start, jnp.int32), problem.key,
-                                jnp.asarray(problem.grad_samples, jnp.int32), problem.scene,
-                                problem.reference, problem.target, opts=opts, probes=probes,
-                                spp=problem.spp, spp_grad=problem.spp_grad, chunk=chunk)
+        carry, out = _run_chunk(
+            carry,
+            jnp.asarray(start, jnp.int32),
+            problem.key,
+            jnp.asarray(problem.grad_samples, jnp.int32),
+            problem.scene,
+            problem.reference,
+            problem.target,
+            opts=opts,
+            probes=probes,
+            spp=problem.spp,
+            spp_grad=problem.spp_grad,
+            chunk=chunk,
+        )
         out = jax.device_get(out)
         chunk_seconds.append(time.perf_counter() - t0)
         outs.append(out)
@@ -320,17 +387,37 @@ def run_texture(problem: TextureProblem, methods: Mapping[str, Method | optax.Gr
     for k, name in enumerate(names):
         metrics = {m: np.concatenate([o[k][m] for o in outs], axis=0).T for m in outs[0][k]}
         final = np.asarray(carry[k][0])
-        runs[name] = Runs(name=name, hyperparams=hps[name], metrics=metrics, final=final,
-                          image_loss=np.array([image_loss(problem, a) for a in final]))
-    timing = Timing(seconds=time.perf_counter() - t_start,
-                    compile_seconds=max(chunk_seconds[0] - typical, 0.0),
-                    step_seconds=typical / chunk)
+        runs[name] = Runs(
+            name=name,
+            hyperparams=hps[name],
+            metrics=metrics,
+            final=final,
+            image_loss=np.array([image_loss(problem, a) for a in final]),
+        )
+    timing = Timing(
+        seconds=time.perf_counter() - t_start,
+        compile_seconds=max(chunk_seconds[0] - typical, 0.0),
+        step_seconds=typical / chunk,
+    )
     return runs, timing
 
 
 @functools.partial(jax.jit, static_argnames=("opts", "probes", "spp", "spp_grad", "chunk"))
-def _run_chunk(carry, start, base_key, grad_samples, scene, reference, target, *, opts, probes,
-               spp, spp_grad, chunk):
+def _run_chunk(
+    carry,
+    start,
+    base_key,
+    grad_samples,
+    scene,
+    reference,
+    target,
+    *,
+    opts,
+    probes,
+    spp,
+    spp_grad,
+    chunk,
+):
     def loss_and_grad_one(alpha, key):
         def loss(a, k):
             return tex.loss_fn(tex.render(a, scene, k, spp, spp_grad), reference)
@@ -338,6 +425,7 @@ def _run_chunk(carry, start, base_key, grad_samples, scene, reference, target, *
         def body(j, acc):
             value, grad = jax.value_and_grad(loss)(alpha, jax.random.fold_in(key, j))
             return acc[0] + value, acc[1] + grad
+
         value, grad = jax.lax.fori_loop(0, grad_samples, body, (0.0, jnp.zeros_like(alpha)))
         return value / grad_samples, grad / grad_samples
 
@@ -360,10 +448,11 @@ def _run_chunk(carry, start, base_key, grad_samples, scene, reference, target, *
         new, outs, start = [], [], 0
         for (alpha, state), opt, probe in zip(carry, opts, probes):
             r = alpha.shape[0]
-            g = grads[start:start + r]
-            a, s, out = jax.lax.map(lambda x, opt=opt, probe=probe: update_one(opt, probe, *x),
-                                    (g, state, alpha))
-            out["loss"] = losses[start:start + r]
+            g = grads[start : start + r]
+            a, s, out = jax.lax.map(
+                lambda x, opt=opt, probe=probe: update_one(opt, probe, *x), (g, state, alpha)
+            )
+            out["loss"] = losses[start : start + r]
             new.append((a, s))
             outs.append(out)
             start += r
@@ -375,8 +464,10 @@ def _run_chunk(carry, start, base_key, grad_samples, scene, reference, target, *
 def _check_hyperparams(name, hyperparams) -> dict[str, np.ndarray]:
     hp = {k: np.asarray(v, np.float32).reshape(-1) for k, v in (hyperparams or {}).items()}
     if len({len(v) for v in hp.values()}) > 1:
-        raise ValueError(f"method {name!r}: hyperparams must all have the same length, got "
-                         f"{ {k: len(v) for k, v in hp.items()} }")
+        raise ValueError(
+            f"method {name!r}: hyperparams must all have the same length, got "
+            f"{ {k: len(v) for k, v in hp.items()} }"
+        )
     return hp
 
 
@@ -388,12 +479,16 @@ def _batched_init(opt, init, hp: Mapping[str, np.ndarray]):
     state0 = opt.init(init)
     known = getattr(state0, "hyperparams", None)
     if known is None:
-        raise TypeError("hyperparams need an optax.inject_hyperparams optimizer, got a state "
-                        f"of type {type(state0).__name__}")
+        raise TypeError(
+            "hyperparams need an optax.inject_hyperparams optimizer, got a state "
+            f"of type {type(state0).__name__}"
+        )
     missing = set(hp) - set(known)
     if missing:
-        raise ValueError(f"hyperparams {sorted(missing)} are not injected by this optimizer; "
-                         f"it injects {sorted(known)} (static args cannot be varied)")
+        raise ValueError(
+            f"hyperparams {sorted(missing)} are not injected by this optimizer; "
+            f"it injects {sorted(known)} (static args cannot be varied)"
+        )
     r = len(next(iter(hp.values())))
 
     def one(values):
@@ -409,10 +504,14 @@ def _batched_init(opt, init, hp: Mapping[str, np.ndarray]):
 
 # ----------------------------------------------------------------------------- step statistics
 
+
 def find_moments(state) -> Any:
-    """The first sub-state with ``count``, ``mu`` and ``nu`` (Adam's or the postfilter's moments)."""
+    """The first sub-state with ``count``, ``mu`` and ``nu`` (Adam's or the postfilter's
+    moments)."""
+
     def has(x):
         return all(hasattr(x, a) for a in ("count", "mu", "nu"))
+
     found = [x for x in jax.tree.leaves(state, is_leaf=has) if has(x)]
     if not found:
         raise ValueError(f"no (count, mu, nu) state in {type(state).__name__}")
@@ -429,23 +528,29 @@ def bounded_step_probe(b1: float, b2: float) -> Probe:
     ``v = 0`` have ``m = 0`` and count as 0). A row-stochastic, non-negative ``B``
     applied to ``m`` and ``v`` with the same weights gives ``max_step <= adam_ratio``.
     """
+
     def probe(grads, updates, old_state, new_state, params):
         del grads, params
         lr = old_state.hyperparams["learning_rate"]
         delta = -updates / lr
         moments = find_moments(new_state)
         t = moments.count.astype(jnp.float32)
-        m_hat = moments.mu / (1 - b1 ** t)
-        v_hat = moments.nu / (1 - b2 ** t)
-        ratio = jnp.where(v_hat > 0, jnp.abs(m_hat) / jnp.sqrt(jnp.where(v_hat > 0, v_hat, 1.0)), 0.0)
+        m_hat = moments.mu / (1 - b1**t)
+        v_hat = moments.nu / (1 - b2**t)
+        ratio = jnp.where(
+            v_hat > 0, jnp.abs(m_hat) / jnp.sqrt(jnp.where(v_hat > 0, v_hat, 1.0)), 0.0
+        )
         return {"max_step": jnp.max(jnp.abs(delta)), "adam_ratio": jnp.max(ratio)}
+
     return probe
 
 
 # ----------------------------------------------------------------------------- tables and plots
 
-def table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None,
-          floatfmt: str = ".4g") -> str:
+
+def table(
+    rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None, floatfmt: str = ".4g"
+) -> str:
     """A Markdown table (shown with ``IPython.display.Markdown`` or printed).
 
     ``|`` in names and text (``max |Δ|``) is escaped so that it does not split a cell.
@@ -480,8 +585,15 @@ def smooth(y: np.ndarray, width: int) -> np.ndarray:
     return out
 
 
-def plot_metric(ax, curves: Mapping[str, np.ndarray], *, ylabel: str, log_y: bool = True,
-                smooth_width: int = 1, title: str | None = None) -> None:
+def plot_metric(
+    ax,
+    curves: Mapping[str, np.ndarray],
+    *,
+    ylabel: str,
+    log_y: bool = True,
+    smooth_width: int = 1,
+    title: str | None = None,
+) -> None:
     """One line per ``label -> (T,)`` curve against iteration (1-based)."""
     for label, y in curves.items():
         ax.plot(np.arange(1, len(y) + 1), smooth(y, smooth_width), label=label, lw=1.4)
@@ -495,7 +607,7 @@ def plot_metric(ax, curves: Mapping[str, np.ndarray], *, ylabel: str, log_y: boo
     ax.legend(fontsize=7)
 
 
-def sweep_rows(runs: Mapping[str, "Runs"], extra: Callable | None = None) -> list[dict]:
+def sweep_rows(runs: Mapping[str, Runs], extra: Callable | None = None) -> list[dict]:
     """One table row per method and learning rate of a sweep, the best marked ``*``.
 
     ``extra(name, runs, i)`` may add columns (a dict), placed before ``best``.
@@ -503,9 +615,12 @@ def sweep_rows(runs: Mapping[str, "Runs"], extra: Callable | None = None) -> lis
     rows = []
     for name, r in runs.items():
         for i in range(len(r)):
-            row = {"method": name, "learning rate": float(r.hyperparams["learning_rate"][i]),
-                   "final param error": float(r.final_error()[i]),
-                   "image loss (low-noise render)": float(r.image_loss[i])}
+            row = {
+                "method": name,
+                "learning rate": float(r.hyperparams["learning_rate"][i]),
+                "final param error": float(r.final_error()[i]),
+                "image loss (low-noise render)": float(r.image_loss[i]),
+            }
             if extra is not None:
                 row.update(extra(name, r, i))
             row["best"] = "*" if i == r.best() else ""
@@ -515,19 +630,30 @@ def sweep_rows(runs: Mapping[str, "Runs"], extra: Callable | None = None) -> lis
 
 def sweep_report(problem: TextureProblem, timing, rows: Sequence[Mapping[str, Any]]) -> str:
     """Markdown: the start error, the run time and the sweep table."""
-    return (f"Initial param error {problem.initial_error:.4f}; {timing.seconds:.1f} s for all "
-            f"runs ({timing.compile_seconds:.1f} s of it compilation).\n\n" + table(rows))
+    return (
+        f"Initial param error {problem.initial_error:.4f}; {timing.seconds:.1f} s for all "
+        f"runs ({timing.compile_seconds:.1f} s of it compilation).\n\n" + table(rows)
+    )
 
 
-def plot_best_curves(best: Mapping[str, "Runs"], suptitle: str):
+def plot_best_curves(best: Mapping[str, Runs], suptitle: str):
     """Training loss and parameter error of each method's best run, side by side."""
     import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-    plot_metric(axes[0], {k: v.metrics["loss"][0] for k, v in best.items()},
-                ylabel="training loss (1 spp, moving average of 5)", smooth_width=5,
-                title="loss, best learning rate of each")
-    plot_metric(axes[1], {k: v.metrics["param_error"][0] for k, v in best.items()},
-                ylabel="mean |α − α_target|", title="parameter error")
+    plot_metric(
+        axes[0],
+        {k: v.metrics["loss"][0] for k, v in best.items()},
+        ylabel="training loss (1 spp, moving average of 5)",
+        smooth_width=5,
+        title="loss, best learning rate of each",
+    )
+    plot_metric(
+        axes[1],
+        {k: v.metrics["param_error"][0] for k, v in best.items()},
+        ylabel="mean |α − α_target|",
+        title="parameter error",
+    )
     fig.suptitle(suptitle)
     fig.tight_layout()
     return fig
@@ -536,6 +662,7 @@ def plot_best_curves(best: Mapping[str, "Runs"], suptitle: str):
 def show_roughness(ax, alpha, title: str = "") -> None:
     """A roughness texture on the log colour scale of the targets."""
     from matplotlib.colors import LogNorm
+
     ax.imshow(np.asarray(alpha), cmap="viridis", norm=LogNorm(tex.ALPHA_MIN, tex.ALPHA_MAX))
     ax.set_title(title, fontsize=8)
     ax.set_xticks([])
@@ -544,11 +671,20 @@ def show_roughness(ax, alpha, title: str = "") -> None:
 
 # ----------------------------------------------------------------------------- volume
 
-def run_volume(methods: Mapping[str, tuple[Callable[[float], optax.GradientTransformation],
-                                           Sequence[float]]], *,
-               size: int = 64, resolution: int = 32, n_views: int = 64, views_per_step: int = 4,
-               iterations: int = 300, target_spp: int = 256, eval_every: int = 25, seed: int = 0,
-               progress: bool = True) -> dict[str, list[dict]]:
+
+def run_volume(
+    methods: Mapping[str, tuple[Callable[[float], optax.GradientTransformation], Sequence[float]]],
+    *,
+    size: int = 64,
+    resolution: int = 32,
+    n_views: int = 64,
+    views_per_step: int = 4,
+    iterations: int = 300,
+    target_spp: int = 256,
+    eval_every: int = 25,
+    seed: int = 0,
+    progress: bool = True,
+) -> dict[str, list[dict]]:
     """Volume recovery (:mod:`optax_bilateral.toy.volume`) for every method and learning rate.
 
     Args:
@@ -577,9 +713,18 @@ def run_volume(methods: Mapping[str, tuple[Callable[[float], optax.GradientTrans
     init = {k: jnp.asarray(v) for k, v in vol.initial_volume(size).items()}
     base = jax.random.key(seed)
     views = jnp.arange(n_views)
-    targets = jnp.concatenate([
-        vol.render_mean(target, scene, jax.random.fold_in(base, 1_000_000 + i), views[i:i + 4],
-                        spp=target_spp) for i in range(0, n_views, 4)])
+    targets = jnp.concatenate(
+        [
+            vol.render_mean(
+                target,
+                scene,
+                jax.random.fold_in(base, 1_000_000 + i),
+                views[i : i + 4],
+                spp=target_spp,
+            )
+            for i in range(0, n_views, 4)
+        ]
+    )
     errors = jax.jit(vol.param_errors)
     out: dict[str, list[dict]] = {}
     for name, (factory, lrs) in methods.items():
@@ -597,11 +742,20 @@ def run_volume(methods: Mapping[str, tuple[Callable[[float], optax.GradientTrans
         out[name] = []
         for lr in lrs:
             params, state = init, opt.init(init)
-            state.hyperparams["learning_rate"] = jnp.asarray(lr, state.hyperparams["learning_rate"].dtype)
-            rec = {"learning_rate": float(lr), "loss": [], "eval_iterations": [],
-                   "param_error": [], "density_error": [], "albedo_error": []}
-            for i in tqdm(range(iterations), desc=f"{name} lr={lr:g}", leave=False,
-                          disable=not progress):
+            state.hyperparams["learning_rate"] = jnp.asarray(
+                lr, state.hyperparams["learning_rate"].dtype
+            )
+            rec = {
+                "learning_rate": float(lr),
+                "loss": [],
+                "eval_iterations": [],
+                "param_error": [],
+                "density_error": [],
+                "albedo_error": [],
+            }
+            for i in tqdm(
+                range(iterations), desc=f"{name} lr={lr:g}", leave=False, disable=not progress
+            ):
                 params, state, loss = step(params, state, jnp.asarray(i, jnp.int32), targets)
                 rec["loss"].append(float(loss))
                 if (i + 1) % eval_every == 0 or i == iterations - 1:

@@ -6,7 +6,7 @@ for Inverse Rendering". SIGGRAPH Asia 2024.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from optax_bilateral import mesh
+from optax_bilateral import mesh, triangle_mesh
 from optax_bilateral._src.alias import bilateral_adam
 from optax_bilateral._src.auto import AutoState
 from optax_bilateral._src.filter import atrous_bilateral
@@ -50,4 +50,5 @@ __all__ = (
     "pyramid_adam",
     "save_state",
     "scale_by_adam",
+    "triangle_mesh",
 )

@@ -1,67 +1,12 @@
-"""Triangle meshes: Large Steps (Nicolet et al. 2021) and its bilateral variant.
+"""Alias of :mod:`optax_bilateral.triangle_mesh`, the module's former name.
 
-The vertex positions of a mesh are not a grid, so the a-trous filter does not apply;
-these transforms filter Adam's moments with the mesh's Laplacian instead (see
-docs/mesh.md for the method and the measured results)::
-
-    import optax_bilateral.mesh as obm
-    opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=0.5, sigma_phi=0.4)
+Kept so that code written as ``import optax_bilateral.mesh`` keeps working: every name
+here is the very object of :mod:`optax_bilateral.triangle_mesh` ("mesh" alone could
+also mean a JAX device mesh, hence the new name).
 """
 
-from optax_bilateral._src.mesh import (
-    DEFAULT_DIRECTIONS,
-    DEFAULT_LAMBDA,
-    DEFAULT_MAXITER,
-    DEFAULT_SIGMA_D,
-    DEFAULT_SIGMA_PHI,
-    DEFAULT_TOL,
-    NORMALS,
-    POSTFILTERS_V,
-    PREFILTERS,
-    SOLVERS,
-    MeshLaplacian,
-    MeshPostfilterState,
-    ScaleByUniformAdamState,
-    SmoothingState,
-    bilateral_large_steps,
-    bilateral_normal_filter,
-    bilateral_smoothing,
-    large_steps,
-    laplacian_smoothing,
-    mesh_laplacian,
-    mesh_postfilter,
-    scale_by_uniform_adam,
-    smoothing_solve,
-    sphere_directions,
-    vertex_normals,
-    weld_gradients,
-)
+from optax_bilateral import triangle_mesh as _triangle_mesh
+from optax_bilateral.triangle_mesh import *
 
-__all__ = (
-    "DEFAULT_DIRECTIONS",
-    "DEFAULT_LAMBDA",
-    "DEFAULT_MAXITER",
-    "DEFAULT_SIGMA_D",
-    "DEFAULT_SIGMA_PHI",
-    "DEFAULT_TOL",
-    "NORMALS",
-    "POSTFILTERS_V",
-    "PREFILTERS",
-    "SOLVERS",
-    "MeshLaplacian",
-    "MeshPostfilterState",
-    "ScaleByUniformAdamState",
-    "SmoothingState",
-    "bilateral_large_steps",
-    "bilateral_normal_filter",
-    "bilateral_smoothing",
-    "large_steps",
-    "laplacian_smoothing",
-    "mesh_laplacian",
-    "mesh_postfilter",
-    "scale_by_uniform_adam",
-    "smoothing_solve",
-    "sphere_directions",
-    "vertex_normals",
-    "weld_gradients",
-)
+__all__: tuple[str, ...] = ()
+__all__ += _triangle_mesh.__all__

@@ -66,7 +66,9 @@ def filter_level(x, primal, stride: int, sigma_d: float):
     shape, channels = x.shape[:-1], x.shape[-1]
     ndim = len(shape)
     if ndim not in (2, 3) or channels not in (1, 3) or primal.shape != x.shape:
-        raise ValueError(f"their kernels take (H, W[, D], 1 or 3) grids, got {x.shape}, {primal.shape}")
+        raise ValueError(
+            f"their kernels take (H, W[, D], 1 or 3) grids, got {x.shape}, {primal.shape}"
+        )
     sigma = kernel_sigma(sigma_d, ndim, channels)
     num = np.zeros_like(x)
     den = np.zeros(shape)
@@ -87,8 +89,7 @@ def log_primal(p):
     return np.log(np.abs(np.asarray(p, np.float64)) + LOG_PRIMAL_EPS)
 
 
-def filter_chain(x, param, stride_levels: int, sigma_d: float, *, cross_term_off=False,
-                 log=False):
+def filter_chain(x, param, stride_levels: int, sigma_d: float, *, cross_term_off=False, log=False):
     """Their loop over strides; each level reads its guide afresh (``cross_term_off``:
     the level's own input), through ``log(|.| + 1e-8)`` with ``log_primal``."""
     x = np.asarray(x, np.float64)
@@ -124,11 +125,27 @@ def adam_init(param) -> AdamState:
     return AdamState(0, z, z.copy())
 
 
-def spatiotemporal_adam_step(param, grad, state: AdamState, *, lr, betas, eps=1e-8,
-                             weight_decay=0.0, sigma_d=2e-2, sigma_d_1d=None, sigma_d_3d=None,
-                             postfilter=True, prefilter=False, mtfilter=True, vtfilter=True,
-                             log_primal=False, cross_term_off=False, stride_levels=5,
-                             maximize=False):
+def spatiotemporal_adam_step(
+    param,
+    grad,
+    state: AdamState,
+    *,
+    lr,
+    betas,
+    eps=1e-8,
+    weight_decay=0.0,
+    sigma_d=2e-2,
+    sigma_d_1d=None,
+    sigma_d_3d=None,
+    postfilter=True,
+    prefilter=False,
+    mtfilter=True,
+    vtfilter=True,
+    log_primal=False,
+    cross_term_off=False,
+    stride_levels=5,
+    maximize=False,
+):
     """One step of their texture (2-D) or volume (3-D) optimizer on one parameter.
 
     ``param``, ``grad``: ``(H, W, C)`` (texture, ``sigma_d``, optional ``log_primal``)
@@ -149,8 +166,9 @@ def spatiotemporal_adam_step(param, grad, state: AdamState, *, lr, betas, eps=1e
         grad = -grad
 
     def chain(x):
-        return filter_chain(x, param, stride_levels, sigma, cross_term_off=cross_term_off,
-                            log=log_primal)
+        return filter_chain(
+            x, param, stride_levels, sigma, cross_term_off=cross_term_off, log=log_primal
+        )
 
     if prefilter:
         grad = chain(grad)
@@ -160,8 +178,8 @@ def spatiotemporal_adam_step(param, grad, state: AdamState, *, lr, betas, eps=1e
         grad = grad + weight_decay * param
     exp_avg = state.exp_avg * b1 + (1 - b1) * grad
     exp_avg_sq = state.exp_avg_sq * b2 + (1 - b2) * grad * grad
-    bias_correction1 = 1 - b1 ** step
-    bias_correction2 = 1 - b2 ** step
+    bias_correction1 = 1 - b1**step
+    bias_correction2 = 1 - b2**step
     m, v = exp_avg.copy(), exp_avg_sq.copy()
     if postfilter:
         if mtfilter:
@@ -177,13 +195,13 @@ def drjit_uniform_step(m_f, v_f, t: int, b1: float, b2: float, eps: float):
     """The Dr.Jit port's ``uniform`` step, before the learning rate: one second moment,
     the max over the whole tensor, eps on the uncorrected root [FilteredAdam.step]:
     ``sqrt(1-b2^t)/(1-b1^t) * m / (sqrt(max v) + eps)``."""
-    return math.sqrt(1 - b2 ** t) / (1 - b1 ** t) * np.asarray(m_f) / (np.sqrt(np.max(v_f)) + eps)
+    return math.sqrt(1 - b2**t) / (1 - b1**t) * np.asarray(m_f) / (np.sqrt(np.max(v_f)) + eps)
 
 
 def uniform_adam_step(m, v, t: int, b1: float, b2: float, eps: float):
     """Large Steps' uniform second moment in this paper's convention:
     ``m^ / (sqrt(max v^) + eps)`` [AdamUniform, SpatioTemporalAdamMesh "uniform"]."""
-    return (np.asarray(m) / (1 - b1 ** t)) / (np.sqrt(np.max(v) / (1 - b2 ** t)) + eps)
+    return (np.asarray(m) / (1 - b1**t)) / (np.sqrt(np.max(v) / (1 - b2**t)) + eps)
 
 
 # ----------------------------------------------------------------------------
@@ -196,7 +214,7 @@ def laplacian_uniform(faces, num_vertices: int) -> np.ndarray:
     ii = f[:, [1, 2, 0]].ravel()
     jj = f[:, [2, 0, 1]].ravel()
     adj = np.zeros((num_vertices, num_vertices))
-    adj[ii, jj] = 1.0          # unique edges, both directions
+    adj[ii, jj] = 1.0  # unique edges, both directions
     adj[jj, ii] = 1.0
     return np.diag(adj.sum(1)) - adj
 
@@ -234,8 +252,8 @@ def adam_uniform_step(u, grad_u, state: UniformState, *, lr, betas):
     step = state.step + 1
     g1 = state.g1 * b1 + (1 - b1) * grad_u
     g2 = state.g2 * b2 + (1 - b2) * np.square(grad_u)
-    m1 = g1 / (1 - b1 ** step)
-    m2 = g2 / (1 - b2 ** step)
+    m1 = g1 / (1 - b1**step)
+    m2 = g2 / (1 - b2**step)
     return u - lr * m1 / (1e-8 + np.sqrt(m2).max()), UniformState(step, g1, g2)
 
 
@@ -255,6 +273,7 @@ def sobol_directions(n: int = 32) -> np.ndarray:
     """Their ``normal_samples``: ``Sobol(d=2, scramble=True, optimization="lloyd",
     seed=0).random(n)`` mapped by ``theta = 2 pi u0``, ``phi = acos(1 - 2 u1)``."""
     from scipy.stats.qmc import Sobol
+
     eta = Sobol(d=2, scramble=True, optimization="lloyd", seed=0).random(n=n)
     theta = 2 * np.pi * eta[:, 0]
     phi = np.arccos(1 - 2 * eta[:, 1])
@@ -323,8 +342,10 @@ def area_vertex_normals(v, f):
 
 def von_mises_fisher(normals, samples, sigma, clamp=-1.0):
     """[von_mises_fisher_kernel]: ``exp(clamp(n . s, min=-1) / sigma)``, ``(V, K)``."""
-    return np.exp(np.maximum(np.asarray(normals, np.float64) @ np.asarray(samples, np.float64).T,
-                             clamp) / sigma)
+    return np.exp(
+        np.maximum(np.asarray(normals, np.float64) @ np.asarray(samples, np.float64).T, clamp)
+        / sigma
+    )
 
 
 def mesh_filter(x, filt_type: str, normals, M, samples, sigma_d: float, sigma_phi: float):
@@ -335,8 +356,8 @@ def mesh_filter(x, filt_type: str, normals, M, samples, sigma_d: float, sigma_ph
         return matrix_solve(M, x)
     if filt_type != "bilateral":
         raise ValueError(filt_type)
-    g_den = von_mises_fisher(normals, samples, sigma_d)[:, None, :]       # (V, 1, K)
-    g_num = x[:, :, None] * g_den                                          # (V, C, K)
+    g_den = von_mises_fisher(normals, samples, sigma_d)[:, None, :]  # (V, 1, K)
+    g_num = x[:, :, None] * g_den  # (V, C, K)
     dim = x.shape[-1]
     g = np.concatenate([g_num, g_den], axis=1).reshape(x.shape[0], -1)
     diffused = matrix_solve(M, g).reshape(x.shape[0], dim + 1, -1)
@@ -345,9 +366,23 @@ def mesh_filter(x, filt_type: str, normals, M, samples, sigma_d: float, sigma_ph
     return weighted[:, :dim].sum(-1) / weighted[:, dim:].sum(-1)
 
 
-def mesh_adam_step(p, grad, state: UniformState, normals, M, samples, *, lr, betas, eps=1e-8,
-                   sigma_d=0.5, sigma_phi=0.4, prefilter="smooth", postfilter="bilateral",
-                   postfilter_v="uniform"):
+def mesh_adam_step(
+    p,
+    grad,
+    state: UniformState,
+    normals,
+    M,
+    samples,
+    *,
+    lr,
+    betas,
+    eps=1e-8,
+    sigma_d=0.5,
+    sigma_phi=0.4,
+    prefilter="smooth",
+    postfilter="bilateral",
+    postfilter_v="uniform",
+):
     """[SpatioTemporalAdamMesh.step] on one parameter with ``M`` and ``normals`` given.
 
     The state keeps the unfiltered moments (the filters rebind locals); with
@@ -364,6 +399,6 @@ def mesh_adam_step(p, grad, state: UniformState, normals, M, samples, *, lr, bet
     if postfilter != "off":
         g1 = mesh_filter(g1, postfilter, **kw)
         g2 = g2.max() if postfilter_v == "uniform" else mesh_filter(g2, postfilter_v, **kw)
-    m1 = g1 / (1 - b1 ** step)
-    m2 = g2 / (1 - b2 ** step)
+    m1 = g1 / (1 - b1**step)
+    m2 = g2 / (1 - b2**step)
     return np.asarray(p, np.float64) - lr * m1 / (eps + np.sqrt(m2)), new_state

@@ -8,7 +8,7 @@
   result names and the names of private functions (renamed in order of first use) are
   dropped. Lowering takes seconds; compiling the full 64^3 update takes minutes.
 * ``tests/api_snapshot.txt``: ``__all__`` of ``optax_bilateral`` and
-  ``optax_bilateral.mesh``, one line per name with its signature (functions), its fields
+  ``optax_bilateral.triangle_mesh``, one line per name with its signature (functions), its fields
   (NamedTuples) or its value (constants).
 
 An intentional change re-records the file in the same commit and says why there.
@@ -100,9 +100,9 @@ def describe(module) -> list[str]:
 
 def api_lines() -> list[str]:
     import optax_bilateral
-    import optax_bilateral.mesh
+    import optax_bilateral.triangle_mesh
 
-    return describe(optax_bilateral) + describe(optax_bilateral.mesh)
+    return describe(optax_bilateral) + describe(optax_bilateral.triangle_mesh)
 
 
 if __name__ == "__main__":

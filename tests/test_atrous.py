@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from reference import atrous_reference
 
 import optax_bilateral as ob
 from optax_bilateral import atrous_bilateral
 from optax_bilateral._src import atrous
+from reference import atrous_reference
 
 RTOL = 1e-5  # float32 accumulation of <= 125-tap sums over a few levels: ~1e-7 per op
 

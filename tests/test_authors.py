@@ -5,7 +5,7 @@ the previous setting), so the comparisons are float64 against float64: 1e-12 lea
 room for the different summation orders (the port sums taps in its own order, the
 library in its own) and nothing else.
 
-Mapping (docs/mesh.md and the ``levels`` docstrings state it): their
+Mapping (docs/triangle_mesh.md and the ``levels`` docstrings state it): their
 ``stride_levels = L`` is ``levels = L - 1`` here; their kernel divides by
 ``sigma_d + eps`` (:func:`authors_reference.kernel_sigma`), so the library gets that
 value as ``sigma_d``; their mesh ``M`` for ``alpha = lambda / (1 + lambda)`` is
@@ -18,13 +18,13 @@ their coupled ``weight_decay`` against a chain with ``optax.add_decayed_weights`
 the library's decoupled one against ``optax.adamw``.
 """
 
-import authors_reference as ref
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+import authors_reference as ref
 import optax_bilateral as ob
 
 TOL = 1e-12
@@ -461,7 +461,7 @@ def test_uniform_second_moment_matches_scale_by_uniform_adam():
     the Dr.Jit port's version puts eps on the uncorrected root: eps / sqrt(1 - b2^t)."""
     b1, b2, eps = 0.2, 0.36, 1e-3
     g = [rand((7, 6, 3), 50 + i) * 1e-3 for i in range(3)]
-    tx = ob.mesh.scale_by_uniform_adam(b1, b2, eps)
+    tx = ob.triangle_mesh.scale_by_uniform_adam(b1, b2, eps)
     state = tx.init(jnp.zeros((7, 6, 3)))
     m = v = 0.0
     for t, gt in enumerate(g, 1):
@@ -539,15 +539,17 @@ LAM = 7.0
 @pytest.fixture(scope="module")
 def cube():
     """A 42-vertex icosphere pushed onto a cube: sharp normal edges, few compilations."""
-    from optax_bilateral.toy import mesh as toy
+    from optax_bilateral.toy import triangle_mesh as toy
 
     v, f = toy.icosphere(2)
     v = v.astype(np.float64) / np.abs(v).max(1, keepdims=True) * 0.5
-    return dict(v=v, f=f, mesh=ob.mesh.mesh_laplacian(f), M=ref.compute_matrix(f, len(v), LAM))
+    return dict(
+        v=v, f=f, mesh=ob.triangle_mesh.mesh_laplacian(f), M=ref.compute_matrix(f, len(v), LAM)
+    )
 
 
 def test_directions_are_the_authors():
-    close(ob.mesh.sphere_directions(32), ref.sobol_directions(32))
+    close(ob.triangle_mesh.sphere_directions(32), ref.sobol_directions(32))
 
 
 @pytest.mark.parametrize(
@@ -560,14 +562,14 @@ def test_directions_are_the_authors():
 )
 def test_vertex_normals_match(cube, weighting, theirs):
     close(
-        ob.mesh.vertex_normals(jnp.asarray(cube["v"]), cube["f"], weighting),
+        ob.triangle_mesh.vertex_normals(jnp.asarray(cube["v"]), cube["f"], weighting),
         theirs(cube["v"], cube["f"]),
     )
 
 
 def test_authors_normals_are_the_unweighted_mean_up_to_one_over_faces(cube):
     """Their torch.norm without dim makes every corner weight pi/2 - O(1/F)."""
-    from optax_bilateral.toy import mesh as toy
+    from optax_bilateral.toy import triangle_mesh as toy
 
     for v, f in ((cube["v"], cube["f"]), toy.icosphere(16)):
         a, u = ref.authors_vertex_normals(v, f), ref.unweighted_vertex_normals(v, f)
@@ -581,7 +583,7 @@ def test_bilateral_filter_splat_sigma_d_slice_sigma_phi(cube, solver):
     normals = ref.unweighted_vertex_normals(cube["v"], cube["f"])
     dirs = ref.sobol_directions(32)
     theirs = ref.mesh_filter(x, "bilateral", normals, cube["M"], dirs, 0.5, 0.4)
-    (ours,) = ob.mesh.bilateral_normal_filter(
+    (ours,) = ob.triangle_mesh.bilateral_normal_filter(
         [jnp.asarray(x)],
         jnp.asarray(normals),
         cube["mesh"],
@@ -615,7 +617,7 @@ def test_mesh_optimizer_matches(cube, prefilter, postfilter_v):
     lr, betas, eps = 0.02, (0.9, 0.99), 1e-8
     dirs = ref.sobol_directions(32)
     grads = [rand((42, 3), 70 + i) for i in range(3)]
-    opt = ob.mesh.bilateral_large_steps(
+    opt = ob.triangle_mesh.bilateral_large_steps(
         lr,
         cube["mesh"],
         LAM,
@@ -653,7 +655,7 @@ def test_large_steps_matches_adam_uniform_on_u(cube):
     lr, betas = 0.05, (0.9, 0.999)
     grads = [rand((42, 3), 80 + i) for i in range(3)]
     ours = run_library(
-        ob.mesh.large_steps(lr, cube["mesh"], LAM, *betas, solver="cholesky"),
+        ob.triangle_mesh.large_steps(lr, cube["mesh"], LAM, *betas, solver="cholesky"),
         jnp.asarray(cube["v"]),
         [jnp.asarray(g) for g in grads],
     )
@@ -667,7 +669,7 @@ def test_large_steps_matches_adam_uniform_on_u(cube):
 def test_their_alpha_matrix_is_a_rescaled_lr_and_eps(cube, postfilter_v):
     """compute_matrix(alpha = lam/(1+lam)) = (I + lam L)/(1+lam): their "smooth" is
     (1+lam) M^-1. Uniform: the library's step with eps/(1+lam). Smooth v: lr/sqrt(1+lam)
-    and eps/(1+lam)^1.5 (docs/mesh.md)."""
+    and eps/(1+lam)^1.5 (docs/triangle_mesh.md)."""
     m_alpha = ref.compute_matrix(cube["f"], 42, LAM, alpha=LAM / (1 + LAM))
     close(m_alpha, cube["M"] / (1 + LAM), 1e-15)
     dirs, betas, eps, lr = ref.sobol_directions(32), (0.9, 0.99), 1e-3, 0.02

@@ -24,8 +24,11 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
     # (a) every update-only row has a positive time and its ratio to Adam.
     upd = result["overhead"]["update_only"]
     assert {r["method"] for r in upd} >= {"adam"} and all(r["ms (median)"] > 0 for r in upd)
-    assert all(r["x adam (median)"] == 1.0 and r["x adam (paired)"] == 1.0
-               for r in upd if r["method"] == "adam")
+    assert all(
+        r["x adam (median)"] == 1.0 and r["x adam (paired)"] == 1.0
+        for r in upd
+        if r["method"] == "adam"
+    )
     tex = result["overhead"]["texture"]
     assert all(r["% vs Adam (paired)"] == 0.0 for r in tex if r["method"] == "Adam")
 
@@ -37,10 +40,14 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
     sep32 = [r for r in flt if r["mode"] == "separable" and r["dtype"] == "float32"]
     assert full32 and all(r["step rel. L2 error"] < 1e-5 for r in full32)
     assert all(r["step rel. L2 error"] > 1e-3 for r in sep32)
-    assert all(np.isfinite(r["final mean |alpha - target|"]) for r in result["accuracy"]["texture_runs"])
+    assert all(
+        np.isfinite(r["final mean |alpha - target|"]) for r in result["accuracy"]["texture_runs"]
+    )
 
     # (c) peak memory is planned for every row and grows with the grid.
-    rows = [r for r in result["scaling"]["rows"] if r["sweep"] == "grid 2d" and r["method"] == "adam"]
+    rows = [
+        r for r in result["scaling"]["rows"] if r["sweep"] == "grid 2d" and r["method"] == "adam"
+    ]
     assert len(rows) >= 2 and rows[-1]["peak MB (XLA plan)"] > rows[0]["peak MB (XLA plan)"]
 
     # (d) a sigma_d schedule and changing step counts reuse one compiled program.
@@ -49,7 +56,12 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
     assert check["sigma_d seen by the steps"][0] > check["sigma_d seen by the steps"][-1]
     # Eager updates after the first call compile nothing.
     eager = {r["method"]: r for r in result["compile"]["eager"]}
-    assert set(eager) == {"adam", "bilateral_adam", "prefilter + postfilter", "memoryless postfilter"}
+    assert set(eager) == {
+        "adam",
+        "bilateral_adam",
+        "prefilter + postfilter",
+        "memoryless postfilter",
+    }
     assert all(r["compilations"] == 0 and r["eager ms (median)"] > 0 for r in eager.values())
 
 
@@ -59,42 +71,75 @@ def test_unknown_section_is_a_clear_error(tmp_path):
 
 
 def test_targets_are_checked_from_the_overhead_ratios():
-    upd = [{"grid": "texture 512x512x3", "method": "ours F=5 separable", "ms (median)": 10.0,
-            "x adam (median)": 12.0},
-           {"grid": "texture 512x512x3", "method": "ours F=5 full", "ms (median)": 40.0,
-            "x adam (median)": 48.0},
-           {"grid": "volume 64^3x1", "method": "ours F=5 separable", "ms (median)": 5.0,
-            "x adam (median)": 31.0}]
+    upd = [
+        {
+            "grid": "texture 512x512x3",
+            "method": "ours F=5 separable",
+            "ms (median)": 10.0,
+            "x adam (median)": 12.0,
+        },
+        {
+            "grid": "texture 512x512x3",
+            "method": "ours F=5 full",
+            "ms (median)": 40.0,
+            "x adam (median)": 48.0,
+        },
+        {
+            "grid": "volume 64^3x1",
+            "method": "ours F=5 separable",
+            "ms (median)": 5.0,
+            "x adam (median)": 31.0,
+        },
+    ]
     tex = [{"method": "Adam", "% vs Adam": 0.0}, {"method": "Ours (F = 5)", "% vs Adam": 9.5}]
     rows = {r["target"]: r for r in benchmark.targets({"update_only": upd, "texture": tex})}
     assert rows["separable F=5 update / adam update, texture 512x512x3"]["met"]
-    assert not rows["separable F=5 update / adam update, volume 64^3x1"]["met"]      # 31 > 30
+    assert not rows["separable F=5 update / adam update, volume 64^3x1"]["met"]  # 31 > 30
     full = rows["full / separable update, F=5, texture 512x512x3"]
     assert full["measured"] == 4.0 and full["limit"] == 3.75 and not full["met"]
     assert rows["texture experiment per-iteration overhead, F=5"]["met"]
-    assert len(rows) == 4            # rows whose inputs are missing are left out, not guessed
+    assert len(rows) == 4  # rows whose inputs are missing are left out, not guessed
 
 
 def test_targets_use_the_paired_ratios_when_the_rows_have_them():
     # Paired (per-round) ratios differ from the ratio of medians when the load drifts;
     # the targets take the paired one.
-    upd = [{"grid": "volume 64^3x1", "method": "ours F=3 separable", "ms (median)": 4.0,
-            "x adam (median)": 8.0, "x adam (paired)": 7.0},
-           {"grid": "volume 64^3x1", "method": "ours F=3 full", "ms (median)": 52.0,
-            "x adam (median)": 104.0, "x adam (paired)": 90.0, "x separable (paired)": 12.0},
-           {"grid": "volume 64^3x1", "method": "ours F=5 separable", "ms (median)": 6.0,
-            "x adam (median)": 31.0, "x adam (paired)": 29.0}]
+    upd = [
+        {
+            "grid": "volume 64^3x1",
+            "method": "ours F=3 separable",
+            "ms (median)": 4.0,
+            "x adam (median)": 8.0,
+            "x adam (paired)": 7.0,
+        },
+        {
+            "grid": "volume 64^3x1",
+            "method": "ours F=3 full",
+            "ms (median)": 52.0,
+            "x adam (median)": 104.0,
+            "x adam (paired)": 90.0,
+            "x separable (paired)": 12.0,
+        },
+        {
+            "grid": "volume 64^3x1",
+            "method": "ours F=5 separable",
+            "ms (median)": 6.0,
+            "x adam (median)": 31.0,
+            "x adam (paired)": 29.0,
+        },
+    ]
     tex = [{"method": "Ours (F = 5)", "% vs Adam": 11.0, "% vs Adam (paired)": 9.0}]
     rows = {r["target"]: r for r in benchmark.targets({"update_only": upd, "texture": tex})}
     assert rows["separable F=5 update / adam update, volume 64^3x1"]["measured"] == 29.0
     full = rows["full / separable update, F=3, volume 64^3x1"]
-    assert full["measured"] == 12.0 and full["met"]            # 52 / 4 = 13 would miss it
+    assert full["measured"] == 12.0 and full["met"]  # 52 / 4 = 13 would miss it
     tex_row = rows["texture experiment per-iteration overhead, F=5"]
     assert tex_row["measured"] == 9.0 and tex_row["met"]
 
 
 def test_paired_ratio_is_the_median_of_per_round_ratios():
     from experiments import common
+
     # Round 2 is slow for both programs: the paired ratio ignores it, medians do not.
     s = {"a": [2.0, 20.0, 2.2, 2.0], "b": [1.0, 10.0, 1.0, 1.0]}
     assert common.paired_ratio(s, "a", "b") == 2.0
@@ -105,12 +150,22 @@ def test_paired_ratio_is_the_median_of_per_round_ratios():
 
 def test_targets_over_processes_take_the_median_and_count_where_met():
     def rows(sep, overhead):
-        return [{"target": "sep", "measured": sep, "limit": 20.0, "unit": "x", "met": sep <= 20},
-                {"target": "iteration", "measured": overhead, "limit": 10.0, "unit": "%",
-                 "met": overhead <= 10}]
+        return [
+            {"target": "sep", "measured": sep, "limit": 20.0, "unit": "x", "met": sep <= 20},
+            {
+                "target": "iteration",
+                "measured": overhead,
+                "limit": 10.0,
+                "unit": "%",
+                "met": overhead <= 10,
+            },
+        ]
+
     # One process in the slow state (every kernel slower, BENCHMARKS.md "Two speeds").
-    agg = {r["target"]: r for r in benchmark.aggregate_targets(
-        [rows(8.0, 3.0), rows(25.0, 24.0), rows(9.0, 12.0)])}
+    agg = {
+        r["target"]: r
+        for r in benchmark.aggregate_targets([rows(8.0, 3.0), rows(25.0, 24.0), rows(9.0, 12.0)])
+    }
     assert agg["sep"]["measured"] == 9.0 and agg["sep"]["met"] and agg["sep"]["met in"] == "2/3"
     assert agg["sep"]["min"] == 8.0 and agg["sep"]["max"] == 25.0
     assert agg["sep"]["per process"] == [8.0, 25.0, 9.0]
@@ -122,8 +177,9 @@ def test_processes_run_fresh_workers_and_write_their_measurements(tmp_path, monk
     monkeypatch.setenv("OPTAX_BILATERAL_QUICK", "1")
     with pytest.raises(ValueError, match="--processes"):
         benchmark.main(["--quick", "--out", str(tmp_path), "--only", "compile", "--processes", "0"])
-    result = benchmark.main(["--quick", "--out", str(tmp_path), "--only", "overhead",
-                             "--processes", "2"])
+    result = benchmark.main(
+        ["--quick", "--out", str(tmp_path), "--only", "overhead", "--processes", "2"]
+    )
     for i in range(2):
         data = json.loads((tmp_path / "processes" / str(i) / "measurements.json").read_text())
         assert data["update_only"] and data["texture"] and "targets" in data
@@ -135,8 +191,10 @@ def test_processes_run_fresh_workers_and_write_their_measurements(tmp_path, monk
 
 def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
     from experiments import ab_update
-    summary = ab_update.main(["--quick", "--rev", "HEAD", "--shape", "16x16x1", "--levels", "1",
-                              "--out", str(tmp_path)])
+
+    summary = ab_update.main(
+        ["--quick", "--rev", "HEAD", "--shape", "16x16x1", "--levels", "1", "--out", str(tmp_path)]
+    )
     (row,) = summary["rows"]
     for k in ("adam ms", "old ms", "new ms", "new / old", "new / old (paired)"):
         assert np.isfinite(row[k]) and row[k] > 0
@@ -149,8 +207,10 @@ def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
 
 def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
     from experiments import profile_update
-    result = profile_update.main(["--quick", "--shape", "16x16", "--levels", "2", "--log-guide",
-                                  "--out", str(tmp_path)])
+
+    result = profile_update.main(
+        ["--quick", "--shape", "16x16", "--levels", "2", "--log-guide", "--out", str(tmp_path)]
+    )
     adam, ours = result["programs"]["adam"], result["programs"]["ours"]
     # The filter's weights (exp kernels) and passes run in ours only, every traced call.
     assert any("exponential" in f for f in ours["families"])

@@ -1,9 +1,9 @@
 """Every public callable documents each of its arguments and has an example that runs.
 
-Public: the names in ``__all__`` of ``optax_bilateral``, ``optax_bilateral.mesh`` and
-``optax_bilateral.mitsuba``, and every name of the toy renderers
-(``optax_bilateral.toy.texture``, ``.volume``, ``.mesh``) that is defined there and does not
-start with an underscore. For each callable (function or class):
+Public: the names in ``__all__`` of ``optax_bilateral``, ``optax_bilateral.triangle_mesh``
+and ``optax_bilateral.mitsuba``, and every name of the toy renderers
+(``optax_bilateral.toy.texture``, ``.volume``, ``.triangle_mesh``) that is defined there and
+does not start with an underscore. For each callable (function or class):
 
 * its docstring has an ``Example::`` section with at least one ``>>>`` line;
 * every parameter of its signature is described in an ``Args:`` (or, for a state or a
@@ -34,11 +34,11 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 GROUPS = {
     "optax_bilateral": "__all__",
-    "optax_bilateral.mesh": "__all__",
+    "optax_bilateral.triangle_mesh": "__all__",
     "optax_bilateral.mitsuba": "__all__",
     "optax_bilateral.toy.texture": "defined",
     "optax_bilateral.toy.volume": "defined",
-    "optax_bilateral.toy.mesh": "defined",
+    "optax_bilateral.toy.triangle_mesh": "defined",
 }
 EXAMPLE = re.compile(r"^\s*Examples?::?\s*$", re.M)
 SECTION = re.compile(r"^(Args|Attributes):\s*$", re.M)

@@ -70,8 +70,13 @@ def test_equal_wall_time_block_is_consistent(quick_run):
 
 def test_figures_and_table_are_written(quick_run):
     out, summary, _ = quick_run
-    for name in ("images.png", "loss_vs_iteration.png", "loss_vs_time.png",
-                 "param_error_vs_iteration.png", "param_error_vs_time.png"):
+    for name in (
+        "images.png",
+        "loss_vs_iteration.png",
+        "loss_vs_time.png",
+        "param_error_vs_iteration.png",
+        "param_error_vs_time.png",
+    ):
         path = out / name
         assert path.read_bytes()[:8] == PNG_MAGIC, name
         assert str(path) in summary["pngs"]

@@ -68,30 +68,46 @@ def test_table_and_figures(quick_run):
 def test_candidate_is_compared_and_grid_comes_from_the_cache(quick_run):
     """A candidate equal to the defaults gets the defaults' error; the grids are not rerun."""
     out, _ = quick_run
-    summary = T.main(["--quick", "--out", str(out), "--only-scenes", "signal1d",
-                      "--candidates", "same=experiments.tuning:defaults_factory"])
+    summary = T.main(
+        [
+            "--quick",
+            "--out",
+            str(out),
+            "--only-scenes",
+            "signal1d",
+            "--candidates",
+            "same=experiments.tuning:defaults_factory",
+        ]
+    )
     e = summary["scenes"]["signal1d"]
     assert all(e["from_cache"][k] for k in ("bilateral", "adam", "pyramid"))
-    assert e["methods"]["same"]["error"] == pytest.approx(e["methods"]["defaults"]["error"],
-                                                          rel=1e-5)
+    assert e["methods"]["same"]["error"] == pytest.approx(
+        e["methods"]["defaults"]["error"], rel=1e-5
+    )
     cmp_ = e["comparisons"]["same"]
     assert cmp_["ratio_to_best_tuned"] == pytest.approx(
-        e["methods"]["same"]["error"] / e["methods"]["best_tuned"]["error"])
+        e["methods"]["same"]["error"] / e["methods"]["best_tuned"]["error"]
+    )
     assert "same/best-tuned" in (out / "table.md").read_text()
 
 
 def test_evaluate_shapes_and_rejects_bad_grids():
     scene = sc.make("signal1d", quick=True)
-    errs = T.evaluate(scene, T.adam_factory, {"learning_rate": [0.01, 0.02], "b1": [0.9]},
-                      seeds=(0, 1))
+    errs = T.evaluate(
+        scene, T.adam_factory, {"learning_rate": [0.01, 0.02], "b1": [0.9]}, seeds=(0, 1)
+    )
     assert errs.shape == (2, 2) and np.all(np.isfinite(errs))
     # Seeds change the noise: two seeds of one setting differ.
     assert errs[0, 0] != errs[0, 1]
     with pytest.raises(TypeError, match="must be numbers"):
         T.evaluate(scene, T.adam_factory, [{"learning_rate": 0.01, "b1": "x"}], seeds=(0,))
     with pytest.raises(ValueError, match="same keys"):
-        T.evaluate(scene, T.adam_factory, [{"learning_rate": 0.01, "b1": 0.9},
-                                           {"learning_rate": 0.01}], seeds=(0,))
+        T.evaluate(
+            scene,
+            T.adam_factory,
+            [{"learning_rate": 0.01, "b1": 0.9}, {"learning_rate": 0.01}],
+            seeds=(0,),
+        )
 
 
 def test_bad_cli_arguments():

@@ -19,27 +19,44 @@ def quick_run(tmp_path_factory):
 
 def test_writes_every_output(quick_run):
     out, _ = quick_run
-    for name in ("summary.json", "results.md", "timing.json", "timing.md", "views.png",
-                 "slices.png", "param_error_vs_iteration.png", "param_error_vs_time.png",
-                 "loss_vs_iteration.png", "loss_vs_time.png", "albedo_error_vs_iteration.png",
-                 "density_error_vs_time.png"):
+    for name in (
+        "summary.json",
+        "results.md",
+        "timing.json",
+        "timing.md",
+        "views.png",
+        "slices.png",
+        "param_error_vs_iteration.png",
+        "param_error_vs_time.png",
+        "loss_vs_iteration.png",
+        "loss_vs_time.png",
+        "albedo_error_vs_iteration.png",
+        "density_error_vs_time.png",
+    ):
         path = out / name
         assert path.is_file() and path.stat().st_size > 0, name
     assert (out / "views.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_summary_has_every_method_with_finite_metrics(quick_run):
-    out, methods = quick_run
+    out, _ = quick_run
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["methods"]) == list(experiment.METHODS)
     for name, entry in summary["methods"].items():
-        for key in ("final_param_error", "final_loss", "seconds_per_iteration",
-                    "final_density_error", "final_albedo_error"):
+        for key in (
+            "final_param_error",
+            "final_loss",
+            "seconds_per_iteration",
+            "final_density_error",
+            "final_albedo_error",
+        ):
             assert math.isfinite(entry[key]) and entry[key] >= 0, (name, key, entry[key])
         assert entry["iterations"] == experiment.config(True)["iterations"]
     # Per-leaf sigma_d reached the summary as the pytree prefix the transforms were given.
     assert set(summary["methods"]["cross-bilateral"]["hyperparameters"]["sigma_d"]) == {
-        "density", "albedo"}
+        "density",
+        "albedo",
+    }
     assert summary["methods"]["low-pass"]["hyperparameters"]["sigma_d"]["density"] == "inf"
     assert any(k.startswith("adam") for k in summary["sweeps"])
     assert any(k.startswith("bilateral") for k in summary["sweeps"])

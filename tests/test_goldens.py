@@ -7,9 +7,10 @@ comparison is to a tolerance instead, and the message says so.
 
 import os
 
-import goldens
 import numpy as np
 import pytest
+
+import goldens
 
 DATA = np.load(goldens.PATH)
 SAME_TOOLCHAIN = str(DATA["toolchain"]) == goldens.toolchain()

@@ -27,39 +27,52 @@ DENSITY = "cube.interior_medium.sigma_t.data"
 ALBEDO = "cube.interior_medium.albedo.data"
 
 
-MI = require_mitsuba()          # skips this module without a usable Mitsuba; None under CI
+MI = require_mitsuba()  # skips this module without a usable Mitsuba; None under CI
 
 
 @pytest.fixture(scope="module", autouse=True)
 def mi():
-    return fail_under_ci(MI)        # under CI every test here fails, saying why
+    return fail_under_ci(MI)  # under CI every test here fails, saying why
 
 
 def test_llvm_variant_renders_a_16x16_scene(mi):
     # require_mitsuba ran the probe in a fresh process; render here too, in this process.
     import drjit as dr
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": "prb"},
-                          "sensor": {"type": "perspective", "film": {
-                              "type": "hdrfilm", "width": 16, "height": 16},
-                              "to_world": mi.ScalarTransform4f().look_at(
-                                  origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0])},
-                          "sphere": {"type": "sphere"}, "light": {"type": "constant"}})
+
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "prb"},
+            "sensor": {
+                "type": "perspective",
+                "film": {"type": "hdrfilm", "width": 16, "height": 16},
+                "to_world": mi.ScalarTransform4f().look_at(
+                    origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]
+                ),
+            },
+            "sphere": {"type": "sphere"},
+            "light": {"type": "constant"},
+        }
+    )
     img = np.asarray(mi.render(scene, spp=4))
     dr.sync_thread()
     assert img.shape == (16, 16, 3) and np.isfinite(img).all()
-    assert 0.05 < img.mean() < 10          # a lit sphere, not a black or empty image
+    assert 0.05 < img.mean() < 10  # a lit sphere, not a black or empty image
 
 
 def test_check_variant_rejects_an_old_libllvm(mi, monkeypatch):
     import drjit as dr
+
     from optax_bilateral.mitsuba import check_variant
+
     monkeypatch.setattr(dr.detail, "llvm_version", lambda: (15, 0, 7))
-    with pytest.raises(RuntimeError, match="libLLVM 15.0.7.*>= 16.*DRJIT_LIBLLVM_PATH"):
+    with pytest.raises(RuntimeError, match=r"libLLVM 15\.0\.7.*>= 16.*DRJIT_LIBLLVM_PATH"):
         check_variant()
 
 
 def test_check_variant_rejects_a_non_differentiable_variant(mi):
     from optax_bilateral.mitsuba import check_variant
+
     mi.set_variant("scalar_rgb")
     try:
         with pytest.raises(ValueError, match="differentiable"):
@@ -70,23 +83,41 @@ def test_check_variant_rejects_a_non_differentiable_variant(mi):
 
 # ----------------------------------------------------------------------------- tiny scene
 
+
 def _rng_values(seed=0):
     rng = np.random.default_rng(seed)
-    return {TEX: rng.uniform(0.1, 0.4, (6, 5, 1)).astype(np.float32),
-            DENSITY: rng.uniform(0.0, 1.0, (4, 3, 5, 1)).astype(np.float32),
-            ALBEDO: rng.uniform(0.2, 0.8, (4, 3, 5, 3)).astype(np.float32)}
+    return {
+        TEX: rng.uniform(0.1, 0.4, (6, 5, 1)).astype(np.float32),
+        DENSITY: rng.uniform(0.0, 1.0, (4, 3, 5, 1)).astype(np.float32),
+        ALBEDO: rng.uniform(0.2, 0.8, (4, 3, 5, 3)).astype(np.float32),
+    }
 
 
 def _scene(mi, values):
     def grid(v):
         return {"type": "gridvolume", "grid": mi.VolumeGrid(mi.TensorXf(v))}
-    return mi.load_dict({
-        "type": "scene",
-        "plane": {"type": "rectangle", "bsdf": {"type": "roughconductor", "alpha": {
-            "type": "bitmap", "raw": True, "data": mi.TensorXf(values[TEX])}}},
-        "cube": {"type": "cube", "bsdf": {"type": "null"}, "interior": {
-            "type": "heterogeneous", "sigma_t": grid(values[DENSITY]),
-            "albedo": grid(values[ALBEDO])}}})
+
+    return mi.load_dict(
+        {
+            "type": "scene",
+            "plane": {
+                "type": "rectangle",
+                "bsdf": {
+                    "type": "roughconductor",
+                    "alpha": {"type": "bitmap", "raw": True, "data": mi.TensorXf(values[TEX])},
+                },
+            },
+            "cube": {
+                "type": "cube",
+                "bsdf": {"type": "null"},
+                "interior": {
+                    "type": "heterogeneous",
+                    "sigma_t": grid(values[DENSITY]),
+                    "albedo": grid(values[ALBEDO]),
+                },
+            },
+        }
+    )
 
 
 @pytest.fixture
@@ -102,6 +133,7 @@ def _backward(params, keys, scale=None):
     """dr.backward of sum_k sum((x_k - 0.3)^2 * scale_k): the gradient is 2 (x - 0.3) * scale."""
     import drjit as dr
     import mitsuba as mi
+
     loss = 0
     for k in keys:
         diff = dr.square(params[k] - mi.TensorXf(TARGET[k]))
@@ -127,7 +159,8 @@ class _Probe:
 
 def test_step_passes_gradients_state_and_current_values(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     keys = (TEX, DENSITY, ALBEDO)
     opt = SceneOptimizer(_Probe(), params, keys)
     state = opt.init()
@@ -143,7 +176,8 @@ def test_step_passes_gradients_state_and_current_values(tiny):
 
 def test_bilateral_adam_step_is_the_librarys_update(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     tx = ob.bilateral_adam(0.05, levels=2, sigma_d=0.1, log_guide=True)
     opt = SceneOptimizer(tx, params, TEX)
     state = opt.init()
@@ -155,15 +189,20 @@ def test_bilateral_adam_step_is_the_librarys_update(tiny):
         updates, ref_state = ref_update({TEX: 2 * (values[TEX] - TARGET[TEX])}, ref_state, values)
         values = optax.apply_updates(values, updates)
         # Two compilations of one float32 program: equal up to XLA's fusion choices.
-        np.testing.assert_allclose(np.asarray(opt.values()[TEX]), np.asarray(values[TEX]),
-                                   rtol=0, atol=1e-6)
-    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7), state, ref_state)
+        np.testing.assert_allclose(
+            np.asarray(opt.values()[TEX]), np.asarray(values[TEX]), rtol=0, atol=1e-6
+        )
+    jax.tree.map(
+        lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7), state, ref_state
+    )
 
 
 def test_plain_sgd_step_is_exact_and_writes_back_to_the_scene(tiny):
     import drjit as dr
+
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     opt = SceneOptimizer(optax.sgd(0.25), params, [DENSITY])
     state = opt.init()
     x0 = np.array(dr.detach(params[DENSITY]))
@@ -180,12 +219,13 @@ def test_plain_sgd_step_is_exact_and_writes_back_to_the_scene(tiny):
 
 def test_values_and_gradients_cross_without_copies(tiny):
     import drjit as dr
+
     from optax_bilateral.mitsuba import SceneOptimizer, to_jax
 
     def shared(jax_array, dr_tensor):
         return jax_array.unsafe_buffer_pointer() == np.from_dlpack(dr_tensor).ctypes.data
 
-    scene, params = tiny
+    _, params = tiny
     opt = SceneOptimizer(optax.sgd(0.1), params, [TEX, ALBEDO])
     state = opt.init()
     for _ in range(2):
@@ -201,22 +241,32 @@ def test_values_and_gradients_cross_without_copies(tiny):
 
 def test_projection_clamps_after_the_update(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
-    opt = SceneOptimizer(optax.sgd(10.0), params, [DENSITY, ALBEDO],
-                         project={DENSITY: (0.0, 0.25), ALBEDO: (None, 0.5)})
+
+    _, params = tiny
+    opt = SceneOptimizer(
+        optax.sgd(10.0),
+        params,
+        [DENSITY, ALBEDO],
+        project={DENSITY: (0.0, 0.25), ALBEDO: (None, 0.5)},
+    )
     state = opt.init()
     _backward(params, [DENSITY, ALBEDO])
     opt.step(state)
     d, a = (np.asarray(opt.values()[k]) for k in (DENSITY, ALBEDO))
     assert d.min() >= 0.0 and d.max() <= 0.25 and np.any(d == 0.0) and np.any(d == 0.25)
-    assert a.max() <= 0.5 and a.min() < 0.0          # no lower bound given: none applied
+    assert a.max() <= 0.5 and a.min() < 0.0  # no lower bound given: none applied
 
 
 def test_callable_projection(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
-    opt = SceneOptimizer(optax.sgd(0.1), params, [TEX],
-                         project=lambda v: {k: jnp.full_like(x, 0.2) for k, x in v.items()})
+
+    _, params = tiny
+    opt = SceneOptimizer(
+        optax.sgd(0.1),
+        params,
+        [TEX],
+        project=lambda v: {k: jnp.full_like(x, 0.2) for k, x in v.items()},
+    )
     state = opt.init()
     _backward(params, [TEX])
     opt.step(state)
@@ -225,16 +275,18 @@ def test_callable_projection(tiny):
 
 def test_mask_unobserved_keeps_value_and_moments_of_zero_gradient_texels(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     # Texels of the first slice get no gradient in any channel; in step 2 one more texel
     # gets a gradient in one channel only (it counts as observed).
     scale = {ALBEDO: np.ones((4, 3, 5, 3), np.float32)}
     scale[ALBEDO][0] = 0.0
-    opt = SceneOptimizer(optax.adam(0.05), params, [ALBEDO], project={ALBEDO: (0.35, 1.0)},
-                         mask_unobserved=True)
+    opt = SceneOptimizer(
+        optax.adam(0.05), params, [ALBEDO], project={ALBEDO: (0.35, 1.0)}, mask_unobserved=True
+    )
     state = opt.init()
     x0 = np.asarray(opt.values()[ALBEDO]).copy()
-    assert x0[0].min() < 0.35                        # some unobserved texels are out of range
+    assert x0[0].min() < 0.35  # some unobserved texels are out of range
     _backward(params, [ALBEDO], scale)
     state = opt.step(state)
     x1 = np.asarray(opt.values()[ALBEDO]).copy()
@@ -256,7 +308,8 @@ def test_mask_unobserved_keeps_value_and_moments_of_zero_gradient_texels(tiny):
 
 def test_without_mask_unobserved_adam_momentum_moves_zero_gradient_texels(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     scale = {TEX: np.zeros((6, 5, 1), np.float32)}
     opt = SceneOptimizer(optax.adam(0.05), params, [TEX])
     state = opt.init()
@@ -270,10 +323,12 @@ def test_without_mask_unobserved_adam_momentum_moves_zero_gradient_texels(tiny):
 
 def test_checkpoint_round_trip_resumes_identically(tiny, tmp_path, mi):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     keys = [TEX, DENSITY, ALBEDO]
     tx = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=optax.cosine_decay_schedule(0.1, 10), levels=1)
+        learning_rate=optax.cosine_decay_schedule(0.1, 10), levels=1
+    )
     opt = SceneOptimizer(tx, params, keys, project={DENSITY: (0.0, 1.0)})
     state = opt.init()
     for _ in range(3):
@@ -301,11 +356,13 @@ def test_checkpoint_round_trip_resumes_identically(tiny, tmp_path, mi):
 
 # ----------------------------------------------------------------------------- bad input
 
+
 def test_bad_keys_name_the_problem(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     tx = optax.adam(0.1)
-    with pytest.raises(KeyError, match="did you mean.*plane.bsdf.alpha.data"):
+    with pytest.raises(KeyError, match=r"did you mean.*plane\.bsdf\.alpha\.data"):
         SceneOptimizer(tx, params, "plane.bsdf.alpha.dat")
     with pytest.raises(TypeError, match="not a tensor"):
         SceneOptimizer(tx, params, "plane.to_world")
@@ -315,7 +372,7 @@ def test_bad_keys_name_the_problem(tiny):
         SceneOptimizer(tx, params, [TEX, TEX])
     with pytest.raises(TypeError, match="strings"):
         SceneOptimizer(tx, params, [TEX, 3])
-    with pytest.raises(TypeError, match="mi.traverse"):
+    with pytest.raises(TypeError, match=r"mi\.traverse"):
         SceneOptimizer(tx, {TEX: None}, TEX)
     with pytest.raises(TypeError, match="GradientTransformation"):
         SceneOptimizer(lambda g: g, params, TEX)
@@ -325,16 +382,31 @@ def test_bad_keys_name_the_problem(tiny):
 
 def test_an_8_bit_texture_is_rejected_with_a_hint(mi):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene = mi.load_dict({"type": "scene", "plane": {"type": "rectangle", "bsdf": {
-        "type": "roughconductor", "alpha": {"type": "bitmap", "raw": True,
-                                            "bitmap": mi.Bitmap(np.full((4, 4, 1), 77, np.uint8))}}}})
-    with pytest.raises(TypeError, match="uint8.*mi.TensorXf"):
+
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "plane": {
+                "type": "rectangle",
+                "bsdf": {
+                    "type": "roughconductor",
+                    "alpha": {
+                        "type": "bitmap",
+                        "raw": True,
+                        "bitmap": mi.Bitmap(np.full((4, 4, 1), 77, np.uint8)),
+                    },
+                },
+            },
+        }
+    )
+    with pytest.raises(TypeError, match=r"uint8.*mi\.TensorXf"):
         SceneOptimizer(optax.adam(0.1), mi.traverse(scene), TEX)
 
 
 def test_bad_projection_names_the_problem(tiny):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     tx = optax.adam(0.1)
     with pytest.raises(ValueError, match="not one of the optimized keys"):
         SceneOptimizer(tx, params, TEX, project={DENSITY: (0, 1)})
@@ -355,18 +427,19 @@ def test_bad_projection_names_the_problem(tiny):
 
 def test_resized_parameter_and_bad_values_are_reported(tiny, mi):
     from optax_bilateral.mitsuba import SceneOptimizer
-    scene, params = tiny
+
+    _, params = tiny
     opt = SceneOptimizer(optax.adam(0.1), params, TEX)
     state = opt.init()
     with pytest.raises(ValueError, match="keys"):
         opt.set_values({DENSITY: np.zeros((4, 3, 5, 1))})
     with pytest.raises(ValueError, match="shape"):
         opt.set_values({TEX: np.zeros((3, 3, 1))})
-    params[TEX] = mi.TensorXf(np.full((6, 5, 1), 0.2, np.float32))     # replaced, no gradients
+    params[TEX] = mi.TensorXf(np.full((6, 5, 1), 0.2, np.float32))  # replaced, no gradients
     params.update()
-    with pytest.raises(ValueError, match="does not track gradients.*set_values"):
+    with pytest.raises(ValueError, match=r"does not track gradients.*set_values"):
         opt.step(state)
-    params[TEX] = mi.TensorXf(np.zeros((12, 10, 1), np.float32))     # upsampled texture
+    params[TEX] = mi.TensorXf(np.zeros((12, 10, 1), np.float32))  # upsampled texture
     params.update()
     with pytest.raises(ValueError, match=r"now has shape \(12, 10, 1\).*new SceneOptimizer"):
         opt.step(state)
@@ -380,11 +453,12 @@ DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs" / "mitsuba.md"
 
 def _check_summary(out, module):
     from experiments import mitsuba_common as mc
+
     data = json.loads((out / "summary.json").read_text())
     cfg = module.default_config(quick=True)
     expected = set(mc.METHODS) - set(data["skipped"])
     assert set(data["methods"]) == expected and {"adam", "cross-bilateral"} <= expected
-    if "auto" in data["skipped"]:                   # skipped only with a reason
+    if "auto" in data["skipped"]:  # skipped only with a reason
         assert mc.auto_unavailable() and "auto" in data["skipped"]["auto"]
     for name, m in data["methods"].items():
         for key in ("final_param_error", "final_loss", "seconds_per_iteration"):
@@ -406,6 +480,7 @@ def _check_summary(out, module):
 @pytest.fixture(scope="module")
 def texture_run(mi, tmp_path_factory):
     from experiments import mitsuba_texture as E
+
     out = tmp_path_factory.mktemp("mitsuba_texture")
     E.main(["--quick", "--out", str(out)])
     return out
@@ -413,6 +488,7 @@ def texture_run(mi, tmp_path_factory):
 
 def test_texture_experiment_writes_summary_table_and_figures(texture_run):
     from experiments import mitsuba_texture as E
+
     data = _check_summary(texture_run, E)
     methods = data["methods"]
     assert methods["cross-bilateral"]["hyperparameters"]["guide"] == "params"
@@ -424,22 +500,30 @@ def test_texture_experiment_writes_summary_table_and_figures(texture_run):
     initial = data["setting"]["initial_param_error"]
     for name, m in methods.items():
         assert m["final_param_error"] < initial, name
-    per, ever = (data["setting"][k] for k in ("observed_texels_per_iteration",
-                                              "observed_texels_within_20_iterations"))
+    per, ever = (
+        data["setting"][k]
+        for k in ("observed_texels_per_iteration", "observed_texels_within_20_iterations")
+    )
     assert 0 < per <= ever <= 1
     names = {p.name for p in texture_run.iterdir()}
-    assert {"images.png", "param_error_vs_iteration.png", "param_error_vs_time.png",
-            "loss_vs_iteration.png", "loss_vs_time.png"} <= names
+    assert {
+        "images.png",
+        "param_error_vs_iteration.png",
+        "param_error_vs_time.png",
+        "loss_vs_iteration.png",
+        "loss_vs_time.png",
+    } <= names
 
 
 def test_volume_experiment_writes_summary_table_and_figures(mi, tmp_path):
     from experiments import mitsuba_volume as E
+
     E.main(["--quick", "--out", str(tmp_path)])
     data = _check_summary(tmp_path, E)
     for m in data["methods"].values():
         assert 0 <= m["final_density_error"] and 0 <= m["final_albedo_error"]
     cross = data["methods"]["cross-bilateral"]["hyperparameters"]["sigma_d"]
-    assert set(cross) == {E.DENSITY, E.ALBEDO}               # sigma_d per key
+    assert set(cross) == {E.DENSITY, E.ALBEDO}  # sigma_d per key
     names = {p.name for p in tmp_path.iterdir()}
     assert {"views.png", "slices.png", "albedo_error_vs_time.png"} <= names
 
@@ -448,6 +532,7 @@ def test_timing_table_has_adam_and_both_filter_sizes(mi, tmp_path):
     # The texture scene only: the volume's rows come from the same code (time_scene), and
     # its 3-D filters at F = 3 and 5 would add two compilations to the test suite.
     from experiments import mitsuba_timing as E
+
     result = E.main(["--quick", "--rounds", "1", "--scenes", "texture", "--out", str(tmp_path)])
     data = json.loads((tmp_path / "timing.json").read_text())
     assert set(data["scenes"]) == {"texture"}
@@ -455,7 +540,7 @@ def test_timing_table_has_adam_and_both_filter_sizes(mi, tmp_path):
         rows = {r["method"]: r for r in scene["rows"]}
         assert set(rows) == {"Adam", "Ours (F = 3)", "Ours (F = 5)"}
         assert rows["Adam"]["total vs Adam %"] == 0.0
-        for r in rows.values():             # one round: the medians are the samples
+        for r in rows.values():  # one round: the medians are the samples
             assert r["rounds"] == 1 and 0 < r["of which jitted ms"] <= r["update ms"]
             assert r["total ms"] == pytest.approx(r["render + backward ms"] + r["update ms"])
     assert "Ours (F = 5)" in result["table"] and (tmp_path / "timing.md").exists()
@@ -469,8 +554,9 @@ def _docs_block(name):
 
 
 def test_docs_loop_runs_verbatim(mi, tmp_path, monkeypatch):
-    from experiments import mitsuba_texture
     import optax_bilateral as ob
+    from experiments import mitsuba_texture
+
     # The docs' blocks, unchanged, on the quick configuration (32^2 texture, 6 iterations).
     quick = mitsuba_texture.default_config(quick=True)
     monkeypatch.setattr(mitsuba_texture, "default_config", lambda quick_=False: quick)
@@ -480,8 +566,12 @@ def test_docs_loop_runs_verbatim(mi, tmp_path, monkeypatch):
     problem = ns["problem"]
     err0 = float(problem.param_errors(problem.init)["param_error"])
     exec(compile(_docs_block("loop"), "docs/mitsuba.md:loop", "exec"), ns)
-    saved = ob.load_state("checkpoint.npz", {"state": ns["opt"].init(), "values": ns["opt"].values()})
+    saved = ob.load_state(
+        "checkpoint.npz", {"state": ns["opt"].init(), "values": ns["opt"].values()}
+    )
     key = "plane.bsdf.alpha.data"
-    np.testing.assert_array_equal(np.asarray(saved["values"][key]), np.asarray(ns["opt"].values()[key]))
+    np.testing.assert_array_equal(
+        np.asarray(saved["values"][key]), np.asarray(ns["opt"].values()[key])
+    )
     err = float(problem.param_errors(ns["opt"].values())["param_error"])
     assert err < err0

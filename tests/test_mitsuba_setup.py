@@ -12,15 +12,18 @@ import pytest
 
 def test_import_optax_bilateral_imports_no_mitsuba():
     # Runs in a fresh interpreter: this process may have imported Mitsuba already.
-    code = ("import sys, optax_bilateral, optax_bilateral.mitsuba; "
-            "bad = [m for m in sys.modules if m.split('.')[0] in ('mitsuba', 'drjit')]; "
-            "assert not bad, bad")
+    code = (
+        "import sys, optax_bilateral, optax_bilateral.mitsuba; "
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('mitsuba', 'drjit')]; "
+        "assert not bad, bad"
+    )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
 
 
 def test_an_unusable_mitsuba_fails_under_ci_and_skips_otherwise(monkeypatch):
     import mitsuba_env
+
     monkeypatch.setattr(mitsuba_env, "unavailable", lambda: "libLLVM 15 found, 16 needed")
     monkeypatch.setenv("CI", "true")
     assert mitsuba_env.require_mitsuba() is None
@@ -33,5 +36,6 @@ def test_an_unusable_mitsuba_fails_under_ci_and_skips_otherwise(monkeypatch):
 
 def test_probe_reports_a_variant_that_cannot_render():
     from experiments import mitsuba_common as mc
+
     reason = mc.probe("llvm_ad_no_such_variant")
     assert reason is not None and "cannot render" in reason and "\n" not in reason

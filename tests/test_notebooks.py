@@ -21,7 +21,9 @@ NOTEBOOKS = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
 
 def _load_builder():
     """``notebooks/build_notebooks.py`` is a script, not a package module: load it by path."""
-    spec = importlib.util.spec_from_file_location("build_notebooks", NOTEBOOKS / "build_notebooks.py")
+    spec = importlib.util.spec_from_file_location(
+        "build_notebooks", NOTEBOOKS / "build_notebooks.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -33,8 +35,13 @@ build_notebooks = _load_builder()
 FIGURES = {
     "memoryless": ["memoryless_curves", "memoryless_textures", "memoryless_eq24"],
     "pre_vs_post": ["pre_vs_post_curves", "pre_vs_post_textures", "pre_vs_post_bound"],
-    "ablation": ["ablation_grid_camera", "ablation_noise_target", "ablation_low_noise_noise_target",
-                 "ablation_low_noise_camera_target", "ablation_schedule"],
+    "ablation": [
+        "ablation_grid_camera",
+        "ablation_noise_target",
+        "ablation_low_noise_noise_target",
+        "ablation_low_noise_camera_target",
+        "ablation_schedule",
+    ],
 }
 
 
@@ -52,9 +59,12 @@ def test_notebook_in_git_is_stripped_and_matches_its_source(name):
         if cell.cell_type == "code":
             assert cell.outputs == [] and cell.execution_count is None, (
                 f"{name}: cell {cell.get('id')} has outputs; rebuild with "
-                "python notebooks/build_notebooks.py")
+                "python notebooks/build_notebooks.py"
+            )
     assert path.read_text() == build_notebooks.dumps(build_notebooks.build(name)), (
-        f"{name}.ipynb differs from notebooks/src/{name}.py; run python notebooks/build_notebooks.py")
+        f"{name}.ipynb differs from notebooks/src/{name}.py; "
+        "run python notebooks/build_notebooks.py"
+    )
 
 
 @pytest.mark.slow
@@ -71,9 +81,10 @@ def test_notebook_runs_at_the_quick_size(name, monkeypatch):
         monkeypatch.setenv("XLA_FLAGS", (flags + " --xla_backend_optimization_level=0").strip())
     nb = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
     start = time.time()
-    NotebookClient(nb, timeout=600, kernel_name="python3",
-                   resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
-    out = NOTEBOOKS.parent / "results" / "notebooks" / "quick"    # full-size figures stay untouched
+    NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+    ).execute()
+    out = NOTEBOOKS.parent / "results" / "notebooks" / "quick"  # full-size figures stay untouched
     for fig in FIGURES[name]:
         png = out / f"{fig}.png"
         assert png.exists() and png.stat().st_mtime >= start - 1, f"{name} did not save {png}"

@@ -1,4 +1,5 @@
-"""Laplacian-pyramid parameterisation (Weier et al. 2025): the operator, its transpose, the transform."""
+"""Laplacian-pyramid parameterisation (Weier et al. 2025): the operator, its transpose, the
+transform."""
 
 import jax
 import jax.numpy as jnp
@@ -34,16 +35,18 @@ def reference_reconstruct(coeffs, axes):
     out = np.asarray(coeffs[-1], np.float64)
     for c in reversed(coeffs[:-1]):
         for a in axes:
-            out = np.moveaxis(np.tensordot(upsample_matrix(c.shape[a]), np.moveaxis(out, a, 0),
-                                           axes=1), 0, a)
+            out = np.moveaxis(
+                np.tensordot(upsample_matrix(c.shape[a]), np.moveaxis(out, a, 0), axes=1), 0, a
+            )
         out = np.asarray(c, np.float64) + out
     return out
 
 
 def random_coeffs(shape, levels, axes, seed=0):
     rng = np.random.default_rng(seed)
-    return [rng.standard_normal(s).astype(np.float32)
-            for s in pyr.level_shapes(shape, levels, axes)]
+    return [
+        rng.standard_normal(s).astype(np.float32) for s in pyr.level_shapes(shape, levels, axes)
+    ]
 
 
 @pytest.mark.parametrize("shape,axes", SHAPES)
@@ -59,14 +62,20 @@ def test_transpose_is_the_adjoint(shape, axes):
     coeffs = random_coeffs(shape, 4, axes, seed=1)
     g = np.random.default_rng(2).standard_normal(shape).astype(np.float32)
     lhs = float(np.vdot(reference_reconstruct(coeffs, axes), g))
-    rhs = sum(float(np.vdot(c, t)) for c, t in
-              zip(coeffs, pyr.pyramid_transpose(jnp.asarray(g), 4, axes)))
+    rhs = sum(
+        float(np.vdot(c, t)) for c, t in zip(coeffs, pyr.pyramid_transpose(jnp.asarray(g), 4, axes))
+    )
     # Sums of ~1e3 float32 products of O(1) numbers: relative 1e-5.
     assert rhs == pytest.approx(lhs, rel=1e-5, abs=1e-4)
 
 
 def test_level_shapes_halve_with_ceiling():
-    assert pyr.level_shapes((13, 10, 3), 4, (0, 1)) == [(13, 10, 3), (7, 5, 3), (4, 3, 3), (2, 2, 3)]
+    assert pyr.level_shapes((13, 10, 3), 4, (0, 1)) == [
+        (13, 10, 3),
+        (7, 5, 3),
+        (4, 3, 3),
+        (2, 2, 3),
+    ]
 
 
 def test_one_level_is_adam():
@@ -76,15 +85,22 @@ def test_one_level_is_adam():
     s1, s2 = ours.init(params), ref.init(params)
     up1, up2 = jax.jit(ours.update), jax.jit(ref.update)
     for t in range(5):
-        g = jax.tree.map(lambda p, t=t: jnp.asarray(
-            np.random.default_rng(t).standard_normal(p.shape), jnp.float32), params)
+        g = jax.tree.map(
+            lambda p, t=t: jnp.asarray(
+                np.random.default_rng(t).standard_normal(p.shape), jnp.float32
+            ),
+            params,
+        )
         u1, s1 = up1(g, s1, params)
         u2, s2 = up2(g, s2, params)
-        jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), u1, u2)
+        jax.tree.map(
+            lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), u1, u2
+        )
 
 
 def test_equals_adam_on_the_coefficients():
-    """Optimising c with optax.adam on f(P c) gives the iterates theta_t = P c_t of the transform."""
+    """Optimising c with optax.adam on f(P c) gives the iterates theta_t = P c_t of the
+    transform."""
     axes, levels, shape = (0, 1), 3, (12, 9, 2)
     target = jnp.asarray(np.random.default_rng(4).random(shape, np.float32))
 
@@ -108,8 +124,9 @@ def test_equals_adam_on_the_coefficients():
     for _ in range(20):
         coeffs, state_c, theta, state = step(coeffs, state_c, theta, state)
     # 20 float32 steps of size ~0.03 on values ~1: rounding differences of order 1e-6.
-    np.testing.assert_allclose(np.asarray(theta), np.asarray(pyr.pyramid_reconstruct(coeffs, axes)),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(theta), np.asarray(pyr.pyramid_reconstruct(coeffs, axes)), atol=1e-5
+    )
 
 
 def test_constant_gradient_steps_levels_times_lr():

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from reference import atrous_reference
 
 import optax_bilateral as ob
+from reference import atrous_reference
 
 KEY = jax.random.PRNGKey(7)
 SHAPE = (8, 8, 2)

@@ -32,6 +32,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _child() -> None:  # pragma: no cover - runs in the subprocess
+    import functools
     import math
     import time
 
@@ -39,7 +40,8 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     import jax.numpy as jnp
     import numpy as np
     import optax
-    from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
+    from jax.sharding import AxisType, Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
 
     import optax_bilateral as ob
     from experiments import bench_sharding as bench
@@ -51,13 +53,13 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     clock = [time.process_time()]
 
     def emit(**rec):
-        rec["cpu_s"] = round(time.process_time() - clock[0], 1)   # CPU seconds of this check
+        rec["cpu_s"] = round(time.process_time() - clock[0], 1)  # CPU seconds of this check
         clock[0] = time.process_time()
         records.append(rec)
         print(json.dumps(rec), flush=True)
 
-    def mesh_of(shape, axis_type):
-        devs = np.array(jax.devices()[:math.prod(shape)]).reshape(shape)
+    def device_mesh_of(shape, axis_type):
+        devs = np.array(jax.devices()[: math.prod(shape)]).reshape(shape)
         return Mesh(devs, ("x", "y"), axis_types=(axis_type,) * 2)
 
     def max_diff(a, b):
@@ -72,13 +74,16 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         return worst
 
     def stats(compiled):
-        return collectives.collective_stats(compiled.as_text(), branch=None)   # worst branch
+        return collectives.collective_stats(compiled.as_text(), branch=None)  # worst branch
+
+    def filter_pair(m, v, g, mk, **kw):
+        return ob.atrous_bilateral((m, v), g, mask=mk, **kw)
 
     key = jax.random.PRNGKey(0)
 
     # --- The filter itself, explicit meshes: every spatial split, multi-hop halos, masks.
     filter_cases = [
-        # (grid, mesh, spec over (x, y), levels, separable, mask). 16 rows in 8 blocks of 2
+        # (grid, mesh shape, spec over (x, y), levels, separable, mask). 16 rows in 8 blocks of 2
         # with offsets up to 8: halos of 4 hops.
         ((16, 12), (8, 1), P("x", "y"), 3, False, True),
         ((16, 16), (4, 2), P("y", "x"), 2, False, False),
@@ -86,11 +91,11 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         ((8, 8, 4), (4, 2), P(None, "x", "y"), 1, False, False),
         # Guide and sigma_d scaled by 2^100: squared distances would overflow float32; each
         # block rescales its own guide (a power of two: same weights, no all-reduce).
-        ((16, 16), (4, 2), P("x", "y"), 2, True, False, 2.0 ** 100),
+        ((16, 16), (4, 2), P("x", "y"), 2, True, False, 2.0**100),
     ]
-    for i, (shape, mshape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
+    for i, (shape, mesh_shape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
         scale = scale[0] if scale else 1.0
-        mesh = mesh_of(mshape, AxisType.Explicit)
+        device_mesh = device_mesh_of(mesh_shape, AxisType.Explicit)
         k = jax.random.fold_in(key, i)
         m = jax.random.normal(k, shape + (2,))
         v = jax.random.uniform(jax.random.fold_in(k, 1), shape + (3,))
@@ -99,76 +104,100 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         axes = tuple(range(len(shape)))
         kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep)
         ref = ob.atrous_bilateral((m, v), guide, mask=mask, **kw)
-        sh = NamedSharding(mesh, spec)
+        sh = NamedSharding(device_mesh, spec)
         args = [jax.device_put(a, sh) for a in (m, v, guide)]
-        margs = [jax.device_put(mask, NamedSharding(mesh, P(*tuple(spec)[:len(shape)])))] \
-            if use_mask else [None]
+        margs = (
+            [jax.device_put(mask, NamedSharding(device_mesh, P(*tuple(spec)[: len(shape)])))]
+            if use_mask
+            else [None]
+        )
         kw_s = dict(kw, sigma_d=kw["sigma_d"] * scale)
         args[2] = args[2] * scale
-        fn = jax.jit(lambda m, v, g, mk: ob.atrous_bilateral((m, v), g, mask=mk, **kw_s))
+        fn = jax.jit(functools.partial(filter_pair, **kw_s))
         compiled = fn.lower(*args, *margs).compile()
         out = compiled(*args, *margs)
         st = stats(compiled)
         blocks = [1] * len(shape)
-        for a, e in enumerate(tuple(spec)[:len(shape)]):
+        for a, e in enumerate(tuple(spec)[: len(shape)]):
             if e is not None:
-                blocks[a] = mesh.shape[e]
+                blocks[a] = device_mesh.shape[e]
         # Fields per level plus the guide once at the widest radius: what must move.
         halo = collectives.halo_bytes(shape, blocks, levels, fields=5, guide=3, separable=sep)
-        emit(check="filter", case=f"{shape} {mshape} {spec} F={levels} "
-                                   f"{'sep' if sep else 'full'}{' mask' if use_mask else ''}"
-                                   f"{f' guide x{scale:g}' if scale != 1 else ''}",
-             separable=sep, max_diff=max_diff(out, ref),
-             sharding_kept=all(o.sharding.is_equivalent_to(sh, len(shape) + 1) for o in out),
-             kinds=sorted(k for k, s in st.items() if s["count"]),
-             permute_bytes=st["collective-permute"]["bytes"], minimum=halo["minimum"],
-             box=halo["box"])
+        emit(
+            check="filter",
+            case=f"{shape} {mesh_shape} {spec} F={levels} "
+            f"{'sep' if sep else 'full'}{' mask' if use_mask else ''}"
+            f"{f' guide x{scale:g}' if scale != 1 else ''}",
+            separable=sep,
+            max_diff=max_diff(out, ref),
+            sharding_kept=all(o.sharding.is_equivalent_to(sh, len(shape) + 1) for o in out),
+            kinds=sorted(k for k, s in st.items() if s["count"]),
+            permute_bytes=st["collective-permute"]["bytes"],
+            minimum=halo["minimum"],
+            box=halo["box"],
+        )
 
     # --- guide="self": every level guided by its own input; a field whose channels are split
     # too (they are gathered per block for the guide's norm, and split again after).
-    mesh = mesh_of((4, 2), AxisType.Explicit)
+    device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
     x = jax.random.normal(jax.random.fold_in(key, 99), (16, 12, 4))
     mask = jax.random.uniform(jax.random.fold_in(key, 98), (16, 12)) > 0.2
     for sep in (True, False):
         kw = dict(sigma_d=0.3, levels=3, spatial_axes=(0, 1), separable=sep, log_guide=True)
         ref = ob.atrous_bilateral((x, x * x), "self", mask=mask, **kw)
-        sh = NamedSharding(mesh, P("x", None, "y"))
+        sh = NamedSharding(device_mesh, P("x", None, "y"))
         xs = jax.device_put(x, sh)
-        ms = jax.device_put(mask, NamedSharding(mesh, P("x", None)))
+        ms = jax.device_put(mask, NamedSharding(device_mesh, P("x", None)))
         out = jax.jit(lambda a, mk, kw=kw: ob.atrous_bilateral((a, a * a), "self", mask=mk, **kw))(
-            xs, ms)
-        emit(check="filter_self", case=f"(16, 12, 4) 4x2 P('x', None, 'y') F=3 "
-                                        f"{'sep' if sep else 'full'} mask log",
-             max_diff=max_diff(out, ref),
-             sharding_kept=all(o.sharding.is_equivalent_to(sh, 3) for o in out))
+            xs, ms
+        )
+        emit(
+            check="filter_self",
+            case=f"(16, 12, 4) 4x2 P('x', None, 'y') F=3 {'sep' if sep else 'full'} mask log",
+            max_diff=max_diff(out, ref),
+            sharding_kept=all(o.sharding.is_equivalent_to(sh, 3) for o in out),
+        )
 
     # --- The transforms and bilateral_adam, explicit and auto meshes.
-    params = {"tex": jax.random.uniform(key, (16, 16, 3), minval=0.05, maxval=1.0),
-              "vol": jax.random.uniform(jax.random.fold_in(key, 1), (8, 8, 4, 2), minval=0.05),
-              "bias": jnp.ones((5,))}
+    params = {
+        "tex": jax.random.uniform(key, (16, 16, 3), minval=0.05, maxval=1.0),
+        "vol": jax.random.uniform(jax.random.fold_in(key, 1), (8, 8, 4, 2), minval=0.05),
+        "bias": jnp.ones((5,)),
+    }
     grads = jax.tree.map(lambda p: jax.random.normal(jax.random.fold_in(key, 10), p.shape), params)
-    grads["tex"] = grads["tex"].at[3, 5, 1].set(jnp.nan)   # a non-finite texel: the masked path
+    grads["tex"] = grads["tex"].at[3, 5, 1].set(jnp.nan)  # a non-finite texel: the masked path
 
     def make(names, sep, levels, masked):
         # masked: mask_unobserved=True, one code path (no lax.cond): halves the compile.
         kw = dict(sigma_d=0.2, levels=levels, separable=sep)
-        adam = optax.inject_hyperparams(ob.bilateral_adam, static_args=(
-            "levels", "separable", "prefilter", "mask_unobserved"))
-        txs = {"prefilter": lambda: ob.prefilter(mask_unobserved=masked, **kw),
-               "postfilter": lambda: ob.postfilter(mask_unobserved=masked, **kw),
-               "scale_by_adam": ob.scale_by_adam,
-               # sigma_d traced (a hyperparameter in the state), prefilter + postfilter.
-               "bilateral_adam": lambda: adam(learning_rate=0.1, prefilter=True,
-                                              mask_unobserved=masked, **kw)}
+        adam = optax.inject_hyperparams(
+            ob.bilateral_adam, static_args=("levels", "separable", "prefilter", "mask_unobserved")
+        )
+        txs = {
+            "prefilter": lambda: ob.prefilter(mask_unobserved=masked, **kw),
+            "postfilter": lambda: ob.postfilter(mask_unobserved=masked, **kw),
+            "scale_by_adam": ob.scale_by_adam,
+            # sigma_d traced (a hyperparameter in the state), prefilter + postfilter.
+            "bilateral_adam": lambda: adam(
+                learning_rate=0.1, prefilter=True, mask_unobserved=masked, **kw
+            ),
+        }
         return {n: txs[n]() for n in names}
 
     def one_step(txs, g, p):
         return {name: tx.update(g, tx.init(p), p) for name, tx in txs.items()}
 
+    def subset(tree, keys):
+        return {k: tree[k] for k in keys}
+
+    def put(tree, device_mesh, keys):
+        shard = lambda a, s: jax.device_put(a, NamedSharding(device_mesh, s))
+        return jax.tree.map(shard, subset(tree, keys), subset(specs, keys))
+
     every = ("prefilter", "postfilter", "scale_by_adam", "bilateral_adam")
     specs = {"tex": P("x", "y"), "vol": P("x", "y"), "bias": P()}
     grids = ("tex", "vol", "bias")
-    configs = [  # (route, mesh, transforms, separable, levels, masked, leaves)
+    configs = [  # (route, mesh shape, transforms, separable, levels, masked, leaves)
         ("shard_map", (8, 1), every, True, 2, False, grids),
         ("shard_map", (4, 2), every, True, 2, True, grids),
         # Full 3-D (62 offset pairs per level) compiles slowly: the filter checks cover it.
@@ -177,41 +206,47 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         ("xla_auto", (4, 2), ("postfilter",), True, 1, False, ("tex", "bias")),
     ]
     refs = {}
-    for route, mshape, names, sep, levels, masked, keys in configs:
+    for route, mesh_shape, names, sep, levels, masked, keys in configs:
         txs = make(names, sep, levels, masked)
         fn = jax.jit(lambda g, p, txs=txs: one_step(txs, g, p))
-        sub = lambda t: {k: t[k] for k in keys}
         cfg = (names, sep, levels, masked, keys)
         if cfg not in refs:
-            refs[cfg] = fn(sub(grads), sub(params))
+            refs[cfg] = fn(subset(grads, keys), subset(params, keys))
         atype = AxisType.Explicit if route == "shard_map" else AxisType.Auto
-        mesh = mesh_of(mshape, atype)
-        put = lambda t: jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)),
-                                     sub(t), sub(specs))
-        g_s, p_s = put(grads), put(params)
+        device_mesh = device_mesh_of(mesh_shape, atype)
+        g_s, p_s = put(grads, device_mesh, keys), put(params, device_mesh, keys)
         t0 = time.perf_counter()
         compiled = fn.lower(g_s, p_s).compile()
         compile_s = time.perf_counter() - t0
         out = compiled(g_s, p_s)
         kept = True
         by_shape = {p.shape: p.sharding for p in p_s.values() if p.ndim >= 2}
-        for name, (u, s) in out.items():
+        for u, s in out.values():
             for leaf, p in zip(jax.tree.leaves(u), jax.tree.leaves(p_s)):
                 kept &= leaf.sharding.is_equivalent_to(p.sharding, p.ndim)
-            for leaf in jax.tree.leaves(s):          # grid-shaped state: m, v
+            for leaf in jax.tree.leaves(s):  # grid-shaped state: m, v
                 if leaf.shape in by_shape:
                     kept &= leaf.sharding.is_equivalent_to(by_shape[leaf.shape], leaf.ndim)
         st = stats(compiled)
-        emit(check="transforms", route=route, mesh="x".join(map(str, mshape)),
-             transforms=list(names), leaves=list(keys), separable=sep, levels=levels,
-             max_diff=max_diff(out, refs[cfg]), sharding_kept=bool(kept),
-             compile_s=round(compile_s, 1),
-             kinds=sorted(k for k, v in st.items() if v["count"]),
-             all_reduce_max_bytes=st["all-reduce"]["max_bytes"],
-             largest_all_gather_vs_tex=st["all-gather"]["max_bytes"] / (16 * 16 * 3 * 4))
+        emit(
+            check="transforms",
+            route=route,
+            mesh="x".join(map(str, mesh_shape)),
+            transforms=list(names),
+            leaves=list(keys),
+            separable=sep,
+            levels=levels,
+            max_diff=max_diff(out, refs[cfg]),
+            sharding_kept=bool(kept),
+            compile_s=round(compile_s, 1),
+            kinds=sorted(k for k, v in st.items() if v["count"]),
+            all_reduce_max_bytes=st["all-reduce"]["max_bytes"],
+            largest_all_gather_vs_tex=st["all-gather"]["max_bytes"] / (16 * 16 * 3 * 4),
+        )
 
     # --- The benchmark's quick run (also checks its own results).
     import tempfile
+
     with tempfile.TemporaryDirectory() as tmp:
         summary = bench.main(["--quick", "--out", tmp])
         files = sorted(os.listdir(tmp))
@@ -228,11 +263,17 @@ def _results() -> list[dict]:
     global _RESULTS
     if _RESULTS is None:
         env = dict(os.environ)
-        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=8")
+        env["XLA_FLAGS"] = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=8"
         env["OPTAX_BILATERAL_QUICK"] = "1"
         env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-        proc = subprocess.run([sys.executable, __file__], cwd=ROOT, env=env, capture_output=True,
-                              text=True, timeout=900)
+        proc = subprocess.run(
+            [sys.executable, __file__],
+            cwd=ROOT,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
         recs = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
         assert proc.returncode == 0, f"child failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
         _RESULTS = recs
@@ -262,7 +303,9 @@ def test_sharded_filter_moves_only_halos():
         # Separable: exactly what must move (fields per level, guide once). Full mode on
         # 2-axis splits also forwards the off-grid zeros of edge blocks' corners: at most
         # the unclipped halo boxes.
-        assert r["minimum"] <= r["permute_bytes"] <= (r["minimum"] if r["separable"] else r["box"]), r
+        assert (
+            r["minimum"] <= r["permute_bytes"] <= (r["minimum"] if r["separable"] else r["box"])
+        ), r
 
 
 def test_sharded_self_guided_filter_equals_single_device_and_keeps_sharding():
@@ -275,8 +318,11 @@ def test_sharded_self_guided_filter_equals_single_device_and_keeps_sharding():
 def test_transforms_equal_single_device():
     recs = _checks("transforms")
     # Separable on both meshes; full mode on 4x2 (8x1 full: the filter checks).
-    assert {(r["route"], r["mesh"], r["separable"]) for r in recs if r["route"] == "shard_map"} \
-        == {("shard_map", "8x1", True), ("shard_map", "4x2", True), ("shard_map", "4x2", False)}
+    assert {(r["route"], r["mesh"], r["separable"]) for r in recs if r["route"] == "shard_map"} == {
+        ("shard_map", "8x1", True),
+        ("shard_map", "4x2", True),
+        ("shard_map", "4x2", False),
+    }
     assert any(r["route"] == "xla_auto" for r in recs)
     for r in recs:
         assert r["max_diff"] <= TOL, r
@@ -314,12 +360,14 @@ if __name__ == "__main__":
 def test_docs_multi_device_example_runs_as_documented():
     # docs/sharding.md's runnable example, verbatim, in a fresh process (it sets its own XLA_FLAGS).
     import re
+
     page = (ROOT / "docs" / "sharding.md").read_text()
     code = re.search(r"```python\n(.*?)```", page, re.S).group(1)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     specs, error = proc.stdout.strip().splitlines()[-2:]
     assert specs == "P('x', 'y', None) P('x', 'y', None)", specs

@@ -8,6 +8,7 @@ import difflib
 import json
 
 import pytest
+
 import snapshots
 
 HLO = json.loads(snapshots.HLO_PATH.read_text())

@@ -7,6 +7,8 @@ environment lookup: a bug in the renderer's sampling, pdf, BRDF or lookup shows 
 as a mismatch.
 """
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,6 +32,7 @@ def scene():
 
 # ----------------------------------------------------------------------------- quadrature
 
+
 def _env_np(env, x, y, z):
     n = env.shape[0]
     c = np.clip((x / (1 + z) + 1) * n / 2 - 0.5, 0, n - 1)
@@ -52,8 +55,11 @@ def _quad_pixel(wo, alpha, scene, n_beta=1000, n_gamma=800):
     jac = 2 * np.pi * q / n_beta * (2 * np.pi / n_gamma) * np.sin(beta)
     gamma = (np.arange(n_gamma) + 0.5) * 2 * np.pi / n_gamma
     sb, cb = np.sin(beta)[:, None], np.cos(beta)[:, None]
-    wi = (cb[..., None] * r + (sb * np.cos(gamma))[..., None] * t
-          + (sb * np.sin(gamma))[..., None] * b)
+    wi = (
+        cb[..., None] * r
+        + (sb * np.cos(gamma))[..., None] * t
+        + (sb * np.sin(gamma))[..., None] * b
+    )
     cos_i = wi[..., 2]
     ok = cos_i > 0
     h = wi + wo
@@ -61,18 +67,21 @@ def _quad_pixel(wo, alpha, scene, n_beta=1000, n_gamma=800):
     cos_h = h[..., 2]
     cos_o = wo[2]
     a2 = float(alpha) ** 2
-    d = a2 / (np.pi * (cos_h ** 2 * (a2 - 1) + 1) ** 2) * (cos_h > 0)
+    d = a2 / (np.pi * (cos_h**2 * (a2 - 1) + 1) ** 2) * (cos_h > 0)
 
     def g1(c):
         c = np.maximum(c, 1e-12)
         tan2 = (1 - c * c) / (c * c)
         return 2 / (1 + np.sqrt(1 + a2 * tan2))
 
-    f_cos = d * g1(cos_i) * g1(cos_o) / (4 * cos_o)       # f cos_i: the cos_i cancels
+    f_cos = d * g1(cos_i) * g1(cos_o) / (4 * cos_o)  # f cos_i: the cos_i cancels
     env_v = _env_np(np.asarray(scene.env), wi[..., 0], wi[..., 1], np.clip(cos_i, 0, 1))
     # The sun: E times a Poisson kernel of width bw about s (gnomonic), zero behind it.
-    s, bw, e = (np.asarray(scene.sun_dir, np.float64), float(scene.sun_width),
-                float(scene.sun_power))
+    s, bw, e = (
+        np.asarray(scene.sun_dir, np.float64),
+        float(scene.sun_width),
+        float(scene.sun_power),
+    )
     c = wi @ s
     env_v = env_v + np.where(c > 0, e * bw / (2 * np.pi * (1 - c * c + bw * bw * c * c) ** 1.5), 0)
     return float(np.sum(np.where(ok, f_cos * env_v, 0.0) * jac[:, None]))
@@ -86,8 +95,11 @@ def quadrature(scene):
         wo = np.asarray(scene.wo[p])
         a, at = float(ALPHAS[p]), float(TARGET[p])
         h = 1e-3 * a
-        out[p] = dict(value=_quad_pixel(wo, a, scene), ref=_quad_pixel(wo, at, scene),
-                      deriv=(_quad_pixel(wo, a + h, scene) - _quad_pixel(wo, a - h, scene)) / (2 * h))
+        out[p] = dict(
+            value=_quad_pixel(wo, a, scene),
+            ref=_quad_pixel(wo, at, scene),
+            deriv=(_quad_pixel(wo, a + h, scene) - _quad_pixel(wo, a - h, scene)) / (2 * h),
+        )
     return out
 
 
@@ -101,6 +113,7 @@ def test_quadrature_resolves_the_integral(scene):
 
 
 # ----------------------------------------------------------------------------- forward
+
 
 @pytest.fixture(scope="module")
 def iid_1spp(scene):
@@ -126,7 +139,7 @@ def test_forward_error_falls_as_spp_grows(iid_1spp, quadrature):
     q = np.array([quadrature[p]["value"] for p in PROBES])
     rms = []
     for spp in (4, 64):
-        est = iid_1spp[:64 * spp].reshape((64, spp) + ALPHAS.shape).mean(1)
+        est = iid_1spp[: 64 * spp].reshape((64, spp) + ALPHAS.shape).mean(1)
         vals = np.stack([est[(slice(None),) + p] for p in PROBES], axis=1)
         rms.append(np.sqrt(np.mean((vals - q) ** 2, axis=0)))
     assert np.all(rms[1] < rms[0] / 2.5), rms
@@ -143,6 +156,7 @@ def test_qmc_reference_matches_quadrature(scene, quadrature):
 
 
 # ----------------------------------------------------------------------------- gradient
+
 
 def _loss_grads(scene, reference, n_seeds, spp, spp_grad, seed=1):
     alpha = jnp.asarray(ALPHAS)
@@ -203,9 +217,10 @@ def test_closed_form_score_matches_autodiff(scene):
     alpha = jnp.asarray(ALPHAS)
     u = jax.random.uniform(jax.random.PRNGKey(5), (8,) + ALPHAS.shape + (2,))
     auto = jax.jit(jax.grad(lambda a: jnp.sum(T.estimate(a, scene, u))))(alpha)
-    _, dw = jax.jit(lambda a: T.sample_weights(a, scene, u[..., 0], u[..., 1], with_score=True))(alpha)
-    np.testing.assert_allclose(np.asarray(jnp.mean(dw, 0)), np.asarray(auto),
-                               rtol=1e-4, atol=1e-6)
+    _, dw = jax.jit(lambda a: T.sample_weights(a, scene, u[..., 0], u[..., 1], with_score=True))(
+        alpha
+    )
+    np.testing.assert_allclose(np.asarray(jnp.mean(dw, 0)), np.asarray(auto), rtol=1e-4, atol=1e-6)
 
 
 def test_pixel_value_falls_monotonically_with_roughness():  # 16 texels: corners to centre
@@ -214,12 +229,14 @@ def test_pixel_value_falls_monotonically_with_roughness():  # 16 texels: corners
     # mirror direction). 256 Sobol samples: the steps checked are > 5% of the value.
     scene = T.make_scene(SIZE)
     alphas = [0.005, 0.02, 0.05, 0.1, 0.2, 0.5]
-    imgs = [np.asarray(T.render_reference(jnp.full((SIZE, SIZE), a), scene, spp=256))
-            for a in alphas]
-    assert all(np.all(b < 0.95 * a) for a, b in zip(imgs, imgs[1:]))
+    imgs = [
+        np.asarray(T.render_reference(jnp.full((SIZE, SIZE), a), scene, spp=256)) for a in alphas
+    ]
+    assert all(np.all(b < 0.95 * a) for a, b in itertools.pairwise(imgs))
 
 
 # ----------------------------------------------------------------------------- determinism & API
+
 
 def test_render_is_deterministic_for_a_fixed_key(scene):
     alpha = jnp.asarray(ALPHAS)
@@ -243,8 +260,9 @@ def test_primal_does_not_depend_on_spp_grad(scene):
     alpha = jnp.asarray(ALPHAS)
     key = jax.random.PRNGKey(3)
     render = jax.jit(T.render, static_argnums=(3, 4))
-    np.testing.assert_array_equal(np.asarray(render(alpha, scene, key, 2, 1)),
-                                  np.asarray(render(alpha, scene, key, 2, 5)))
+    np.testing.assert_array_equal(
+        np.asarray(render(alpha, scene, key, 2, 1)), np.asarray(render(alpha, scene, key, 2, 5))
+    )
 
 
 def test_targets_are_in_range_and_deterministic():
@@ -254,8 +272,10 @@ def test_targets_are_in_range_and_deterministic():
         assert t.min() >= T.ALPHA_MIN * (1 - 1e-6) and t.max() <= T.ALPHA_MAX * (1 + 1e-6)
         np.testing.assert_array_equal(t, T.target_roughness(name, 64))
     # The piecewise-smooth target has far smaller neighbour differences than the noise one.
-    tv = {n: np.mean(np.abs(np.diff(np.log(T.target_roughness(n, 64)), axis=0)))
-          for n in ("camera", "noise")}
+    tv = {
+        n: np.mean(np.abs(np.diff(np.log(T.target_roughness(n, 64)), axis=0)))
+        for n in ("camera", "noise")
+    }
     assert tv["camera"] < 0.25 * tv["noise"], tv
 
 

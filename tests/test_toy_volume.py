@@ -19,11 +19,11 @@ from scipy import ndimage, stats
 
 from optax_bilateral.toy import volume
 
-SIZE = 24          # small grid: the quadrature reference is the slow part
-RES = 6            # 6 x 6 pixels, one view
-VIEW = 40          # a side view
-Z = 5.0            # two-sided z bound: P(|N(0,1)| > 5) = 5.7e-7 per comparison
-BATCH = 64         # samples per batch mean; batch means are ~normal, their spread gives the SE
+SIZE = 24  # small grid: the quadrature reference is the slow part
+RES = 6  # 6 x 6 pixels, one view
+VIEW = 40  # a side view
+Z = 5.0  # two-sided z bound: P(|N(0,1)| > 5) = 5.7e-7 per comparison
+BATCH = 64  # samples per batch mean; batch means are ~normal, their spread gives the SE
 N_BATCHES = 64
 
 
@@ -65,9 +65,10 @@ def _quadrature_image(params, scene, view, n_steps=160, n_shadow=80, density_sca
     o = scene.origins[view].astype(np.float64)
     n = scene.resolution
     c = (np.arange(n) + 0.5) / n * 2 - 1
-    sx, sy = np.meshgrid(c, -c, indexing="xy")                 # row i: top to bottom
-    d = (scene.forward[view][None, None] + scene.tan_half_fov
-         * (sx[..., None] * scene.right[view] + sy[..., None] * scene.up[view]))
+    sx, sy = np.meshgrid(c, -c, indexing="xy")  # row i: top to bottom
+    d = scene.forward[view][None, None] + scene.tan_half_fov * (
+        sx[..., None] * scene.right[view] + sy[..., None] * scene.up[view]
+    )
     d = (d / np.linalg.norm(d, axis=-1, keepdims=True)).reshape(-1, 3).astype(np.float64)
     sun = scene.sun_direction.astype(np.float64)
     out = np.zeros((d.shape[0], 3))
@@ -78,8 +79,11 @@ def _quadrature_image(params, scene, view, n_steps=160, n_shadow=80, density_sca
         t0 = max(t_near, 0.0)
         length = max(t_far - t0, 0.0)
         z = dr[2]
-        bg = (scene.sky_horizon + (scene.sky_zenith - scene.sky_horizon) * math.sqrt(min(z, 1.0))
-              if z >= 0 else scene.ground).astype(np.float64)
+        bg = (
+            scene.sky_horizon + (scene.sky_zenith - scene.sky_horizon) * math.sqrt(min(z, 1.0))
+            if z >= 0
+            else scene.ground
+        ).astype(np.float64)
         if length == 0:
             out[r] = bg
             continue
@@ -124,17 +128,22 @@ def test_radiance_estimate_is_unbiased(scene, target, quadrature):
     """Mean of independent estimates matches the quadrature within Z standard errors."""
     fine, _ = quadrature
     views = jnp.array([VIEW])
-    means = _batch_means(lambda k: volume.render(target, scene, k, views, spp=BATCH, jitter=False)[0], 0)
+    means = _batch_means(
+        lambda k: volume.render(target, scene, k, views, spp=BATCH, jitter=False)[0], 0
+    )
     mean = means.mean(0)
     se = means.std(0, ddof=1) / math.sqrt(N_BATCHES)
     # 108 comparisons at Z = 5 (familywise false-alarm rate < 1e-4); 2e-3 covers the
     # quadrature's own error (see test_quadrature_reference_is_converged).
     excess = np.abs(mean - fine) - (Z * se + 2e-3)
-    assert np.all(excess <= 0), f"worst excess {excess.max():.3g} at {np.unravel_index(excess.argmax(), excess.shape)}"
+    assert np.all(excess <= 0), (
+        f"worst excess {excess.max():.3g} at {np.unravel_index(excess.argmax(), excess.shape)}"
+    )
     # Power: the same bound rejects a medium whose extinction is 10% off (it changes
     # some pixels by ~0.04, about 8 standard errors at these sample counts).
-    wrong = _quadrature_image(target, scene, VIEW, n_steps=80, n_shadow=40,
-                              density_scale=1.1 * scene.density_scale)
+    wrong = _quadrature_image(
+        target, scene, VIEW, n_steps=80, n_shadow=40, density_scale=1.1 * scene.density_scale
+    )
     assert np.any(np.abs(mean - wrong) > Z * se + 2e-3)
     # A single sample is genuinely noisy (this is what the filters are for): the
     # per-sample standard deviation is sqrt(BATCH) times the batch means' spread.
@@ -142,21 +151,25 @@ def test_radiance_estimate_is_unbiased(scene, target, quadrature):
 
 
 def _grad_call(start, scene, views, targets, key):
-    return volume.loss_and_grad(start, scene, key, views, targets, spp=BATCH // 4,
-                                spp_grad=BATCH // 4, jitter=False)
+    return volume.loss_and_grad(
+        start, scene, key, views, targets, spp=BATCH // 4, spp_grad=BATCH // 4, jitter=False
+    )
 
 
 def test_loss_gradient_is_unbiased(scene, target):
     """E[<grad, delta>] from loss_and_grad equals the quadrature loss' central difference."""
     start = {k: jnp.asarray(v) for k, v in volume.initial_volume(SIZE, density=0.3).items()}
     views = jnp.array([VIEW])
-    targets = jnp.asarray(_quadrature_image(target, scene, VIEW, n_steps=80, n_shadow=40),
-                          jnp.float32)[None]
+    targets = jnp.asarray(
+        _quadrature_image(target, scene, VIEW, n_steps=80, n_shadow=40), jnp.float32
+    )[None]
     rng = np.random.default_rng(1)
     # A smooth random direction in both grids, plus a uniform density increase so that
     # the loss changes by many standard errors of the gradient estimate.
-    delta = {k: ndimage.gaussian_filter(rng.standard_normal(np.shape(v)), (2, 2, 2, 0))
-             for k, v in start.items()}
+    delta = {
+        k: ndimage.gaussian_filter(rng.standard_normal(np.shape(v)), (2, 2, 2, 0))
+        for k, v in start.items()
+    }
     delta = {k: v / np.abs(v).max() for k, v in delta.items()}
     delta["density"] = delta["density"] + 1.0
 
@@ -166,11 +179,15 @@ def test_loss_gradient_is_unbiased(scene, target):
 
     h = 0.02
     base = {k: np.asarray(v, np.float64) for k, v in start.items()}
-    fd = (qloss({k: base[k] + h * delta[k] for k in base})
-          - qloss({k: base[k] - h * delta[k] for k in base})) / (2 * h)
+    fd = (
+        qloss({k: base[k] + h * delta[k] for k in base})
+        - qloss({k: base[k] - h * delta[k] for k in base})
+    ) / (2 * h)
     # The same difference with half the step: their gap bounds the FD truncation error.
-    fd_half = (qloss({k: base[k] + h / 2 * delta[k] for k in base})
-               - qloss({k: base[k] - h / 2 * delta[k] for k in base})) / h
+    fd_half = (
+        qloss({k: base[k] + h / 2 * delta[k] for k in base})
+        - qloss({k: base[k] - h / 2 * delta[k] for k in base})
+    ) / h
 
     d_j = {k: jnp.asarray(v, jnp.float32) for k, v in delta.items()}
 
@@ -189,7 +206,7 @@ def test_loss_gradient_is_unbiased(scene, target):
 
 
 def test_same_key_same_image_and_gradient(scene, target):
-    views = jnp.array([VIEW])          # the shapes of the tests above: no new compilation
+    views = jnp.array([VIEW])  # the shapes of the tests above: no new compilation
     k = jax.random.key(7)
     a = volume.render(target, scene, k, views, spp=BATCH, jitter=False)
     b = volume.render(target, scene, k, views, spp=BATCH, jitter=False)
@@ -209,10 +226,10 @@ def test_same_key_same_image_and_gradient(scene, target):
 def test_trilinear_matches_scipy_and_its_adjoint():
     rng = np.random.default_rng(0)
     grid = rng.standard_normal((5, 6, 7, 2)).astype(np.float32)
-    pts = rng.uniform(-0.05, 1.05, (300, 3)).astype(np.float32)    # includes clamp-to-edge
+    pts = rng.uniform(-0.05, 1.05, (300, 3)).astype(np.float32)  # includes clamp-to-edge
     got = np.asarray(volume._trilinear(jnp.asarray(grid), jnp.asarray(pts)))
     want = np.stack([_lookup(grid[..., c], pts.astype(np.float64)) for c in range(2)], -1)
-    np.testing.assert_allclose(got, want, atol=1e-5)   # float32 rounding of O(1) values
+    np.testing.assert_allclose(got, want, atol=1e-5)  # float32 rounding of O(1) values
     # The custom reverse rule is the exact transpose: <J g, c> = <g, J^T c>.
     cot = rng.standard_normal(got.shape).astype(np.float32)
     g2 = rng.standard_normal(grid.shape).astype(np.float32)
@@ -220,7 +237,7 @@ def test_trilinear_matches_scipy_and_its_adjoint():
     (jt_c,) = vjp(jnp.asarray(cot))
     lhs = np.vdot(np.asarray(volume._trilinear(jnp.asarray(g2), jnp.asarray(pts))), cot)
     rhs = np.vdot(g2, np.asarray(jt_c))
-    assert abs(lhs - rhs) <= 1e-4 * max(1.0, abs(lhs))   # float32 sums of ~600 terms
+    assert abs(lhs - rhs) <= 1e-4 * max(1.0, abs(lhs))  # float32 sums of ~600 terms
 
 
 def test_tracking_cap_bounds_truncation(scene):
@@ -256,8 +273,12 @@ def test_bad_inputs_raise(scene, target):
     with pytest.raises(TypeError, match="density"):
         volume.render({"density": target["density"]}, scene, jax.random.key(0), jnp.array([0]))
     with pytest.raises(ValueError, match="albedo"):
-        volume.render({"density": target["density"], "albedo": target["albedo"][..., :1]},
-                      scene, jax.random.key(0), jnp.array([0]))
+        volume.render(
+            {"density": target["density"], "albedo": target["albedo"][..., :1]},
+            scene,
+            jax.random.key(0),
+            jnp.array([0]),
+        )
     with pytest.raises(ValueError, match="views"):
         volume.render(target, scene, jax.random.key(0), jnp.array([[0]]))
     with pytest.raises(ValueError, match="resolution"):

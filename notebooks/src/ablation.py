@@ -5,7 +5,8 @@
 #
 # 1. (§3, Fig. 3) The filter size `F` and the data-term scale `σ_d` trade Monte Carlo noise for
 #    smoothing bias: small `F` → close to Adam, noisy recovery; large `F` → close to a low-pass
-#    filter, little noise but blurred; smaller `σ_d` preserves edges better at the cost of more noise.
+#    filter, little noise but blurred; smaller `σ_d` preserves edges better at the cost of more
+#    noise.
 # 2. (§4, Fig. 4) On a high-frequency target (a noise texture), with the *same* hyperparameters,
 #    Adam has the smallest error, the low-pass filter the largest, and the bilateral and
 #    cross-bilateral filters lie in between.
@@ -14,7 +15,8 @@
 #    volume; here it is the texture scene at a higher sample count.)
 # 4. (§4) "It may help to start optimization with our method and progressively update the filtering
 #    parameters so that our method approaches Adam near the end." We schedule `σ_d` with
-#    `optax.inject_hyperparams(bilateral_adam, static_args=("levels",))` and measure it against both.
+#    `optax.inject_hyperparams(bilateral_adam, static_args=("levels",))` and measure it against
+#    both.
 #
 # All runs: toy texture scene (`optax_bilateral.toy.texture`), start from constant roughness 0.1,
 # β1 = 0.2, β2 = 0.36, postfilter only, log-domain guide, one learning rate for every filtered run
@@ -22,7 +24,8 @@
 # the best of a small learning-rate sweep. `F = 0` is exactly Adam with β1 = 0.2.
 #
 # Run: `OPTAX_BILATERAL_QUICK=1` for the test-suite size (32², 40 iterations); without it the
-# paper-like size (512², 150 iterations, 1 spp / 1 spp; the low-noise runs average 8 such gradients):
+# paper-like size (512², 150 iterations, 1 spp / 1 spp; the low-noise runs average 8 such
+# gradients):
 # `python notebooks/build_notebooks.py --execute ablation`. Figures are saved in
 # `results/notebooks/` (`results/notebooks/quick/` at the quick size).
 
@@ -35,8 +38,8 @@ import numpy as np
 import optax
 from IPython.display import Markdown, display
 
-import optax_bilateral as ob
 import notebook_utils as nu
+import optax_bilateral as ob
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK
@@ -54,12 +57,14 @@ else:
     ADAM_LRS = [0.003, 0.01, 0.03]
     LOW_NOISE_SAMPLES = 8
     REFERENCE_SPP, EVAL_SPP = 256, 64
-LR = 0.02                 # every filtered run (and F = 0)
+LR = 0.02  # every filtered run (and F = 0)
 B1 = 0.2
-SIGMA_D = 0.1             # "ours" in Figs. 4-5: the library default
-SIGMA_D_SELF = 1.0        # the bilateral (self-guided) filter, log-domain moments
-print(f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F grid {LEVELS_GRID}, "
-      f"sigma_d grid {SIGMAS}, lr {LR}, Adam lrs {ADAM_LRS}")
+SIGMA_D = 0.1  # "ours" in Figs. 4-5: the library default
+SIGMA_D_SELF = 1.0  # the bilateral (self-guided) filter, log-domain moments
+print(
+    f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F grid {LEVELS_GRID}, "
+    f"sigma_d grid {SIGMAS}, lr {LR}, Adam lrs {ADAM_LRS}"
+)
 
 # %% [markdown]
 # ## The methods
@@ -72,21 +77,33 @@ print(f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F grid {LEVELS_
 
 # %%
 inject = optax.inject_hyperparams
-sigma_schedule = optax.exponential_decay(init_value=SIGMA_D, transition_steps=ITERATIONS // 2,
-                                         decay_rate=1e-2, transition_begin=ITERATIONS // 2)
+sigma_schedule = optax.exponential_decay(
+    init_value=SIGMA_D,
+    transition_steps=ITERATIONS // 2,
+    decay_rate=1e-2,
+    transition_begin=ITERATIONS // 2,
+)
 grid_names = {F: f"F={F}" for F in LEVELS_GRID}
 METHODS = {
     "Adam": nu.Method(inject(optax.adam)(learning_rate=ADAM_LRS[0]), {"learning_rate": ADAM_LRS}),
     "F=0 (Adam, b1=0.2)": inject(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=LR, b1=B1, levels=0),
-    **{grid_names[F]: nu.Method(
-        inject(ob.bilateral_adam, static_args=("levels",))(
-            learning_rate=LR, b1=B1, sigma_d=SIGMAS[0], levels=F, log_guide=True),
-        {"sigma_d": SIGMAS}) for F in LEVELS_GRID},
+        learning_rate=LR, b1=B1, levels=0
+    ),
+    **{
+        grid_names[F]: nu.Method(
+            inject(ob.bilateral_adam, static_args=("levels",))(
+                learning_rate=LR, b1=B1, sigma_d=SIGMAS[0], levels=F, log_guide=True
+            ),
+            {"sigma_d": SIGMAS},
+        )
+        for F in LEVELS_GRID
+    },
     "bilateral (self-guided)": inject(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=LR, b1=B1, sigma_d=SIGMA_D_SELF, levels=F_MAIN, guide="self", log_guide=True),
+        learning_rate=LR, b1=B1, sigma_d=SIGMA_D_SELF, levels=F_MAIN, guide="self", log_guide=True
+    ),
     "sigma_d schedule": inject(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=LR, b1=B1, sigma_d=sigma_schedule, levels=F_MAIN, log_guide=True),
+        learning_rate=LR, b1=B1, sigma_d=sigma_schedule, levels=F_MAIN, log_guide=True
+    ),
 }
 
 
@@ -96,17 +113,26 @@ def fig4_runs(runs):
     sigmas = main.hyperparams["sigma_d"]
     i_main = int(np.flatnonzero(np.isclose(sigmas, SIGMA_D))[0])
     i_lowpass = int(np.flatnonzero(np.isinf(sigmas))[0])
-    return {"Adam": runs["Adam"].select(runs["Adam"].best(), "Adam"),
-            "low-pass": main.select(i_lowpass, f"low-pass (F={F_MAIN}, σ_d=∞)"),
-            "bilateral (self-guided)": runs["bilateral (self-guided)"],
-            "cross-bilateral (ours)": main.select(i_main, f"ours (F={F_MAIN}, σ_d={SIGMA_D})"),
-            "σ_d schedule": runs["sigma_d schedule"],
-            "F=0 (Adam, b1=0.2)": runs["F=0 (Adam, b1=0.2)"]}
+    return {
+        "Adam": runs["Adam"].select(runs["Adam"].best(), "Adam"),
+        "low-pass": main.select(i_lowpass, f"low-pass (F={F_MAIN}, σ_d=∞)"),
+        "bilateral (self-guided)": runs["bilateral (self-guided)"],
+        "cross-bilateral (ours)": main.select(i_main, f"ours (F={F_MAIN}, σ_d={SIGMA_D})"),
+        "σ_d schedule": runs["sigma_d schedule"],
+        "F=0 (Adam, b1=0.2)": runs["F=0 (Adam, b1=0.2)"],
+    }
 
 
 def summary_rows(named):
-    return [{"method": k, "settings": r.label(0), "final param error": float(r.final_error()[0]),
-             "image loss (low-noise render)": float(r.image_loss[0])} for k, r in named.items()]
+    return [
+        {
+            "method": k,
+            "settings": r.label(0),
+            "final param error": float(r.final_error()[0]),
+            "image loss (low-noise render)": float(r.image_loss[0]),
+        }
+        for k, r in named.items()
+    ]
 
 
 # %% [markdown]
@@ -119,15 +145,24 @@ print(f"{cam_timing.seconds:.1f} s ({cam_timing.compile_seconds:.1f} s compilati
 
 
 def grid_table(runs, problem):
-    rows = [{"F": 0, **{f"σ_d={s:g}": float(runs["F=0 (Adam, b1=0.2)"].final_error()[0])
-                        for s in SIGMAS}}]
+    rows = [
+        {
+            "F": 0,
+            **{f"σ_d={s:g}": float(runs["F=0 (Adam, b1=0.2)"].final_error()[0]) for s in SIGMAS},
+        }
+    ]
     for F in LEVELS_GRID:
         r = runs[grid_names[F]]
-        rows.append({"F": F, **{f"σ_d={s:g}": float(r.final_error()[j]) for j, s in enumerate(SIGMAS)}})
+        rows.append(
+            {"F": F, **{f"σ_d={s:g}": float(r.final_error()[j]) for j, s in enumerate(SIGMAS)}}
+        )
     adam = runs["Adam"]
-    return (f"Final parameter error (initial {problem.initial_error:.4f}); Adam (b1=0.9) best: "
-            f"{adam.final_error()[adam.best()]:.4f} at lr {adam.hyperparams['learning_rate'][adam.best()]:g}."
-            "\n\n" + nu.table(rows))
+    return (
+        f"Final parameter error (initial {problem.initial_error:.4f}); Adam (b1=0.9) best: "
+        f"{adam.final_error()[adam.best()]:.4f} "
+        f"at lr {adam.hyperparams['learning_rate'][adam.best()]:g}."
+        "\n\n" + nu.table(rows)
+    )
 
 
 display(Markdown(grid_table(cam_runs, cam)))
@@ -135,18 +170,27 @@ display(Markdown(grid_table(cam_runs, cam)))
 
 # %%
 def plot_grid(runs, problem, name):
-    fig, axes = plt.subplots(len(LEVELS_GRID), len(SIGMAS) + 1,
-                             figsize=(2.4 * (len(SIGMAS) + 1), 2.5 * len(LEVELS_GRID)), squeeze=False)
+    fig, axes = plt.subplots(
+        len(LEVELS_GRID),
+        len(SIGMAS) + 1,
+        figsize=(2.4 * (len(SIGMAS) + 1), 2.5 * len(LEVELS_GRID)),
+        squeeze=False,
+    )
     for row, F in enumerate(LEVELS_GRID):
         r = runs[grid_names[F]]
         for col, s in enumerate(SIGMAS):
-            nu.show_roughness(axes[row, col], r.final[col],
-                              f"F={F}, σ_d={s:g}\nerr {r.final_error()[col]:.4f}")
+            nu.show_roughness(
+                axes[row, col], r.final[col], f"F={F}, σ_d={s:g}\nerr {r.final_error()[col]:.4f}"
+            )
         ax = axes[row, -1]
         for col, s in enumerate(SIGMAS):
             ax.plot(nu.smooth(r.metrics["loss"][col], 5), label=f"σ_d={s:g}", lw=1)
-        ax.plot(nu.smooth(runs["Adam"].metrics["loss"][runs["Adam"].best()], 5), "k--", lw=1,
-                label="Adam")
+        ax.plot(
+            nu.smooth(runs["Adam"].metrics["loss"][runs["Adam"].best()], 5),
+            "k--",
+            lw=1,
+            label="Adam",
+        )
         ax.set_yscale("log")
         ax.set_title(f"training loss, F={F}", fontsize=8)
         ax.tick_params(labelsize=6)
@@ -164,7 +208,7 @@ plot_grid(cam_runs, cam, "ablation_grid_camera")
 
 # %%
 noise = nu.texture_problem(SIZE, "noise", reference_spp=REFERENCE_SPP, eval_spp=EVAL_SPP)
-noise_runs, noise_timing = nu.run_texture(noise, METHODS, ITERATIONS)   # same program: no compile
+noise_runs, noise_timing = nu.run_texture(noise, METHODS, ITERATIONS)  # same program: no compile
 print(f"{noise_timing.seconds:.1f} s ({noise_timing.compile_seconds:.1f} s compilation)")
 display(Markdown(nu.table(summary_rows(fig4_runs(noise_runs)))))
 display(Markdown(grid_table(noise_runs, noise)))
@@ -177,8 +221,9 @@ def plot_methods(named, problem, name, title):
     axes[1, 0].set_axis_off()
     for col, (k, r) in enumerate(named.items(), start=1):
         nu.show_roughness(axes[0, col], r.final[0], f"{k}\nerr {r.final_error()[0]:.4f}")
-        axes[1, col].imshow(np.abs(r.final[0] - np.asarray(problem.target)), cmap="magma",
-                            vmin=0, vmax=0.2)
+        axes[1, col].imshow(
+            np.abs(r.final[0] - np.asarray(problem.target)), cmap="magma", vmin=0, vmax=0.2
+        )
         axes[1, col].set_title("|α − α_target| (0 … 0.2)", fontsize=8)
         axes[1, col].set_axis_off()
     fig.suptitle(title)
@@ -186,15 +231,18 @@ def plot_methods(named, problem, name, title):
     print(nu.save_figure(fig, name))
     plt.show()
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    nu.plot_metric(ax, {k: r.metrics["param_error"][0] for k, r in named.items()},
-                   ylabel="mean |α − α_target|", title=title)
+    nu.plot_metric(
+        ax,
+        {k: r.metrics["param_error"][0] for k, r in named.items()},
+        ylabel="mean |α − α_target|",
+        title=title,
+    )
     fig.tight_layout()
     print(nu.save_figure(fig, name + "_error"))
     plt.show()
 
 
-plot_methods(fig4_runs(noise_runs), noise, "ablation_noise_target",
-             f"noise target, {SIZE}², 1 spp")
+plot_methods(fig4_runs(noise_runs), noise, "ablation_noise_target", f"noise target, {SIZE}², 1 spp")
 
 # %% [markdown]
 # ## Fig. 5: low-noise gradients
@@ -209,25 +257,37 @@ plot_methods(fig4_runs(noise_runs), noise, "ablation_noise_target",
 if QUICK:
     LOW_METHODS = METHODS
 else:
-    LOW_METHODS = {k: METHODS[k] for k in ("Adam", "F=0 (Adam, b1=0.2)", "bilateral (self-guided)",
-                                           "sigma_d schedule")}
-    LOW_METHODS[grid_names[F_MAIN]] = nu.Method(METHODS[grid_names[F_MAIN]].opt,
-                                                {"sigma_d": [SIGMA_D, math.inf]})
+    LOW_METHODS = {
+        k: METHODS[k]
+        for k in ("Adam", "F=0 (Adam, b1=0.2)", "bilateral (self-guided)", "sigma_d schedule")
+    }
+    LOW_METHODS[grid_names[F_MAIN]] = nu.Method(
+        METHODS[grid_names[F_MAIN]].opt, {"sigma_d": [SIGMA_D, math.inf]}
+    )
 low = {}
 for target in ("camera", "noise"):
-    prob = nu.texture_problem(SIZE, target, grad_samples=LOW_NOISE_SAMPLES,
-                              reference_spp=REFERENCE_SPP, eval_spp=EVAL_SPP)
+    prob = nu.texture_problem(
+        SIZE, target, grad_samples=LOW_NOISE_SAMPLES, reference_spp=REFERENCE_SPP, eval_spp=EVAL_SPP
+    )
     runs, t = nu.run_texture(prob, LOW_METHODS, ITERATIONS)
     low[target] = (prob, fig4_runs(runs))
     print(f"{target}: {t.seconds:.1f} s ({t.compile_seconds:.1f} s compilation)")
-    display(Markdown(f"**{target} target, {LOW_NOISE_SAMPLES} gradients per iteration**\n\n"
-                     + nu.table(summary_rows(low[target][1]))))
+    display(
+        Markdown(
+            f"**{target} target, {LOW_NOISE_SAMPLES} gradients per iteration**\n\n"
+            + nu.table(summary_rows(low[target][1]))
+        )
+    )
 
 # %%
 for target in ("noise", "camera"):
     prob, named = low[target]
-    plot_methods(named, prob, f"ablation_low_noise_{target}_target",
-                 f"{target} target, {SIZE}², {LOW_NOISE_SAMPLES} gradients / iteration")
+    plot_methods(
+        named,
+        prob,
+        f"ablation_low_noise_{target}_target",
+        f"{target} target, {SIZE}², {LOW_NOISE_SAMPLES} gradients / iteration",
+    )
 
 # %% [markdown]
 # ## The `σ_d` schedule against Adam and the fixed filter
@@ -236,13 +296,24 @@ for target in ("noise", "camera"):
 # high-frequency targets).
 
 # %%
-settings = {"camera, 1 spp": fig4_runs(cam_runs), "noise, 1 spp": fig4_runs(noise_runs),
-            f"camera, {LOW_NOISE_SAMPLES}× gradients": low["camera"][1],
-            f"noise, {LOW_NOISE_SAMPLES}× gradients": low["noise"][1]}
-cols = ["Adam", "F=0 (Adam, b1=0.2)", "cross-bilateral (ours)", "σ_d schedule", "low-pass",
-        "bilateral (self-guided)"]
-sched_rows = [{"setting": k, **{c: float(v[c].final_error()[0]) for c in cols if c in v}}
-              for k, v in settings.items()]
+settings = {
+    "camera, 1 spp": fig4_runs(cam_runs),
+    "noise, 1 spp": fig4_runs(noise_runs),
+    f"camera, {LOW_NOISE_SAMPLES}× gradients": low["camera"][1],
+    f"noise, {LOW_NOISE_SAMPLES}× gradients": low["noise"][1],
+}
+cols = [
+    "Adam",
+    "F=0 (Adam, b1=0.2)",
+    "cross-bilateral (ours)",
+    "σ_d schedule",
+    "low-pass",
+    "bilateral (self-guided)",
+]
+sched_rows = [
+    {"setting": k, **{c: float(v[c].final_error()[0]) for c in cols if c in v}}
+    for k, v in settings.items()
+]
 display(Markdown(nu.table(sched_rows, ["setting"] + cols)))
 
 fig, axes = plt.subplots(1, len(settings) + 1, figsize=(4 * (len(settings) + 1), 3.4))
@@ -253,10 +324,15 @@ axes[0].set_title("σ_d(t)")
 axes[0].set_xlabel("iteration")
 axes[0].grid(True, alpha=0.3)
 for ax, (k, v) in zip(axes[1:], settings.items()):
-    nu.plot_metric(ax, {c: v[c].metrics["param_error"][0]
-                        for c in ("Adam", "F=0 (Adam, b1=0.2)", "cross-bilateral (ours)",
-                                  "σ_d schedule")},
-                   ylabel="mean |α − α_target|", title=k)
+    nu.plot_metric(
+        ax,
+        {
+            c: v[c].metrics["param_error"][0]
+            for c in ("Adam", "F=0 (Adam, b1=0.2)", "cross-bilateral (ours)", "σ_d schedule")
+        },
+        ylabel="mean |α − α_target|",
+        title=k,
+    )
 fig.tight_layout()
 print(nu.save_figure(fig, "ablation_schedule"))
 plt.show()
@@ -291,8 +367,9 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # **0.2339**, cross-bilateral (ours, F = 5, σ_d = 0.1) **0.2336**. As in the paper Adam beats the
 # cross-bilateral and low-pass filters and the low-pass is worst, but here the cross-bilateral
 # filter is *as bad as the low-pass* (worse than the start), not in between, and the self-guided
-# bilateral filter (re-guided at every level, as the authors' `cross_term_off`) beats Adam. Why: the start is a constant texture, so the guide is flat
-# and `B` is a plain low-pass at step 1; its smooth updates keep the texture smooth, so the guide
+# bilateral filter (re-guided at every level, as the authors' `cross_term_off`) beats Adam. Why:
+# the start is a constant texture, so the guide is flat and `B` is a plain low-pass at step 1; its
+# smooth updates keep the texture smooth, so the guide
 # never develops the edges that would stop the filter. The grid on this target shows the bias is a
 # matter of footprint: F = 1 (σ_d = 0.1: 0.0241) and F = 3 (σ_d = 0.02: 0.0249) beat Adam even here,
 # while every F = 5 cell is ≥ 0.179.
@@ -315,8 +392,8 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 #
 # On the noise target the schedule repairs the fixed filter (0.2336 → 0.0376 at 1 spp; at low noise
 # 0.0150, the best of all). On the camera target it ends close to Adam instead of keeping the
-# filter's 2–3× lower error: its error falls with the filter until σ_d ≈ 0.02 (iteration ≈ 100), then
-# rises again as the steps become Adam's (see the curves). A schedule inherits the error of
+# filter's 2–3× lower error: its error falls with the filter until σ_d ≈ 0.02 (iteration ≈ 100),
+# then rises again as the steps become Adam's (see the curves). A schedule inherits the error of
 # whichever method it ends as; its end value should depend on how much detail the target has.
 #
 # (An earlier run, 2026-11-22, before the library's redesign and before `guide="self"` was

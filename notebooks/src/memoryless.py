@@ -38,25 +38,27 @@ import numpy as np
 import optax
 from IPython.display import Markdown, display
 
-import optax_bilateral as ob
 import notebook_utils as nu
+import optax_bilateral as ob
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK
 if QUICK:
     SIZE, ITERATIONS, LEVELS = 32, 40, 3
     LRS = [0.01, 0.03]
-    REFERENCE_SPP = EVAL_SPP = 64          # one compiled reference renderer serves both
+    REFERENCE_SPP = EVAL_SPP = 64  # one compiled reference renderer serves both
     N_SAMPLES, KS, REPEATS = 64, [1, 4, 16], 2
 else:
     SIZE, ITERATIONS, LEVELS = 512, 150, 5
     LRS = [0.003, 0.01, 0.03, 0.1]
     REFERENCE_SPP, EVAL_SPP = 256, 64
     N_SAMPLES, KS, REPEATS = 1024, [1, 4, 16, 64, 256], 4
-SIGMA_D = 0.1        # the library default; log-domain guide, as the paper's texture runs
+SIGMA_D = 0.1  # the library default; log-domain guide, as the paper's texture runs
 NOISE_SCALES = [0.0, 0.1, 0.3, 1.0, 3.0, 10.0]
-print(f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F={LEVELS}, sigma_d={SIGMA_D}, "
-      f"learning rates {LRS}")
+print(
+    f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F={LEVELS}, sigma_d={SIGMA_D}, "
+    f"learning rates {LRS}"
+)
 
 # %% [markdown]
 # ## The three memoryless optimizers
@@ -68,6 +70,7 @@ print(f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F={LEVELS}, sig
 # moment buffers. Each is wrapped in `optax.inject_hyperparams` so that the learning-rate sweep
 # shares one compiled program.
 
+
 # %%
 def adam0(learning_rate):
     """eq. 15: sign(g)."""
@@ -76,19 +79,25 @@ def adam0(learning_rate):
 
 def prefilter0(learning_rate):
     """eq. 16: sign(A g)."""
-    return optax.chain(ob.prefilter(SIGMA_D, LEVELS, log_guide=True),
-                       ob.scale_by_adam(b1=0.0, b2=0.0),
-                       optax.scale_by_learning_rate(learning_rate))
+    return optax.chain(
+        ob.prefilter(SIGMA_D, LEVELS, log_guide=True),
+        ob.scale_by_adam(b1=0.0, b2=0.0),
+        optax.scale_by_learning_rate(learning_rate),
+    )
 
 
 def postfilter0(learning_rate):
     """eq. 17: B g / sqrt(B g^2)."""
-    return ob.bilateral_adam(learning_rate, b1=0.0, b2=0.0, sigma_d=SIGMA_D, levels=LEVELS,
-                             log_guide=True)
+    return ob.bilateral_adam(
+        learning_rate, b1=0.0, b2=0.0, sigma_d=SIGMA_D, levels=LEVELS, log_guide=True
+    )
 
 
-FACTORIES = {"Adam (sign g)": adam0, "prefilter (sign A g)": prefilter0,
-             "postfilter (B g / sqrt(B g²))": postfilter0}
+FACTORIES = {
+    "Adam (sign g)": adam0,
+    "prefilter (sign A g)": prefilter0,
+    "postfilter (B g / sqrt(B g²))": postfilter0,
+}
 
 # %% [markdown]
 # ## Recovery with no temporal filtering (Fig. 1)
@@ -101,14 +110,21 @@ FACTORIES = {"Adam (sign g)": adam0, "prefilter (sign A g)": prefilter0,
 
 # %%
 prob = nu.texture_problem(SIZE, reference_spp=REFERENCE_SPP, eval_spp=EVAL_SPP)
-methods = {name: nu.Method(optax.inject_hyperparams(f)(learning_rate=LRS[0]), {"learning_rate": LRS})
-           for name, f in FACTORIES.items()}
+methods = {
+    name: nu.Method(optax.inject_hyperparams(f)(learning_rate=LRS[0]), {"learning_rate": LRS})
+    for name, f in FACTORIES.items()
+}
 runs, timing = nu.run_texture(prob, methods, ITERATIONS)
 best = {name: r.select(r.best(), name) for name, r in runs.items()}
 adam_final = best["Adam (sign g)"].final_error()[0]
-rows = nu.sweep_rows(runs, lambda name, r, i: {
-    "iterations to Adam's final error": nu.iterations_to_reach(r.metrics["param_error"][i],
-                                                               adam_final)})
+rows = nu.sweep_rows(
+    runs,
+    lambda name, r, i: {
+        "iterations to Adam's final error": nu.iterations_to_reach(
+            r.metrics["param_error"][i], adam_final
+        )
+    },
+)
 display(Markdown(nu.sweep_report(prob, timing, rows)))
 
 # %%
@@ -144,8 +160,9 @@ alpha0 = prob.init
 param_bytes = nu.tree_nbytes(alpha0)
 state_of = {
     "optax.adam(b1=0.2, b2=0.36)": optax.adam(0.01, b1=0.2, b2=0.36),
-    "bilateral_adam(b1=0.2) (postfilter)": ob.bilateral_adam(0.01, b1=0.2, sigma_d=SIGMA_D,
-                                                            levels=LEVELS, log_guide=True),
+    "bilateral_adam(b1=0.2) (postfilter)": ob.bilateral_adam(
+        0.01, b1=0.2, sigma_d=SIGMA_D, levels=LEVELS, log_guide=True
+    ),
     "optax.adam(b1=0, b2=0) (eq. 15)": adam0(0.01),
     "optax.sign_sgd (eq. 15, stateless)": optax.sign_sgd(0.01),
     "prefilter + scale_by_adam(0, 0) (eq. 16)": prefilter0(0.01),
@@ -155,8 +172,14 @@ reference_total = param_bytes + nu.tree_nbytes(state_of["optax.adam(b1=0.2, b2=0
 mem_rows = []
 for name, opt in state_of.items():
     sb = nu.tree_nbytes(opt.init(alpha0))
-    mem_rows.append({"optimizer": name, "state bytes": sb, "state / params": sb / param_bytes,
-                     "params + state vs Adam(0.2)": (param_bytes + sb) / reference_total})
+    mem_rows.append(
+        {
+            "optimizer": name,
+            "state bytes": sb,
+            "state / params": sb / param_bytes,
+            "params + state vs Adam(0.2)": (param_bytes + sb) / reference_total,
+        }
+    )
 display(Markdown(f"Parameters: {param_bytes} bytes ({SIZE}² float32).\n\n" + nu.table(mem_rows)))
 memoryless_post = nu.tree_nbytes(postfilter0(0.01).init(alpha0))
 assert memoryless_post < 64, "the memoryless postfilter must keep no per-texel buffers"
@@ -190,19 +213,26 @@ adam_step = ob.scale_by_adam(b1=0.0, b2=0.0)
 def step_sizes(g, alpha, g_hat, noise_var):
     d_post, _ = post_step.update(g, post_step.init(alpha), alpha)
     d_adam, _ = adam_step.update(g, adam_step.init(alpha), alpha)
-    guide = jnp.log(jnp.abs(alpha) + 1e-8)          # the postfilter's log-domain guide
-    bg, bg2, bh, bh2, bn = ob.atrous_bilateral((g, g * g, g_hat, g_hat ** 2, noise_var), guide,
-                                               sigma_d=SIGMA_D, levels=LEVELS, spatial_axes=(0, 1))
+    guide = jnp.log(jnp.abs(alpha) + 1e-8)  # the postfilter's log-domain guide
+    bg, bg2, bh, bh2, bn = ob.atrous_bilateral(
+        (g, g * g, g_hat, g_hat**2, noise_var),
+        guide,
+        sigma_d=SIGMA_D,
+        levels=LEVELS,
+        spatial_axes=(0, 1),
+    )
     eq17 = bg / (jnp.sqrt(bg2) + 1e-8)
-    return {"Adam": jnp.mean(jnp.abs(d_adam)),
-            "prefilter": jnp.mean(jnp.abs(jnp.sign(bg))),   # A = B: same guide and settings
-            "postfilter": jnp.mean(jnp.abs(d_post)),
-            "eq. 24, ideal B": jnp.mean(jnp.abs(g_hat) / jnp.sqrt(g_hat ** 2 + bn + 1e-30)),
-            "eq. 24, actual B": jnp.mean(jnp.abs(bh) / jnp.sqrt(bh2 + bn + 1e-30)),
-            "max |post - eq. 17|": jnp.max(jnp.abs(d_post - eq17)),
-            "max |Adam - sign g|": jnp.max(jnp.abs(d_adam - jnp.sign(g))),
-            "noise/signal": jnp.sqrt(jnp.mean(noise_var) / jnp.mean(g_hat ** 2)),
-            "|post| map": jnp.abs(d_post)}
+    return {
+        "Adam": jnp.mean(jnp.abs(d_adam)),
+        "prefilter": jnp.mean(jnp.abs(jnp.sign(bg))),  # A = B: same guide and settings
+        "postfilter": jnp.mean(jnp.abs(d_post)),
+        "eq. 24, ideal B": jnp.mean(jnp.abs(g_hat) / jnp.sqrt(g_hat**2 + bn + 1e-30)),
+        "eq. 24, actual B": jnp.mean(jnp.abs(bh) / jnp.sqrt(bh2 + bn + 1e-30)),
+        "max |post - eq. 17|": jnp.max(jnp.abs(d_post - eq17)),
+        "max |Adam - sign g|": jnp.max(jnp.abs(d_adam - jnp.sign(g))),
+        "noise/signal": jnp.sqrt(jnp.mean(noise_var) / jnp.mean(g_hat**2)),
+        "|post| map": jnp.abs(d_post),
+    }
 
 
 def average(results):
@@ -211,23 +241,36 @@ def average(results):
 
 mc, synthetic = {}, {}
 for k in KS:
-    draws = [nu.mean_gradient(prob, alpha_mid, k, jax.random.PRNGKey(2000 + 97 * rep + k))
-             for rep in range(REPEATS)]
+    draws = [
+        nu.mean_gradient(prob, alpha_mid, k, jax.random.PRNGKey(2000 + 97 * rep + k))
+        for rep in range(REPEATS)
+    ]
     mc[k] = average([step_sizes(g, alpha_mid, g_hat, g_var / k) for g in draws])
 for s in NOISE_SCALES:
     zs = [jax.random.normal(jax.random.PRNGKey(3000 + rep), g_hat.shape) for rep in range(REPEATS)]
-    synthetic[s] = average([step_sizes(g_hat + s * jnp.sqrt(g_var) * z, alpha_mid, g_hat,
-                                       s * s * g_var) for z in zs])
+    synthetic[s] = average(
+        [step_sizes(g_hat + s * jnp.sqrt(g_var) * z, alpha_mid, g_hat, s * s * g_var) for z in zs]
+    )
 
-cols = ["noise/signal", "Adam", "prefilter", "postfilter", "eq. 24, actual B", "eq. 24, ideal B",
-        "max |post - eq. 17|"]
-rows24 = ([{"noise": f"MC, K = {k}", **{c: float(mc[k][c]) for c in cols}} for k in KS]
-          + [{"noise": f"synthetic, s = {s:g}", **{c: float(synthetic[s][c]) for c in cols}}
-             for s in NOISE_SCALES])
+cols = [
+    "noise/signal",
+    "Adam",
+    "prefilter",
+    "postfilter",
+    "eq. 24, actual B",
+    "eq. 24, ideal B",
+    "max |post - eq. 17|",
+]
+rows24 = [{"noise": f"MC, K = {k}", **{c: float(mc[k][c]) for c in cols}} for k in KS] + [
+    {"noise": f"synthetic, s = {s:g}", **{c: float(synthetic[s][c]) for c in cols}}
+    for s in NOISE_SCALES
+]
 display(Markdown(nu.table(rows24, ["noise"] + cols)))
 worst = max(float(r["max |post - eq. 17|"]) for r in rows24)
 # float32 filter sums of ~1e3 terms: a few ulps of a ratio bounded by 1.
-assert worst < 1e-4, f"the memoryless postfilter should be B g / (sqrt(B g^2) + eps), off by {worst}"
+assert worst < 1e-4, (
+    f"the memoryless postfilter should be B g / (sqrt(B g^2) + eps), off by {worst}"
+)
 
 # %%
 fig, axes = plt.subplots(1, 4, figsize=(15, 3.6), gridspec_kw={"width_ratios": [1.6, 1, 1, 1]})
@@ -235,13 +278,28 @@ ax = axes[0]
 xs_mc = [float(mc[k]["noise/signal"]) for k in KS]
 xs_syn = [float(synthetic[s]["noise/signal"]) for s in NOISE_SCALES[1:]]
 for key, color in (("Adam", "C0"), ("prefilter", "C1"), ("postfilter", "C2")):
-    ax.plot(xs_syn, [synthetic[s][key] for s in NOISE_SCALES[1:]], "-", color=color,
-            label=f"{key} (synthetic)")
+    ax.plot(
+        xs_syn,
+        [synthetic[s][key] for s in NOISE_SCALES[1:]],
+        "-",
+        color=color,
+        label=f"{key} (synthetic)",
+    )
     ax.plot(xs_mc, [mc[k][key] for k in KS], "o", color=color, label=f"{key} (MC, K spp)")
-ax.plot(xs_syn, [synthetic[s]["eq. 24, actual B"] for s in NOISE_SCALES[1:]], "k--", lw=1,
-        label="eq. 24 with the actual B")
-ax.plot(xs_syn, [synthetic[s]["eq. 24, ideal B"] for s in NOISE_SCALES[1:]], "k:", lw=1,
-        label="eq. 24, ideal B")
+ax.plot(
+    xs_syn,
+    [synthetic[s]["eq. 24, actual B"] for s in NOISE_SCALES[1:]],
+    "k--",
+    lw=1,
+    label="eq. 24 with the actual B",
+)
+ax.plot(
+    xs_syn,
+    [synthetic[s]["eq. 24, ideal B"] for s in NOISE_SCALES[1:]],
+    "k:",
+    lw=1,
+    label="eq. 24, ideal B",
+)
 ax.set_xscale("log")
 ax.set_xlabel("noise / signal (RMS)")
 ax.set_ylabel("mean |Δ| (step / learning rate)")
@@ -249,8 +307,11 @@ ax.set_ylim(0, 1.05)
 ax.grid(True, alpha=0.3)
 ax.legend(fontsize=7)
 ax.set_title("step magnitude vs gradient noise")
-axes[1].imshow(np.abs(np.asarray(g_hat)), cmap="magma",
-               vmax=float(np.percentile(np.abs(np.asarray(g_hat)), 99)))
+axes[1].imshow(
+    np.abs(np.asarray(g_hat)),
+    cmap="magma",
+    vmax=float(np.percentile(np.abs(np.asarray(g_hat)), 99)),
+)
 axes[1].set_title(f"|ĝ| (mean of {N_SAMPLES} 1-spp gradients)", fontsize=8)
 for ax, k in ((axes[2], KS[-1]), (axes[3], KS[0])):
     ax.imshow(mc[k]["|post| map"], cmap="viridis", vmin=0, vmax=1)
@@ -273,25 +334,44 @@ plt.show()
 if QUICK:
     print("volume comparison skipped at the quick size (OPTAX_BILATERAL_QUICK=1)")
 else:
-    VOL = dict(size=64, resolution=32, n_views=64, views_per_step=4, iterations=300,
-               target_spp=256, levels=4, sigma_d={"density": 0.05, "albedo": 0.1})
+    VOL = dict(
+        size=64,
+        resolution=32,
+        n_views=64,
+        views_per_step=4,
+        iterations=300,
+        target_spp=256,
+        levels=4,
+        sigma_d={"density": 0.05, "albedo": 0.1},
+    )
     vol_methods = {
-        "Adam (sign g)": (lambda learning_rate: optax.adam(learning_rate, b1=0.0, b2=0.0),
-                          [0.003, 0.01, 0.03]),
+        "Adam (sign g)": (
+            lambda learning_rate: optax.adam(learning_rate, b1=0.0, b2=0.0),
+            [0.003, 0.01, 0.03],
+        ),
         "postfilter (B g / sqrt(B g²))": (
-            lambda learning_rate: ob.bilateral_adam(learning_rate, b1=0.0, b2=0.0,
-                                                    sigma_d=VOL["sigma_d"], levels=VOL["levels"]),
-            [0.01, 0.03, 0.1]),
+            lambda learning_rate: ob.bilateral_adam(
+                learning_rate, b1=0.0, b2=0.0, sigma_d=VOL["sigma_d"], levels=VOL["levels"]
+            ),
+            [0.01, 0.03, 0.1],
+        ),
     }
-    vol_runs = nu.run_volume(vol_methods, **{k: v for k, v in VOL.items()
-                                            if k not in ("levels", "sigma_d")})
+    vol_runs = nu.run_volume(
+        vol_methods, **{k: v for k, v in VOL.items() if k not in ("levels", "sigma_d")}
+    )
     vol_best = {name: min(rs, key=lambda r: r["param_error"][-1]) for name, rs in vol_runs.items()}
-    vol_rows = [{"method": name, "learning rate": r["learning_rate"],
-                 "final param error": float(r["param_error"][-1]),
-                 "density error": float(r["density_error"][-1]),
-                 "albedo error": float(r["albedo_error"][-1]),
-                 "best": "*" if r is vol_best[name] else ""}
-                for name, rs in vol_runs.items() for r in rs]
+    vol_rows = [
+        {
+            "method": name,
+            "learning rate": r["learning_rate"],
+            "final param error": float(r["param_error"][-1]),
+            "density error": float(r["density_error"][-1]),
+            "albedo error": float(r["albedo_error"][-1]),
+            "best": "*" if r is vol_best[name] else "",
+        }
+        for name, rs in vol_runs.items()
+        for r in rs
+    ]
     display(Markdown(nu.table(vol_rows)))
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     for name, r in vol_best.items():

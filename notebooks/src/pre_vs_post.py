@@ -5,8 +5,8 @@
 # (prefilter `A`, eq. 13), on the moments *after* them (postfilter `B`, eq. 14), or both (eq. 11);
 # neither is Adam (eq. 12):
 #
-# * prefilter: `Δ = Σ_i (1−β1) β1^{t−i} A_i g_i / sqrt(Σ_i (1−β2) β2^{t−i} (A_i g_i)²)` — the moments
-#   accumulate *every past* filter `A_i`;
+# * prefilter: `Δ = Σ_i (1−β1) β1^{t−i} A_i g_i / sqrt(Σ_i (1−β2) β2^{t−i} (A_i g_i)²)` — the
+#   moments accumulate *every past* filter `A_i`;
 # * postfilter: `Δ = B_t m_t / sqrt(B_t v_t)` — only the current filter, applied to the unfiltered
 #   moments, never fed back.
 #
@@ -36,8 +36,8 @@ import numpy as np
 import optax
 from IPython.display import Markdown, display
 
-import optax_bilateral as ob
 import notebook_utils as nu
+import optax_bilateral as ob
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK
@@ -50,24 +50,28 @@ else:
     LRS = [0.00125, 0.0025, 0.005, 0.01, 0.02, 0.04, 0.08]
     REFERENCE_SPP, EVAL_SPP = 256, 64
 B1 = 0.2
-B2 = 1 - (1 - B1) ** 2          # 0.36, as both reference implementations
-SIGMA_D = 0.1                   # cross-bilateral, log-domain guide (the paper's texture runs)
-SIGMA_D_SELF = 1.0              # self-guided: log-domain moments (they have no fixed scale)
-print(f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F={LEVELS}, b1={B1}, b2={B2:.2f}, "
-      f"learning rates {LRS}")
+B2 = 1 - (1 - B1) ** 2  # 0.36, as both reference implementations
+SIGMA_D = 0.1  # cross-bilateral, log-domain guide (the paper's texture runs)
+SIGMA_D_SELF = 1.0  # self-guided: log-domain moments (they have no fixed scale)
+print(
+    f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F={LEVELS}, b1={B1}, b2={B2:.2f}, "
+    f"learning rates {LRS}"
+)
 
 # %% [markdown]
 # ## The four update rules, and the self-guided variant
 #
-# `bilateral_adam(prefilter=…, postfilter=…)` gives eqs. 11–14; with both filters off it is Adam. The
-# probe records, inside every step, `max |Δ|` and Adam's own ratio `c_t` of the moments the
+# `bilateral_adam(prefilter=…, postfilter=…)` gives eqs. 11–14; with both filters off it is Adam.
+# The probe records, inside every step, `max |Δ|` and Adam's own ratio `c_t` of the moments the
 # optimizer keeps: for the prefilter those are the moments of `A g`, for the postfilter the
 # unfiltered moments of `g`.
+
 
 # %%
 def filtered(**kw):
     def factory(learning_rate):
         return ob.bilateral_adam(learning_rate, b1=B1, b2=B2, levels=LEVELS, log_guide=True, **kw)
+
     return factory
 
 
@@ -79,13 +83,18 @@ FACTORIES = {
     "postfilter, self-guided": filtered(sigma_d=SIGMA_D_SELF, guide="self"),
 }
 probe = nu.bounded_step_probe(B1, B2)
-methods = {name: nu.Method(optax.inject_hyperparams(f)(learning_rate=LRS[0]),
-                           {"learning_rate": LRS}, probe)
-           for name, f in FACTORIES.items()}
+methods = {
+    name: nu.Method(
+        optax.inject_hyperparams(f)(learning_rate=LRS[0]), {"learning_rate": LRS}, probe
+    )
+    for name, f in FACTORIES.items()
+}
 # Standard Adam as a reference point (its own b1, b2; not part of the bound comparison).
 methods["Adam (b1=0.9, b2=0.999)"] = nu.Method(
-    optax.inject_hyperparams(optax.adam)(learning_rate=LRS[0]), {"learning_rate": LRS},
-    nu.bounded_step_probe(0.9, 0.999))
+    optax.inject_hyperparams(optax.adam)(learning_rate=LRS[0]),
+    {"learning_rate": LRS},
+    nu.bounded_step_probe(0.9, 0.999),
+)
 
 prob = nu.texture_problem(SIZE, reference_spp=REFERENCE_SPP, eval_spp=EVAL_SPP)
 runs, timing = nu.run_texture(prob, methods, ITERATIONS)
@@ -123,11 +132,15 @@ bound_rows, violations = [], {}
 for name, r in runs.items():
     rel = r.metrics["max_step"] / r.metrics["adam_ratio"]
     violations[name] = int(np.sum(rel > 1 + TOL))
-    bound_rows.append({"method": name,
-                       "max over steps of max|Δ|": float(np.max(r.metrics["max_step"])),
-                       "max over steps of c_t": float(np.max(r.metrics["adam_ratio"])),
-                       "max over steps of max|Δ| / c_t": float(np.max(rel)),
-                       "steps with max|Δ| > c_t": f"{violations[name]} of {rel.size}"})
+    bound_rows.append(
+        {
+            "method": name,
+            "max over steps of max|Δ|": float(np.max(r.metrics["max_step"])),
+            "max over steps of c_t": float(np.max(r.metrics["adam_ratio"])),
+            "max over steps of max|Δ| / c_t": float(np.max(rel)),
+            "steps with max|Δ| > c_t": f"{violations[name]} of {rel.size}",
+        }
+    )
 display(Markdown(nu.table(bound_rows)))
 for name in ("Adam (eq. 12)", "prefilter (eq. 13)", "postfilter (eq. 14)", "both (eq. 11)"):
     assert violations[name] == 0, f"{name}: the §1.3 bound failed on {violations[name]} steps"
@@ -140,8 +153,13 @@ for name, r in best.items():
     it = np.arange(1, ITERATIONS + 1)
     axes[0].plot(it, r.metrics["max_step"][0], label=f"{name}: max|Δ|", lw=1.2)
     axes[1].plot(it, r.metrics["max_step"][0] / r.metrics["adam_ratio"][0], label=name, lw=1.2)
-axes[0].plot(it, best["postfilter (eq. 14)"].metrics["adam_ratio"][0], "k--", lw=1,
-             label="c_t of the postfilter's moments")
+axes[0].plot(
+    it,
+    best["postfilter (eq. 14)"].metrics["adam_ratio"][0],
+    "k--",
+    lw=1,
+    label="c_t of the postfilter's moments",
+)
 axes[0].set_ylabel("max_j |Δ_j| (step / learning rate)")
 axes[1].axhline(1.0, color="k", lw=0.8)
 axes[1].set_ylabel("max|Δ_t| / c_t   (≤ 1: bounded)")

@@ -129,7 +129,6 @@ def _smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.A
     return cast(tuple[jax.Array, ...], out)
 
 
-
 def blend(
     m: jax.Array,
     v: jax.Array,

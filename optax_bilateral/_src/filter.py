@@ -352,12 +352,12 @@ def _filter_route(
         self_guided=self_guided,
         log_guide=log_guide,
     )
-    part = sharded.spatial_partition(fields[0], field_axes[0])
-    if part is None:
+    partition = sharded.spatial_partition(fields[0], field_axes[0])
+    if partition is None:
         return filter_blocks(fields, guide, plan.mask, sigma_d, KERNELS[kernel])
     return sharded.filter_sharded(
         filter_blocks,
-        part,
+        partition,
         fields,
         field_axes,
         plan.shape,

@@ -19,11 +19,16 @@ from __future__ import annotations
 import difflib
 import functools
 import numbers
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import jax.numpy as jnp
 import optax
+
+if TYPE_CHECKING:
+    import drjit as dr
+    import mitsuba as mi
 
 MIN_LLVM_MAJOR = 16
 """The oldest libLLVM major version the ``llvm_*`` variants can use: Mitsuba 3.9's LLVM
@@ -34,9 +39,11 @@ GRID_NDIMS = (3, 4)
 """Parameter ranks :class:`SceneOptimizer` accepts: bitmap textures ``(H, W, C)`` and grid
 volumes ``(D, H, W, C)``."""
 
-_INSTALL_HINT = ("pip install 'optax_bilateral[mitsuba]' (Mitsuba 3 and Dr.Jit, pinned), and for "
-                 "the llvm_* variants a libLLVM >= 16 on the system (Debian/Ubuntu: apt-get "
-                 "install libllvm19); see docs/mitsuba.md")
+_INSTALL_HINT = (
+    "pip install 'optax_bilateral[mitsuba]' (Mitsuba 3 and Dr.Jit, pinned), and for "
+    "the llvm_* variants a libLLVM >= 16 on the system (Debian/Ubuntu: apt-get "
+    "install libllvm19); see docs/mitsuba.md"
+)
 
 
 def _modules():
@@ -44,7 +51,9 @@ def _modules():
         import drjit as dr
         import mitsuba as mi
     except ImportError as e:
-        raise ImportError(f"optax_bilateral.mitsuba needs Mitsuba 3 and Dr.Jit: {_INSTALL_HINT}") from e
+        raise ImportError(
+            f"optax_bilateral.mitsuba needs Mitsuba 3 and Dr.Jit: {_INSTALL_HINT}"
+        ) from e
     return mi, dr
 
 
@@ -65,8 +74,8 @@ def llvm_version() -> tuple[int, int, int] | None:
         True
     """
     _, dr = _modules()
-    version = tuple(int(v) for v in dr.detail.llvm_version())
-    return version if version[0] >= 0 else None
+    major, minor, patch = (int(v) for v in dr.detail.llvm_version())
+    return (major, minor, patch) if major >= 0 else None
 
 
 def check_variant() -> str:
@@ -98,25 +107,30 @@ def check_variant() -> str:
     if variant is None:
         raise RuntimeError("no Mitsuba variant is set: call mi.set_variant('llvm_ad_rgb') first")
     if "_ad_" not in variant:
-        raise ValueError(f"gradients need a differentiable Mitsuba variant (e.g. 'llvm_ad_rgb'), "
-                         f"but the current variant is {variant!r}")
+        raise ValueError(
+            f"gradients need a differentiable Mitsuba variant (e.g. 'llvm_ad_rgb'), "
+            f"but the current variant is {variant!r}"
+        )
     if variant.startswith("llvm"):
         version = llvm_version()
         if version is None:
-            raise RuntimeError(f"Dr.Jit found no libLLVM for the {variant!r} variant: {_INSTALL_HINT}; "
-                               "set DRJIT_LIBLLVM_PATH to the library if it is not in /usr/lib")
+            raise RuntimeError(
+                f"Dr.Jit found no libLLVM for the {variant!r} variant: {_INSTALL_HINT}; "
+                "set DRJIT_LIBLLVM_PATH to the library if it is not in /usr/lib"
+            )
         if version[0] < MIN_LLVM_MAJOR:
             raise RuntimeError(
                 f"Dr.Jit loaded libLLVM {'.'.join(map(str, version))}, but Mitsuba "
                 f"{mi.__version__} needs libLLVM >= {MIN_LLVM_MAJOR} (older ones abort the first "
-                f"render with 'LLVM ERROR: Cannot select: ... fminimum'). Install a newer one "
-                f"(Debian/Ubuntu: apt-get install libllvm19); if Dr.Jit still picks the old one, set "
-                f"DRJIT_LIBLLVM_PATH to the new library (e.g. /usr/lib/x86_64-linux-gnu/"
-                f"libLLVM.so.19.1) before importing drjit")
+                "render with 'LLVM ERROR: Cannot select: ... fminimum'). Install a newer one "
+                "(Debian/Ubuntu: apt-get install libllvm19); if Dr.Jit still picks the old one, "
+                "set DRJIT_LIBLLVM_PATH to the new library (e.g. /usr/lib/x86_64-linux-gnu/"
+                "libLLVM.so.19.1) before importing drjit"
+            )
     return variant
 
 
-def to_jax(tensor) -> jax.Array:
+def to_jax(tensor: dr.ArrayBase) -> jax.Array:
     """A Dr.Jit tensor as a JAX array through DLPack: no copy on the CPU when the buffer is
     64-byte aligned (Dr.Jit's own buffers are), else JAX copies it.
 
@@ -144,8 +158,9 @@ def _check_keys(params, keys) -> tuple[str, ...]:
     try:
         keys = tuple(keys)
     except TypeError:
-        raise TypeError(f"keys must be a parameter name or a sequence of names, got "
-                        f"{type(keys).__name__}") from None
+        raise TypeError(
+            f"keys must be a parameter name or a sequence of names, got {type(keys).__name__}"
+        ) from None
     if not keys:
         raise ValueError("keys must name at least one scene parameter, got none")
     for k in keys:
@@ -158,22 +173,30 @@ def _check_keys(params, keys) -> tuple[str, ...]:
         if k not in params:
             close = difflib.get_close_matches(k, names, n=3, cutoff=0.5)
             hint = f"; did you mean {close}?" if close else ""
-            raise KeyError(f"{k!r} is not a parameter of this scene{hint} (print(params) lists them)")
+            raise KeyError(
+                f"{k!r} is not a parameter of this scene{hint} (print(params) lists them)"
+            )
     return keys
 
 
 def _check_value(key, value, dr) -> tuple[int, ...]:
     if not dr.is_tensor_v(value):
-        raise TypeError(f"params[{key!r}] is a {type(value).__name__}, not a tensor: the helper "
-                        "drives bitmap textures (H, W, C) and grid volumes (D, H, W, C); "
-                        "use the key that ends in '.data'")
+        raise TypeError(
+            f"params[{key!r}] is a {type(value).__name__}, not a tensor: the helper "
+            "drives bitmap textures (H, W, C) and grid volumes (D, H, W, C); "
+            "use the key that ends in '.data'"
+        )
     shape = tuple(int(s) for s in value.shape)
     if len(shape) not in GRID_NDIMS:
-        raise ValueError(f"params[{key!r}] has shape {shape}; expected a bitmap texture (H, W, C) "
-                         "or a grid volume (D, H, W, C)")
+        raise ValueError(
+            f"params[{key!r}] has shape {shape}; expected a bitmap texture (H, W, C) "
+            "or a grid volume (D, H, W, C)"
+        )
     if not dr.is_diff_v(value):
-        raise TypeError(f"params[{key!r}] is not differentiable ({type(value).__name__}); "
-                        "use an AD variant such as 'llvm_ad_rgb'")
+        raise TypeError(
+            f"params[{key!r}] is not differentiable ({type(value).__name__}); "
+            "use an AD variant such as 'llvm_ad_rgb'"
+        )
     return shape
 
 
@@ -194,7 +217,8 @@ class _ById:
 
 
 class _Clamp:
-    """``project`` given as ``{key: (lo, hi)}``: hashable, so equal ranges share one compiled step."""
+    """``project`` given as ``{key: (lo, hi)}``: hashable, so equal ranges share one compiled
+    step."""
 
     def __init__(self, ranges: Mapping[str, tuple[Any, Any]]):
         self.ranges = tuple(sorted(ranges.items()))
@@ -210,24 +234,31 @@ class _Clamp:
         return hash(self.ranges)
 
 
-def _projection(project, keys) -> Callable[[dict], dict] | None:
+def _projection(
+    project: Callable[[dict], dict] | Mapping[str, tuple] | None, keys
+) -> Callable[[dict], dict] | None:
     """``project`` as a function of the value dict, or None."""
     if project is None:
         return None
     if callable(project):
         return project
     if not isinstance(project, Mapping):
-        raise TypeError("project must be None, a callable values -> values, or a mapping "
-                        f"key -> (lo, hi); got {type(project).__name__}")
+        raise TypeError(
+            "project must be None, a callable values -> values, or a mapping "
+            f"key -> (lo, hi); got {type(project).__name__}"
+        )
     ranges = {}
     for k, bounds in project.items():
         if k not in keys:
-            raise ValueError(f"project names {k!r}, which is not one of the optimized keys {list(keys)}")
+            raise ValueError(
+                f"project names {k!r}, which is not one of the optimized keys {list(keys)}"
+            )
         try:
             lo, hi = bounds
         except (TypeError, ValueError):
-            raise ValueError(f"project[{k!r}] must be a pair (lo, hi) (either may be None), got "
-                             f"{bounds!r}") from None
+            raise ValueError(
+                f"project[{k!r}] must be a pair (lo, hi) (either may be None), got {bounds!r}"
+            ) from None
         for b in (lo, hi):
             if b is not None and (isinstance(b, bool) or not isinstance(b, numbers.Real)):
                 raise TypeError(f"project[{k!r}] bounds must be numbers or None, got {bounds!r}")
@@ -265,12 +296,14 @@ def observed_texels(grad: jax.Array) -> jax.Array:
 def _keep_unobserved(new_state, old_state, observed: Mapping[str, jax.Array], shapes):
     """State leaves that mirror a parameter (found under its key, same shape) keep their
     old values at unobserved texels; every other leaf (counts, hyperparameters) advances."""
+
     def keep(path, new, old):
         last = path[-1] if path else None
         key = getattr(last, "key", None)
-        if key in observed and tuple(jnp.shape(new)) == shapes[key]:
+        if isinstance(key, str) and key in observed and tuple(jnp.shape(new)) == shapes[key]:
             return jnp.where(observed[key], new, old)
         return new
+
     return jax.tree_util.tree_map_with_path(keep, new_state, old_state)
 
 
@@ -280,14 +313,16 @@ def _update(transform, project, mask_unobserved, shapes, grads, state, values):
     same transform object, projection and shapes share the compiled program."""
     shapes = dict(shapes)
     updates, new_state = transform.obj.update(grads, state, values)
-    new_values = optax.apply_updates(values, updates)
+    new_values = cast(dict, optax.apply_updates(values, updates))  # the dict of values
     if project is not None:
         new_values = project(new_values)
         if not isinstance(new_values, Mapping) or set(new_values) != set(values):
             raise ValueError(f"project must return a dict with the keys {sorted(values)}")
         for k, v in new_values.items():
             if tuple(jnp.shape(v)) != shapes[k]:
-                raise ValueError(f"project changed the shape of {k!r}: {shapes[k]} -> {jnp.shape(v)}")
+                raise ValueError(
+                    f"project changed the shape of {k!r}: {shapes[k]} -> {jnp.shape(v)}"
+                )
     if mask_unobserved:
         observed = {k: observed_texels(g) for k, g in grads.items()}
         new_values = {k: jnp.where(observed[k], new_values[k], values[k]) for k in values}
@@ -353,7 +388,8 @@ class SceneOptimizer:
         >>> import numpy as np, drjit as dr, mitsuba as mi, optax_bilateral as ob
         >>> from optax_bilateral.mitsuba import SceneOptimizer
         >>> mi.set_variant("llvm_ad_rgb")
-        >>> camera = mi.ScalarTransform4f().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0])
+        >>> camera = mi.ScalarTransform4f().look_at(
+        ...     origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0])
         >>> texture = mi.TensorXf(np.full((8, 8, 3), 0.5, np.float32))
         >>> scene = mi.load_dict({
         ...     "type": "scene", "integrator": {"type": "direct"}, "light": {"type": "constant"},
@@ -373,17 +409,26 @@ class SceneOptimizer:
         True
     """
 
-    def __init__(self, transform: optax.GradientTransformation, params, keys: str | Sequence[str], *,
-                 project: Mapping[str, tuple[Any, Any]] | Callable[[dict], dict] | None = None,
-                 mask_unobserved: bool = False):
+    def __init__(
+        self,
+        transform: optax.GradientTransformation,
+        params: mi.SceneParameters,
+        keys: str | Sequence[str],
+        *,
+        project: Mapping[str, tuple[Any, Any]] | Callable[[dict], dict] | None = None,
+        mask_unobserved: bool = False,
+    ) -> None:
         mi, dr = _modules()
         check_variant()
         if not (hasattr(transform, "init") and hasattr(transform, "update")):
-            raise TypeError(f"transform must be an optax GradientTransformation, got "
-                            f"{type(transform).__name__}")
+            raise TypeError(
+                f"transform must be an optax GradientTransformation, got {type(transform).__name__}"
+            )
         if not isinstance(params, mi.SceneParameters):
-            raise TypeError(f"params must be mi.traverse(scene) (mi.SceneParameters), got "
-                            f"{type(params).__name__}")
+            raise TypeError(
+                f"params must be mi.traverse(scene) (mi.SceneParameters), got "
+                f"{type(params).__name__}"
+            )
         if not isinstance(mask_unobserved, bool):
             raise TypeError(f"mask_unobserved must be a bool, got {mask_unobserved!r}")
         self.transform = transform
@@ -393,27 +438,35 @@ class SceneOptimizer:
         self._dtypes = {k: to_jax(dr.detach(params[k])).dtype for k in self.keys}
         for k, dtype in self._dtypes.items():
             if not jnp.issubdtype(dtype, jnp.floating):
-                raise TypeError(f"params[{k!r}] holds {dtype} values (a bitmap loaded from an 8-bit "
-                                "image keeps them); optimize a float texture instead: "
-                                f"params[{k!r}] = mi.TensorXf(values / 255.0)")
+                raise TypeError(
+                    f"params[{k!r}] holds {dtype} values (a bitmap loaded from an 8-bit "
+                    "image keeps them); optimize a float texture instead: "
+                    f"params[{k!r}] = mi.TensorXf(values / 255.0)"
+                )
         self.mask_unobserved = mask_unobserved
         project = _projection(project, self.keys)
         if project is not None and not isinstance(project, _Clamp):
             project = _ById(project)
-        self._static = (_ById(transform), project, mask_unobserved,
-                        tuple(sorted(self.shapes.items())))
+        self._static = (
+            _ById(transform),
+            project,
+            mask_unobserved,
+            tuple(sorted(self.shapes.items())),
+        )
         self._enable_grads()
 
     # -- scene side --------------------------------------------------------------------
 
-    def _current(self, key):
+    def _current(self, key) -> Any:
         _, dr = _modules()
-        value = self.params[key]
+        value: Any = self.params[key]  # a Dr.Jit tensor (the stubs say object)
         shape = tuple(int(s) for s in value.shape) if dr.is_tensor_v(value) else None
         if shape != self.shapes[key]:
-            raise ValueError(f"params[{key!r}] now has shape {shape}, but this SceneOptimizer was "
-                             f"built for {self.shapes[key]}; after resizing a texture or volume, "
-                             "build a new SceneOptimizer and state")
+            raise ValueError(
+                f"params[{key!r}] now has shape {shape}, but this SceneOptimizer was "
+                f"built for {self.shapes[key]}; after resizing a texture or volume, "
+                "build a new SceneOptimizer and state"
+            )
         return value
 
     def _enable_grads(self):
@@ -434,10 +487,12 @@ class SceneOptimizer:
         for k in self.keys:
             value = self._current(k)
             if not dr.grad_enabled(value):
-                raise ValueError(f"params[{k!r}] does not track gradients (it was replaced after this "
-                                 "SceneOptimizer enabled them), so its gradient would read as zero; "
-                                 "write values with opt.set_values(...), or call "
-                                 f"dr.enable_grad(params[{k!r}]) and params.update() before rendering")
+                raise ValueError(
+                    f"params[{k!r}] does not track gradients (it was replaced after this "
+                    "SceneOptimizer enabled them), so its gradient would read as zero; "
+                    "write values with opt.set_values(...), or call "
+                    f"dr.enable_grad(params[{k!r}]) and params.update() before rendering"
+                )
             grads[k] = to_jax(dr.grad(value))
         return grads
 
@@ -452,8 +507,10 @@ class SceneOptimizer:
             current = self._current(k)
             v = jnp.asarray(values[k], dtype=self._dtypes[k])
             if tuple(v.shape) != self.shapes[k]:
-                raise ValueError(f"values[{k!r}] has shape {tuple(v.shape)}, expected {self.shapes[k]}")
-            new = type(current)(v)                  # DLPack: the scene holds the JAX buffer
+                raise ValueError(
+                    f"values[{k!r}] has shape {tuple(v.shape)}, expected {self.shapes[k]}"
+                )
+            new = type(current)(v)  # DLPack: the scene holds the JAX buffer
             dr.enable_grad(new)
             self.params[k] = new
         self.params.update()
@@ -464,7 +521,9 @@ class SceneOptimizer:
         """The transform's initial state for the current values (a pytree of JAX arrays)."""
         return self.transform.init(self.values())
 
-    def update(self, grads, state: optax.OptState, values) -> tuple[dict, optax.OptState]:
+    def update(
+        self, grads: Mapping[str, jax.Array], state: optax.OptState, values: Mapping[str, jax.Array]
+    ) -> tuple[dict, optax.OptState]:
         """The compiled step without the scene: ``(new_values, new_state)`` from ``{key: array}``
         gradients and values (the update, the projection and the masking of :meth:`step`)."""
         # States from init() or load_state are uncommitted; committing them to the values'

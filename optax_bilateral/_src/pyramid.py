@@ -18,7 +18,7 @@ with the inner optimiser's state (Adam's moments) held per coefficient. The
 step does not depend on ``c`` itself, so projecting ``theta`` onto a valid
 domain after the update (clipping) gives the same iterates as clipping the
 reconstructed grid and writing the difference back into the coefficients.
-This is how :func:`optax_bilateral.mesh.large_steps` writes a
+This is how :func:`optax_bilateral.triangle_mesh.large_steps` writes a
 reparameterisation, too.
 
 ``U`` doubles every spatial axis with linear interpolation on cell centres
@@ -31,8 +31,10 @@ samples along an axis of ``n``, so any grid size works.
 from __future__ import annotations
 
 import functools
+import itertools
 import numbers
-from typing import Any, NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -41,11 +43,16 @@ import optax
 
 from optax_bilateral._src import leaves as lv
 
+if TYPE_CHECKING:
+    from optax_bilateral._src.leaves import SpatialAxesSetting
+
 
 def _check_levels(levels) -> int:
     if isinstance(levels, bool) or not isinstance(levels, numbers.Integral) or levels < 1:
-        raise ValueError(f"levels must be an int >= 1 (1 = no pyramid: the inner optimiser "
-                         f"on the grid itself), got {levels!r}")
+        raise ValueError(
+            f"levels must be an int >= 1 (1 = no pyramid: the inner optimiser "
+            f"on the grid itself), got {levels!r}"
+        )
     return int(levels)
 
 
@@ -109,9 +116,10 @@ def pyramid_transpose(grid, levels: int, axes: Sequence[int]) -> tuple:
 def _transpose(grid, levels, axes):
     shapes = level_shapes(np.shape(grid), levels, axes)
     out = [grid]
-    for fine, coarse in zip(shapes[:-1], shapes[1:]):
-        up_t = jax.linear_transpose(lambda c, fine=fine: upsample(c, fine, axes),
-                                    jax.ShapeDtypeStruct(coarse, grid.dtype))
+    for fine, coarse in itertools.pairwise(shapes):
+        up_t = jax.linear_transpose(
+            lambda c, fine=fine: upsample(c, fine, axes), jax.ShapeDtypeStruct(coarse, grid.dtype)
+        )
         (g,) = up_t(out[-1])
         out.append(g)
     return tuple(out)
@@ -143,8 +151,12 @@ def _leaf_axes(tree, spatial_axes) -> list[tuple[int, ...]]:
     return [s.axes for s in specs]
 
 
-def laplacian_pyramid(inner: optax.GradientTransformation, levels: int, *, spatial_axes=None
-                      ) -> optax.GradientTransformationExtraArgs:
+def laplacian_pyramid(
+    inner: optax.GradientTransformation,
+    levels: int,
+    *,
+    spatial_axes: SpatialAxesSetting = None,
+) -> optax.GradientTransformationExtraArgs:
     r"""Runs ``inner`` on Laplacian-pyramid coefficients of every grid leaf (Weier et al. 2025).
 
     .. math::
@@ -191,30 +203,47 @@ def laplacian_pyramid(inner: optax.GradientTransformation, levels: int, *, spati
     def coefficients(tree):
         flat, treedef = jax.tree.flatten(tree)
         axes = _leaf_axes(tree, spatial_axes)
-        return [pyramid_transpose(x, levels, ax) if ax else (x,) for x, ax in zip(flat, axes)], \
-            treedef, axes
+        return (
+            [pyramid_transpose(x, levels, ax) if ax else (x,) for x, ax in zip(flat, axes)],
+            treedef,
+            axes,
+        )
 
     def init_fn(params):
         flat = jax.tree.leaves(params)
-        zeros = [tuple(jnp.zeros(s, jnp.result_type(x))
-                       for s in (level_shapes(np.shape(x), levels, ax) if ax else [np.shape(x)]))
-                 for x, ax in zip(flat, _leaf_axes(params, spatial_axes))]
+        zeros = [
+            tuple(
+                jnp.zeros(s, jnp.result_type(x))
+                for s in (level_shapes(np.shape(x), levels, ax) if ax else [np.shape(x)])
+            )
+            for x, ax in zip(flat, _leaf_axes(params, spatial_axes))
+        ]
         return LaplacianPyramidState(inner_state=inner.init(zeros))
 
     def update_fn(updates, state, params=None, **extra_args):
         del params
         coeffs, treedef, axes = coefficients(updates)
         steps, inner_state = optax.with_extra_args_support(inner).update(
-            coeffs, state.inner_state, None, **extra_args)
-        out = [pyramid_reconstruct(s, ax).astype(u.dtype) if ax else s[0].astype(u.dtype)
-               for s, ax, u in zip(steps, axes, jax.tree.leaves(updates))]
+            coeffs, state.inner_state, None, **extra_args
+        )
+        out = [
+            pyramid_reconstruct(s, ax).astype(u.dtype) if ax else s[0].astype(u.dtype)
+            for s, ax, u in zip(cast(list, steps), axes, jax.tree.leaves(updates))
+        ]
         return jax.tree.unflatten(treedef, out), LaplacianPyramidState(inner_state=inner_state)
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def pyramid_adam(learning_rate, levels: int, b1=0.9, b2=0.999, eps=1e-8, *, spatial_axes=None
-                 ) -> optax.GradientTransformationExtraArgs:
+def pyramid_adam(
+    learning_rate: optax.ScalarOrSchedule,
+    levels: int,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
+    *,
+    spatial_axes: SpatialAxesSetting = None,
+) -> optax.GradientTransformationExtraArgs:
     """Adam on Laplacian-pyramid coefficients: ``laplacian_pyramid(optax.adam(...), levels)``.
 
     Weier et al.'s texture parameterisation (SIGGRAPH 2025): one learning rate for
@@ -245,5 +274,6 @@ def pyramid_adam(learning_rate, levels: int, b1=0.9, b2=0.999, eps=1e-8, *, spat
         >>> round(float(updates.min()), 4)          # three levels of -lr sign steps
         -0.03
     """
-    return laplacian_pyramid(optax.adam(learning_rate, b1=b1, b2=b2, eps=eps), levels,
-                             spatial_axes=spatial_axes)
+    return laplacian_pyramid(
+        optax.adam(learning_rate, b1=b1, b2=b2, eps=eps), levels, spatial_axes=spatial_axes
+    )

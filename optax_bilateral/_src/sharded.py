@@ -46,17 +46,18 @@ from optax_bilateral._src.validation import normalize_axes
 
 
 class Partition(NamedTuple):
-    """How the spatial axes of a grid are split over a mesh.
+    """How the spatial axes of a grid are split over a device mesh.
 
-    ``names[k]`` are the mesh axes splitting spatial axis ``k`` (in ``spatial_axes``
-    order; ``()`` = not split), major to minor as in a ``PartitionSpec`` entry.
+    ``mesh_axes[k]`` are the device mesh's axes splitting spatial axis ``k`` (in
+    ``spatial_axes`` order; ``()`` = not split), major to minor as in a
+    ``PartitionSpec`` entry.
     """
 
-    mesh: Mesh | AbstractMesh
-    names: tuple[tuple[str, ...], ...]
+    device_mesh: Mesh | AbstractMesh
+    mesh_axes: tuple[tuple[str, ...], ...]
 
     def shards(self, k: int) -> int:
-        return math.prod(self.mesh.shape[a] for a in self.names[k])
+        return math.prod(self.device_mesh.shape[a] for a in self.mesh_axes[k])
 
 
 def _entry(e) -> tuple:
@@ -66,7 +67,7 @@ def _entry(e) -> tuple:
 
 
 def _spec_of(x):
-    """(mesh, entries per axis) of ``x``'s explicit sharding, or None."""
+    """(device mesh, entries per axis) of ``x``'s explicit sharding, or None."""
     try:
         s = jax.typeof(x).sharding
     except (TypeError, AttributeError):
@@ -92,9 +93,9 @@ def spatial_partition(field, spatial_axes) -> Partition | None:
     found = _spec_of(field)
     if found is None or not any(found[1]):
         return None
-    mesh, entries = found
+    device_mesh, entries = found
     axes = normalize_axes(spatial_axes, np.ndim(field))
-    return Partition(mesh, tuple(entries[a] for a in axes))
+    return Partition(device_mesh, tuple(entries[a] for a in axes))
 
 
 # ----------------------------------------------------------------------------------------
@@ -102,7 +103,7 @@ def spatial_partition(field, spatial_axes) -> Partition | None:
 
 
 class _Axis(NamedTuple):
-    names: tuple  # mesh axes splitting this spatial axis; () = not split
+    mesh_axes: tuple  # device mesh axes splitting this spatial axis; () = not split
     n: int  # number of blocks
     local: int  # block size L
     size: int  # global size N
@@ -138,12 +139,12 @@ def _exchange(x, axis: int, geo: _Axis, width: int):
         lows.insert(
             0,
             lax.ppermute(
-                _slice_axis(x, axis, L - take, L), geo.names, [(b, b + j) for b in range(n - j)]
+                _slice_axis(x, axis, L - take, L), geo.mesh_axes, [(b, b + j) for b in range(n - j)]
             ),
         )
         highs.append(
             lax.ppermute(
-                _slice_axis(x, axis, 0, take), geo.names, [(b, b - j) for b in range(j, n)]
+                _slice_axis(x, axis, 0, take), geo.mesh_axes, [(b, b - j) for b in range(j, n)]
             )
         )
     return jnp.concatenate(lows + [x] + highs, axis=axis)
@@ -161,7 +162,7 @@ def _inside(widths, geo):
     n = len(geo)
     for k, (w, g) in enumerate(zip(widths, geo)):
         e = jnp.arange(-w, g.local + w)
-        start = lax.axis_index(g.names) * g.local if g.names else 0
+        start = lax.axis_index(g.mesh_axes) * g.local if g.mesh_axes else 0
         ok = (start + e >= 0) & (start + e < g.size)
         shape = [1] * n
         shape[k] = e.shape[0]
@@ -224,12 +225,12 @@ def _spec(entries):
     return PartitionSpec(*[None if not e else (e[0] if len(e) == 1 else e) for e in entries])
 
 
-def _reshard(x, mesh, entries):
+def _reshard(x, device_mesh, entries):
     """``x`` with the sharding ``entries`` (a no-op when it has it already)."""
     found = _spec_of(x)
     if found is not None and found[1] == tuple(entries):
         return x
-    return jax.sharding.reshard(x, NamedSharding(mesh, _spec(entries)))
+    return jax.sharding.reshard(x, NamedSharding(device_mesh, _spec(entries)))
 
 
 class HaloKernel:
@@ -289,7 +290,7 @@ BlockFn = Callable[..., tuple]
 
 def filter_sharded(
     filter_blocks: BlockFn,
-    part: Partition,
+    partition: Partition,
     fields: Sequence[jax.Array],
     field_axes: Sequence[tuple[int, ...]],
     shape: tuple[int, ...],
@@ -308,34 +309,34 @@ def filter_sharded(
     itself); the guide's channels are gathered within each block (the distance sums
     over them).
     """
-    mesh = part.mesh
-    used = {a for e in part.names for a in e}
+    device_mesh, mesh_axes = partition
+    used = {a for e in mesh_axes for a in e}
     specs, out_specs = [], []
     for f, axes in zip(fields, field_axes):
         own = _spec_of(f)
         entries: list[tuple[str, ...]] = [()] * f.ndim
         for a in range(f.ndim):
             if a in axes:
-                entries[a] = part.names[axes.index(a)]
-            elif own is not None and own[0] == mesh:
+                entries[a] = mesh_axes[axes.index(a)]
+            elif own is not None and own[0] == device_mesh:
                 entries[a] = tuple(n for n in own[1][a] if n not in used)
         out_specs.append(tuple(entries))
         if gather_channels:
             entries = [e if a in axes else () for a, e in enumerate(entries)]
         specs.append(tuple(entries))
-    fields = tuple(_reshard(f, mesh, e) for f, e in zip(fields, specs))
+    fields = tuple(_reshard(f, device_mesh, e) for f, e in zip(fields, specs))
     g_entries: list[tuple[str, ...]] = [()] * guide.ndim
     for k, a in enumerate(guide_axes):
-        g_entries[a] = part.names[k]
-    guide = _reshard(guide, mesh, g_entries)
+        g_entries[a] = mesh_axes[k]
+    guide = _reshard(guide, device_mesh, g_entries)
     has_mask = mask is not None
     args = [jnp.asarray(sigma_d), *fields, guide]
     in_specs = [PartitionSpec(), *[_spec(e) for e in specs], _spec(g_entries)]
     if has_mask:
-        args.append(_reshard(mask, mesh, part.names))
-        in_specs.append(_spec(part.names))
+        args.append(_reshard(mask, device_mesh, mesh_axes))
+        in_specs.append(_spec(mesh_axes))
     geo = tuple(
-        _Axis(part.names[k], part.shards(k), shape[k] // part.shards(k), shape[k])
+        _Axis(mesh_axes[k], partition.shards(k), shape[k] // partition.shards(k), shape[k])
         for k in range(len(shape))
     )
     kernel = HaloKernel(geo, shape)
@@ -346,8 +347,8 @@ def filter_sharded(
         return filter_blocks(local[:n], local[n], m, sigma, kernel)
 
     out = jax.shard_map(
-        body, mesh=mesh, in_specs=tuple(in_specs), out_specs=tuple(_spec(e) for e in specs)
+        body, mesh=device_mesh, in_specs=tuple(in_specs), out_specs=tuple(_spec(e) for e in specs)
     )(*args)
     if gather_channels:
-        out = tuple(_reshard(o, mesh, e) for o, e in zip(out, out_specs))
+        out = tuple(_reshard(o, device_mesh, e) for o, e in zip(out, out_specs))
     return out

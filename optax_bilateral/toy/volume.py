@@ -77,6 +77,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Mapping
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -277,7 +278,8 @@ def make_scene(
 
 def _voxel_centres(shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     axes = [(np.arange(n, dtype=np.float64) + 0.5) / n for n in shape]
-    return tuple(np.meshgrid(*axes, indexing="ij"))
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    return x, y, z
 
 
 # Plume: (centre x, y, z, radius, amplitude) of Gaussian blobs rising and bending in z.
@@ -494,7 +496,7 @@ def _lookup(shape, flat: jax.Array, x: jax.Array) -> jax.Array:
     out = 0.0
     for idx, w in _stencil(shape, x):
         out = out + w[..., None] * flat.at[idx].get(mode="promise_in_bounds")
-    return out
+    return cast(jax.Array, out)  # a sum of eight arrays
 
 
 def _lookup_fwd(shape, flat, x):

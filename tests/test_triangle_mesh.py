@@ -1,4 +1,4 @@
-"""Mesh transforms (Large Steps, bilateral normal filter) and the toy mesh scene."""
+"""Triangle-mesh transforms (Large Steps, bilateral normal filter) and the toy mesh scene."""
 
 import jax
 import jax.numpy as jnp
@@ -6,8 +6,8 @@ import numpy as np
 import optax
 import pytest
 
-from optax_bilateral._src import mesh as M
-from optax_bilateral.toy import mesh as toy
+from optax_bilateral._src import triangle_mesh as M
+from optax_bilateral.toy import triangle_mesh as toy
 
 LAM = 7.0
 
@@ -21,8 +21,9 @@ def small():
     for a, b in ((0, 1), (1, 2), (2, 0)):  # independent of mesh_laplacian's edge table
         adj[f[:, a], f[:, b]] = adj[f[:, b], f[:, a]] = 1
     lap = np.diag(adj.sum(1)) - adj
-    return dict(v=v, f=f, mesh=M.mesh_laplacian(f), lap=lap,
-                minv=np.linalg.inv(np.eye(n) + LAM * lap))
+    return dict(
+        v=v, f=f, mesh=M.mesh_laplacian(f), lap=lap, minv=np.linalg.inv(np.eye(n) + LAM * lap)
+    )
 
 
 def cubified(v):
@@ -40,8 +41,15 @@ def dense_bilateral(minv, normals, sigma_d, dirs, sigma_phi):
 
 def filter_matrix(small, normals, sigma_d, **kw):
     n = len(small["v"])
-    (b,) = M.bilateral_normal_filter([jnp.eye(n, dtype=jnp.float32)], normals, small["mesh"],
-                                     lambda_=LAM, sigma_d=sigma_d, tol=1e-7, **kw)
+    (b,) = M.bilateral_normal_filter(
+        [jnp.eye(n, dtype=jnp.float32)],
+        normals,
+        small["mesh"],
+        lambda_=LAM,
+        sigma_d=sigma_d,
+        tol=1e-7,
+        **kw,
+    )
     return np.asarray(b, np.float64)
 
 
@@ -102,7 +110,9 @@ def test_bilateral_operator_row_stochastic_nonnegative_and_matches_dense(small, 
     np.testing.assert_allclose(b.sum(1), 1.0, atol=1e-5)
     # M^-1 >= 0 and w >= 0, so B >= 0; CG round-off may dip below by ~1e-7.
     assert b.min() > -1e-6
-    np.testing.assert_allclose(b, dense_bilateral(small["minv"], normals, sigma_d, dirs, 0.4), atol=2e-6)
+    np.testing.assert_allclose(
+        b, dense_bilateral(small["minv"], normals, sigma_d, dirs, 0.4), atol=2e-6
+    )
 
 
 def test_bilateral_reduces_to_large_steps_as_sigma_grows(small):
@@ -119,8 +129,14 @@ def test_bilateral_weights_less_across_cube_edges(small):
     normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
     other = (normals @ normals.T) < np.cos(np.pi / 4)
     # Splat and slice widths shrink together (the slice width alone also narrows B).
-    mass = [float((filter_matrix(small, normals, s, sigma_phi=s if np.isfinite(s) else 0.4) * other)
-                  .sum(1).mean()) for s in (np.inf, 1.0, 0.2)]
+    mass = [
+        float(
+            (filter_matrix(small, normals, s, sigma_phi=s if np.isfinite(s) else 0.4) * other)
+            .sum(1)
+            .mean()
+        )
+        for s in (np.inf, 1.0, 0.2)
+    ]
     assert mass[0] > mass[1] > mass[2]
     assert mass[2] < 0.5 * mass[0]
 
@@ -132,8 +148,9 @@ def test_filtered_moments_keep_step_bounded(small):
     v = rng.uniform(0.0, 2.0, (n, 3)).astype(np.float32) ** 4
     m = (np.sqrt(v) * rng.uniform(-1, 1, (n, 3))).astype(np.float32)
     normals = M.vertex_normals(cubified(small["v"]), small["f"])
-    bm, bv = M.bilateral_normal_filter([m, v], normals, small["mesh"], lambda_=LAM, sigma_d=0.3,
-                                       tol=1e-7)
+    bm, bv = M.bilateral_normal_filter(
+        [m, v], normals, small["mesh"], lambda_=LAM, sigma_d=0.3, tol=1e-7
+    )
     # 1e-5 relative slack: float32 and CG tolerance on a bound that holds exactly.
     assert np.all(np.abs(bm) <= np.sqrt(np.maximum(bv, 0)) * (1 + 1e-5) + 1e-7)
 
@@ -156,7 +173,7 @@ def test_scale_by_uniform_adam_matches_reference(small):
         out, state = tx.update(jnp.asarray(gt), state)
         m = b1 * m + (1 - b1) * gt.astype(np.float64)
         v = b2 * v + (1 - b2) * gt.astype(np.float64) ** 2
-        ref = (m / (1 - b1 ** t)) / (np.sqrt(np.max(v / (1 - b2 ** t))) + eps)
+        ref = (m / (1 - b1**t)) / (np.sqrt(np.max(v / (1 - b2**t))) + eps)
         np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
 
 
@@ -175,8 +192,8 @@ def test_large_steps_is_uniform_adam_on_u(small):
         x = optax.apply_updates(x, upd)
         gu = np.linalg.solve(mm, gx.astype(np.float64))  # df/du = M^-T df/dx
         m = b1 * m + (1 - b1) * gu
-        v = b2 * v + (1 - b2) * gu ** 2
-        u = u - lr * (m / (1 - b1 ** t)) / (np.sqrt(np.max(v / (1 - b2 ** t))) + 1e-8)
+        v = b2 * v + (1 - b2) * gu**2
+        u = u - lr * (m / (1 - b1**t)) / (np.sqrt(np.max(v / (1 - b2**t))) + 1e-8)
         # Positions are O(1); float32 and CG tolerance give ~1e-6 differences.
         np.testing.assert_allclose(x, np.linalg.solve(mm, u), atol=1e-5)
 
@@ -196,8 +213,9 @@ def test_bilateral_large_steps_reduces_to_large_steps(small, sigma_d):
 
 
 def test_filtered_second_moment_step_is_bounded(small):
-    tx = M.bilateral_large_steps(1.0, small["mesh"], LAM, 0.3, postfilter_v="bilateral",
-                                 directions=M.sphere_directions(16))
+    tx = M.bilateral_large_steps(
+        1.0, small["mesh"], LAM, 0.3, postfilter_v="bilateral", directions=M.sphere_directions(16)
+    )
     x = jnp.asarray(cubified(small["v"]))
     state = tx.init(x)
     for g in _grads(small["v"], 3):
@@ -210,7 +228,8 @@ def test_filtered_second_moment_step_is_bounded(small):
 def test_inject_hyperparams_jit_and_pytree_params(small):
     mesh = small["mesh"]
     tx = optax.inject_hyperparams(M.bilateral_large_steps, static_args=("directions",))(
-        learning_rate=0.01, faces=mesh, lambda_=LAM, sigma_d=0.5, directions=M.sphere_directions(8))
+        learning_rate=0.01, faces=mesh, lambda_=LAM, sigma_d=0.5, directions=M.sphere_directions(8)
+    )
     params = {"shape": jnp.asarray(cubified(small["v"]))}
     state = tx.init(params)
     step = jax.jit(tx.update)
@@ -257,9 +276,18 @@ def _filter_loss(small, solver):
 
     def loss(field, verts, lam):
         normals = M.vertex_normals(verts, mesh)
-        (out,) = M.bilateral_normal_filter([field], normals, mesh, lambda_=lam, sigma_d=0.4,
-                                           directions=dirs, solver=solver, tol=1e-7)
+        (out,) = M.bilateral_normal_filter(
+            [field],
+            normals,
+            mesh,
+            lambda_=lam,
+            sigma_d=0.4,
+            directions=dirs,
+            solver=solver,
+            tol=1e-7,
+        )
         return jnp.sum(out * r)
+
     return loss
 
 
@@ -282,7 +310,9 @@ def test_cholesky_keeps_jit_grad_and_vmap(small):
     fields = jnp.stack([field, 2 * field + 1, -field])
     lams = jnp.asarray([1.0, LAM, 30.0], jnp.float32)
     batched = jax.jit(jax.vmap(loss, in_axes=(0, None, 0)))(fields, verts, lams)
-    np.testing.assert_allclose(batched, [loss(a, verts, b) for a, b in zip(fields, lams)], rtol=1e-5)
+    np.testing.assert_allclose(
+        batched, [loss(a, verts, b) for a, b in zip(fields, lams)], rtol=1e-5
+    )
 
 
 def test_cholesky_lambda_gradient_matches_finite_difference(small):
@@ -291,6 +321,7 @@ def test_cholesky_lambda_gradient_matches_finite_difference(small):
 
         def f(lam):
             return jnp.sum(M.smoothing_solve(small["mesh"], b, lam, solver="cholesky") ** 2)
+
         g = jax.grad(f)(jnp.float64(LAM))
         h = 1e-5
         fd = (f(jnp.float64(LAM + h)) - f(jnp.float64(LAM - h))) / (2 * h)
@@ -314,8 +345,11 @@ def test_warm_start_changes_the_trajectory_only_within_the_tolerance(small, opt)
         runs.append((x, state))
     # 4 steps of <= lr = 0.02 with solves to 1e-6 relative: 1e-5 absolute.
     np.testing.assert_allclose(runs[1][0], runs[0][0], atol=1e-5)
-    stored = [leaf for leaf in jax.tree.leaves(runs[1][1])
-              if leaf.ndim == 2 and leaf.shape[0] == len(x0) and leaf.shape[1] != 3]
+    stored = [
+        leaf
+        for leaf in jax.tree.leaves(runs[1][1])
+        if leaf.ndim == 2 and leaf.shape[0] == len(x0) and leaf.shape[1] != 3
+    ]
     if opt == "large_steps":
         stored = [leaf for leaf in jax.tree.leaves(runs[1][1]) if leaf.ndim == 2]
     assert stored and all(np.abs(leaf).max() > 0 for leaf in stored)  # the solutions are kept
@@ -339,8 +373,10 @@ def test_welded_seam_does_not_open_and_equals_the_closed_mesh(small):
     assert len(loop) > 0 and len(v2) > len(v)
     welded = M.mesh_laplacian(f2, weld_positions=v2)
     assert welded.num_vertices == len(v2) and welded.num_merged == len(v)
-    for make, kw in ((M.large_steps, {}),
-                     (M.bilateral_large_steps, dict(directions=M.sphere_directions(8)))):
+    for make, kw in (
+        (M.large_steps, {}),
+        (M.bilateral_large_steps, dict(directions=M.sphere_directions(8))),
+    ):
         closed = make(0.02, small["mesh"], LAM, tol=1e-7, **kw)
         cut = make(0.02, welded, LAM, tol=1e-7, **kw)
         opened = make(0.02, M.mesh_laplacian(f2), LAM, tol=1e-7, **kw)
@@ -353,13 +389,16 @@ def test_welded_seam_does_not_open_and_equals_the_closed_mesh(small):
             ua, sa = closed.update(jnp.asarray(g), sa, xa)
             ub, sb = cut.update(jnp.asarray(g2), sb, xb)
             uc, sc = opened.update(jnp.asarray(g2), sc, xc)
-            xa, xb, xc = (optax.apply_updates(xa, ua), optax.apply_updates(xb, ub),
-                          optax.apply_updates(xc, uc))
+            xa, xb, xc = (
+                optax.apply_updates(xa, ua),
+                optax.apply_updates(xb, ub),
+                optax.apply_updates(xc, uc),
+            )
         # Welded: the copies move together and the mesh moves as the closed one.
-        np.testing.assert_array_equal(np.asarray(xb)[len(v):], np.asarray(xb)[loop])
-        np.testing.assert_allclose(np.asarray(xb)[:len(v)], xa, atol=1e-6)
+        np.testing.assert_array_equal(np.asarray(xb)[len(v) :], np.asarray(xb)[loop])
+        np.testing.assert_allclose(np.asarray(xb)[: len(v)], xa, atol=1e-6)
         # Not welded: the two halves are separate meshes and the seam opens.
-        assert np.abs(np.asarray(xc)[len(v):] - np.asarray(xc)[loop]).max() > 1e-4
+        assert np.abs(np.asarray(xc)[len(v) :] - np.asarray(xc)[loop]).max() > 1e-4
 
 
 def test_update_accepts_extra_args_and_pytrees(small):
@@ -367,10 +406,13 @@ def test_update_accepts_extra_args_and_pytrees(small):
     g = {"a": jnp.asarray(_grads(small["v"], 1)[0])}
     mesh = small["mesh"]
     dirs = M.sphere_directions(4)
-    for tx in (M.large_steps(0.1, mesh), M.bilateral_large_steps(0.1, mesh, prefilter="bilateral",
-                                                                 directions=dirs),
-               M.scale_by_uniform_adam(), M.weld_gradients(mesh),
-               M.bilateral_smoothing(mesh, directions=dirs)):
+    for tx in (
+        M.large_steps(0.1, mesh),
+        M.bilateral_large_steps(0.1, mesh, prefilter="bilateral", directions=dirs),
+        M.scale_by_uniform_adam(),
+        M.weld_gradients(mesh),
+        M.bilateral_smoothing(mesh, directions=dirs),
+    ):
         u, _ = tx.update(g, tx.init(x), x, value=jnp.float32(1.0), grad=g)
         assert np.all(np.isfinite(u["a"]))
 
@@ -394,8 +436,9 @@ def test_normals_options_and_callable(small):
     g = jnp.asarray(_grads(small["v"], 1)[0])
     dirs = M.sphere_directions(8)
     by_name = M.mesh_postfilter(small["mesh"], normals="angle", directions=dirs)
-    by_fn = M.mesh_postfilter(small["mesh"], normals=lambda x: M.vertex_normals(x, f, "angle"),
-                              directions=dirs)
+    by_fn = M.mesh_postfilter(
+        small["mesh"], normals=lambda x: M.vertex_normals(x, f, "angle"), directions=dirs
+    )
     ua, _ = by_name.update(g, by_name.init(v), v)
     ub, _ = by_fn.update(g, by_fn.init(v), v)
     np.testing.assert_allclose(ua, ub, rtol=1e-6)
@@ -408,6 +451,7 @@ def test_directions_lloyd_option():
 
     def closest(d):  # largest cosine between two directions
         return np.sort((d @ d.T)[np.triu_indices(len(d), 1)])[-1]
+
     assert closest(a) < closest(b)  # Lloyd spreads the points
 
 
@@ -433,7 +477,7 @@ def test_new_options_reject_bad_values(small):
 @pytest.mark.parametrize("freq", [1, 3, 8])
 def test_icosphere_is_closed_outward_and_counts(freq):
     v, f = toy.icosphere(freq)
-    assert len(v) == 10 * freq ** 2 + 2 and len(f) == 20 * freq ** 2
+    assert len(v) == 10 * freq**2 + 2 and len(f) == 20 * freq**2
     edges, _ = toy._edge_faces(f)  # raises unless every edge has two faces
     assert len(v) - len(edges) + len(f) == 2  # Euler characteristic of a sphere
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
@@ -454,16 +498,22 @@ def test_render_target_and_gradient_are_finite():
     v, f = toy.icosphere(4)
     r = toy.MeshRenderer(scene, f)
     frame = r.frame(v, np.random.default_rng(0))
-    (sur, loss), g = jax.value_and_grad(lambda x: r.loss(x, frame), has_aux=True)(jnp.asarray(v))
+    (_, loss), g = jax.value_and_grad(lambda x: r.loss(x, frame), has_aux=True)(jnp.asarray(v))
     assert np.isfinite(loss) and np.all(np.isfinite(g)) and np.abs(g).max() > 0
     img = toy.render_target(scene, 0)
     # The cube covers some pixels but not all; covered pixels have a lit colour.
     assert 0 < (img.sum(-1) > 0).mean() < 1
 
 
-def test_public_mesh_module_exports_the_transforms():
+def test_public_module_exports_the_transforms_and_mesh_is_its_alias():
     import optax_bilateral as ob
     import optax_bilateral.mesh as obm
-    assert ob.mesh is obm
-    for name in obm.__all__:
-        assert getattr(obm, name) is getattr(M, name), name
+    import optax_bilateral.triangle_mesh as obtm
+    from optax_bilateral.mesh import large_steps  # the former spelling keeps working
+
+    assert ob.triangle_mesh is obtm and ob.mesh is obm
+    assert obm.__all__ == obtm.__all__
+    assert {n for n in vars(obm) if not n.startswith("_")} == set(obtm.__all__)
+    for name in obtm.__all__:
+        assert getattr(obm, name) is getattr(obtm, name) is getattr(M, name), name
+    assert large_steps is M.large_steps

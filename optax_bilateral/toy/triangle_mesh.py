@@ -35,10 +35,12 @@ import jax.numpy as jnp
 import numpy as np
 
 # Light directions and colours: channel c sees axis c, weight 1 on +, 0.4 on -.
-LIGHT_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
-                      np.float32)
-LIGHT_COLORS = np.array([[1, 0, 0], [0.4, 0, 0], [0, 1, 0], [0, 0.4, 0], [0, 0, 1], [0, 0, 0.4]],
-                        np.float32)
+LIGHT_DIRS = np.array(
+    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32
+)
+LIGHT_COLORS = np.array(
+    [[1, 0, 0], [0.4, 0, 0], [0, 1, 0], [0, 0.4, 0], [0, 0, 1], [0, 0, 0.4]], np.float32
+)
 # Silhouette softness in pixels, and the band (in pixels) where it is evaluated:
 # sigmoid(4 / 0.5) = 0.9997, so outside the band coverage is binary to 3e-4.
 TAU_PX = 0.5
@@ -65,20 +67,54 @@ def icosphere(frequency: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarr
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> vertices, faces = tm.icosphere(2)
         >>> vertices.shape, faces.shape
         ((42, 3), (80, 3))
     """
     if isinstance(frequency, bool) or not isinstance(frequency, int) or frequency < 1:
         raise ValueError(f"frequency must be a positive int, got {frequency!r}")
-    t = (1 + 5 ** 0.5) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]])
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
-                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
-                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-                  [8, 6, 7], [9, 8, 1]])
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [
+            [-1, t, 0],
+            [1, t, 0],
+            [-1, -t, 0],
+            [1, -t, 0],
+            [0, -1, t],
+            [0, 1, t],
+            [0, -1, -t],
+            [0, 1, -t],
+            [t, 0, -1],
+            [t, 0, 1],
+            [-t, 0, -1],
+            [-t, 0, 1],
+        ]
+    )
+    f = np.array(
+        [
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ]
+    )
     k = frequency
     ii, jj = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
     keep = (ii + jj) <= k
@@ -88,13 +124,25 @@ def icosphere(frequency: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarr
     i, j = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
     up = (i + j) <= k - 1
     down = (i + j) <= k - 2
-    tri = np.concatenate([
-        np.stack([local[i[up], j[up]], local[i[up] + 1, j[up]], local[i[up], j[up] + 1]], -1),
-        np.stack([local[i[down] + 1, j[down]], local[i[down] + 1, j[down] + 1],
-                  local[i[down], j[down] + 1]], -1)])
+    tri = np.concatenate(
+        [
+            np.stack([local[i[up], j[up]], local[i[up] + 1, j[up]], local[i[up], j[up] + 1]], -1),
+            np.stack(
+                [
+                    local[i[down] + 1, j[down]],
+                    local[i[down] + 1, j[down] + 1],
+                    local[i[down], j[down] + 1],
+                ],
+                -1,
+            ),
+        ]
+    )
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    pts = (a[:, None] + (b - a)[:, None] * (ii / k)[None, :, None]
-           + (c - a)[:, None] * (jj / k)[None, :, None]).reshape(-1, 3)
+    pts = (
+        a[:, None]
+        + (b - a)[:, None] * (ii / k)[None, :, None]
+        + (c - a)[:, None] * (jj / k)[None, :, None]
+    ).reshape(-1, 3)
     pts /= np.linalg.norm(pts, axis=-1, keepdims=True)
     faces = (tri[None] + len(ii) * np.arange(20)[:, None, None]).reshape(-1, 3)
     # Points on shared icosahedron edges appear twice; merge them.
@@ -117,7 +165,7 @@ def sample_surface(vertices, faces, count: int, rng: np.random.Generator) -> np.
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> vertices, faces = tm.icosphere(2)
         >>> tm.sample_surface(vertices, faces, 5, np.random.default_rng(0)).shape
         (5, 3)
@@ -146,7 +194,7 @@ def sample_cube_surface(half: float, count: int, rng: np.random.Generator) -> np
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> p = tm.sample_cube_surface(0.5, 4, np.random.default_rng(0))
         >>> p.shape, bool(np.all(np.abs(p).max(axis=1) == 0.5))
         ((4, 3), True)
@@ -162,7 +210,7 @@ def hausdorff_to_cube(vertices, faces, half: float, count: int = 20000, seed: in
     """Symmetric Hausdorff distance between a mesh and the cube ``[-half, half]^3``.
 
     Mesh -> cube uses the exact distance of each mesh sample (and vertex) to the
-    cube surface; cube -> mesh the nearest mesh sample (``scipy.spatial.cKDTree``),
+    cube surface; cube -> mesh the nearest mesh sample (``scipy.spatial.KDTree``),
     so that direction is accurate to about the sample spacing.
 
     Args:
@@ -178,12 +226,12 @@ def hausdorff_to_cube(vertices, faces, half: float, count: int = 20000, seed: in
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> vertices, faces = tm.icosphere(2)
         >>> round(tm.hausdorff_to_cube(vertices, faces, 0.55, count=500), 2)   # the unit sphere
         0.45
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import KDTree
 
     rng = np.random.default_rng(seed)
     a = np.concatenate([sample_surface(vertices, faces, count, rng), np.asarray(vertices, float)])
@@ -192,7 +240,7 @@ def hausdorff_to_cube(vertices, faces, half: float, count: int = 20000, seed: in
     inside = np.minimum(q.max(axis=1), 0)
     d_mesh_to_cube = np.abs(outside + inside).max()
     b = sample_cube_surface(half, count, rng)
-    d_cube_to_mesh = cKDTree(a).query(b)[0].max()
+    d_cube_to_mesh = KDTree(a).query(b)[0].max()
     return float(max(d_mesh_to_cube, d_cube_to_mesh))
 
 
@@ -214,7 +262,7 @@ class Scene(NamedTuple):
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> scene = tm.make_scene(num_views=4, resolution=8)
         >>> scene.frames.shape, scene.pixel_size
         ((4, 3, 3), 0.3)
@@ -231,8 +279,14 @@ class Scene(NamedTuple):
         return 2 * self.extent / self.resolution
 
 
-def make_scene(num_views: int = 16, resolution: int = 64, extent: float = 1.2,
-               cube_half: float = 0.55, views_per_iteration: int = 2, seed: int = 1) -> Scene:
+def make_scene(
+    num_views: int = 16,
+    resolution: int = 64,
+    extent: float = 1.2,
+    cube_half: float = 0.55,
+    views_per_iteration: int = 2,
+    seed: int = 1,
+) -> Scene:
     """Cameras on quasi-random directions (scrambled Sobol, ``scipy.stats.qmc``).
 
     Args:
@@ -249,11 +303,11 @@ def make_scene(num_views: int = 16, resolution: int = 64, extent: float = 1.2,
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> tm.make_scene(num_views=4, resolution=8).resolution
         8
     """
-    from optax_bilateral.mesh import sphere_directions
+    from optax_bilateral.triangle_mesh import sphere_directions
 
     d = sphere_directions(num_views, seed=seed, lloyd=False)
     helper = np.where(np.abs(d[:, 2:3]) < 0.9, [[0, 0, 1.0]], [[1.0, 0, 0]])
@@ -305,7 +359,7 @@ def render_target(scene: Scene, view: int) -> np.ndarray:
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> tm.render_target(tm.make_scene(num_views=4, resolution=8), 0).shape
         (8, 8, 3)
     """
@@ -346,8 +400,8 @@ def _rasterize(scene: Scene, frame, vertices, faces, xy):
     pix = rows[fi, k] * r + cols[fi, k]
     s = xy[pix]
     ta, tb, tc = tri[fi, 0], tri[fi, 1], tri[fi, 2]
-    w0 = ((tb[:, 0] - s[:, 0]) * (tc[:, 1] - s[:, 1]) - (tb[:, 1] - s[:, 1]) * (tc[:, 0] - s[:, 0]))
-    w1 = ((tc[:, 0] - s[:, 0]) * (ta[:, 1] - s[:, 1]) - (tc[:, 1] - s[:, 1]) * (ta[:, 0] - s[:, 0]))
+    w0 = (tb[:, 0] - s[:, 0]) * (tc[:, 1] - s[:, 1]) - (tb[:, 1] - s[:, 1]) * (tc[:, 0] - s[:, 0])
+    w1 = (tc[:, 0] - s[:, 0]) * (ta[:, 1] - s[:, 1]) - (tc[:, 1] - s[:, 1]) * (ta[:, 0] - s[:, 0])
     w2 = area_f[fi] - w0 - w1
     inside = (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
     fi, pix = fi[inside], pix[inside]
@@ -394,7 +448,7 @@ class Frame(NamedTuple):
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> vertices, faces = tm.icosphere(2)
         >>> renderer = tm.MeshRenderer(tm.make_scene(num_views=4, resolution=8), faces)
         >>> frame = renderer.frame(0.6 * vertices, np.random.default_rng(0))
@@ -429,7 +483,7 @@ class MeshRenderer:
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> import jax
         >>> vertices, faces = tm.icosphere(2)
         >>> renderer = tm.MeshRenderer(tm.make_scene(num_views=4, resolution=8), faces)
@@ -452,7 +506,7 @@ class MeshRenderer:
         v = np.asarray(vertices, np.float64)
         if views is None:
             views = rng.choice(len(sc.frames), size=sc.views_per_iteration, replace=False)
-        n = sc.resolution ** 2
+        n = sc.resolution**2
         per_view, bands = [], []
         for view in views:
             frame = sc.frames[view].astype(np.float64)
@@ -466,22 +520,33 @@ class MeshRenderer:
         while self._band_cap < q:  # grow in steps of 2x so jit recompiles rarely
             self._band_cap *= 2
         q = self._band_cap
-        band = [np.zeros((len(views), q, 2), np.float32), np.zeros((len(views), q, 2), np.int32),
-                np.zeros((len(views), q), np.float32), np.zeros((len(views), q), np.float32),
-                np.zeros((len(views), q), np.float32)]
+        band = [
+            np.zeros((len(views), q, 2), np.float32),
+            np.zeros((len(views), q, 2), np.int32),
+            np.zeros((len(views), q), np.float32),
+            np.zeros((len(views), q), np.float32),
+            np.zeros((len(views), q), np.float32),
+        ]
         for i, b in enumerate(bands):
             m = len(b[0])
             for arr, val in zip(band, b):
                 arr[i, :m] = val
             band[4][i, :m] = 1.0
-        stack = lambda k, dt: np.stack([p[k] for p in per_view]).astype(dt)  # noqa: E731
-        return Frame(stack(0, np.float32), stack(1, np.float32), stack(2, np.int32),
-                     stack(3, bool), stack(4, np.float32), stack(5, np.int32), *band)
+        stack = lambda k, dt: np.stack([p[k] for p in per_view]).astype(dt)
+        return Frame(
+            stack(0, np.float32),
+            stack(1, np.float32),
+            stack(2, np.int32),
+            stack(3, bool),
+            stack(4, np.float32),
+            stack(5, np.int32),
+            *band,
+        )
 
     def _band(self, v, frame, area, xy, face, hit):
         """Samples within BAND_PX of the mesh's outline, each with its nearest silhouette edge."""
         from scipy.ndimage import binary_dilation, binary_erosion
-        from scipy.spatial import cKDTree
+        from scipy.spatial import KDTree
 
         r = self.scene.resolution
         front = area[self.edge_faces] > 0
@@ -490,8 +555,10 @@ class MeshRenderer:
         if len(sil) == 0:
             return (np.zeros((0, 2)), np.zeros((0, 2), int), np.zeros(0), np.zeros(0))
         st = np.ones((3, 3), bool)
-        near = (binary_dilation(covered, st, iterations=BAND_PX)
-                & ~binary_erosion(covered, st, iterations=BAND_PX, border_value=0)).ravel()
+        near = (
+            binary_dilation(covered, st, iterations=BAND_PX)
+            & np.logical_not(binary_erosion(covered, st, iterations=BAND_PX, border_value=0))
+        ).ravel()
         idx = np.nonzero(near)[0]
         p = xy[idx]
         p2 = v @ frame[:2].T
@@ -499,7 +566,7 @@ class MeshRenderer:
         # Candidates: the edges with the closest midpoints (edges are ~pixel-sized),
         # then the exact point-segment distance picks among them.
         k = min(6, len(sil))
-        cand = cKDTree(0.5 * (a + b)).query(p, k=k)[1].reshape(len(p), k)
+        cand = KDTree(0.5 * (a + b)).query(p, k=k)[1].reshape(len(p), k)
         ca, cb = a[cand], b[cand]
         ab = cb - ca
         t = np.clip(((p[:, None] - ca) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-20), 0, 1)
@@ -510,7 +577,8 @@ class MeshRenderer:
 
     @functools.partial(jax.jit, static_argnums=0)
     def loss(self, vertices, frame: Frame, silhouette_weight: float = 1.0):
-        """Surrogate loss whose gradient is the noisy Monte Carlo gradient; returns (surrogate, loss).
+        """Surrogate loss whose gradient is the noisy Monte Carlo gradient; returns (surrogate,
+        loss).
 
         ``loss`` is the single-sample image loss ``mean (I1 - I*)^2`` plus the silhouette
         term, what a user of a real Monte Carlo renderer would see (noisy).
@@ -531,7 +599,7 @@ class MeshRenderer:
         both = ((frame.face >= 0) & frame.target_hit)[..., None]
         resid = jnp.where(both, i1 - frame.target_rgb, 0.0)
         shade_sur = jnp.sum(jax.lax.stop_gradient(resid) * i2) / n_pix
-        shade_loss = 0.5 * jnp.sum(resid ** 2) / n_pix
+        shade_loss = 0.5 * jnp.sum(resid**2) / n_pix
         # Soft silhouette in the band around the outline.
         frames = jnp.asarray(frame.frames)
         e = vertices[frame.band_edge]  # (B, Q, 2, 3)
@@ -568,7 +636,7 @@ def render(scene: Scene, vertices, faces, view: int) -> np.ndarray:
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> vertices, faces = tm.icosphere(2)
         >>> tm.render(tm.make_scene(num_views=4, resolution=8), 0.6 * vertices, faces, 0).shape
         (8, 8, 3)
@@ -599,12 +667,13 @@ def image_error(scene: Scene, vertices, faces) -> float:
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral.toy import mesh as tm
+        >>> from optax_bilateral.toy import triangle_mesh as tm
         >>> vertices, faces = tm.icosphere(2)
         >>> tm.image_error(tm.make_scene(num_views=4, resolution=8), 0.6 * vertices, faces) > 0
         True
     """
-    errs = [np.mean((render(scene, vertices, faces, i) - render_target(scene, i)) ** 2)
-            for i in range(len(scene.frames))]
+    errs = [
+        np.mean((render(scene, vertices, faces, i) - render_target(scene, i)) ** 2)
+        for i in range(len(scene.frames))
+    ]
     return float(np.mean(errs))
-

@@ -37,7 +37,7 @@ CHOLMOD through ``cholespy`` (the ``cholesky`` extra) and called through
 ``jax.pure_callback`` inside ``lax.custom_linear_solve``, so ``jit``, ``grad``
 (w.r.t. the right-hand side, the vertices and lambda) and ``vmap`` keep working.
 ``warm_start=True`` keeps each CG solution in the transform's state and starts the
-next step's CG there. docs/mesh.md has the measured costs of each.
+next step's CG there. docs/triangle_mesh.md has the measured costs of each.
 
 Seams: a mesh with duplicated vertices (UV or normal seams) is welded by
 ``mesh_laplacian(faces, weld_positions=vertices)``: the Laplacian, the normals and
@@ -49,12 +49,13 @@ merged vertex's update, so seams do not open (as Mitsuba's Large Steps does).
 from __future__ import annotations
 
 import collections
+import functools
 import hashlib
 import math
 import numbers
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, get_args
 
 import jax
 import jax.numpy as jnp
@@ -76,19 +77,24 @@ DEFAULT_SIGMA_PHI = 0.4
 # "A few dozen" directions (the authors' n_filter_samples); a power of two keeps Sobol's balance.
 DEFAULT_DIRECTIONS = 32
 """The default number of sphere directions ``s_k`` of the filter (:func:`sphere_directions`)."""
-# Relative residual per right-hand side (docs/mesh.md: iterations against tol).
+# Relative residual per right-hand side (docs/triangle_mesh.md: iterations against tol).
 DEFAULT_TOL = 1e-4
 """The default CG tolerance: relative residual per right-hand side."""
 DEFAULT_MAXITER = 2000
 """The default cap on CG iterations per solve."""
 
-SOLVERS = ("cg", "cholesky")
+Solver = Literal["cg", "cholesky"]
+NormalWeighting = Literal["area", "uniform", "angle"]
+Prefilter = Literal["smooth", "bilateral", "off"]
+PostfilterV = Literal["uniform", "bilateral", "smooth"]
+
+SOLVERS: tuple[Solver, ...] = get_args(Solver)
 """The values of ``solver=``: Jacobi-preconditioned CG, or CHOLMOD through ``cholespy``."""
-NORMALS = ("area", "uniform", "angle")
+NORMALS: tuple[NormalWeighting, ...] = get_args(NormalWeighting)
 """The values of ``normals=`` (and :func:`vertex_normals`' ``weighting``)."""
-PREFILTERS = ("smooth", "bilateral", "off")
+PREFILTERS: tuple[Prefilter, ...] = get_args(Prefilter)
 """The values of :func:`bilateral_large_steps`' ``prefilter=``."""
-POSTFILTERS_V = ("uniform", "bilateral", "smooth")
+POSTFILTERS_V: tuple[PostfilterV, ...] = get_args(PostfilterV)
 """The values of ``postfilter_v=`` (the second moment's filter, :func:`mesh_postfilter`)."""
 
 
@@ -114,7 +120,7 @@ class MeshLaplacian(NamedTuple):
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -141,6 +147,20 @@ class MeshLaplacian(NamedTuple):
         return self.degree.shape[0]
 
 
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float, Int
+
+    Faces = Int[ArrayLike, "F 3"] | MeshLaplacian
+    Positions = Float[ArrayLike, "V 3"]  # vertex positions or unit normals
+    UnitNormals = Float[Array, "V 3"]
+    Field = Float[ArrayLike, "V *C"]
+    FieldOut = Float[Array, "V *C"]
+    Directions = int | Float[ArrayLike, "K 3"]
+    Normals = NormalWeighting | Callable[[Array], UnitNormals]
+else:
+    Faces = Positions = UnitNormals = Field = FieldOut = Directions = Normals = Any
+
+
 def _concrete_faces(faces) -> np.ndarray:
     try:
         return np.asarray(faces)
@@ -152,7 +172,9 @@ def _concrete_faces(faces) -> np.ndarray:
         ) from None
 
 
-def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=None) -> MeshLaplacian:
+def mesh_laplacian(
+    faces: Faces, num_vertices: int | None = None, *, weld_positions: Positions | None = None
+) -> MeshLaplacian:
     """Builds the combinatorial Laplacian ``L = D - A`` of a triangle mesh.
 
     Args:
@@ -175,7 +197,7 @@ def mesh_laplacian(faces, num_vertices: int | None = None, *, weld_positions=Non
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -276,7 +298,7 @@ class _Cholesky:
                 "solver='cholesky' needs cholespy: pip install "
                 "'optax_bilateral[cholesky]' (or use solver='cg')"
             ) from e
-        self._cholespy = cholespy
+        self._cholespy: Any = cholespy  # a compiled extension without type information
         u = len(degree)
         rows = np.repeat(np.arange(u), neighbors.shape[1])
         keep = neighbors.ravel() < u
@@ -405,14 +427,14 @@ def _solve_merged(mesh, host, b, lambda_, tol, maxiter, x0=None):
 
 def smoothing_solve(
     mesh: MeshLaplacian,
-    b,
-    lambda_,
+    b: Field,
+    lambda_: jax.typing.ArrayLike,
     *,
-    solver: str = "cg",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
-    x0=None,
-):
+    x0: Field | None = None,
+) -> FieldOut:
     """Solves ``(I + lambda L) x = b`` (Large Steps' "smooth").
 
     Args:
@@ -433,7 +455,7 @@ def smoothing_solve(
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -474,7 +496,9 @@ def _unit(x):
     return x / jnp.where(norm > 0, norm, 1.0)
 
 
-def vertex_normals(vertices, faces, weighting: str = "area"):
+def vertex_normals(
+    vertices: Positions, faces: Faces, weighting: NormalWeighting = "area"
+) -> UnitNormals:
     """Unit vertex normals (the guide of the bilateral filter).
 
     Args:
@@ -483,7 +507,7 @@ def vertex_normals(vertices, faces, weighting: str = "area"):
         :class:`MeshLaplacian` (then ``vertices`` are the input vertices, seams included).
       weighting: how face normals are averaged: ``"area"`` (by face area, the
         default), ``"uniform"`` (unit face normals, unweighted: what the authors' code
-        computes, up to ``O(1/F)``; docs/mesh.md) or ``"angle"`` (by the corner angles).
+        computes, up to ``O(1/F)``; docs/triangle_mesh.md) or ``"angle"`` (by the corner angles).
 
     Returns:
       ``(V, 3)`` unit normals, the dtype of ``vertices``; a vertex whose faces' normals
@@ -492,7 +516,7 @@ def vertex_normals(vertices, faces, weighting: str = "area"):
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -550,7 +574,7 @@ def sphere_directions(
     Example::
 
         >>> import numpy as np
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> s = obm.sphere_directions(8)
         >>> s.shape, bool(np.allclose(np.linalg.norm(s, axis=1), 1.0))
         ((8, 3), True)
@@ -564,7 +588,14 @@ def sphere_directions(
             "sphere_directions needs scipy (scipy.stats.qmc); install scipy or "
             "pass directions= as a (K, 3) array of unit vectors"
         ) from e
-    sampler = qmc.Sobol(d=2, scramble=True, seed=seed, optimization="lloyd" if lloyd else None)
+    # seed=, not rng=: the legacy stream, the authors' directions (SciPy's decorator that keeps
+    # seed= hides it from type checkers).
+    sampler = qmc.Sobol(
+        d=2,
+        scramble=True,
+        seed=seed,  # pyright: ignore[reportCallIssue]
+        optimization="lloyd" if lloyd else None,
+    )
     u = sampler.random_base2(math.ceil(math.log2(num)))[
         :num
     ]  # a power-of-two prefix keeps the balance
@@ -659,18 +690,18 @@ def _bilateral_fields(
 
 
 def bilateral_normal_filter(
-    fields: Sequence[Any],
-    normals,
+    fields: Sequence[Field],
+    normals: Positions,
     mesh: MeshLaplacian,
     *,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    directions=DEFAULT_DIRECTIONS,
-    solver: str = "cg",
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    directions: Directions = DEFAULT_DIRECTIONS,
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
-) -> list:
+) -> list[jax.Array]:
     """Applies the paper's mesh cross-bilateral operator ``B`` to every field.
 
     ``(B x)_i = sum_k phi_k(i) [M^-1 (w_k * x)]_i / sum_k phi_k(i) [M^-1 w_k]_i`` with
@@ -705,7 +736,7 @@ def bilateral_normal_filter(
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -815,7 +846,7 @@ class SmoothingState(NamedTuple):
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -841,7 +872,13 @@ def _smoothing_init(warm_start: bool, columns: Callable[[Any], int]):
     return init_fn
 
 
-def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
+def _weld(mesh: MeshLaplacian, index: jax.Array, g):
+    """The copies' gradients summed on their merged vertex, and the sum given to every copy."""
+    _check_leaf(g, mesh, "weld_gradients")
+    return _spread(mesh, jax.ops.segment_sum(g, index, num_segments=mesh.num_merged))
+
+
+def weld_gradients(faces: Faces) -> optax.GradientTransformationExtraArgs:
     """Sums the gradients of a welded vertex's copies and gives every copy the sum.
 
     ``x = x_merged[index]`` (copies of a seam vertex) gives
@@ -859,7 +896,7 @@ def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -878,21 +915,16 @@ def weld_gradients(faces) -> optax.GradientTransformationExtraArgs:
         del params, extra_args
         if mesh.index is None:
             return updates, state
-
-        def weld(g):
-            _check_leaf(g, mesh, "weld_gradients")
-            return _spread(mesh, jax.ops.segment_sum(g, mesh.index, num_segments=mesh.num_merged))
-
-        return jax.tree.map(weld, updates), state
+        return jax.tree.map(functools.partial(_weld, mesh, mesh.index), updates), state
 
     return optax.GradientTransformationExtraArgs(lambda params: optax.EmptyState(), update_fn)
 
 
 def laplacian_smoothing(
-    faces,
-    lambda_=DEFAULT_LAMBDA,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
     *,
-    solver: str = "cg",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -919,7 +951,7 @@ def laplacian_smoothing(
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -955,7 +987,7 @@ def laplacian_smoothing(
             sols.append(_spread(mesh, sol))
             out.append(sols[-1].astype(x.dtype))
         new = SmoothingState(
-            optax.safe_increment(state.count),
+            jnp.asarray(optax.safe_increment(state.count)),
             jax.tree.unflatten(treedef, sols) if warm_start else None,
         )
         return jax.tree.unflatten(treedef, out), new
@@ -972,14 +1004,14 @@ def _normals_fn(normals, mesh):
 
 
 def bilateral_smoothing(
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
     *,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    directions=DEFAULT_DIRECTIONS,
-    normals="area",
-    solver: str = "cg",
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    directions: Directions = DEFAULT_DIRECTIONS,
+    normals: Normals = "area",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -1015,7 +1047,7 @@ def bilateral_smoothing(
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -1058,7 +1090,7 @@ def bilateral_smoothing(
             sols.append(flat)
             out.append(gf.astype(g.dtype))
         new = SmoothingState(
-            optax.safe_increment(state.count),
+            jnp.asarray(optax.safe_increment(state.count)),
             jax.tree.unflatten(treedef, sols) if warm_start else None,
         )
         return jax.tree.unflatten(treedef, out), new
@@ -1087,7 +1119,7 @@ class ScaleByUniformAdamState(NamedTuple):
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -1115,7 +1147,7 @@ class MeshPostfilterState(NamedTuple):
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -1135,14 +1167,18 @@ def _moments(updates, mu, nu, count, b1, b2):
     a1, a2 = numerics.one_minus(b1), numerics.one_minus(b2)
     mu = jax.tree.map(lambda g, m: b1 * m + a1 * g, updates, mu)
     nu = jax.tree.map(lambda g, v: b2 * v + a2 * g * g, updates, nu)
-    return optax.safe_increment(count), mu, nu
+    return jnp.asarray(optax.safe_increment(count)), mu, nu
 
 
 def _zeros_like_tree(params):
     return jax.tree.map(jnp.zeros_like, params)
 
 
-def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransformationExtraArgs:
+def scale_by_uniform_adam(
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
+) -> optax.GradientTransformationExtraArgs:
     """Large Steps' ``AdamUniform``: Adam with one second moment per leaf.
 
         m_t = b1 m_{t-1} + (1-b1) g_t,   v_t = b2 v_{t-1} + (1-b2) g_t^2
@@ -1164,7 +1200,7 @@ def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransform
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> opt = obm.scale_by_uniform_adam()
         >>> grads = jnp.array([[0.5, 0.0, -1.0], [0.25, 0.0, 0.0]])
         >>> updates, _ = opt.update(grads, opt.init(grads))
@@ -1194,18 +1230,18 @@ def scale_by_uniform_adam(b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransform
 
 
 def mesh_postfilter(
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
-    b1=0.9,
-    b2=0.999,
-    eps=1e-8,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
     *,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    postfilter_v: str = "uniform",
-    directions=DEFAULT_DIRECTIONS,
-    normals="area",
-    solver: str = "cg",
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    postfilter_v: PostfilterV = "uniform",
+    directions: Directions = DEFAULT_DIRECTIONS,
+    normals: Normals = "area",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -1225,7 +1261,7 @@ def mesh_postfilter(
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian`.
       lambda_: smoothing weight of ``M = I + lambda L`` (may be traced). The authors'
         ``compute_matrix(alpha=lambda/(1+lambda))`` is ``M / (1 + lambda)``
-        (docs/mesh.md maps the two).
+        (docs/triangle_mesh.md maps the two).
       sigma_d: splat width on normals (``> 0``, ``inf`` = Large Steps; may be traced).
       b1: Adam's first-moment decay rate (Large Steps uses 0.9).
       b2: Adam's second-moment decay rate (Large Steps uses 0.999).
@@ -1253,7 +1289,7 @@ def mesh_postfilter(
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -1359,14 +1395,14 @@ def mesh_postfilter(
 
 
 def large_steps(
-    learning_rate,
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    b1=0.9,
-    b2=0.999,
-    eps=1e-8,
+    learning_rate: optax.ScalarOrSchedule,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
     *,
-    solver: str = "cg",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -1401,7 +1437,7 @@ def large_steps(
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -1414,7 +1450,7 @@ def large_steps(
         [-0.052 -0.052 -0.052 -0.052 -0.062 -0.049]
     """
     mesh = mesh_laplacian(faces)
-    kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
+    kw: dict[str, Any] = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
     return optax.chain(
         weld_gradients(mesh),
         laplacian_smoothing(mesh, lambda_, **kw),
@@ -1425,20 +1461,20 @@ def large_steps(
 
 
 def bilateral_large_steps(
-    learning_rate,
-    faces,
-    lambda_=DEFAULT_LAMBDA,
-    sigma_d=DEFAULT_SIGMA_D,
-    b1=0.9,
-    b2=0.999,
-    eps=1e-8,
+    learning_rate: optax.ScalarOrSchedule,
+    faces: Faces,
+    lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
+    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D,
+    b1: jax.typing.ArrayLike = 0.9,
+    b2: jax.typing.ArrayLike = 0.999,
+    eps: jax.typing.ArrayLike = 1e-8,
     *,
-    sigma_phi=DEFAULT_SIGMA_PHI,
-    prefilter: str = "smooth",
-    postfilter_v: str = "uniform",
-    directions=DEFAULT_DIRECTIONS,
-    normals="area",
-    solver: str = "cg",
+    sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI,
+    prefilter: Prefilter = "smooth",
+    postfilter_v: PostfilterV = "uniform",
+    directions: Directions = DEFAULT_DIRECTIONS,
+    normals: Normals = "area",
+    solver: Solver = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = DEFAULT_MAXITER,
     warm_start: bool = False,
@@ -1460,7 +1496,7 @@ def bilateral_large_steps(
     With ``optax.inject_hyperparams`` (to schedule ``lambda_``, ``sigma_d``,
     ``sigma_phi`` or the learning rate) pass a :class:`MeshLaplacian` as ``faces``, or
     list ``"faces"`` (and ``"directions"`` if it is an array) in ``static_args``.
-    docs/mesh.md has the method, the authors' parameterisation and measured results.
+    docs/triangle_mesh.md has the method, the authors' parameterisation and measured results.
 
     Args:
       learning_rate: a number or an optax schedule.
@@ -1496,7 +1532,7 @@ def bilateral_large_steps(
     Example::
 
         >>> import numpy as np, jax.numpy as jnp
-        >>> from optax_bilateral import mesh as obm
+        >>> from optax_bilateral import triangle_mesh as obm
         >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
         ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
         >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
@@ -1509,8 +1545,8 @@ def bilateral_large_steps(
     """
     mesh = mesh_laplacian(faces)
     _check_choice(prefilter, "prefilter", PREFILTERS)
-    kw = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
-    bil = dict(sigma_phi=sigma_phi, directions=directions, normals=normals)
+    kw: dict[str, Any] = dict(solver=solver, tol=tol, maxiter=maxiter, warm_start=warm_start)
+    bil: dict[str, Any] = dict(sigma_phi=sigma_phi, directions=directions, normals=normals)
     parts = [weld_gradients(mesh)]
     if prefilter == "smooth":
         parts.append(laplacian_smoothing(mesh, lambda_, **kw))
