@@ -31,7 +31,7 @@ demo: $(VENV)/.installed
 # Two workers (the CI machine has 2 cores), a file per worker (module fixtures and the
 # sharding tests' child process run once); hypothesis explores with its "ci" profile.
 test: $(VENV)/.installed-dev
-	OPTAX_BILATERAL_QUICK=1 HYPOTHESIS_PROFILE=ci $(PY) -m pytest -q -n 2 --dist loadfile
+	OPTAX_BILATERAL_QUICK=1 HYPOTHESIS_PROFILE=ci $(PY) -m pytest -q -n 2 --dist loadfile --durations=25
 
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check $(LINT_PATHS)
