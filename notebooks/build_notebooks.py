@@ -26,6 +26,7 @@ that a page never shows the outputs of code that has since changed.
 from __future__ import annotations
 
 import argparse
+import ast
 import datetime
 import hashlib
 import io
@@ -123,8 +124,15 @@ def executed_path(name: str, quick: bool) -> pathlib.Path:
 
 
 def source_hash(source: str) -> str:
-    """The fingerprint a recorded cell keeps of the code that produced its outputs."""
-    return hashlib.sha256(source.encode()).hexdigest()[:16]
+    """The fingerprint a recorded cell keeps of the code that produced its outputs.
+
+    Taken of the code's syntax tree, so that reformatting or editing comments does not
+    invalidate a record; any change to what the code does does."""
+    try:
+        text = ast.dump(ast.parse(source))
+    except SyntaxError:  # e.g. IPython magics: the text itself
+        text = source
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def _small_png(data: bytes) -> bytes:

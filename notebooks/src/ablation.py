@@ -38,8 +38,9 @@ import numpy as np
 import optax
 from IPython.display import Markdown, display
 
-import notebook_utils as nu
 import optax_bilateral as ob
+
+import notebook_utils as nu
 
 T0 = time.perf_counter()
 QUICK = nu.QUICK
