@@ -74,7 +74,7 @@ def config(quick: bool) -> dict:
     return dict(size=64, resolution=32, n_views=64, views_per_step=4, iterations=300,
                 record_every=5, evaluate_every=25, target_spp=64, eval_views=8, eval_spp=16,
                 image_spp=64, lr=0.1, b1=0.2, sigma_d={"density": 0.05, "albedo": 0.1},
-                self_sigma_d=[1.0, 10.0], levels=3,
+                self_sigma_d=[1.0, 3.0, 10.0, 30.0, 100.0], levels=3,  # best inside the sweep
                 adam_sweep=[(0.001, 0.9), (0.003, 0.9), (0.01, 0.9), (0.003, 0.2)],
                 timing_levels=(3, 5), timing_repeats=5, timing_steps=5)
 
