@@ -103,7 +103,7 @@ def config(quick: bool) -> dict:
         lr=0.1,
         b1=0.2,
         sigma_d={"density": 0.05, "albedo": 0.1},
-        self_sigma_d=[1.0, 10.0],
+        self_sigma_d=[1.0, 3.0, 10.0, 30.0, 100.0],  # best inside the sweep
         levels=3,
         adam_sweep=[(0.001, 0.9), (0.003, 0.9), (0.01, 0.9), (0.003, 0.2)],
         timing_levels=(3, 5),
