@@ -125,7 +125,7 @@ def settings(quick: bool) -> Settings:
     if quick:
         return Settings(
             sigma_grid=(0.0, 0.1, math.inf),
-            levels_grid=(5,),
+            levels_grid=(2,),
             adam_b1=(0.9,),
             pyramid_levels=(3,),
             seeds=(0,),
