@@ -218,7 +218,9 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # 0.5 / 1 / 2 / 4 / 8 on this scene; 1718 s, load 10–16; this page shows the σ_d = 1 run) gave
 # the same rows for Adam, prefilter, postfilter and both, a self-guided error of **0.00787** at
 # lr 0.04 (the lowest of all, image loss 0.026), and **65 of 1050** steps over the bound, up to
-# 1.88 (1.77 `c_t`).
+# 1.88 (1.77 `c_t`). The drop from 1050 to 65 comes from the larger σ_d, not from the re-guiding:
+# at equal σ_d = 1, the re-guided filter breaks the bound more often than the fixed-guide variant
+# did (1050 vs 944 of 1050 steps, up to 7.82 vs 3.71; the run below).
 #
 # (An earlier run, 2026-11-22, before the library's redesign and before `guide="self"` was
 # re-guided per level, gave the same Adam numbers, prefilter 0.00867, postfilter 0.00825 at
