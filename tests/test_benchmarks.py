@@ -127,10 +127,20 @@ def test_targets_use_the_paired_ratios_when_the_rows_have_them():
             "x adam (median)": 31.0,
             "x adam (paired)": 29.0,
         },
+        {
+            "grid": "volume 64^3x1",
+            "method": "ours F=3 separable auto",
+            "ms (median)": 6.4,
+            "x adam (median)": 12.8,
+            "x adam (paired)": 12.0,
+            "x fixed sigma_d (paired)": 1.5,
+        },
     ]
     tex = [{"method": "Ours (F = 5)", "% vs Adam": 11.0, "% vs Adam (paired)": 9.0}]
     rows = {r["target"]: r for r in benchmark.targets({"update_only": upd, "texture": tex})}
     assert rows["separable F=5 update / adam update, volume 64^3x1"]["measured"] == 29.0
+    auto = rows["auto / fixed sigma_d update, F=3 separable, volume 64^3x1"]
+    assert auto["measured"] == 1.5 and not auto["met"]  # issue #17's limit is 1.2x
     full = rows["full / separable update, F=3, volume 64^3x1"]
     assert full["measured"] == 12.0 and full["met"]  # 52 / 4 = 13 would miss it
     tex_row = rows["texture experiment per-iteration overhead, F=5"]
