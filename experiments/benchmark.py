@@ -241,7 +241,9 @@ def _texture_problem(cfg):
 TEXTURE_STEP_KINDS = ("split", "fused")
 
 
-def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[dict]:
+def texture_iterations(
+    quick: bool, rounds: int, levels: Sequence[int], kinds: Sequence[str] = TEXTURE_STEP_KINDS
+) -> list[dict]:
     """Per-iteration time of the texture experiment at its default settings.
 
     Each method is timed twice: as the experiment runs it (``split``: the render and
@@ -267,7 +269,7 @@ def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[
     for name, (m, c) in methods.items():
         opt = texp.make_optimizer(m, c)
         state = texp.set_hyperparams(opt.init(prob.init), hp[m])
-        for kind in TEXTURE_STEP_KINDS:
+        for kind in kinds:
             steps[(name, kind)] = (prob.step_fn(opt, fused=kind == "fused"), (prob.init, state))
     for k, (fn, carry) in steps.items():  # compile, and move off the start
         for i in range(2):
@@ -280,7 +282,7 @@ def texture_iterations(quick: bool, rounds: int, levels: Sequence[int]) -> list[
     rows = []
     scene = f"texture {cfg.size}^2 (spp={cfg.spp}, spp_grad={cfg.spp_grad})"
     for name in methods:
-        for kind in TEXTURE_STEP_KINDS:
+        for kind in kinds:
             t, t_adam = np.median(samples[(name, kind)]), np.median(samples[("Adam", kind)])
             rows.append(
                 {
@@ -338,19 +340,20 @@ def _overhead_setting(quick: bool):
     )
 
 
-def target_measurements(quick: bool) -> dict:
+def target_measurements(quick: bool, kinds: Sequence[str] = TEXTURE_STEP_KINDS) -> dict:
     """What :func:`targets` needs: the update-only ratios and the texture experiment's
     per-iteration times, all measured side by side in this process."""
     shapes, variants, rounds, inner, lv = _overhead_setting(quick)
     return {
         "update_only": update_only(shapes, variants, rounds, inner),
-        "texture": texture_iterations(quick, rounds=2 if quick else 30, levels=lv),
+        "texture": texture_iterations(quick, rounds=2 if quick else 30, levels=lv, kinds=kinds),
     }
 
 
 def overhead(out: pathlib.Path, quick: bool) -> dict:
     lv = _overhead_setting(quick)[-1]
-    measured = target_measurements(quick)
+    # --quick: the targets' step only (the fused programs compile the render once more each).
+    measured = target_measurements(quick, TEXTURE_STEP_KINDS[:1] if quick else TEXTURE_STEP_KINDS)
     upd, tex_rows = measured["update_only"], measured["texture"]
     # The volume experiment's own timing table (tested with that experiment; skipped by --quick).
     vol_rows = [] if quick else volume_iterations(quick, repeats=7, steps=5, levels=lv)
@@ -1024,7 +1027,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.processes < 1:
         raise ValueError(f"--processes must be >= 1, got {args.processes}")
     if args.worker:
-        data = target_measurements(quick)
+        data = target_measurements(quick, kinds=TEXTURE_STEP_KINDS[:1])  # the targets' step
         data["targets"] = targets(data)
         data["machine"] = machine()
         common.write_results(args.out, "measurements", data, _targets_md(data["targets"]))

@@ -334,7 +334,7 @@ def test_full_mode_pitch_column_is_off_the_grid(shape):
     x = rng.normal(size=shape + (2,)).astype(np.float32)
     g = _quantised_guide(rng, shape, 1)
     axes = tuple(range(len(shape)))
-    levels = 3 if len(shape) == 2 else 2  # full 3-D compiles slowly
+    levels = 3 if len(shape) == 2 else 1  # full 3-D compiles slowly
     out = atrous_bilateral(
         jnp.asarray(x),
         jnp.asarray(g),
@@ -380,7 +380,7 @@ def test_pitch_rule():
     assert p((32, 32, 32), False, itemsize=8) == 1 and p((512, 3), False) == 0
 
 
-@pytest.mark.parametrize("gch", [1, 2])
+@pytest.mark.parametrize("gch", [2])  # one guide channel: the 2-D and reference tests
 def test_full_3d_pairs_handed_over_between_levels_match_reference(gch):
     # Full 3-D mode computes the weights of offsets shared by consecutive levels once
     # (atrous's handover order): three levels, so a level both takes over and hands over.

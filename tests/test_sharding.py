@@ -142,7 +142,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
     x = jax.random.normal(jax.random.fold_in(key, 99), (16, 12, 4))
     mask = jax.random.uniform(jax.random.fold_in(key, 98), (16, 12)) > 0.2
-    for sep in (True, False):
+    for sep in (True,):  # full mode's halos are checked above; its self-guiding in test_atrous
         kw = dict(sigma_d=0.3, levels=3, spatial_axes=(0, 1), separable=sep, log_guide=True)
         ref = ob.atrous_bilateral((x, x * x), "self", mask=mask, **kw)
         sh = NamedSharding(device_mesh, P("x", None, "y"))
@@ -198,8 +198,9 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     specs = {"tex": P("x", "y"), "vol": P("x", "y"), "bias": P()}
     grids = ("tex", "vol", "bias")
     configs = [  # (route, mesh shape, transforms, separable, levels, masked, leaves)
-        ("shard_map", (8, 1), every, True, 2, False, grids),
-        ("shard_map", (4, 2), every, True, 2, True, grids),
+        # 8x1 meshes are covered by the filter checks above; unmasked (the non-finite fast
+        # path's lax.cond) here, masked in full mode below.
+        ("shard_map", (4, 2), every, True, 2, False, grids),
         # Full 3-D (62 offset pairs per level) compiles slowly: the filter checks cover it.
         ("shard_map", (4, 2), every, False, 1, True, ("tex", "bias")),
         # XLA's partitioner compiles the filter slowly: one small configuration.
@@ -310,16 +311,15 @@ def test_sharded_filter_moves_only_halos():
 
 def test_sharded_self_guided_filter_equals_single_device_and_keeps_sharding():
     recs = _checks("filter_self")
-    assert len(recs) == 2
+    assert len(recs) == 1
     for r in recs:
         assert r["max_diff"] <= TOL and r["sharding_kept"], r
 
 
 def test_transforms_equal_single_device():
     recs = _checks("transforms")
-    # Separable on both meshes; full mode on 4x2 (8x1 full: the filter checks).
+    # Separable and full mode on 4x2 (8x1: the filter checks).
     assert {(r["route"], r["mesh"], r["separable"]) for r in recs if r["route"] == "shard_map"} == {
-        ("shard_map", "8x1", True),
         ("shard_map", "4x2", True),
         ("shard_map", "4x2", False),
     }
