@@ -130,8 +130,9 @@ def make_optimizer(method: str, cfg: Config) -> optax.GradientTransformation:
     """The method's optimizer with its swept hyperparameters injectable (one compile per method)."""
     if method == "adam":
         return optax.inject_hyperparams(optax.adam)(learning_rate=0.01, b1=0.9)
-    fixed = dict(b1=cfg.b1_filtered, levels=cfg.levels)
-    static = ("levels", "b1", "guide", "log_guide")
+    # The texture is one (H, W) channel: said explicitly (the default rule would warn).
+    fixed = dict(b1=cfg.b1_filtered, levels=cfg.levels, spatial_axes=(0, 1))
+    static = ("levels", "b1", "guide", "log_guide", "spatial_axes")
     if method == "low-pass":
         return optax.inject_hyperparams(ob.bilateral_adam, static_args=static + ("sigma_d",))(
             learning_rate=0.01, sigma_d=math.inf, **fixed

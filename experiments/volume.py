@@ -201,6 +201,7 @@ def _optimizer(kind: str, static: dict, hp: dict) -> optax.GradientTransformatio
         levels=levels,
         guide=static["guide"],
         log_guide=static["log_guide"],
+        spatial_axes=(0, 1, 2),  # (D, H, W, C) grids: said explicitly (the rule would warn)
     )
 
 
