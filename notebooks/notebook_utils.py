@@ -172,22 +172,19 @@ def gradient_moments(problem: TextureProblem, alpha, n: int, key) -> tuple[jax.A
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
         raise ValueError(f"n must be an int >= 2 (the variance needs two samples), got {n!r}")
-    s, s2 = _gradient_sums(
-        jnp.asarray(alpha),
-        jnp.asarray(n, jnp.int32),
-        key,
-        problem.scene,
-        problem.reference,
-        spp=problem.spp,
-        spp_grad=problem.spp_grad,
-    )
+    s, s2 = _problem_sums(problem, alpha, n, key)
     mean = s / n
     return mean, jnp.maximum(s2 / n - mean * mean, 0.0) * (n / (n - 1))
 
 
 def mean_gradient(problem: TextureProblem, alpha, n: int, key) -> jax.Array:
     """The average of ``n`` independent gradient estimates (keys ``fold_in(key, i)``)."""
-    s, _ = _gradient_sums(
+    return _problem_sums(problem, alpha, n, key)[0] / n
+
+
+def _problem_sums(problem: TextureProblem, alpha, n: int, key) -> tuple[jax.Array, jax.Array]:
+    """Sums of ``n`` gradient estimates and of their squares (``n`` traced: one program)."""
+    return _gradient_sums(
         jnp.asarray(alpha),
         jnp.asarray(n, jnp.int32),
         key,
@@ -196,7 +193,6 @@ def mean_gradient(problem: TextureProblem, alpha, n: int, key) -> jax.Array:
         spp=problem.spp,
         spp_grad=problem.spp_grad,
     )
-    return s / n
 
 
 @functools.partial(jax.jit, static_argnames=("spp", "spp_grad"))
