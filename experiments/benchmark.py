@@ -30,6 +30,7 @@ check that the script runs; its numbers mean nothing.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import pathlib
@@ -196,10 +197,13 @@ def update_only(
     rows = []
     for name, shape in shapes.items():
         params, grad = update_arrays(shape)
+        # The guide moved since the state's last step, as in an optimisation (a guide at
+        # rest sends sigma_d="auto" to its first-step rule, an extra filter pass).
+        moved = params - 1e-2 * grad
         fns = {}
         for label, kind, levels, separable in variants:
             opt, prog = _program(kind, levels, separable)
-            fns[label] = (prog, (grad, warm_state(opt, params, grad), params))
+            fns[label] = (prog, (grad, warm_state(opt, params, grad), moved))
         res = interleaved(fns, rounds, inner, desc=f"update {name}")
         samples = {k: v["samples"] for k, v in res.items()}
         adam = res["adam"]["median"]
@@ -225,6 +229,49 @@ def update_only(
 
 
 _PROBLEMS: dict = {}
+
+
+def channel_rows(quick: bool, rounds: int) -> list[dict]:
+    """The filter alone (F = 3, fixed sigma_d) on a field of one channel against the same
+    grid with two: XLA's CPU backend once fused the weights into one channel's passes and
+    made them 5-14x slower than two channels' (BENCHMARKS.md, "Design decisions")."""
+    grids = {"16x16": (16, 16)} if quick else {"512x512": (512, 512), "64^3": (64, 64, 64)}
+    rows = []
+    for name, shape in grids.items():
+        key = jax.random.PRNGKey(0)
+        guide = jax.random.uniform(key, shape)
+        fns = {}
+        for separable in (True,) if quick else (True, False):
+            mode = "separable" if separable else "full"
+            filt = jax.jit(
+                functools.partial(
+                    ob.atrous_bilateral,
+                    sigma_d=FIXED_SIGMA_D,
+                    levels=3,
+                    spatial_axes=tuple(range(len(shape))),
+                    separable=separable,
+                )
+            )
+            for c in (1, 2):
+                field = jax.random.normal(jax.random.fold_in(key, c), shape + (c,))
+                fns[f"{mode} C={c}"] = (filt, (field, guide))
+        res = interleaved(fns, rounds, 3, desc=f"channels {name}")
+        samples = {k: v["samples"] for k, v in res.items()}
+        for label in fns:
+            mode, c = label.split(" C=")
+            if c == "1":
+                rows.append(
+                    {
+                        "grid": name,
+                        "mode": mode,
+                        "ms, 1 channel": 1e3 * res[label]["median"],
+                        "ms, 2 channels": 1e3 * res[f"{mode} C=2"]["median"],
+                        "1 / 2 channels (paired)": common.paired_ratio(
+                            samples, label, f"{mode} C=2"
+                        ),
+                    }
+                )
+    return rows
 
 
 def _texture_problem(cfg):
@@ -357,7 +404,8 @@ def overhead(out: pathlib.Path, quick: bool) -> dict:
     upd, tex_rows = measured["update_only"], measured["texture"]
     # The volume experiment's own timing table (tested with that experiment; skipped by --quick).
     vol_rows = [] if quick else volume_iterations(quick, repeats=7, steps=5, levels=lv)
-    data = {"update_only": upd, "texture": tex_rows, "volume": vol_rows}
+    chan_rows = channel_rows(quick, rounds=2 if quick else 15)
+    data = {"update_only": upd, "texture": tex_rows, "volume": vol_rows, "channels": chan_rows}
     md = [
         "### Update only (`bilateral_adam(...).update` vs `optax.adam(...).update`, same arrays)",
         "",
@@ -370,6 +418,10 @@ def overhead(out: pathlib.Path, quick: bool) -> dict:
         "### Per iteration (render + gradient + update), volume experiment",
         "",
         common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in vol_rows]),
+        "",
+        "### The filter alone (F = 3), a field of one channel against two",
+        "",
+        common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in chan_rows]),
     ]
     md = "\n".join(md)
     common.write_results(out, "overhead", data, md)

@@ -31,6 +31,8 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
     )
     tex = result["overhead"]["texture"]
     assert all(r["% vs Adam (paired)"] == 0.0 for r in tex if r["method"] == "Adam")
+    chan = result["overhead"]["channels"]
+    assert chan and all(r["ms, 1 channel"] > 0 and r["1 / 2 channels (paired)"] > 0 for r in chan)
 
     # (b) the full float32 filter matches the full float64 one to float32 rounding
     # (1e-5: a few float32 ulps accumulated over F levels of 5^n-tap sums), while the

@@ -33,7 +33,13 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src.bilateral import channel_sq_dist, level_passes, rescale_guide, weight
+from optax_bilateral._src.bilateral import (
+    channel_sq_dist,
+    level_passes,
+    rescale_guide,
+    two_channels,
+    weight,
+)
 
 
 def plane_shape(spatial_shape: Sequence[int]) -> tuple[int, ...]:
@@ -65,7 +71,7 @@ def filter_planes(
     """
     if g.shape[0] > 1:  # one channel: see _pair_weights
         g, sigma = rescale_guide(g, sigma)
-    return _filter_planar(x, g, valid, sigma, levels, separable, start)
+    return two_channels(lambda x: _filter_planar(x, g, valid, sigma, levels, separable, start), x)
 
 
 def _pad_rows(x: jax.Array, lo: int, hi: int, shape: Sequence[int]) -> jax.Array:

@@ -41,7 +41,13 @@ import numpy as np
 from jax import lax
 from jax.sharding import AbstractMesh, AxisType, Mesh, NamedSharding, PartitionSpec
 
-from optax_bilateral._src.bilateral import channel_sq_dist, level_passes, rescale_guide, weight
+from optax_bilateral._src.bilateral import (
+    channel_sq_dist,
+    level_passes,
+    rescale_guide,
+    two_channels,
+    weight,
+)
 from optax_bilateral._src.validation import normalize_axes
 
 
@@ -277,12 +283,16 @@ class HaloKernel:
                 cache[pattern] = (g_ext, widths, s_ext)
             return cache[pattern]
 
-        for pairs, h0 in passes:
-            pattern = tuple(any(off[k] for off, _ in pairs) for k in range(len(shape)))
-            g_ext, gw, s_ext = extended(pattern)
-            x = _local_pass(x, g_ext, gw, valid, s_ext, pairs, h0, geo)
-            x = lax.optimization_barrier(x)
-        return x
+        def run(x):
+            for pairs, h0 in passes:
+                pattern = tuple(any(off[k] for off, _ in pairs) for k in range(len(shape)))
+                g_ext, gw, s_ext = extended(pattern)
+                x = _local_pass(x, g_ext, gw, valid, s_ext, pairs, h0, geo)
+                x = lax.optimization_barrier(x)
+            return x
+
+        # 2-D full passes on a block keep their weights materialised with one channel too.
+        return run(x) if len(shape) == 2 and not separable else two_channels(run, x)
 
 
 BlockFn = Callable[..., tuple]
