@@ -1,8 +1,8 @@
 """Issue #17's SURE study: candidate optimizers for ``python -m experiments.tuning --candidates``.
 
-Not part of the library. Stein's unbiased risk estimate picks ``sigma_d`` (and F) among a few
-candidates at every step, per leaf (or per texel); docs/auto_sigma.md has the measured table
-and why it was not adopted. Reproduce a row, e.g.::
+Not part of the library. Stein's unbiased risk estimate picks ``sigma_d`` and F (or F alone,
+the ``surF`` rows) among a few candidates at every step, per leaf (or per texel);
+docs/auto_sigma.md has the measured table and why it was not adopted. Reproduce a row, e.g.::
 
     python -m experiments.tuning --out results/sure \
         --candidates sbF_w05=experiments.sure_candidates:sbF_w05
@@ -287,3 +287,10 @@ sbFr_w02 = _f(w=0.2, identity=True, blend=True, level_set=F_SET, risk_decay=0.8)
 # The per-entry probe (negative risk estimates) and the per-texel choice.
 leaf_w1_rad = _f(w=1.0, noise="rad")
 texF_w1_b = _f(w=1.0, identity=False, blend=True, per_texel=True, level_set=F_SET)
+# SURE over F alone, sigma_d = auto's s0 (factors=(1.0,)), with auto's blend: F 1-5 or 2-4.
+surF_w1 = _f(factors=(1.0,), w=1.0, identity=False, blend=True, level_set=(1, 2, 3, 4, 5))
+surF_w05 = _f(factors=(1.0,), w=0.5, identity=True, blend=True, level_set=(1, 2, 3, 4, 5))
+surF234_w1_r = _f(
+    factors=(1.0,), w=1.0, identity=False, blend=True, level_set=(2, 3, 4), risk_decay=0.9
+)
+surF234_w05 = _f(factors=(1.0,), w=0.5, identity=True, blend=True, level_set=(2, 3, 4))
