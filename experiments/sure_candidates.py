@@ -294,3 +294,6 @@ surF234_w1_r = _f(
     factors=(1.0,), w=1.0, identity=False, blend=True, level_set=(2, 3, 4), risk_decay=0.9
 )
 surF234_w05 = _f(factors=(1.0,), w=0.5, identity=True, blend=True, level_set=(2, 3, 4))
+# SURE over sigma_d alone (s0 x {0.3, 1, 3, 10}) at F = 3, auto's levels, with auto's blend.
+sbS_w1 = _f(w=1.0, identity=False, blend=True, level_set=(3,))
+sbS_w05 = _f(w=0.5, identity=True, blend=True, level_set=(3,))
