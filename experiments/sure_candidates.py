@@ -294,6 +294,22 @@ surF234_w1_r = _f(
     factors=(1.0,), w=1.0, identity=False, blend=True, level_set=(2, 3, 4), risk_decay=0.9
 )
 surF234_w05 = _f(factors=(1.0,), w=0.5, identity=True, blend=True, level_set=(2, 3, 4))
-# SURE over sigma_d alone (s0 x {0.3, 1, 3, 10}) at F = 3, auto's levels, with auto's blend.
+# SURE over sigma_d alone (s0 x {0.3, 1, 3, 10}, or {1, 3, 10}: sbS3) at F = 3, auto's levels,
+# with auto's blend; sbS3F4 at F = 4, sbS3F34 over F in {3, 4} too, sbS2 over s0 x {1, 3}.
 sbS_w1 = _f(w=1.0, identity=False, blend=True, level_set=(3,))
 sbS_w05 = _f(w=0.5, identity=True, blend=True, level_set=(3,))
+S3 = (1.0, 3.0, 10.0)
+sbS3_w05 = _f(factors=S3, w=0.5, identity=True, blend=True, level_set=(3,))
+sbS3_w04 = _f(factors=S3, w=0.4, identity=True, blend=True, level_set=(3,))
+sbS3_w03 = _f(factors=S3, w=0.3, identity=True, blend=True, level_set=(3,))
+sbS3F4_w05 = _f(factors=S3, w=0.5, identity=True, blend=True, level_set=(4,))
+sbS3F34_w04 = _f(factors=S3, w=0.4, identity=True, blend=True, level_set=(3, 4))
+sbS2_w05 = _f(factors=(1.0, 3.0), w=0.5, identity=True, blend=True, level_set=(3,))
+sbS3F34_w03 = _f(factors=S3, w=0.3, identity=True, blend=True, level_set=(3, 4))
+sbS3F345_w04 = _f(factors=S3, w=0.4, identity=True, blend=True, level_set=(3, 4, 5))
+sbS3F345_w03 = _f(factors=S3, w=0.3, identity=True, blend=True, level_set=(3, 4, 5))
+# Variants that did worse (docs/auto_sigma.md): a larger w, no identity, averaged risks.
+sbS_w07 = _f(w=0.7, identity=True, blend=True, level_set=(3,))
+sbS_w05_noid = _f(w=0.5, identity=False, blend=True, level_set=(3,))
+sbSr_w05 = _f(w=0.5, identity=True, blend=True, level_set=(3,), risk_decay=0.8)
+sbS3_w05_noid = _f(factors=S3, w=0.5, identity=False, blend=True, level_set=(3,))
