@@ -30,9 +30,10 @@ Honest caveat, printed with the table: the devices are *virtual* CPU devices
 2 cores, so more devices cannot run faster here; the timings show the overhead
 of splitting, the byte counts show what a real multi-device run would move.
 
-``python -m experiments.bench_sharding [--quick] [--out DIR]`` writes
-``summary.json``, ``table.md`` and ``step_time.png`` to DIR
-(default ``results/bench_sharding``).
+``python -m experiments.bench_sharding [--quick] [--out DIR] [--only cases,channels]``
+writes ``summary.json``, ``table.md`` and ``step_time.png`` to DIR (default
+``results/bench_sharding``). ``channels``: the filter of a one-channel field against a
+two-channel one on 2 devices (the one-channel fix, BENCHMARKS.md "Design decisions").
 """
 
 from __future__ import annotations
@@ -280,10 +281,34 @@ def _plot(rows, path):
     plt.close(fig)
 
 
+SECTIONS = ("cases", "channels")
+
+
+def channel_rows(quick: bool) -> list[dict]:
+    """The filter of one channel against two, each array split over 2 devices along its
+    first axis (explicit mesh): the sharded kernel's side of benchmark.channel_rows."""
+    from experiments import benchmark as bm
+
+    mesh = _device_mesh((2, 1), AxisType.Explicit)
+    split = NamedSharding(mesh, P("x"))
+    with jax.set_mesh(mesh):
+        return bm.channel_rows(quick, 2 if quick else 10, lambda a: jax.device_put(a, split))
+
+
 def main(argv=None) -> dict:
+    def extra(p):
+        p.add_argument(
+            "--only",
+            default=",".join(SECTIONS),
+            help=f"comma-separated sections to run, of {SECTIONS}",
+        )
+
     args = common.parse_args(
-        "sharded bilateral_adam step: time and bytes moved", "results/bench_sharding", argv
+        "sharded bilateral_adam step: time and bytes moved", "results/bench_sharding", argv, extra
     )
+    only = [x.strip() for x in args.only.split(",") if x.strip()]
+    if not only or any(x not in SECTIONS for x in only):
+        raise ValueError(f"--only: choose from {SECTIONS}, got {args.only!r}")
     if jax.device_count() < 8:
         raise RuntimeError(
             "bench_sharding needs 8 devices: run it as its own process (it sets "
@@ -291,22 +316,29 @@ def main(argv=None) -> dict:
         )
     repeats = 3 if args.quick else 7
     rows = []
-    for case in default_cases(args.quick):
-        rows += run_case(case, repeats, args.quick)
+    if "cases" in only:
+        for case in default_cases(args.quick):
+            rows += run_case(case, repeats, args.quick)
+    channels = channel_rows(args.quick) if "channels" in only else []
     args.out.mkdir(parents=True, exist_ok=True)
     summary = {
         "note": NOTE,
         "quick": args.quick,
         "rows": rows,
+        "channels": channels,
         "jax": jax.__version__,
         "devices": jax.device_count(),
     }
     path = common.write_summary(args.out, {}, **summary)
     table = common.markdown_table(rows, COLUMNS)
-    (args.out / "table.md").write_text(f"{NOTE}\n\n{table}\n")
-    _plot(rows, args.out / "step_time.png")
-    print(table)
-    print(f"\n{NOTE}\nwrote {path}")
+    chan = common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in channels])
+    head = "### The filter alone (F = 3), one channel against two, 2 devices"
+    md = f"{NOTE}\n\n{table}\n\n{head}\n\n{chan}\n"
+    (args.out / "table.md").write_text(md)
+    if rows:
+        _plot(rows, args.out / "step_time.png")
+    print(md)
+    print(f"wrote {path}")
     return summary
 
 

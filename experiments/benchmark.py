@@ -231,18 +231,19 @@ def update_only(
 _PROBLEMS: dict = {}
 
 
-def channel_rows(quick: bool, rounds: int) -> list[dict]:
+def channel_rows(quick: bool, rounds: int, place: Callable = lambda a: a) -> list[dict]:
     """The filter alone (F = 3, fixed sigma_d) on a field of one channel against the same
     grid with two: XLA's CPU backend once fused the weights into one channel's passes and
-    made them 5-14x slower than two channels' (BENCHMARKS.md, "Design decisions")."""
+    made them 2-14x slower than two channels' (BENCHMARKS.md, "Design decisions").
+    ``place`` puts each array on the devices (``experiments.bench_sharding``: split)."""
     grids = {"16x16": (16, 16)} if quick else {"512x512": (512, 512), "64^3": (64, 64, 64)}
+    modes = {"separable": True} if quick else {"separable": True, "full": False}
     rows = []
     for name, shape in grids.items():
         key = jax.random.PRNGKey(0)
-        guide = jax.random.uniform(key, shape)
+        guide = place(jax.random.uniform(key, shape))
         fns = {}
-        for separable in (True,) if quick else (True, False):
-            mode = "separable" if separable else "full"
+        for mode, separable in modes.items():
             filt = jax.jit(
                 functools.partial(
                     ob.atrous_bilateral,
@@ -253,24 +254,20 @@ def channel_rows(quick: bool, rounds: int) -> list[dict]:
                 )
             )
             for c in (1, 2):
-                field = jax.random.normal(jax.random.fold_in(key, c), shape + (c,))
-                fns[f"{mode} C={c}"] = (filt, (field, guide))
+                field = place(jax.random.normal(jax.random.fold_in(key, c), shape + (c,)))
+                fns[(mode, c)] = (filt, (field, guide))
         res = interleaved(fns, rounds, 3, desc=f"channels {name}")
         samples = {k: v["samples"] for k, v in res.items()}
-        for label in fns:
-            mode, c = label.split(" C=")
-            if c == "1":
-                rows.append(
-                    {
-                        "grid": name,
-                        "mode": mode,
-                        "ms, 1 channel": 1e3 * res[label]["median"],
-                        "ms, 2 channels": 1e3 * res[f"{mode} C=2"]["median"],
-                        "1 / 2 channels (paired)": common.paired_ratio(
-                            samples, label, f"{mode} C=2"
-                        ),
-                    }
-                )
+        for mode in modes:
+            rows.append(
+                {
+                    "grid": name,
+                    "mode": mode,
+                    "ms, 1 channel": 1e3 * res[(mode, 1)]["median"],
+                    "ms, 2 channels": 1e3 * res[(mode, 2)]["median"],
+                    "1 / 2 channels (paired)": common.paired_ratio(samples, (mode, 1), (mode, 2)),
+                }
+            )
     return rows
 
 

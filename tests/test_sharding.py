@@ -249,7 +249,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     with tempfile.TemporaryDirectory() as tmp:
         summary = bench.main(["--quick", "--out", tmp])
         files = sorted(os.listdir(tmp))
-    emit(check="bench", files=files, rows=summary["rows"])
+    emit(check="bench", files=files, rows=summary["rows"], channels=summary["channels"])
 
 
 # ----------------------------------------------------------------------------------------
@@ -349,6 +349,7 @@ def test_bench_quick_writes_results_and_matches_single_device():
     for x in rows:
         assert x["max_abs_diff"] <= TOL and x["sharding_kept"] and x["step_ms"] > 0, x
         assert x["all_gather_count"] == 0, x
+    assert r["channels"] and all(x["1 / 2 channels (paired)"] > 0 for x in r["channels"])
 
 
 if __name__ == "__main__":
