@@ -561,6 +561,12 @@ def auto_factory(learning_rate, spatial_axes=None):
     return ob.bilateral_adam(learning_rate, sigma_d="auto", spatial_axes=spatial_axes)
 
 
+def sure_factory(learning_rate, spatial_axes=None):
+    """``sigma_d="sure"`` (docs/auto_sigma.md), as a candidate:
+    ``--candidates sure=experiments.tuning:sure_factory``."""
+    return ob.bilateral_adam(learning_rate, sigma_d="sure", spatial_axes=spatial_axes)
+
+
 def auto_available() -> bool:
     """Whether the installed library accepts ``sigma_d="auto"`` (tried on a small grid)."""
     try:

@@ -13,6 +13,7 @@ from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
 from optax_bilateral._src.pyramid import LaplacianPyramidState, laplacian_pyramid, pyramid_adam
 from optax_bilateral._src.state_io import load_state, save_state
+from optax_bilateral._src.sure import SureState
 from optax_bilateral._src.transforms import (
     DEFAULT_LEVELS,
     DEFAULT_SIGMA_D,
@@ -38,6 +39,7 @@ __all__ = (
     "PostfilterState",
     "PrefilterState",
     "ScaleByAdamState",
+    "SureState",
     "atrous_bilateral",
     "bilateral_adam",
     "default_spatial_axes",

@@ -1,4 +1,5 @@
-"""sigma_d="auto": scale invariance, the bounded step, state, transforms and bad input."""
+"""sigma_d="auto": scale invariance, the bounded step, state, transforms and bad input; with
+sigma_d="sure" beside it where the same check applies (test_sure.py has the rest)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import optax_bilateral as ob
-from optax_bilateral._src import auto
+from optax_bilateral._src import auto, sure
 
 SHAPE = (16, 16, 3)
 
@@ -72,15 +73,16 @@ def _units_runner(sigma_d, log_guide):
     return run
 
 
+@pytest.mark.parametrize("sigma_d", ["auto", "sure"])
 @pytest.mark.parametrize("log_guide", [False, True])
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
-def test_trajectory_is_invariant_to_the_parameters_units(scale, log_guide):
+def test_trajectory_is_invariant_to_the_parameters_units(scale, log_guide, sigma_d):
     # Parameters in other units (x scale, the learning rate with them) give the same
-    # trajectory in those units: auto's sigma_d follows the guide's scale. A fixed sigma_d
-    # does not (checked below), so the test can fail.
-    run = _units_runner("auto", log_guide)
+    # trajectory in those units: auto's (and sure's) sigma_d follows the guide's scale. A
+    # fixed sigma_d does not (checked below), so the test can fail.
+    run = _units_runner(sigma_d, log_guide)
     np.testing.assert_allclose(run(scale), run(1.0), rtol=2e-3, atol=2e-4)
-    if not log_guide:
+    if not log_guide and sigma_d == "auto":
         fixed = _units_runner(0.1, False)
         assert np.max(np.abs(fixed(scale) - fixed(1.0))) > 1e-3
 
@@ -127,6 +129,14 @@ def blend_problems(draw):
     return m, m.astype(np.float64) ** 2 + extra, residual, guide, count
 
 
+def _assert_bounded(m, v, mt, vt):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.abs(np.asarray(m, np.float64)) / np.sqrt(np.asarray(v, np.float64))
+        got = np.abs(np.asarray(mt, np.float64)) / np.sqrt(np.asarray(vt, np.float64))
+    bound = np.nanmax(ratio) if np.any(np.isfinite(ratio)) else 0.0
+    assert np.all(got[np.isfinite(got)] <= bound * (1 + 1e-5) + 1e-6)
+
+
 @given(problem=blend_problems())
 def test_the_blend_keeps_the_bounded_step(problem):
     # Supplement 1.3: m~ and v~ come from one non-negative row-stochastic operator, so
@@ -150,11 +160,40 @@ def test_the_blend_keeps_the_bounded_step(problem):
         observed=None,
     )
     assert np.all(np.isfinite(np.asarray(new_residual)))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.abs(np.asarray(m, np.float64)) / np.sqrt(np.asarray(v, np.float64))
-        got = np.abs(np.asarray(mt, np.float64)) / np.sqrt(np.asarray(vt, np.float64))
-    bound = np.nanmax(ratio) if np.any(np.isfinite(ratio)) else 0.0
-    assert np.all(got[np.isfinite(got)] <= bound * (1 + 1e-5) + 1e-6)
+    _assert_bounded(m, v, mt, vt)
+
+
+@jax.jit
+def _sure_step(m, v, zeta, guide, scale):
+    """sigma_d="sure"'s moments: the chosen candidate (v through its operator, as the step
+    does it), then the blend."""
+    filt = functools.partial(ob.atrous_bilateral, levels=2, spatial_axes=(0, 1))
+    cands = [filt((m, zeta), guide, sigma_d=f * scale) for f in sure.FACTORS]
+    mc, sigma_d, filtered = sure.choose(m, zeta, cands, scale, 1.0, True, None)
+    vc = jnp.where(filtered, filt(v, guide, sigma_d=sigma_d), v)
+    mt, vt, _ = auto.blend(
+        m,
+        v,
+        mc,
+        vc,
+        m * 0,
+        b1=0.2,
+        c1=1.0,
+        c2=1.0,
+        count=jnp.asarray(5),
+        axes=(0, 1),
+        observed=None,
+    )
+    return mt, vt, sigma_d
+
+
+@given(problem=blend_problems(), scale=st.floats(0.5**13, 2.0**13, width=32))
+def test_sure_choice_and_blend_keep_the_bounded_step(problem, scale):
+    # Whichever candidate sigma_d="sure" chooses, m~ and v~ come from one operator.
+    m, v, zeta, guide, _ = problem
+    mt, vt, sigma_d = _sure_step(m, v.astype(np.float32), zeta, guide, scale)
+    assert np.isfinite(float(sigma_d)) and float(sigma_d) >= 0
+    _assert_bounded(m, v, mt, vt)
 
 
 def test_state_holds_the_previous_guide_and_residual_and_checkpoints(tmp_path):
@@ -191,42 +230,58 @@ def _prev_params(opt, params):
     return x["tex"]
 
 
-def test_jit_eager_vmap_and_inject_hyperparams_agree():
+@pytest.mark.parametrize("sigma_d", ["auto", "sure"])
+def test_jit_eager_vmap_and_inject_hyperparams_agree(sigma_d):
     target = _target()
     x0 = jnp.full(SHAPE, 0.5, jnp.float32)
-    opt = ob.bilateral_adam(0.05, sigma_d="auto", levels=2)
-    state = opt.init(x0)
-    g = _noisy_grad(x0, jax.random.PRNGKey(0), target)
-    eager = opt.update(g, state, x0)
-    jitted = jax.jit(opt.update)(g, state, x0)
+    opt = ob.bilateral_adam(0.05, sigma_d=sigma_d, levels=2)
+    # The second step, with a moved guide ("sure" chooses once it has a noise sample).
+    _, state = opt.update(_noisy_grad(x0, jax.random.PRNGKey(0), target), opt.init(x0), x0)
+    x1 = x0 + 0.01
+    g = _noisy_grad(x1, jax.random.PRNGKey(1), target)
+    eager = opt.update(g, state, x1)
+    jitted = jax.jit(opt.update)(g, state, x1)
     for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(jitted)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
     injected = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels", "sigma_d"))(
-        learning_rate=0.05, sigma_d="auto", levels=2
+        learning_rate=0.05, sigma_d=sigma_d, levels=2
     )
-    u_inj, _ = injected.update(g, injected.init(x0), x0)
+    u_inj, _ = injected.update(g, injected.init(x0)._replace(inner_state=state), x1)
     np.testing.assert_allclose(u_inj, eager[0], rtol=1e-6, atol=1e-7)
-    batch = jnp.stack([x0, x0 + 0.1])
-    gb = jnp.stack([g, g])
-    ub, _ = jax.vmap(opt.update)(gb, jax.vmap(opt.init)(batch), batch)
+    batch = jnp.stack([x1, x1 + 0.1])
+    states = jax.tree.map(lambda s: jnp.stack([s, s]), state)
+    ub, _ = jax.vmap(opt.update)(jnp.stack([g, g]), states, batch)
     np.testing.assert_allclose(ub[0], eager[0], rtol=1e-5, atol=1e-7)
 
 
 @pytest.mark.parametrize(
-    "kwargs",
+    "sigma_d, kwargs",
     [
-        dict(prefilter=True, postfilter=False),
-        dict(prefilter=True),
-        dict(guide="self"),
-        dict(b1=0.0, b2=0.0),
-        dict(mask_unobserved=True),
-        dict(log_guide=True, separable=False),
+        ("auto", dict(prefilter=True, postfilter=False)),
+        ("auto", dict(prefilter=True)),
+        ("auto", dict(guide="self")),
+        ("auto", dict(b1=0.0, b2=0.0)),
+        ("auto", dict(mask_unobserved=True)),
+        ("auto", dict(log_guide=True, separable=False)),
+        ("sure", dict(mask_unobserved=True)),
+        ("sure", dict(log_guide=True, separable=False)),
+        ("sure", dict(b1=0.0, b2=0.5)),  # no memory: the noise is never estimated
     ],
-    ids=["prefilter", "pre+post", "self", "memoryless", "mask", "log-full"],
+    ids=[
+        "prefilter",
+        "pre+post",
+        "self",
+        "memoryless",
+        "mask",
+        "log-full",
+        "sure-mask",
+        "sure-log-full",
+        "sure-b1=0",
+    ],
 )
-def test_every_composition_runs_and_stays_finite_at_the_extremes(kwargs):
+def test_every_composition_runs_and_stays_finite_at_the_extremes(sigma_d, kwargs):
     x0 = jnp.full((8, 6, 2), 0.5, jnp.float32)
-    opt = ob.bilateral_adam(0.05, sigma_d="auto", levels=2, **kwargs)
+    opt = ob.bilateral_adam(0.05, sigma_d=sigma_d, levels=2, **kwargs)
     state = opt.init(x0)
     update = jax.jit(opt.update)
     x = x0
@@ -235,6 +290,7 @@ def test_every_composition_runs_and_stays_finite_at_the_extremes(kwargs):
         rng.normal(size=x0.shape),
         np.zeros(x0.shape),  # nothing observed (mask) / zero gradient
         np.where(rng.random(x0.shape) < 0.1, np.nan, rng.normal(size=x0.shape) * 1e30),
+        rng.normal(size=x0.shape) * 1e-30,
         rng.normal(size=x0.shape),
     ):
         g = jnp.asarray(g, jnp.float32)
@@ -243,6 +299,8 @@ def test_every_composition_runs_and_stays_finite_at_the_extremes(kwargs):
         bad = ~np.all(np.isfinite(np.asarray(g)), axis=-1)
         if "prefilter" not in kwargs or kwargs.get("postfilter", True):
             assert np.all(np.asarray(u)[bad] == 0)
+        if sigma_d == "sure":
+            assert np.isfinite(float(state[0].auto.sigma_d))
         x = optax.apply_updates(x, u)
 
 

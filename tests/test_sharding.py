@@ -243,6 +243,35 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             largest_all_gather_vs_tex=st["all-gather"]["max_bytes"] / (16 * 16 * 3 * 4),
         )
 
+    # --- sigma_d chosen from the data ("auto", "sure"): its statistics are means and filter
+    # passes of the sharded grid. Two steps: the second has a moved guide and a noise sample.
+    def two_steps(tx, g, p):
+        state = tx.init(p)
+        _, state = tx.update(g, state, p)
+        p = jax.tree.map(lambda a, b: a - 0.01 * jnp.nan_to_num(b), p, g)
+        g = jax.tree.map(lambda b, a: 0.5 * b + jnp.sin(7 * a), g, p)
+        u, state = tx.update(g, state, p)
+        autos = jax.tree.leaves(state[0].auto, is_leaf=is_sure)
+        return u, [a.sigma_d for a in autos if is_sure(a)]
+
+    is_sure = lambda x: isinstance(x, ob.SureState)
+    device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
+    keys = ("tex", "bias")
+    for sigma_d in ("auto", "sure"):
+        tx = ob.bilateral_adam(0.01, sigma_d=sigma_d, levels=2)
+        fn = jax.jit(functools.partial(two_steps, tx))
+        ref = fn(subset(grads, keys), subset(params, keys))
+        g_s, p_s = put(grads, device_mesh, keys), put(params, device_mesh, keys)
+        out = fn(g_s, p_s)
+        emit(
+            check="sigma_from_data",
+            sigma_d=sigma_d,
+            max_diff=max_diff(out[0], ref[0]),
+            sigma_diff=max_diff(out[1], ref[1]),
+            sigma=[float(x) for x in out[1]],
+            sharding_kept=out[0]["tex"].sharding.is_equivalent_to(p_s["tex"].sharding, 3),
+        )
+
     # --- The benchmark's quick run (also checks its own results).
     import tempfile
 
@@ -274,9 +303,11 @@ def _results() -> list[dict]:
             timeout=900,
         )
         recs = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
-        assert proc.returncode == 0, f"child failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
-        _RESULTS = recs
-    return _RESULTS
+        # Kept when the child fails too: every test then reports it without running it again.
+        _RESULTS = (proc, recs)
+    proc, recs = _RESULTS
+    assert proc.returncode == 0, f"child failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    return recs
 
 
 def _checks(kind):
@@ -339,6 +370,15 @@ def test_shard_map_route_gathers_nothing():
             assert set(r["kinds"]) <= {"collective-permute", "all-reduce"}, r
             assert "collective-permute" in r["kinds"], r
             assert r["all_reduce_max_bytes"] <= 8, r
+
+
+def test_auto_and_sure_sigma_equal_single_device():
+    recs = _checks("sigma_from_data")
+    assert [r["sigma_d"] for r in recs] == ["auto", "sure"]
+    for r in recs:
+        assert r["max_diff"] <= TOL and r["sharding_kept"], r
+    (sure,) = [r for r in recs if r["sigma_d"] == "sure"]
+    assert sure["sigma_diff"] <= TOL * max(sure["sigma"]) and len(sure["sigma"]) == 1, sure
 
 
 def test_bench_quick_writes_results_and_matches_single_device():

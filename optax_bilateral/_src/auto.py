@@ -118,6 +118,13 @@ def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:
     return (1 - b) * (2 - c) / ((1 + b) * c)
 
 
+def noise_ratio(b1: jax.Array, c1: jax.Array, count: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(rho, usable)``: Var of ``m_hat`` per unit gradient variance, and whether the noise
+    can be told from the signal (the step has memory: ``t > 1``, ``b1 > 0``)."""
+    ratio = _ema_variance_ratio(b1, c1)
+    return ratio, (count > 1) & (ratio < 1 - 1e-6)
+
+
 def _smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
     """Local averages of the statistics: one level of the filter's 5-tap B-spline with
     every weight 1 (sigma_d = inf), on one device or sharded like the leaf."""
@@ -158,8 +165,7 @@ def blend(
         new_residual = jnp.where(observed, new_residual, residual)
     residual_hat = new_residual / (1 - decay**t)
     # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
-    ratio = _ema_variance_ratio(b1, c1)
-    usable = (count > 1) & (ratio < 1 - 1e-6)
+    ratio, usable = noise_ratio(b1, c1, count)
     k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
     noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
     residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)

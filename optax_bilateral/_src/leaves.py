@@ -264,7 +264,8 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
         ax = _resolve_axes(leaf, ax, name, warn and lev > 0)
         if sig is None:
             raise ValueError(
-                f"sigma_d is None for leaf {name}; pass a number (inf for a low-pass) or 'auto'"
+                f"sigma_d is None for leaf {name}; "
+                "pass a number (inf for a low-pass), 'auto' or 'sure'"
             )
         check_sigma_d(sig, name=f"sigma_d (for leaf {name})", allow_auto=True)
         if ax and lev > 0:

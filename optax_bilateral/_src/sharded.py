@@ -86,6 +86,12 @@ def _spec_of(x):
     return s.mesh, entries
 
 
+def is_split(x) -> bool:
+    """Whether some axis of ``x`` is split over an explicit mesh axis."""
+    found = _spec_of(x)
+    return found is not None and any(found[1])
+
+
 def spatial_partition(field, spatial_axes) -> Partition | None:
     """How ``field``'s spatial axes are split over explicit mesh axes.
 

@@ -23,13 +23,13 @@ from __future__ import annotations
 
 import functools
 from numbers import Real
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src import auto, layout, numerics
+from optax_bilateral._src import auto, layout, numerics, sure
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.leaves import log_transform
 
@@ -54,6 +54,7 @@ class LeafRule(NamedTuple):
     filter_v: bool = True  # postfilter: filter v (the authors' vtfilter)
     second_moment: str = "elementwise"  # or "uniform": the max of v over the leaf
     auto_sigma: bool = False  # sigma_d="auto": chosen from the data (module auto)
+    sure_sigma: bool = False  # sigma_d="sure" (with auto_sigma): chosen by SURE (module sure)
 
 
 def split_numbers(**values: Any) -> tuple[tuple, dict]:
@@ -101,12 +102,13 @@ def leaf_step(
         return _guarded(rule, out, hyper), None, new_auto
     operands = (g, guide, moments, hyper)
     if rule.mask_unobserved:
-        d, m, v, residual = _postfilter_masked(rule, operands)
+        d, m, v, learned = _postfilter_masked(rule, operands)
     else:
-        d, m, v, residual = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
+        d, m, v, learned = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
     d = _guarded(rule, d, hyper)
-    if new_auto is not None and residual is not None and new_auto.residual is not None:
-        new_auto = new_auto._replace(residual=residual.astype(new_auto.residual.dtype))
+    if new_auto is not None:
+        learned = {k: x.astype(getattr(new_auto, k).dtype) for k, x in learned.items()}
+        new_auto = new_auto._replace(**learned)
     if moments is None:
         return d, None, new_auto
     return d, (m.astype(moments[0].dtype), v.astype(moments[1].dtype)), new_auto
@@ -118,12 +120,16 @@ def _auto_sigma(rule, g, guide, hyper, state):
     hyper = dict(hyper)
     if state is not None and state.residual is not None:
         hyper["residual"] = state.residual
+    if rule.sure_sigma:
+        hyper["previous_gradient"] = cast(sure.SureState, state).previous_gradient
     if rule.self_guided or guide is None:
         return hyper, state  # each field's own sigma_d, in filter_fields
     previous = None if state is None else state.previous_guide
     hyper["sigma_d"] = auto.sigma(guide, previous, hyper["count"], rule.axes)
     keep = guide if previous is None else guide.astype(previous.dtype)
-    return hyper, auto.AutoState(keep, None if state is None else state.residual)
+    if state is None:
+        return hyper, auto.AutoState(keep, None)
+    return hyper, state._replace(previous_guide=keep)
 
 
 def _when_clean(rule, g, plain, masked, operands):
@@ -179,9 +185,9 @@ def _prefilter_masked(rule, operands):
 
 def _postfilter_plain(rule, operands):
     g, guide, moments, hyper = operands
-    m, v = _moments(rule, g, moments, hyper, clip=False)
-    m_f, v_f, residual = _filtered_moments(rule, m, v, guide, hyper, None)
-    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v, residual
+    m, v = _moments(rule, g, moments, hyper)
+    m_f, v_f, learned = _filtered_moments(rule, m, v, guide, hyper, None, g)
+    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v, learned
 
 
 def _postfilter_masked(rule, operands):
@@ -194,18 +200,20 @@ def _postfilter_masked(rule, operands):
         observed = obs_full = jnp.isfinite(g)
         if rule.mask_unobserved:
             observed = obs_full = obs_full & (g != 0)
-    m, v = _moments(rule, jnp.where(obs_full, g, 0), moments, hyper, clip=True)
+    g_obs = jnp.where(obs_full, g, 0).astype(rule.compute_dtype)
+    g_obs = jnp.clip(g_obs, -rule.limit, rule.limit)
+    m, v = _moments(rule, g_obs, moments, hyper)
     if moments is not None:
         m = jnp.where(obs_full, m, moments[0].astype(rule.compute_dtype))
         v = jnp.where(obs_full, v, moments[1].astype(rule.compute_dtype))
-    m_f, v_f, residual = _filtered_moments(
-        rule, m, v, guide, hyper, observed if rule.axes else None
+    m_f, v_f, learned = _filtered_moments(
+        rule, m, v, guide, hyper, observed if rule.axes else None, g_obs
     )
     if rule.second_moment == "uniform":
         # The max over the leaf counts unobserved texels by the moments they keep.
         v_f = jnp.where(obs_full, v_f, v)
     d = jnp.where(obs_full, _step(rule, m_f, v_f, hyper), 0)
-    return d.astype(g.dtype), m, v, residual
+    return d.astype(g.dtype), m, v, learned
 
 
 # ----------------------------------------------------------------------------------------
@@ -220,12 +228,9 @@ def _observed(g, rule):
     return m
 
 
-def _moments(rule, g, moments, hyper, *, clip: bool):
-    """(m, v) in the compute dtype, from ``g`` clipped to the limit if ``clip``; without
-    stored moments (memoryless) ``(g, g^2)``."""
+def _moments(rule, g, moments, hyper):
+    """(m, v) in the compute dtype; without stored moments (memoryless) ``(g, g^2)``."""
     g = g.astype(rule.compute_dtype)
-    if clip:
-        g = jnp.clip(g, -rule.limit, rule.limit)
     if moments is None:
         return g, g * g
     m_old, v_old = moments
@@ -235,20 +240,25 @@ def _moments(rule, g, moments, hyper, *, clip: bool):
     return m, v
 
 
-def _filtered_moments(rule, m, v, guide, hyper, observed):
+def _filtered_moments(rule, m, v, guide, hyper, observed, g):
     """B m and B v, with one set of weights (unfiltered where the leaf is not filtered, and
-    each left as it is when ``filter_m`` / ``filter_v`` is off), and the new residual EMA
-    (``sigma_d="auto"`` with moments and both filtered, else None)."""
+    each left as it is when ``filter_m`` / ``filter_v`` is off), and what the step learned
+    for the leaf's auto state (``{}``, or with moments the new ``residual`` of
+    ``sigma_d="auto"``, and with ``"sure"`` the gradient ``g`` and the chosen sigma_d)."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
-        return m, v, None
+        return m, v, {}
     if not rule.filter_v:
-        return filter_fields(rule, m, guide, hyper, observed), v, None
+        return filter_fields(rule, m, guide, hyper, observed), v, {}
     if not rule.filter_m:
-        return m, filter_fields(rule, v, guide, hyper, observed), None
-    m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
+        return m, filter_fields(rule, v, guide, hyper, observed), {}
+    learned = {}
+    if rule.sure_sigma:
+        m_f, v_f, learned = _sure_moments(rule, m, v, guide, hyper, observed, g)
+    else:
+        m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
     if "residual" not in hyper:
-        return m_f, v_f, None
-    return auto.blend(
+        return m_f, v_f, learned
+    m_f, v_f, residual = auto.blend(
         m,
         v,
         m_f,
@@ -261,6 +271,30 @@ def _filtered_moments(rule, m, v, guide, hyper, observed):
         axes=rule.axes,
         observed=auto.full_mask(observed, m.ndim, rule.axes),
     )
+    return m_f, v_f, {**learned, "residual": residual}
+
+
+def _sure_moments(rule, m, v, guide, hyper, observed, g):
+    """``sigma_d="sure"``: one filter of (m, noise sample) per candidate sigma_d, the candidate
+    (or no filter) of least estimated risk (module sure), and v filtered at its sigma_d."""
+    b1 = jnp.asarray(_number(rule, hyper, "b1"), m.dtype)
+    ratio, usable = auto.noise_ratio(b1, hyper["c1"], hyper["count"])
+    previous = hyper["previous_gradient"].astype(m.dtype)
+    g = g.astype(m.dtype)
+    obs_full = auto.full_mask(observed, m.ndim, rule.axes)
+    if obs_full is not None:  # an unobserved texel's last gradient waits for its next one
+        g = jnp.where(obs_full, g, previous)
+    zeta = sure.noise_sample(g, previous, ratio, usable)
+    scale = hyper["sigma_d"]
+    candidates = [
+        filter_fields(rule, (m, zeta), guide, dict(hyper, sigma_d=f * scale), observed)
+        for f in sure.FACTORS
+    ]
+    c1 = jnp.asarray(hyper["c1"], m.dtype)
+    m_f, sigma_d, filtered = sure.choose(m, zeta, candidates, scale, c1, usable, obs_full)
+    v_f = filter_fields(rule, v, guide, dict(hyper, sigma_d=sigma_d), observed)
+    v_f = jnp.where(filtered, v_f, v)
+    return m_f, v_f, {"previous_gradient": g, "sigma_d": sigma_d}
 
 
 def _step(rule, m_f, v_f, hyper):

@@ -55,7 +55,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from optax_bilateral._src import auto, leaves, numerics
+from optax_bilateral._src import auto, leaves, numerics, sure
 from optax_bilateral._src.step import LeafRule, leaf_step, split_numbers
 from optax_bilateral._src.validation import (
     check_bool,
@@ -239,6 +239,7 @@ def prefilter(
       sigma_d: data-term scale (>= 0; ``inf`` = low-pass) or ``"auto"`` (the
         default: 3x the guide's mean change per step, per leaf; docs/auto_sigma.md),
         a value or a pytree prefix of the parameters. A number is traceable.
+        (``"sure"`` needs Adam's moments: :func:`postfilter` only.)
       levels: F, number of a-trous levels (static), a number or a prefix. The
         authors' ``stride_levels = L`` is ``levels = L - 1`` (their strides are 0,
         1, 2, 4, ...; the stride-0 level is the identity).
@@ -282,6 +283,7 @@ def prefilter(
     """
     leaves.check_guide(guide)
     _static_checks(sigma_d, levels, spatial_axes)
+    _check_sure(sigma_d, "a prefilter has no moments; use a number or 'auto'")
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
@@ -359,6 +361,15 @@ def _static_checks(sigma_d, levels, spatial_axes) -> None:
         if not (hasattr(lev, "shape") and not is_concrete(lev)):  # traced: update says how
             check_levels(lev)
     leaves.check_spatial_axes_setting(spatial_axes)
+
+
+def _check_sure(sigma_d, why: str | None) -> None:
+    """Raises if some leaf's ``sigma_d`` is "sure" where it cannot work (``why``: the reason)."""
+    if why is not None and any(map(sure.is_sure, jax.tree.leaves(sigma_d))):
+        raise ValueError(
+            "sigma_d='sure' chooses among filters of Adam's moments m and v by their "
+            f"estimated risk: {why}"
+        )
 
 
 # ----------------------------------------------------------------------------------------
@@ -441,8 +452,11 @@ def postfilter(
         ``"auto"`` (the default: 3x the guide's mean change per step, per leaf, and a
         per-entry blend ``lam m + (1 - lam) B m`` (likewise ``v``, the same ``lam``)
         where the filter's residual persists beyond the moments' noise;
-        docs/auto_sigma.md); a value or a pytree prefix of the parameters. A number is
-        traceable.
+        docs/auto_sigma.md), or ``"sure"`` (an opt-in: ``"auto"``'s scale times 1, 3 or
+        10, or no filter, chosen per leaf and step by Stein's unbiased risk estimate,
+        then the same blend; three filter passes of three fields per step, a guide and
+        moments needed; :class:`SureState`); a value or a pytree prefix of the
+        parameters. A number is traceable.
       levels: F, number of a-trous levels (static), a number or a prefix; the
         authors' ``stride_levels`` - 1.
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
@@ -505,6 +519,7 @@ def postfilter(
     mu_dtype = check_mu_dtype(mu_dtype)
     check_second_moment(second_moment)
     filter_m, filter_v = check_bool(filter_m, "filter_m"), check_bool(filter_v, "filter_v")
+    _check_sure(sigma_d, _sure_unusable(b1, b2, guide, filter_m, filter_v))
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
@@ -585,7 +600,8 @@ def postfilter(
                 filter_m=filter_m,
                 filter_v=filter_v,
                 second_moment=second_moment,
-                auto_sigma=bool(spec.axes) and auto.is_auto(spec.sigma_d),
+                auto_sigma=bool(spec.axes) and _from_data(spec.sigma_d),
+                sure_sigma=bool(spec.axes) and sure.is_sure(spec.sigma_d),
             )
             hyper = dict(traced, c1=c1, c2=c2, count=count_inc)
             d, new, new_auto = leaf_step(g, leaf_guide, moments, hyper, auto_state, rule=rule)
@@ -611,32 +627,52 @@ def postfilter(
 # sigma_d="auto"
 
 AutoState = auto.AutoState
+SureState = sure.SureState
+
+
+def _from_data(sigma_d) -> bool:
+    """sigma_d is chosen from the data ("auto" or "sure")."""
+    return auto.is_auto(sigma_d) or sure.is_sure(sigma_d)
+
+
+def _sure_unusable(b1, b2, guide, filter_m, filter_v) -> str | None:
+    """Why a postfilter with these settings cannot take sigma_d="sure" (None: it can)."""
+    if is_zero(b1) and is_zero(b2):
+        return "b1 = b2 = 0 keeps no moments; use a number or 'auto'"
+    if guide == "self":
+        return "guide='self' gives m and v their own weights; use a number or 'auto'"
+    if not (filter_m and filter_v):
+        return "it needs filter_m=True and filter_v=True (one operator for both)"
+    return None
 
 
 def _sigma_setting(sigma_d) -> dict:
-    """The ``sigma_d`` hyperparameter of a leaf's step: none for "auto" (computed inside)."""
-    return {} if auto.is_auto(sigma_d) else {"sigma_d": sigma_d}
+    """The ``sigma_d`` hyperparameter of a leaf's step: none for "auto" or "sure" (computed
+    inside)."""
+    return {} if _from_data(sigma_d) else {"sigma_d": sigma_d}
 
 
 def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_residual: bool):
-    """Per leaf, an :class:`AutoState` where sigma_d is "auto" and the leaf is filtered (None
-    elsewhere); None if no leaf is."""
-    wanted = [bool(spec.axes) and auto.is_auto(spec.sigma_d) for spec in specs]
+    """Per leaf, an :class:`AutoState` where sigma_d is "auto" (a :class:`SureState` where it
+    is "sure") and the leaf is filtered (None elsewhere); None if no leaf is."""
+    wanted = [bool(spec.axes) and _from_data(spec.sigma_d) for spec in specs]
     if not any(wanted):
         return None
     guides = leaves.guide_leaves(guide, params, params, specs, log_guide, transform)
     states = []
-    for leaf, leaf_guide, want in zip(jax.tree.leaves(params), guides, wanted):
+    for leaf, leaf_guide, spec, want in zip(jax.tree.leaves(params), guides, specs, wanted):
         if not want:
             states.append(None)
             continue
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
-        states.append(
-            AutoState(
-                previous_guide=None if leaf_guide is None else jnp.zeros_like(leaf_guide),
-                residual=jnp.zeros(jnp.shape(leaf), dtype) if with_residual else None,
-            )
-        )
+        previous_guide = None if leaf_guide is None else jnp.zeros_like(leaf_guide)
+        residual = jnp.zeros(jnp.shape(leaf), dtype) if with_residual else None
+        if sure.is_sure(spec.sigma_d):  # a guide and moments: checked at construction
+            guide_zeros = jnp.zeros_like(cast(jax.Array, leaf_guide))
+            zeros = jnp.zeros(jnp.shape(leaf), dtype)
+            states.append(SureState(guide_zeros, zeros, zeros, jnp.zeros([], dtype)))
+        else:
+            states.append(AutoState(previous_guide=previous_guide, residual=residual))
     return jax.tree.unflatten(jax.tree.structure(params), states)
 
 

@@ -1,0 +1,119 @@
+"""sigma_d="sure": the risk estimate's choice, the bounded step, state, transforms, bad input.
+
+Scale invariance, the extremes, the bounded step and jit / vmap / inject_hyperparams are
+checked beside "auto"'s in test_auto.py.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import optax_bilateral as ob
+from optax_bilateral._src import sure
+
+SHAPE = (16, 16, 3)
+AXES = (0, 1)
+
+
+def _filter(fields, guide, sigma_d):
+    return ob.atrous_bilateral(fields, guide, sigma_d=sigma_d, levels=2, spatial_axes=AXES)
+
+
+def _candidates(m, zeta, guide, scale):
+    return [_filter((m, zeta), guide, f * scale) for f in sure.FACTORS]
+
+
+def _choice(mean, noise, guide, seed=0):
+    """sure.choose's sigma_d for m_hat = mean + noise * N(0, 1) with a probe of the same noise."""
+    rng = np.random.default_rng(seed)
+    m = jnp.asarray(mean + noise * rng.normal(size=mean.shape), jnp.float32)
+    zeta = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32)
+    guide = jnp.asarray(guide, jnp.float32)
+    scale = jnp.asarray(0.1, jnp.float32)
+    cands = _candidates(m, zeta, guide, scale)
+    _, sigma_d, filtered = sure.choose(m, zeta, cands, scale, 1.0, jnp.asarray(True), None)
+    assert bool(filtered) == (float(sigma_d) > 0)
+    return float(sigma_d)
+
+
+def test_the_risk_estimate_filters_noise_and_keeps_detail():
+    # A smooth mean under heavy noise: a filter (sigma_d > 0) has the smaller risk. A mean
+    # that changes sign from texel to texel, nearly noise-free, under a constant guide (no
+    # edge stops the filter): every filter's bias is far above its variance, so no filter.
+    i, j = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
+    smooth = np.repeat((0.5 + 0.3 * np.sin(i / 5.0) * np.cos(j / 7.0))[..., None], 3, -1)
+    assert _choice(smooth, noise=1.0, guide=smooth) > 0
+    checker = np.repeat(((i + j) % 2 * 2.0 - 1.0)[..., None], 3, -1)
+    assert _choice(checker, noise=1e-3, guide=np.zeros((16, 16))) == 0.0
+    # The same mean as the guide: the filter stops at every edge and keeps it, so it wins.
+    assert _choice(checker, noise=1e-3, guide=checker) > 0
+
+
+def test_the_first_step_takes_the_middle_candidate():
+    m = jnp.ones((8, 8, 1))
+    cands = [(m * k, m * 0) for k in (2.0, 3.0, 4.0)]
+    m_f, sigma_d, filtered = sure.choose(m, m * 0, cands, jnp.asarray(0.5), 1.0, False, None)
+    assert float(sigma_d) == sure.FACTORS[sure.FIRST] * 0.5 and bool(filtered)
+    np.testing.assert_array_equal(m_f, cands[sure.FIRST][0])
+
+
+def _target(block=4):
+    """A piecewise-constant RGB image of 4 x 4 blocks (test_auto's)."""
+    rng = np.random.default_rng(0)
+    return jnp.asarray(np.kron(rng.random((4, 4, 3)), np.ones((block, block, 1))), jnp.float32)
+
+
+def _grad(params, key, target):
+    return params - target + jax.random.normal(key, params.shape, params.dtype)
+
+
+def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
+    # Piecewise-constant target under unit noise (test_auto's problem): a filter must win.
+    target = _target(block=8)
+    params = {"tex": jnp.full(target.shape, 0.5), "light": jnp.zeros(())}
+    opt = ob.bilateral_adam(0.03, sigma_d={"tex": "sure", "light": 0.1})
+    adam = optax.adam(0.03)
+
+    def run(opt, steps):
+        state, p = opt.init(params), params
+        update = jax.jit(opt.update)
+        for i in range(steps):
+            g = {"tex": _grad(p["tex"], jax.random.PRNGKey(i), target), "light": p["light"] - 1}
+            u, state = update(g, state, p)
+            p = optax.apply_updates(p, u)
+        return p, state
+
+    p, state = run(opt, 60)
+    p_adam, _ = run(adam, 60)
+    err = float(jnp.mean(jnp.abs(p["tex"] - target)))
+    assert err < 0.9 * float(jnp.mean(jnp.abs(p_adam["tex"] - target))), err
+    post = state[0]
+    assert post.auto["light"] is None
+    tex = post.auto["tex"]
+    assert isinstance(tex, ob.SureState) and tex.residual.shape == target.shape
+    assert float(tex.sigma_d) > 0  # the noise dominates: it filtered
+    path = tmp_path / "state.npz"
+    ob.save_state(path, state)
+    restored = ob.load_state(path, opt.init(params))
+    for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "make, reason",
+    [
+        (lambda: ob.prefilter(sigma_d="sure"), "prefilter has no moments"),
+        (lambda: ob.bilateral_adam(0.1, sigma_d="sure", prefilter=True), "prefilter"),
+        (lambda: ob.postfilter(b1=0.0, b2=0.0, sigma_d={"a": "sure"}), "keeps no moments"),
+        (lambda: ob.bilateral_adam(0.1, sigma_d="sure", guide="self"), "guide='self'"),
+        (lambda: ob.postfilter(sigma_d="sure", filter_v=False), "filter_v=True"),
+    ],
+    ids=["prefilter", "bilateral_adam-prefilter", "memoryless", "self", "filter_v"],
+)
+def test_where_it_cannot_work_it_is_refused_at_construction(make, reason):
+    with pytest.raises(ValueError, match=rf"sigma_d='sure'.*{reason}"):
+        make()
