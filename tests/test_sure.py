@@ -103,6 +103,22 @@ def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_an_unobserved_texel_keeps_its_last_gradient_for_the_noise_sample():
+    # The noise sample differences a texel's gradient against its last observed one.
+    x = jnp.full((8, 8, 2), 0.5, jnp.float32)
+    opt = ob.bilateral_adam(0.05, sigma_d="sure", levels=1, mask_unobserved=True)
+    rng = np.random.default_rng(0)
+    g1, g2 = (jnp.asarray(rng.normal(size=x.shape), jnp.float32) for _ in range(2))
+    g2 = g2.at[2, 3].set(0.0)  # unobserved this step
+    _, state = opt.update(g1, opt.init(x), x)
+    _, state = opt.update(g2, state, x + 0.01)
+    kept = np.asarray(state[0].auto.previous_gradient)
+    np.testing.assert_array_equal(kept[2, 3], g1[2, 3])
+    np.testing.assert_array_equal(
+        np.delete(kept.reshape(64, 2), 19, 0), np.delete(np.asarray(g2).reshape(64, 2), 19, 0)
+    )
+
+
 @pytest.mark.parametrize(
     "make, reason",
     [
