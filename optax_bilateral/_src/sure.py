@@ -1,7 +1,7 @@
 """``sigma_d="sure"``: ``"auto"``'s scale times one of a few factors, or no filter, chosen
 per leaf and step by Stein's unbiased risk estimate.
 
-Derived and measured in docs/auto_sigma.md ("SURE over sigma_d"). For a fixed guide the
+Derived and measured in docs/auto_sigma.md (section ``sigma_d="sure"``). For a fixed guide the
 postfilter ``B`` is linear, so with a sample ``zeta`` of the noise of ``m_hat`` the risk
 of a candidate ``B`` is estimated without the true moments:
 
