@@ -82,7 +82,7 @@ def choose(m, zeta, candidates, scale, c1, usable, observed):
     keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
     risks = []
     for bm, bz in candidates:
-        bias = _norm2(keep((m - bm) / c1)) - _norm2(keep(zeta - bz))
+        bias = _norm2(keep(m - bm)) / c1**2 - _norm2(keep(zeta - bz))
         risks.append(bias + VARIANCE_WEIGHT * _norm2(keep(bz)))
     risks.append(VARIANCE_WEIGHT * _norm2(keep(zeta)))
     # An overflowing risk is no evidence for its candidate.

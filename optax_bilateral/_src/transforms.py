@@ -454,9 +454,9 @@ def postfilter(
         where the filter's residual persists beyond the moments' noise;
         docs/auto_sigma.md), or ``"sure"`` (an opt-in: ``"auto"``'s scale times 1, 3 or
         10, or no filter, chosen per leaf and step by Stein's unbiased risk estimate,
-        then the same blend; three filter passes of three fields per step, a guide and
-        moments needed; :class:`SureState`); a value or a pytree prefix of the
-        parameters. A number is traceable.
+        then the same blend; per step three filters of m and a noise sample and one
+        of v; a guide and moments needed; :class:`SureState`); a value or a pytree
+        prefix of the parameters. A number is traceable.
       levels: F, number of a-trous levels (static), a number or a prefix; the
         authors' ``stride_levels`` - 1.
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
@@ -666,13 +666,12 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
             continue
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         previous_guide = None if leaf_guide is None else jnp.zeros_like(leaf_guide)
-        residual = jnp.zeros(jnp.shape(leaf), dtype) if with_residual else None
+        zeros = jnp.zeros(jnp.shape(leaf), dtype)
         if sure.is_sure(spec.sigma_d):  # a guide and moments: checked at construction
-            guide_zeros = jnp.zeros_like(cast(jax.Array, leaf_guide))
-            zeros = jnp.zeros(jnp.shape(leaf), dtype)
+            guide_zeros = cast(jax.Array, previous_guide)
             states.append(SureState(guide_zeros, zeros, zeros, jnp.zeros([], dtype)))
         else:
-            states.append(AutoState(previous_guide=previous_guide, residual=residual))
+            states.append(AutoState(previous_guide, zeros if with_residual else None))
     return jax.tree.unflatten(jax.tree.structure(params), states)
 
 
