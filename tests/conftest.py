@@ -2,6 +2,15 @@ import os
 
 import hypothesis
 
+# The suite compiles hundreds of small programs, and LLVM's optimisations are most of their
+# compile time while changing results by float rounding at most; the tests assert properties
+# and tolerances, and the goldens compile with the same option (tests/goldens.py). Set before
+# JAX starts its backend, so pytest's workers and the children they start inherit it; a level
+# the caller chose wins.
+_FLAGS = os.environ.get("XLA_FLAGS", "")
+if "xla_backend_optimization_level" not in _FLAGS:
+    os.environ["XLA_FLAGS"] = f"{_FLAGS} --xla_backend_optimization_level=0".strip()
+
 # Each new shape or static setting compiles a new XLA program, so the property tests draw
 # those from small sets (shared compiled programs) and explore the data freely.
 # "default": quick, reproducible local runs. "ci" (make test): explores, >= 100 examples.

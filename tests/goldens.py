@@ -18,9 +18,10 @@ final state, upcast to float32 (exact for the three dtypes) and concatenated.
   configurations (every pair of factor levels appears in at least one of them),
   which ``tests/test_goldens.py`` compares bit for bit on every run; and a SHA-256 of
   every one of the 144 configurations, which ``--check`` (or the test with
-  ``OPTAX_BILATERAL_GOLDENS=all``) compares. Compiling all 144 takes 10-20 minutes
-  on 2 cores (4-11 s each), which is why the suite runs the subset.
-* The programs are compiled without LLVM's optimisations (``COMPILER_OPTIONS``).
+  ``OPTAX_BILATERAL_GOLDENS=all``) compares. Compiling all 144 takes about 4 minutes
+  on 2 cores (1-3 s each), which is why the suite runs the subset.
+* The programs, and the random inputs they are fed, are compiled without LLVM's
+  optimisations (``COMPILER_OPTIONS``), whatever ``$XLA_FLAGS`` says.
 * Bit-equality holds for one toolchain (the jax and jaxlib versions recorded in the
   file): another XLA may fuse, and so round, differently. Under another toolchain the
   test compares to a tolerance instead and says so.
@@ -120,7 +121,21 @@ def optimizer(kind, separable, guide, mask):
     return ob.postfilter(0.0, 0.0, 1e-8, **kw)
 
 
+def _compiled(fn, *args):
+    """``fn(*args)`` compiled with ``COMPILER_OPTIONS``: the inputs' bits (``jax.random.normal``
+    is a polynomial that LLVM may contract differently) do not depend on ``$XLA_FLAGS``."""
+    return (
+        jax.jit(fn, static_argnums=tuple(range(len(args))))
+        .lower(*args)
+        .compile(compiler_options=COMPILER_OPTIONS)()
+    )
+
+
 def params(dtype):
+    return _compiled(_params, jnp.dtype(dtype).name)
+
+
+def _params(dtype):
     k = jax.random.PRNGKey(20)
     return {
         "tex": (0.1 + jax.random.uniform(k, (6, 7, 2))).astype(dtype),
@@ -130,17 +145,22 @@ def params(dtype):
 
 
 def gradients(variant, step, like):
+    shapes = tuple((k, np.shape(v), jnp.dtype(v.dtype).name) for k, v in sorted(like.items()))
+    return _compiled(_gradients, variant, step, shapes)
+
+
+def _gradients(variant, step, shapes):
     key = jax.random.fold_in(jax.random.PRNGKey(21), step)
     g = {
-        k: jax.random.normal(jax.random.fold_in(key, i), np.shape(v), jnp.float32)
-        for i, (k, v) in enumerate(sorted(like.items()))
+        k: jax.random.normal(jax.random.fold_in(key, i), shape, jnp.float32)
+        for i, (k, shape, _) in enumerate(shapes)
     }
     if variant == "nan_texel":
         g["tex"] = g["tex"].at[2, 3, 1].set(jnp.nan)
         g["plane"] = g["plane"].at[1, 2].set(jnp.nan)
     elif variant == "huge":
         g = {k: v * 1e30 for k, v in g.items()}
-    return {k: v.astype(like[k].dtype) for k, v in g.items()}
+    return {k: g[k].astype(dtype) for k, _, dtype in shapes}
 
 
 def _flat(tree) -> np.ndarray:

@@ -9,8 +9,8 @@ does not start with an underscore. For each callable (function or class):
 * every parameter of its signature is described in an ``Args:`` (or, for a state or a
   dataclass, ``Attributes:``) section;
 * its examples run and print what they show (doctest): all of them in one child process,
-  so that they share JAX's compilation caches, with XLA's backend optimisations off (the
-  examples use tiny shapes, so compiling is most of their cost).
+  so that they share JAX's compilation caches, with XLA's backend optimisations off as in the
+  whole suite (conftest.py; the examples use tiny shapes, so compiling is most of their cost).
 
 The Mitsuba examples (those that import ``mitsuba`` or ``drjit``, or ask for the libLLVM)
 need Mitsuba 3 and a libLLVM >= 16: where Mitsuba cannot be imported, or ``check_variant``
@@ -120,11 +120,6 @@ def test_the_argument_parser_reads_google_sections():
     assert _documented_args(doc) == {"a", "b", "c", "kw"}
 
 
-# The examples are compile-bound (tiny shapes): XLA's backend optimisations would cost more
-# compile time than they save, as in the notebooks' test.
-CHILD_XLA_FLAGS = "--xla_backend_optimization_level=0"
-
-
 def run_examples() -> dict[str, str]:
     """Runs every public callable's examples in this process; ``{name: outcome}`` with outcome
     ``"ok"``, ``"skip: <reason>"`` (a Mitsuba example where Mitsuba is unusable) or the
@@ -153,11 +148,10 @@ def run_examples() -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def example_outcomes() -> dict[str, str]:
-    """All examples, run once in one child process (fresh XLA flags; shared compilations)."""
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + CHILD_XLA_FLAGS).strip()
+    """All examples, run once in one child process (shared compilations; the XLA flags of
+    conftest.py)."""
     run = subprocess.run(
-        [sys.executable, __file__], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600
+        [sys.executable, __file__], cwd=ROOT, capture_output=True, text=True, timeout=600
     )
     assert run.returncode == 0, f"the examples' process failed:\n{run.stderr[-3000:]}"
     return json.loads(run.stdout.strip().splitlines()[-1])

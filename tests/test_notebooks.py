@@ -9,7 +9,6 @@ and keeps no buffers; the jointly filtered steps respect the bound of supplement
 """
 
 import importlib.util
-import os
 import pathlib
 import time
 
@@ -74,11 +73,6 @@ def test_notebook_runs_at_the_quick_size(name, monkeypatch):
 
     monkeypatch.setenv("OPTAX_BILATERAL_QUICK", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    # The quick size exists to exercise the code: XLA's backend optimisations would cost more
-    # compile time than they save in run time at 32^2 texels.
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_backend_optimization_level" not in flags:
-        monkeypatch.setenv("XLA_FLAGS", (flags + " --xla_backend_optimization_level=0").strip())
     nb = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
     start = time.time()
     NotebookClient(
