@@ -149,6 +149,7 @@ def sure_adam(
     noise="diff",
     blend=False,
     risk_decay=0.0,
+    weighting="none",
 ):
     b2 = 1 - (1 - b1) ** 2 if b2 is None else b2
     maxl = max(level_set)
@@ -214,9 +215,15 @@ def sure_adam(
             else:
                 bias2 = r * r - nres
             risk = bias2 + w * bz * bz
-            cand_m, cand_v = bm, bv
             if identity:
                 risk = jnp.concatenate([risk, (w * s2)[None]])
+            if weighting == "step":
+                # Adam's step error is (m_f - mu) / sqrt(v): weigh each entry's risk by 1 / v
+                # (its local average, so that one noisy v does not decide)
+                vb = blur(vh, axes)
+                risk = risk * jnp.where(vb > 0, 1 / jnp.where(vb > 0, vb, 1), 0)[None]
+            cand_m, cand_v = bm, bv
+            if identity:
                 cand_m = jnp.concatenate([bm, mh[None]])
                 cand_v = jnp.concatenate([bv, vh[None]])
             # the middle candidate before the noise can be estimated (t = 1: s2 = 0)
@@ -308,6 +315,12 @@ sbS2_w05 = _f(factors=(1.0, 3.0), w=0.5, identity=True, blend=True, level_set=(3
 sbS3F34_w03 = _f(factors=S3, w=0.3, identity=True, blend=True, level_set=(3, 4))
 sbS3F345_w04 = _f(factors=S3, w=0.4, identity=True, blend=True, level_set=(3, 4, 5))
 sbS3F345_w03 = _f(factors=S3, w=0.3, identity=True, blend=True, level_set=(3, 4, 5))
+# The same with each entry's risk weighed by 1 / (local average of v_hat): Adam's step error.
+_vw = functools.partial(_f, factors=S3, identity=True, blend=True, weighting="step")
+sbS3_w04_vw = _vw(w=0.4, level_set=(3,))
+sbS3_w1_vw = _vw(w=1.0, level_set=(3,))
+sbS3F345_w04_vw = _vw(w=0.4, level_set=(3, 4, 5))
+sbS3F345_w1_vw = _vw(w=1.0, level_set=(3, 4, 5))
 # Variants that did worse (docs/auto_sigma.md): a larger w, no identity, averaged risks.
 sbS_w07 = _f(w=0.7, identity=True, blend=True, level_set=(3,))
 sbS_w05_noid = _f(w=0.5, identity=False, blend=True, level_set=(3,))
