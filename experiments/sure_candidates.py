@@ -151,6 +151,8 @@ def sure_adam(
     risk_decay=0.0,
     weighting="none",
 ):
+    if weighting not in ("none", "step"):
+        raise ValueError(f"weighting must be 'none' or 'step', got {weighting!r}")
     b2 = 1 - (1 - b1) ** 2 if b2 is None else b2
     maxl = max(level_set)
     ncand = len(factors) * len(level_set)
@@ -215,17 +217,16 @@ def sure_adam(
             else:
                 bias2 = r * r - nres
             risk = bias2 + w * bz * bz
+            cand_m, cand_v = bm, bv
             if identity:
                 risk = jnp.concatenate([risk, (w * s2)[None]])
+                cand_m = jnp.concatenate([bm, mh[None]])
+                cand_v = jnp.concatenate([bv, vh[None]])
             if weighting == "step":
                 # Adam's step error is (m_f - mu) / sqrt(v): weigh each entry's risk by 1 / v
                 # (its local average, so that one noisy v does not decide)
                 vb = blur(vh, axes)
                 risk = risk * jnp.where(vb > 0, 1 / jnp.where(vb > 0, vb, 1), 0)[None]
-            cand_m, cand_v = bm, bv
-            if identity:
-                cand_m = jnp.concatenate([bm, mh[None]])
-                cand_v = jnp.concatenate([bv, vh[None]])
             # the middle candidate before the noise can be estimated (t = 1: s2 = 0)
             mid = (len(factors) // 2) * len(level_set) + len(level_set) // 2
             if per_texel:

@@ -31,6 +31,7 @@ Only the public API is used, so the file survives any restructuring of the libra
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import os
@@ -121,18 +122,17 @@ def optimizer(kind, separable, guide, mask):
     return ob.postfilter(0.0, 0.0, 1e-8, **kw)
 
 
-def _compiled(fn, *args):
-    """``fn(*args)`` compiled with ``COMPILER_OPTIONS``: the inputs' bits (``jax.random.normal``
-    is a polynomial that LLVM may contract differently) do not depend on ``$XLA_FLAGS``."""
-    return (
-        jax.jit(fn, static_argnums=tuple(range(len(args))))
-        .lower(*args)
-        .compile(compiler_options=COMPILER_OPTIONS)()
-    )
+@functools.cache
+def _compiled(fn, static, dynamic=()):
+    """``fn(*static, *args)`` for arguments shaped like ``dynamic``, compiled once per
+    ``static`` with ``COMPILER_OPTIONS``: the inputs' bits (``jax.random.normal`` is a
+    polynomial that LLVM may contract differently) do not depend on ``$XLA_FLAGS``."""
+    program = jax.jit(functools.partial(fn, *static)).lower(*dynamic)
+    return program.compile(compiler_options=COMPILER_OPTIONS)
 
 
 def params(dtype):
-    return _compiled(_params, jnp.dtype(dtype).name)
+    return _compiled(_params, (jnp.dtype(dtype).name,))()
 
 
 def _params(dtype):
@@ -146,10 +146,11 @@ def _params(dtype):
 
 def gradients(variant, step, like):
     shapes = tuple((k, np.shape(v), jnp.dtype(v.dtype).name) for k, v in sorted(like.items()))
-    return _compiled(_gradients, variant, step, shapes)
+    step_spec = jax.ShapeDtypeStruct((), jnp.int32)
+    return _compiled(_gradients, (variant, shapes), (step_spec,))(jnp.int32(step))
 
 
-def _gradients(variant, step, shapes):
+def _gradients(variant, shapes, step):
     key = jax.random.fold_in(jax.random.PRNGKey(21), step)
     g = {
         k: jax.random.normal(jax.random.fold_in(key, i), shape, jnp.float32)

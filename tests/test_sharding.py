@@ -245,6 +245,8 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
 
     # --- sigma_d chosen from the data ("auto", "sure"): its statistics are means and filter
     # passes of the sharded grid. Two steps: the second has a moved guide and a noise sample.
+    is_sure = lambda x: isinstance(x, ob.SureState)
+
     def two_steps(tx, g, p):
         state = tx.init(p)
         _, state = tx.update(g, state, p)
@@ -254,7 +256,6 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         autos = jax.tree.leaves(state[0].auto, is_leaf=is_sure)
         return u, [a.sigma_d for a in autos if is_sure(a)]
 
-    is_sure = lambda x: isinstance(x, ob.SureState)
     device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
     keys = ("tex", "bias")
     for sigma_d in ("auto", "sure"):
