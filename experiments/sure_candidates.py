@@ -124,8 +124,8 @@ def texel_norm(x, axes):
 
 
 def base_sigma(gd, prev, t, axes):
-    """The library's auto scale: 3 * mean guide step; 1.5 * mean distance from the local
-    average before the guide moves."""
+    """The library's step scale (``"sure"``'s, and a prefilter's ``"auto"``): 3 * mean guide
+    step; 1.5 * mean distance from the local average before the guide moves."""
     step = jnp.mean(texel_norm(gd - prev, axes))
     con = jnp.mean(texel_norm(gd - blur(gd, axes), axes))
     return jnp.where((t > 1) & (step > 0), 3.0 * step, 1.5 * con)

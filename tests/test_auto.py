@@ -117,6 +117,37 @@ def test_sigma_follows_the_guide_step_and_starts_from_its_contrast():
     np.testing.assert_allclose(auto.sigma(guide, guide, jnp.asarray(5), axes), first)
 
 
+def test_postfilter_sigma_is_one_learning_rate_in_the_guides_units():
+    guide = jnp.asarray(np.random.default_rng(1).random((8, 8, 2)), jnp.float32)
+    axes = (0, 1)
+    # Each texel moved by 0.01 * (1, 1): 0.01 sqrt(2) per step, along a direction of norm 0.5.
+    moved = guide + 0.01
+    rate = auto.sigma(moved, guide, jnp.asarray(2), axes, jnp.asarray(0.5))
+    np.testing.assert_allclose(rate, math.sqrt(2) * 0.01 * math.sqrt(2) / 0.5, rtol=1e-5)
+    first = auto.sigma(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
+    # No direction yet (0), or a guide at rest: the contrast.
+    np.testing.assert_allclose(auto.sigma(moved, guide, jnp.asarray(2), axes, 0.0 * rate), first)
+    np.testing.assert_allclose(auto.sigma(guide, guide, jnp.asarray(3), axes, 1 + 0 * rate), first)
+
+
+@pytest.mark.parametrize("learning_rate", [1e-3, 0.5])
+def test_the_state_keeps_the_direction_so_sigma_follows_the_learning_rate(learning_rate):
+    """Unprojected, the guide (the parameters) moves by lr times the stored direction, so
+    the next sigma_d is sqrt(C) lr."""
+    opt = ob.bilateral_adam(learning_rate)
+    params = _target()
+    state = opt.init(params)
+    assert float(state[0].auto.direction) == 0.0
+    for i in range(3):
+        g = _noisy_grad(params, jax.random.PRNGKey(i), _target())
+        u, state = opt.update(g, state, params)
+        params = optax.apply_updates(params, u)
+        step = np.linalg.norm(np.asarray(u, np.float64), axis=-1).mean()
+        np.testing.assert_allclose(float(state[0].auto.direction) * learning_rate, step, rtol=1e-5)
+    prefilter = ob.prefilter().init(params)
+    assert prefilter.auto.direction is None
+
+
 @st.composite
 def blend_problems(draw):
     shape = draw(st.sampled_from([(6, 5, 1), (1, 9, 2), (4, 4, 3)]))
@@ -331,3 +362,15 @@ def test_the_filter_itself_takes_numbers_only():
         ob.atrous_bilateral(
             jnp.zeros((4, 4)), jnp.zeros((4, 4)), sigma_d="auto", levels=1, spatial_axes=(0, 1)
         )
+
+
+def test_auto_trace_reports_the_learning_rate_on_the_texture_scene():
+    """A projection only shortens steps, so the rate rule never exceeds the learning rate
+    (one channel); the step rule shrinks below it as the run converges."""
+    from experiments import auto_trace
+
+    out = auto_trace.trace("texture", 0.01, quick=True)
+    rate, step = np.asarray(out["rate"]), np.asarray(out["step"])
+    assert len(rate) == len(step) > 4 and np.isfinite(out["error"])
+    assert np.all(rate <= 0.01 * (1 + 1e-5)) and np.median(rate) > 0.005
+    assert np.median(step[-len(step) // 4 :]) < np.median(rate)

@@ -64,7 +64,7 @@ def bilateral_adam(
     only; ``sigma_d = "auto"`` (chosen from the data every step, docs/auto_sigma.md) with
     ``levels = 3`` (the authors' ``stride_levels = 4``; their texture runs use
     ``stride_levels = 5``, i.e. ``levels = 4``, their volume runs ``levels = 2``). On the
-    tuning benchmark's seven scenes the defaults were 1.04-1.51x the error of a
+    tuning benchmark's seven scenes the defaults were 1.03-1.55x the error of a
     per-scene tuned sigma_d and beat Adam on six; docs/hyperparameters.md says when to
     tune a number instead.
 
@@ -85,11 +85,12 @@ def bilateral_adam(
       sigma_d: data-term scale of the filter's weights ``exp(-|guide[p] - guide[q]| /
         sigma_d)``, in the guide's units (>= 0; ``0`` keeps only equal-guide
         neighbours, ``inf`` is a plain B-spline low-pass), or ``"auto"`` (the
-        default: chosen per leaf and step from the guide's change, with a per-texel
-        blend toward the unfiltered moments; docs/auto_sigma.md), or ``"sure"`` (an
-        opt-in that picks among ``"auto"``'s scale times 1, 3, 10 and no filter by
-        Stein's unbiased risk estimate each step: closer to a tuned sigma_d on the
-        tuning scenes, at 4-8x a fixed sigma_d's update time; :func:`postfilter`); a
+        default: one learning rate in the guide's units, measured per leaf and step
+        from the guide's change, with a per-texel blend toward the unfiltered moments;
+        docs/auto_sigma.md), or ``"sure"`` (an opt-in that picks among 3x the guide's
+        mean change per step times 1, 3, 10 and no filter by Stein's unbiased risk
+        estimate each step: a better worst case on the tuning scenes, at 4-8x a fixed
+        sigma_d's update time; :func:`postfilter`); a
         pytree prefix of the parameters gives one value per leaf (``{"density":
         "auto", "albedo": 0.1}``). A number is traceable.
       levels: F, the number of a-trous levels (static; footprint radius

@@ -2,11 +2,15 @@
 
 Two parts, derived in docs/auto_sigma.md and measured by ``python -m experiments.tuning``:
 
-* **The scale.** ``sigma_d = STEP_FACTOR * mean_p ||guide_t[p] - guide_{t-1}[p]||``: guide
-  differences smaller than a few optimisation steps are noise the optimiser is still
-  moving through; larger ones are edges. It scales with the guide (and with the learning
-  rate), so it needs no unit. Before the guide has moved (the first step) the guide's
-  mean neighbour difference stands in (``CONTRAST_FACTOR`` times it).
+* **The scale.** In a postfilter, one learning rate in the guide's units:
+  ``sigma_d = sqrt(C) mean_p ||guide_t[p] - guide_{t-1}[p]|| / mean_p ||d_{t-1}[p]||``
+  (``C`` channels per texel, ``d`` the postfilter's last output ``m~ / (sqrt(v~) + eps)``):
+  a guide difference that one step at the learning rate could make or undo is noise the
+  optimiser is still moving through; larger ones are edges. It scales with the guide and
+  follows the learning rate and its schedule, so it needs no unit. A prefilter, which does
+  not see the step it leads to, uses ``STEP_FACTOR`` times the mean guide step instead.
+  Before the guide has moved (the first step) the guide's mean neighbour difference
+  stands in (``CONTRAST_FACTOR`` times it).
 * **The blend** (postfilter with moments only). The filter's bias accumulates over steps,
   its noise reduction does not: texels where the residual ``r = m_hat - B m_hat`` persists
   over time beyond what the moments' noise (supplement eq. 24, ``v - m^2``) explains keep
@@ -19,6 +23,7 @@ Two parts, derived in docs/auto_sigma.md and measured by ``python -m experiments
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple, cast
 
 import jax
@@ -28,7 +33,8 @@ from optax_bilateral._src import layout
 from optax_bilateral._src.filter import atrous_bilateral
 
 AUTO = "auto"
-STEP_FACTOR = 3.0  # sigma_d per mean guide step
+RATE_FACTOR = 1.0  # postfilter: sigma_d per learning rate (in guide units) per sqrt(channel)
+STEP_FACTOR = 3.0  # prefilter and "sure": sigma_d per mean guide step
 CONTRAST_FACTOR = 1.5  # sigma_d per mean deviation from the local average (~ neighbour difference)
 RESIDUAL_DECAY = 0.9  # the residual's EMA
 GAIN = 0.25  # lam = 0 until the persistent residual exceeds 1/GAIN times its noise floor
@@ -40,9 +46,11 @@ class AutoState(NamedTuple):
     """One leaf's state for ``sigma_d="auto"`` (in :class:`PrefilterState` and
     :class:`PostfilterState`).
 
-    ``sigma_d`` is 3 times the mean change of the guide per step,
-    ``3 mean_p ||guide_t[p] - guide_{t-1}[p]||`` (before the guide moves: 1.5 times its
-    mean deviation from the local average), and the postfilter blends
+    ``sigma_d`` is, in a postfilter, one learning rate in the guide's units: the mean change
+    of the guide per step over the mean norm of the step's direction, times ``sqrt(C)``
+    for ``C`` channels per texel (in a prefilter, 3 times the mean change of the guide per
+    step; before the guide moves: 1.5 times its mean deviation from the local average),
+    and the postfilter blends
     ``lam m_hat + (1 - lam) B m_hat`` (likewise ``v``, the same ``lam``) where the filter's
     residual persists beyond the moments' noise ``v - m^2`` (docs/auto_sigma.md).
 
@@ -52,6 +60,9 @@ class AutoState(NamedTuple):
       residual: the exponential moving average (decay 0.9) of ``m_hat - B m_hat``, with
         the leaf's shape; None in a :func:`prefilter` or a memoryless postfilter (no
         moments).
+      direction: the mean norm per texel of a postfilter's last output
+        ``m~ / (sqrt(v~) + eps)`` (a scalar; 0 before the first step); None in a
+        :func:`prefilter`.
 
     Example::
 
@@ -60,10 +71,13 @@ class AutoState(NamedTuple):
         >>> auto = state.auto["tex"]
         >>> type(auto).__name__, auto.previous_guide.shape, auto.residual.shape
         ('AutoState', (16, 16, 3), (16, 16, 3))
+        >>> float(auto.direction)
+        0.0
     """
 
     previous_guide: jax.Array | None
     residual: jax.Array | None
+    direction: jax.Array | None
 
 
 def is_auto(sigma_d: Any) -> bool:
@@ -96,18 +110,37 @@ def contrast(guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
     return _finite_mean(_texel_norm(guide - local, axes))
 
 
+def direction_norm(d: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    """The mean norm per texel of a step's direction (:attr:`AutoState.direction`)."""
+    return _finite_mean(_texel_norm(d, axes))
+
+
 def sigma(
-    guide: jax.Array, previous: jax.Array | None, count: jax.Array, axes: tuple[int, ...]
+    guide: jax.Array,
+    previous: jax.Array | None,
+    count: jax.Array,
+    axes: tuple[int, ...],
+    direction: jax.Array | None = None,
 ) -> jax.Array:
-    """The leaf's sigma_d at step ``count`` (1 = first)."""
+    """The leaf's sigma_d at step ``count`` (1 = first); ``direction`` (a postfilter's
+    :attr:`AutoState.direction`) or None for the prefilter's and ``"sure"``'s step scale."""
     if previous is None:
         return CONTRAST_FACTOR * contrast(guide, axes)
     guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
-    step = _finite_mean(_texel_norm(guide - previous.astype(guide.dtype), _guide_axes(guide, axes)))
+    guide_axes = _guide_axes(guide, axes)
+    step = _finite_mean(_texel_norm(guide - previous.astype(guide.dtype), guide_axes))
+    moved = (count > 1) & (step > 0)
+    if direction is None:
+        scale = STEP_FACTOR * step
+    else:
+        channels = math.prod(n for a, n in enumerate(guide.shape) if a not in guide_axes)
+        rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
+        scale = RATE_FACTOR * math.sqrt(channels) * rate
+        moved = moved & (direction > 0)
     # The contrast costs a filter pass; only the first step (or a guide at rest) needs it.
     return jax.lax.cond(
-        (count > 1) & (step > 0),
-        lambda: STEP_FACTOR * step,
+        moved,
+        lambda: scale,
         lambda: (CONTRAST_FACTOR * contrast(guide, axes)).astype(step.dtype),
     )
 

@@ -106,6 +106,8 @@ def leaf_step(
     else:
         d, m, v, learned = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
     d = _guarded(rule, d, hyper)
+    if isinstance(new_auto, auto.AutoState) and new_auto.direction is not None:
+        learned = {**learned, "direction": auto.direction_norm(d, rule.axes)}
     if new_auto is not None:
         learned = {k: x.astype(getattr(new_auto, k).dtype) for k, x in learned.items()}
         new_auto = new_auto._replace(**learned)
@@ -125,10 +127,11 @@ def _auto_sigma(rule, g, guide, hyper, state):
     if rule.self_guided or guide is None:
         return hyper, state  # each field's own sigma_d, in filter_fields
     previous = None if state is None else state.previous_guide
-    hyper["sigma_d"] = auto.sigma(guide, previous, hyper["count"], rule.axes)
+    direction = state.direction if isinstance(state, auto.AutoState) else None
+    hyper["sigma_d"] = auto.sigma(guide, previous, hyper["count"], rule.axes, direction)
     keep = guide if previous is None else guide.astype(previous.dtype)
     if state is None:
-        return hyper, auto.AutoState(keep, None)
+        return hyper, auto.AutoState(keep, None, None)
     return hyper, state._replace(previous_guide=keep)
 
 

@@ -237,7 +237,8 @@ def prefilter(
 
     Args:
       sigma_d: data-term scale (>= 0; ``inf`` = low-pass) or ``"auto"`` (the
-        default: 3x the guide's mean change per step, per leaf; docs/auto_sigma.md),
+        default: 3x the guide's mean change per step, per leaf, since a prefilter does
+        not see the step it leads to; docs/auto_sigma.md),
         a value or a pytree prefix of the parameters. A number is traceable.
         (``"sure"`` needs Adam's moments: :func:`postfilter` only.)
       levels: F, number of a-trous levels (static), a number or a prefix. The
@@ -449,14 +450,16 @@ def postfilter(
         ``1 - (1 - b1)^2`` (both references).
       eps: added to the denominator, as in Adam.
       sigma_d: data-term scale (>= 0; ``inf`` = low-pass), in the guide's units, or
-        ``"auto"`` (the default: 3x the guide's mean change per step, per leaf, and a
-        per-entry blend ``lam m + (1 - lam) B m`` (likewise ``v``, the same ``lam``)
-        where the filter's residual persists beyond the moments' noise;
-        docs/auto_sigma.md), or ``"sure"`` (an opt-in: ``"auto"``'s scale times 1, 3 or
-        10, or no filter, chosen per leaf and step by Stein's unbiased risk estimate,
-        then the same blend; per step three filters of m and a noise sample and one
-        of v; a guide and moments needed; :class:`SureState`); a value or a pytree
-        prefix of the parameters. A number is traceable.
+        ``"auto"`` (the default: one learning rate in the guide's units per leaf, the
+        guide's mean change per step over the step's mean direction ``m~ / sqrt(v~)``
+        times ``sqrt(channels)``, and a per-entry blend ``lam m + (1 - lam) B m``
+        (likewise ``v``, the same ``lam``) where the filter's residual persists beyond
+        the moments' noise; docs/auto_sigma.md), or ``"sure"`` (an opt-in: 3x the
+        guide's mean change per step times 1, 3 or 10, or no filter, chosen per leaf
+        and step by Stein's unbiased risk estimate, then the same blend; per step
+        three filters of m and a noise sample and one of v; a guide and moments
+        needed; :class:`SureState`); a value or a pytree prefix of the parameters. A
+        number is traceable.
       levels: F, number of a-trous levels (static), a number or a prefix; the
         authors' ``stride_levels`` - 1.
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
@@ -671,7 +674,8 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
             guide_zeros = cast(jax.Array, previous_guide)
             states.append(SureState(guide_zeros, zeros, zeros, jnp.zeros([], dtype)))
         else:
-            states.append(AutoState(previous_guide, zeros if with_residual else None))
+            direction = jnp.zeros([], dtype) if transform == "postfilter" else None
+            states.append(AutoState(previous_guide, zeros if with_residual else None, direction))
     return jax.tree.unflatten(jax.tree.structure(params), states)
 
 

@@ -1,0 +1,75 @@
+"""The sigma_d that ``sigma_d="auto"`` uses along a run, against the step scale it replaced.
+
+    python -m experiments.auto_trace [--scene texture] [--learning-rate 0.01] [--seed 0]
+
+Runs ``bilateral_adam(learning_rate)`` (the defaults) on one tuning scene and, at every
+step, reads from the parameters and the state the two scales of docs/auto_sigma.md for its
+first leaf: the postfilter's rate rule, ``sqrt(C) mean ||Δγ|| / mean ||d||`` (what the run
+uses), and the step rule ``3 mean ||Δγ||`` (what a prefilter and ``"sure"`` use). Prints
+the medians of each over the run's quarters and the final error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import jax
+import numpy as np
+import optax
+
+import optax_bilateral as ob
+from experiments import scenes
+from optax_bilateral._src import auto
+
+
+def trace(name: str, learning_rate: float, seed: int = 0, quick: bool = False) -> dict:
+    """``{"rate": [...], "step": [...], "error": float}``: each scale for the update after
+    every step."""
+    scene = scenes.make(name, quick=quick)
+    opt = ob.bilateral_adam(learning_rate, spatial_axes=scene.spatial_axes)
+    axes = next(iter(ob.filtered_axes(scene.init, spatial_axes=scene.spatial_axes).values()))
+
+    @jax.jit
+    def step(params, state, i):
+        g = scene.grad(scene.data, params, jax.random.fold_in(jax.random.PRNGKey(seed), i))
+        u, state = opt.update(g, state, params)
+        return scene.project(scene.data, optax.apply_updates(params, u)), state
+
+    params, state = scene.init, opt.init(scene.init)
+    rates, steps = [], []
+    for i in range(scene.iterations):
+        new, state = step(params, state, i)
+        # The next update's sigma_d: this update's move of the guide over its direction.
+        moved = jax.tree.leaves(new)[0] - jax.tree.leaves(params)[0]
+        channels = math.prod(n for a, n in enumerate(moved.shape) if a not in axes)
+        norm = float(auto.direction_norm(moved, axes))
+        first = jax.tree.leaves(state[0].auto, is_leaf=lambda x: isinstance(x, ob.AutoState))[0]
+        rates.append(auto.RATE_FACTOR * math.sqrt(channels) * norm / float(first.direction))
+        steps.append(auto.STEP_FACTOR * norm)
+        params = new
+    return {"rate": rates, "step": steps, "error": float(scene.error(scene.data, params))}
+
+
+def quarters(values) -> list[float]:
+    q = max(1, len(values) // 4)
+    return [float(np.median(values[k : k + q])) for k in range(0, 4 * q, q)]
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    p.add_argument("--scene", default="texture", choices=sorted(scenes.SCENES))
+    p.add_argument("--learning-rate", type=float, default=0.01)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true")
+    args = p.parse_args(argv)
+    out = trace(args.scene, args.learning_rate, args.seed, args.quick)
+    for rule in ("rate", "step"):
+        medians = [f"{x:.3g}" for x in quarters(out[rule])]
+        print(f"{rule} rule sigma_d, medians per quarter:", medians)
+    print(f"final error {out['error']:.4g}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
