@@ -1,18 +1,23 @@
 """The sigma_d that ``sigma_d="auto"`` uses along a run, against the step scale it replaced.
 
     python -m experiments.auto_trace [--scene texture] [--learning-rate 0.01] [--seed 0]
+                                     [--out DIR]
 
-Runs ``bilateral_adam(learning_rate)`` (the defaults) on one tuning scene and, at every
-step, reads from the parameters and the state the two scales of docs/auto_sigma.md for its
-first leaf: the postfilter's rate rule, ``sqrt(C) mean ||Δγ|| / mean ||d||`` (what the run
-uses), and the step rule ``3 mean ||Δγ||`` (what a prefilter and ``"sure"`` use). Prints
-the medians of each over the run's quarters and the final error.
+Runs ``bilateral_adam(learning_rate)`` (the defaults: the guide is the parameters) on one
+tuning scene and, at every step, reads from the parameters and the state the two scales of
+docs/auto_sigma.md for its first leaf: the postfilter's rate rule,
+``sqrt(C) mean ||Δγ|| / mean ||d||`` (what the run uses), and the step rule
+``3 mean ||Δγ||`` (what a prefilter and ``"sure"`` use). Prints the medians of each over
+the run's quarters and the final error; with ``--out``, writes every value to
+``DIR/auto_trace.json``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import pathlib
 
 import jax
 import numpy as np
@@ -62,8 +67,13 @@ def main(argv=None) -> dict:
     p.add_argument("--learning-rate", type=float, default=0.01)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--out", default=None, help="folder for auto_trace.json (none: print only)")
     args = p.parse_args(argv)
     out = trace(args.scene, args.learning_rate, args.seed, args.quick)
+    if args.out is not None:
+        folder = pathlib.Path(args.out)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "auto_trace.json").write_text(json.dumps({**vars(args), **out}) + "\n")
     for rule in ("rate", "step"):
         medians = [f"{x:.3g}" for x in quarters(out[rule])]
         print(f"{rule} rule sigma_d, medians per quarter:", medians)

@@ -4,6 +4,7 @@ sigma_d="sure" beside it where the same check applies (test_sure.py has the rest
 from __future__ import annotations
 
 import functools
+import json
 import math
 
 import hypothesis.extra.numpy as hnp
@@ -364,12 +365,13 @@ def test_the_filter_itself_takes_numbers_only():
         )
 
 
-def test_auto_trace_reports_the_learning_rate_on_the_texture_scene():
+def test_auto_trace_reports_the_learning_rate_on_the_texture_scene(tmp_path):
     """A projection only shortens steps, so the rate rule never exceeds the learning rate
     (one channel); the step rule shrinks below it as the run converges."""
     from experiments import auto_trace
 
-    out = auto_trace.trace("texture", 0.01, quick=True)
+    out = auto_trace.main(["--quick", "--out", str(tmp_path)])
+    assert json.loads((tmp_path / "auto_trace.json").read_text())["rate"] == out["rate"]
     rate, step = np.asarray(out["rate"]), np.asarray(out["step"])
     assert len(rate) == len(step) > 4 and np.isfinite(out["error"])
     assert np.all(rate <= 0.01 * (1 + 1e-5)) and np.median(rate) > 0.005
