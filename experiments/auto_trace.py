@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import pathlib
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 
@@ -45,13 +45,12 @@ def trace(name: str, learning_rate: float, seed: int = 0, quick: bool = False) -
     rates, steps = [], []
     for i in range(scene.iterations):
         new, state = step(params, state, i)
-        # The next update's sigma_d: this update's move of the guide over its direction.
-        moved = jax.tree.leaves(new)[0] - jax.tree.leaves(params)[0]
-        channels = math.prod(n for a, n in enumerate(moved.shape) if a not in axes)
-        norm = float(auto.direction_norm(moved, axes))
+        # The next update's sigma_d (count i + 2) from this update's move of the guide.
+        guide, previous = jax.tree.leaves(new)[0], jax.tree.leaves(params)[0]
         first = jax.tree.leaves(state[0].auto, is_leaf=lambda x: isinstance(x, ob.AutoState))[0]
-        rates.append(auto.RATE_FACTOR * math.sqrt(channels) * norm / float(first.direction))
-        steps.append(auto.STEP_FACTOR * norm)
+        count = jnp.asarray(i + 2)
+        rates.append(float(auto.sigma(guide, previous, count, axes, first.direction)))
+        steps.append(float(auto.sigma(guide, previous, count, axes)))
         params = new
     return {"rate": rates, "step": steps, "error": float(scene.error(scene.data, params))}
 

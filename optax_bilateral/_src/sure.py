@@ -1,5 +1,6 @@
-"""``sigma_d="sure"``: ``"auto"``'s scale times one of a few factors, or no filter, chosen
-per leaf and step by Stein's unbiased risk estimate.
+"""``sigma_d="sure"``: the step scale (3x the guide's mean change per step, a prefilter's
+``"auto"`` scale) times one of a few factors, or no filter, chosen per leaf and step by
+Stein's unbiased risk estimate.
 
 Derived and measured in docs/auto_sigma.md (section ``sigma_d="sure"``). For a fixed guide the
 postfilter ``B`` is linear, so with a sample ``zeta`` of the noise of ``m_hat`` the risk
@@ -29,7 +30,7 @@ from jax import lax
 from optax_bilateral._src import sharded
 
 SURE = "sure"
-FACTORS = (1.0, 3.0, 10.0)  # the candidates' sigma_d, times "auto"'s scale
+FACTORS = (1.0, 3.0, 10.0)  # the candidates' sigma_d, times the step scale
 VARIANCE_WEIGHT = 0.4  # W
 FIRST = 1  # the candidate before the noise can be estimated (t = 1, or b1 = 0)
 
@@ -38,7 +39,7 @@ class SureState(NamedTuple):
     """One leaf's state for ``sigma_d="sure"`` (in :class:`PostfilterState`).
 
     Attributes:
-      previous_guide: the guide the last update saw (``"auto"``'s scale).
+      previous_guide: the guide the last update saw (the step scale).
       residual: ``"auto"``'s residual EMA of ``m_hat - B m_hat`` (the blend).
       previous_gradient: the gradient the last update saw, in the moments' arithmetic
         dtype (the noise sample is its difference from this step's).
