@@ -195,6 +195,49 @@ def test_the_blend_keeps_the_bounded_step(problem):
     _assert_bounded(m, v, mt, vt)
 
 
+def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
+    """``auto.blend``'s moments after ``steps`` steps whose filter misses ``bias`` every
+    step (B m_hat = m_hat - bias) under unit gradient noise: the last ``(m~, B m)``."""
+    key = jax.random.PRNGKey(seed)
+    m = v = residual = jnp.zeros_like(bias)
+    for t in range(1, steps + 1):
+        g = bias + jax.random.normal(jax.random.fold_in(key, t), bias.shape)
+        m, v = b1 * m + (1 - b1) * g, b2 * v + (1 - b2) * g * g
+        c1, c2 = 1 - b1**t, 1 - b2**t
+        bm = m - bias * c1
+        mt, _, residual = auto.blend(
+            m,
+            v,
+            bm,
+            v,
+            residual,
+            b1=b1,
+            c1=c1,
+            c2=c2,
+            count=jnp.asarray(t),
+            axes=(0, 1),
+            observed=None,
+        )
+    return mt, bm
+
+
+def test_the_blend_opens_where_a_bias_below_the_noise_persists_across_the_leaf():
+    # The filter's bias, 0.7 of one gradient's noise, everywhere (the i.i.d. noise target):
+    # the residual's ~33-step average sees it and the leaf blends back most of m_hat
+    # (0.66 of the bias; the former 10-step average and gate at 0.2: 0.23).
+    mt, bm = _blend_after(jnp.full((32, 32, 1), 0.7))
+    assert float(jnp.mean(jnp.abs(mt - bm))) > 0.5 * 0.7
+
+
+def test_the_blend_stays_closed_where_the_bias_persists_on_half_the_leaf():
+    # A bias at the noise level on half the texels (a piecewise-smooth target's edges are
+    # fewer): the leaf's gate stays shut and the filtered moments pass unchanged (the
+    # former gate at 0.2 opened here).
+    bias = jnp.zeros((32, 32, 1)).at[:, :16].set(1.0)
+    mt, bm = _blend_after(bias)
+    np.testing.assert_array_equal(np.asarray(mt), np.asarray(bm))
+
+
 @jax.jit
 def _sure_step(m, v, zeta, guide, scale):
     """sigma_d="sure"'s moments: the chosen candidate (v through its operator, as the step

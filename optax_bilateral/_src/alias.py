@@ -64,9 +64,9 @@ def bilateral_adam(
     only; ``sigma_d = "auto"`` (chosen from the data every step, docs/auto_sigma.md) with
     ``levels = 3`` (the authors' ``stride_levels = 4``; their texture runs use
     ``stride_levels = 5``, i.e. ``levels = 4``, their volume runs ``levels = 2``). On the
-    tuning benchmark's seven scenes the defaults were 1.03-1.55x the error of a
-    per-scene tuned sigma_d and beat Adam on six; docs/hyperparameters.md says when to
-    tune a number instead.
+    tuning benchmark's seven scenes the defaults were 0.96-1.55x the error of a
+    per-scene tuned sigma_d, beat Adam on six and tied it on the seventh;
+    docs/hyperparameters.md says when to tune a number instead.
 
     ``weight_decay`` is decoupled, as in :func:`optax.adamw`: ``lr * wd * params``
     is subtracted after the (filtered) Adam step, unfiltered. (The authors'

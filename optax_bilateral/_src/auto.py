@@ -36,10 +36,10 @@ AUTO = "auto"
 RATE_FACTOR = 1.0  # postfilter: sigma_d per learning rate (in guide units) per sqrt(channel)
 STEP_FACTOR = 3.0  # prefilter and "sure": sigma_d per mean guide step
 CONTRAST_FACTOR = 1.5  # sigma_d per mean deviation from the local average (~ neighbour difference)
-RESIDUAL_DECAY = 0.9  # the residual's EMA
+RESIDUAL_DECAY = 0.97  # the residual's EMA (~33 steps: a bias far below one step's noise shows)
 GAIN = 0.25  # lam = 0 until the persistent residual exceeds 1/GAIN times its noise floor
 POWER = 2.0
-GATE = (0.2, 0.35)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
+GATE = (0.5, 0.65)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
 
 
 class AutoState(NamedTuple):
@@ -57,7 +57,7 @@ class AutoState(NamedTuple):
     Attributes:
       previous_guide: the guide the last update saw, with the guide's shape (the
         parameter leaf's, or a callable guide's); None for ``guide="self"``.
-      residual: the exponential moving average (decay 0.9) of ``m_hat - B m_hat``, with
+      residual: the exponential moving average (decay 0.97) of ``m_hat - B m_hat``, with
         the leaf's shape; None in a :func:`prefilter` or a memoryless postfilter (no
         moments).
       direction: the mean norm per texel of a postfilter's last output
