@@ -36,7 +36,7 @@ AUTO = "auto"
 RATE_FACTOR = 1.0  # postfilter: sigma_d per learning rate (in guide units) per sqrt(channel)
 STEP_FACTOR = 3.0  # prefilter and "sure": sigma_d per mean guide step
 CONTRAST_FACTOR = 1.5  # sigma_d per mean deviation from the local average (~ neighbour difference)
-RESIDUAL_DECAY = 0.97  # the residual's EMA (~33 steps: a bias far below one step's noise shows)
+RESIDUAL_DECAY = 0.97  # the residual's EMA (~33 steps: a bias below one step's noise shows)
 GAIN = 0.25  # lam = 0 until the persistent residual exceeds 1/GAIN times its noise floor
 POWER = 2.0
 GATE = (0.5, 0.65)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
