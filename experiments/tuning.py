@@ -1188,8 +1188,8 @@ def run_benchmark(
     t0 = time.perf_counter()
     names = list(sc.SCENES) if not scene_names else list(scene_names)
     for n in names:
-        if n not in sc.SCENES:
-            raise ValueError(f"unknown scene {n!r}; choose from {sorted(sc.SCENES)}")
+        if n not in sc.ALL:
+            raise ValueError(f"unknown scene {n!r}; choose from {sorted(sc.ALL)}")
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = settings(quick)
@@ -1255,7 +1255,10 @@ def run_benchmark(
 def main(argv=None) -> dict:
     def extra(parser):
         parser.add_argument(
-            "--only-scenes", default="", help=f"comma-separated subset of {','.join(sc.SCENES)}"
+            "--only-scenes",
+            default="",
+            help=f"comma-separated subset of {','.join(sc.SCENES)} (default: all) "
+            f"or of the held-out {','.join(sc.HELD_OUT)}",
         )
         parser.add_argument(
             "--candidates",
