@@ -150,6 +150,7 @@ def sure_adam(
     blend=False,
     risk_decay=0.0,
     weighting="none",
+    blend_constants=(0.9, (0.2, 0.35)),  # the blend's (residual decay, gate); auto's former
 ):
     if weighting not in ("none", "step"):
         raise ValueError(f"weighting must be 'none' or 'step', got {weighting!r}")
@@ -250,7 +251,10 @@ def sure_adam(
                 pick = jnp.where(have, jnp.argmin(tot), mid)
                 mf, vf = cand_m[pick], cand_v[pick]
             if blend:
-                mf, vf, e_blend = _blend(mh, vh, mf, vf, e_blend, b1, c1, tf, have, k, axes)
+                decay, gate = blend_constants
+                mf, vf, e_blend = _blend(
+                    mh, vh, mf, vf, e_blend, b1, c1, tf, have, k, axes, decay=decay, gate=gate
+                )
             e = jnp.concatenate([e, e_blend[None]])
             return mf / (jnp.sqrt(vf) + eps), m, v, gd, e, g0, rk, pg
 
@@ -292,6 +296,10 @@ F_SET = (2, 3, 4, 5)
 sbF_w1 = _f(w=1.0, identity=False, blend=True, level_set=F_SET)
 sbF_w05 = _f(w=0.5, identity=True, blend=True, level_set=F_SET)
 sbFr_w02 = _f(w=0.2, identity=True, blend=True, level_set=F_SET, risk_decay=0.8)
+# sbF_w1 with the blend's current constants (auto.RESIDUAL_DECAY, auto.GATE).
+sbF_w1_b97 = _f(
+    w=1.0, identity=False, blend=True, level_set=F_SET, blend_constants=(0.97, (0.5, 0.65))
+)
 # The per-entry probe (negative risk estimates) and the per-texel choice.
 leaf_w1_rad = _f(w=1.0, noise="rad")
 texF_w1_b = _f(w=1.0, identity=False, blend=True, per_texel=True, level_set=F_SET)
