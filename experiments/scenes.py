@@ -282,11 +282,11 @@ def _masked_lsq_grad(blur, x, y, m):
     return 2.0 * blur(jnp.where(m, blur(x) - y, 0.0)) / jnp.maximum(jnp.sum(m), 1)
 
 
-def signal1d(quick: bool, n: int | None = None) -> Scene:
+def signal1d(quick: bool, n: int | None = None, name: str = "signal1d") -> Scene:
     """1-D deconvolution from random 10% subsets with fresh measurement noise each step;
     ``n`` samples (default 1024, quick 256)."""
-    size, iterations = (256, 40) if quick else (1024, 300)
-    n = size if n is None else n
+    default, iterations = (256, 40) if quick else (1024, 300)
+    n = default if n is None else n
     blur_sigma, fraction, noise = 2.0, 0.1, 0.1
     k = jnp.asarray(gaussian_kernel(blur_sigma))
     x_t = jnp.asarray(piecewise_smooth_signal(n))[:, None]
@@ -299,7 +299,7 @@ def signal1d(quick: bool, n: int | None = None) -> Scene:
         return _masked_lsq_grad(lambda v: _blur_axis(v, data["k"], 0), x, obs, m)
 
     return Scene(
-        name="signal1d" if n == size else f"signal1d_n{n}",
+        name=name,
         description=(
             f"1-D piecewise-smooth signal, {n} samples (N, 1), blur sigma {blur_sigma:g}, "
             f"{fraction:.0%} samples per step, noise {noise:g}"
@@ -354,9 +354,12 @@ def _scaled_error(data, x):
     return jnp.mean(jnp.abs(x - data["target"])) / data["scale"]
 
 
-def deblur(quick: bool, scale: float = 1.0, size: int | None = None) -> Scene:
+def deblur(
+    quick: bool, scale: float = 1.0, size: int | None = None, name: str | None = None
+) -> Scene:
     """Deblurring from random 5% pixel subsets (issue #17's problem); ``scale`` multiplies the
-    image; ``size`` pixels a side (default 128, quick 32; the shapes scale with it)."""
+    image; ``size`` pixels a side (default 128, quick 32; the shapes scale with it); ``name``
+    defaults to ``deblur`` or ``deblur_x<scale>``."""
     default, iterations = (32, 40) if quick else (128, 300)
     size = default if size is None else size
     blur_sigma, fraction, noise = 1.5, 0.05, 0.02
@@ -370,8 +373,8 @@ def deblur(quick: bool, scale: float = 1.0, size: int | None = None) -> Scene:
         m = jax.random.uniform(key, x.shape) < fraction
         return _masked_lsq_grad(lambda v: blur(v, data["k"]), x, data["y"], m)
 
-    name = "deblur" if scale == 1.0 else f"deblur_x{scale:g}"
-    name += "" if size == default else f"_n{size}"
+    if name is None:
+        name = "deblur" if scale == 1.0 else f"deblur_x{scale:g}"
     return Scene(
         name=name,
         description=(
@@ -414,15 +417,11 @@ SCENES: dict[str, Callable[[bool], Scene]] = {
 
 #: The suite's problems at other sizes, kept out of :data:`SCENES` (and so out of the default
 #: run) to check rules fitted on the suite (``--only-scenes signal1d_n256,...``).
-def _named(name: str, scene: Scene) -> Scene:
-    return dataclasses.replace(scene, name=name)
-
-
 HELD_OUT: dict[str, Callable[[bool], Scene]] = {
-    "signal1d_n256": lambda quick: _named("signal1d_n256", signal1d(quick, n=64 if quick else 256)),
-    "signal1d_n4096": lambda q: _named("signal1d_n4096", signal1d(q, n=1024 if q else 4096)),
-    "deblur_n64": lambda quick: _named("deblur_n64", deblur(quick, size=16 if quick else 64)),
-    "deblur_n96": lambda quick: _named("deblur_n96", deblur(quick, size=24 if quick else 96)),
+    "signal1d_n256": lambda q: signal1d(q, n=64 if q else 256, name="signal1d_n256"),
+    "signal1d_n4096": lambda q: signal1d(q, n=1024 if q else 4096, name="signal1d_n4096"),
+    "deblur_n64": lambda q: deblur(q, size=16 if q else 64, name="deblur_n64"),
+    "deblur_n96": lambda q: deblur(q, size=24 if q else 96, name="deblur_n96"),
 }
 ALL: dict[str, Callable[[bool], Scene]] = {**SCENES, **HELD_OUT}
 

@@ -55,9 +55,9 @@ def test_candidate_scales_sigma_with_levels_and_leaves_the_library_as_it_was():
     grads = [jnp.asarray(rng.normal(size=x.shape), jnp.float32) for _ in range(2)]
 
     def run(opt):
-        state, p = opt.init(x), x
+        state, p, update = opt.init(x), x, jax.jit(opt.update)
         for g in grads:
-            u, state = jax.jit(opt.update)(g, state, p)
+            u, state = update(g, state, p)
             p = p + u
         return p
 
