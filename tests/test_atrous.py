@@ -128,6 +128,30 @@ def test_levels_zero_is_identity_and_sigma_inf_is_lowpass():
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.parametrize("kernel", ["xla_cpu", "plain"])
+@pytest.mark.parametrize("separable", [True, False])
+@pytest.mark.parametrize("guided", [True, False], ids=["guide", "self"])
+def test_first_level_continues_a_cascade(guided, separable, kernel):
+    # Levels 0..1 then 2..3 are levels 0..3, with a guide and self-guided, masked or not.
+    rng = np.random.default_rng(5)
+    x = jnp.asarray(rng.normal(size=(12, 9, 2)), jnp.float32)
+    guide = jnp.asarray(rng.normal(size=(12, 9)), jnp.float32) if guided else "self"
+    for mask in (None, jnp.asarray(rng.random((12, 9)) > 0.3)):
+        run = functools.partial(
+            atrous_bilateral,
+            guide=guide,
+            sigma_d=0.7,
+            spatial_axes=(0, 1),
+            mask=mask,
+            separable=separable,
+            kernel=kernel,
+        )
+        half = run(x, levels=2)
+        np.testing.assert_allclose(run(half, levels=4, first_level=2), run(x, levels=4), atol=1e-6)
+    half = run(x, levels=2, mask=None)
+    assert run(half, levels=2, first_level=2, mask=None) is half  # nothing left to run
+
+
 def test_sigma_zero_keeps_only_equal_guide_neighbours():
     guide = jnp.asarray([0.0, 0.0, 1.0, 1.0, 1.0, 0.0])
     x = jnp.asarray([1.0, 3.0, 10.0, 20.0, 30.0, 5.0])
@@ -322,6 +346,10 @@ def test_bad_input_errors_name_the_argument():
         atrous_bilateral(
             x, g, sigma_d=1.0, levels=1, spatial_axes=(0, 1), mask=jnp.ones((4,), bool)
         )
+    with pytest.raises(ValueError, match=r"first_level must be <= levels \(2\), got 3"):
+        atrous_bilateral(x, g, sigma_d=1.0, levels=2, spatial_axes=(0, 1), first_level=3)
+    with pytest.raises(ValueError, match="first_level"):
+        atrous_bilateral(x, g, sigma_d=1.0, levels=2, spatial_axes=(0, 1), first_level=-1)
 
 
 @pytest.mark.parametrize("shape", [(3, 4, 128), (3, 512)])

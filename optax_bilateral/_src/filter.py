@@ -87,6 +87,7 @@ def atrous_bilateral(
     guide_axes: Sequence[int] | None = None,
     log_guide: bool = False,
     kernel: Literal["auto", "xla_cpu", "plain"] = "auto",
+    first_level: int = 0,
 ) -> Fields:
     r"""A-trous cross-bilateral filter of one or more fields with one set of weights.
 
@@ -145,6 +146,11 @@ def atrous_bilateral(
         the environment variable ``OPTAX_BILATERAL_KERNEL`` if set, else ``"xla_cpu"``
         on the CPU backend and ``"plain"`` on any other (BENCHMARKS.md, "GPU"). The
         sharded filter has its own kernel.
+      first_level: run levels ``first_level .. levels - 1`` only (static int, default 0):
+        continues a cascade whose first ``first_level`` levels made ``fields``, so the
+        outputs after each of several levels cost one cascade, e.g.
+        ``y2 = atrous_bilateral(x, ..., levels=2)`` then
+        ``y3 = atrous_bilateral(y2, ..., levels=3, first_level=2)`` equals ``levels=3``.
 
     Returns:
       The filtered fields, with the structure and dtypes of ``fields``. Sums are
@@ -152,7 +158,8 @@ def atrous_bilateral(
 
     Raises:
       ValueError, TypeError: naming the argument, for a negative or NaN ``sigma_d``,
-        a ``levels`` that is not a non-negative int, axes out of range or repeated,
+        a ``levels`` that is not a non-negative int (or a ``first_level`` above it),
+        axes out of range or repeated,
         fields, guide or mask whose spatial shapes disagree, non-floating fields.
 
     Example::
@@ -164,6 +171,9 @@ def atrous_bilateral(
         (8, 8, 3)
     """
     levels = check_levels(levels)
+    first_level = check_levels(first_level, "first_level")
+    if first_level > levels:
+        raise ValueError(f"first_level must be <= levels ({levels}), got {first_level}")
     check_sigma_d(sigma_d)
     kernel = resolve_kernel(kernel)  # type: ignore[assignment]
     self_guided = isinstance(guide, str)
@@ -175,7 +185,7 @@ def atrous_bilateral(
         spatial_axes = tuple(spatial_axes)
     if isinstance(guide_axes, list):
         guide_axes = tuple(guide_axes)
-    if levels == 0 and mask is None:
+    if levels == first_level and mask is None:
         return fields  # the identity, without a copy
     return _filter_jit(
         fields,
@@ -189,6 +199,7 @@ def atrous_bilateral(
         self_guided=self_guided,
         log_guide=bool(log_guide),
         kernel=kernel,
+        start=first_level,
     )
 
 
@@ -278,6 +289,7 @@ def _check_mask(mask, shape):
         "self_guided",
         "log_guide",
         "kernel",
+        "start",
     ),
 )
 def _filter_jit(
@@ -293,11 +305,12 @@ def _filter_jit(
     self_guided=False,
     log_guide=False,
     kernel="xla_cpu",
+    start=0,
 ):
     """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
     traced."""
     plan = _plan(fields, guide, mask, spatial_axes, guide_axes)
-    if levels == 0:  # only a mask to apply (the front door returns early without one)
+    if levels == start:  # only a mask to apply (the front door returns early without one)
         mask = plan.mask
         assert mask is not None
         out = tuple(
@@ -308,7 +321,7 @@ def _filter_jit(
         # Each field guides itself: its own weights, its own guide read at every level.
         out = tuple(
             _filter_route(
-                (f,), (ax,), f, ax, plan, sigma_d, levels, separable, True, log_guide, kernel
+                (f,), (ax,), f, ax, plan, sigma_d, levels, separable, True, log_guide, kernel, start
             )[0]
             for f, ax in zip(plan.fields, plan.field_axes)
         )
@@ -325,6 +338,7 @@ def _filter_jit(
             False,
             log_guide,
             kernel,
+            start,
         )
     return out[0] if plan.single else out
 
@@ -341,6 +355,7 @@ def _filter_route(
     self_guided,
     log_guide,
     kernel,
+    start,
 ):
     """The single-device kernel, or the sharded one when the fields' type says so."""
     filter_blocks = functools.partial(
@@ -351,6 +366,7 @@ def _filter_route(
         separable=separable,
         self_guided=self_guided,
         log_guide=log_guide,
+        start=start,
     )
     partition = sharded.spatial_partition(fields[0], field_axes[0])
     if partition is None:
@@ -382,11 +398,13 @@ def _filter_blocks(
     separable: bool,
     self_guided: bool = False,
     log_guide: bool = False,
+    start: int = 0,
 ) -> tuple[jax.Array, ...]:
     """Planar layout in, ``kernel``, layout out: on the whole grid, or on one device's block.
 
-    ``self_guided``: ``fields`` is one field, and level ``i`` is guided by its input (the
-    field after levels ``0 .. i-1``); ``guide`` is then not read."""
+    Levels ``start .. levels - 1``. ``self_guided``: ``fields`` is one field, and level
+    ``i`` is guided by its input (the field after levels ``0 .. i-1``); ``guide`` is then
+    not read."""
     compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
     shape = tuple(fields[0].shape[a] for a in field_axes[0])
     # In the kernel's plane shape already: a reshape between the concatenation and the
@@ -403,7 +421,7 @@ def _filter_blocks(
         valid = mask.astype(compute)
         x = jnp.where(mask.reshape(x.shape[1:]), x, 0)  # also drops NaN/Inf at masked entries
     if self_guided:
-        for i in range(levels):
+        for i in range(start, levels):
             g = x.reshape(x.shape[:1] + shape)
             g = log_transform(g) if log_guide else g
             x = kernel.filter_planes(x, g, valid, sigma, i + 1, separable, start=i)
@@ -411,7 +429,7 @@ def _filter_blocks(
         x = x.reshape(x.shape[:1] + shape)
     else:
         assert g is not None
-        x = kernel.filter_planes(x, g, valid, sigma, levels, separable)
+        x = kernel.filter_planes(x, g, valid, sigma, levels, separable, start=start)
     if mask is not None:
         x = jnp.where(mask, x, 0)
     return layout.from_planes(x, restore, shape)
