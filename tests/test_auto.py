@@ -240,12 +240,22 @@ def test_the_blend_stays_closed_where_the_bias_persists_on_half_the_leaf():
 
 @jax.jit
 def _sure_step(m, v, zeta, guide, scale):
-    """sigma_d="sure"'s moments: the chosen candidate (v through its operator, as the step
-    does it), then the blend."""
-    filt = functools.partial(ob.atrous_bilateral, levels=2, spatial_axes=(0, 1))
-    cands = [filt((m, zeta), guide, sigma_d=f * scale) for f in sure.FACTORS]
-    mc, sigma_d, filtered = sure.choose(m, zeta, cands, scale, 1.0, True, None)
-    vc = jnp.where(filtered, filt(v, guide, sigma_d=sigma_d), v)
+    """sigma_d="sure"'s moments: the chosen candidate among every factor at F = 2 .. levels
+    (v through its operator, as the step does it), then the blend."""
+    levels = 3
+    filt = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=(0, 1))
+    cands = []
+    for f in sure.FACTORS:
+        fields, done = (m, zeta), 0
+        for n in sure.level_choices(levels):
+            fields = filt(fields, sigma_d=f * scale, levels=n, first_level=done)
+            cands.append(fields)
+            done = n
+    mc, pick = sure.choose(m, zeta, cands, 1.0, True, None, sure.first(levels))
+    sigmas, chosen = sure.labels(levels, jnp.asarray(scale, jnp.float32))
+    sigma_d, choices = sigmas[pick], sure.level_choices(levels)
+    branches = [lambda n=n: filt(v, sigma_d=sigma_d, levels=n) for n in choices]
+    vc = jax.lax.switch(chosen[pick] - choices[0], branches)
     mt, vt, _ = auto.blend(
         m,
         v,

@@ -19,46 +19,65 @@ SHAPE = (16, 16, 3)
 AXES = (0, 1)
 
 
-def _filter(fields, guide, sigma_d):
-    return ob.atrous_bilateral(fields, guide, sigma_d=sigma_d, levels=2, spatial_axes=AXES)
+LEVELS = 5  # the candidates' F: 2, 3, 4, 5
 
 
-def _candidates(m, zeta, guide, scale):
-    return [_filter((m, zeta), guide, f * scale) for f in sure.FACTORS]
-
-
-def _choice(mean, noise, guide, seed=0):
-    """sure.choose's sigma_d for m_hat = mean + noise * N(0, 1) with a probe of the same noise."""
+def _choice(mean, noise, guide, probe=None, seed=0):
+    """``(sigma_d / scale, F)`` that sure.choose picks for ``m_hat = mean + noise N(0, 1)``
+    with a probe of the same noise (default: an independent draw), the candidates built as
+    the step builds them: one cascade per factor, read after every F."""
     rng = np.random.default_rng(seed)
-    m = jnp.asarray(mean + noise * rng.normal(size=mean.shape), jnp.float32)
-    zeta = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32)
-    guide = jnp.asarray(guide, jnp.float32)
-    scale = jnp.asarray(0.1, jnp.float32)
-    cands = _candidates(m, zeta, guide, scale)
-    _, sigma_d, filtered = sure.choose(m, zeta, cands, scale, 1.0, jnp.asarray(True), None)
-    assert bool(filtered) == (float(sigma_d) > 0)
-    return float(sigma_d)
+    n = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32)
+    m = jnp.asarray(mean, jnp.float32) + n
+    zeta = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32) if probe is None else n
+    guide, scale = jnp.asarray(guide, jnp.float32), jnp.asarray(0.1, jnp.float32)
+    cands = []
+    for f in sure.FACTORS:
+        fields, done = (m, zeta), 0
+        for k in sure.level_choices(LEVELS):
+            fields = ob.atrous_bilateral(
+                fields, guide, sigma_d=f * scale, levels=k, spatial_axes=AXES, first_level=done
+            )
+            cands.append(fields)
+            done = k
+    m_f, pick = sure.choose(m, zeta, cands, 1.0, jnp.asarray(True), None, sure.first(LEVELS))
+    np.testing.assert_array_equal(m_f, cands[int(pick)][0])
+    sigma_d, levels = sure.labels(LEVELS, scale)
+    return round(float(sigma_d[pick] / scale), 3), int(levels[pick])
 
 
 def test_the_risk_estimate_filters_noise_and_keeps_detail():
-    # A smooth mean under heavy noise: a filter (sigma_d > 0) has the smaller risk. A mean
-    # that changes sign from texel to texel, nearly noise-free, under a constant guide (no
-    # edge stops the filter): every filter's bias is far above its variance, so no filter.
-    i, j = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
-    smooth = np.repeat((0.5 + 0.3 * np.sin(i / 5.0) * np.cos(j / 7.0))[..., None], 3, -1)
-    assert _choice(smooth, noise=1.0, guide=smooth) > 0
-    checker = np.repeat(((i + j) % 2 * 2.0 - 1.0)[..., None], 3, -1)
-    assert _choice(checker, noise=1e-3, guide=np.zeros((16, 16))) == 0.0
-    # The same mean as the guide: the filter stops at every edge and keeps it, so it wins.
-    assert _choice(checker, noise=1e-3, guide=checker) > 0
+    i, j = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
+    # A flat mean with the probe equal to m's noise: every candidate's bias estimate is 0,
+    # so the least variance wins, the deepest cascade.
+    flat = np.full((32, 32, 1), 0.5)
+    assert _choice(flat, noise=1.0, guide=np.zeros((32, 32)), probe="same")[1] == LEVELS
+    # A mean that changes sign every texel, nearly noise-free, under a constant guide (no
+    # edge stops the filter): the least bias, the shallowest cascade.
+    checker = ((i + j) % 2 * 2.0 - 1.0)[..., None]
+    assert _choice(checker, noise=1e-3, guide=np.zeros((32, 32)))[1] == 2
+    # The same mean as the guide: the smallest sigma_d stops at every edge and keeps it.
+    assert _choice(checker, noise=1e-3, guide=checker[..., 0])[0] == sure.FACTORS[0]
 
 
-def test_the_first_step_takes_the_middle_candidate():
+def test_the_first_step_takes_the_middle_factor_at_the_middle_level():
     m = jnp.ones((8, 8, 1))
-    cands = [(m * k, m * 0) for k in (2.0, 3.0, 4.0)]
-    m_f, sigma_d, filtered = sure.choose(m, m * 0, cands, jnp.asarray(0.5), 1.0, False, None)
-    assert float(sigma_d) == sure.FACTORS[sure.FIRST] * 0.5 and bool(filtered)
-    np.testing.assert_array_equal(m_f, cands[sure.FIRST][0])
+    cands = [(m * k, m * 0) for k in range(len(sure.FACTORS) * 4)]
+    first = sure.first(LEVELS)
+    m_f, pick = sure.choose(m, m * 0, cands, 1.0, False, None, first)
+    sigma_d, levels = sure.labels(LEVELS, jnp.asarray(0.5))
+    assert int(pick) == first and float(sigma_d[pick]) == sure.FIRST_FACTOR * 0.5
+    assert int(levels[pick]) == 4
+    np.testing.assert_array_equal(m_f, cands[first][0])
+
+
+@pytest.mark.parametrize("levels, choices", [(1, (1,)), (2, (2,)), (5, (2, 3, 4, 5))])
+def test_the_candidates_are_every_factor_at_every_level_from_two(levels, choices):
+    assert sure.level_choices(levels) == choices
+    sigma_d, f = sure.labels(levels, jnp.asarray(2.0))
+    expected = [(k * 2.0, n) for k in sure.FACTORS for n in choices]
+    assert [(float(s), int(n)) for s, n in zip(sigma_d, f)] == expected
+    assert int(f[sure.first(levels)]) == choices[len(choices) // 2]
 
 
 def _target(block=4):
@@ -96,6 +115,7 @@ def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
     tex = post.auto["tex"]
     assert isinstance(tex, ob.SureState) and tex.residual.shape == target.shape
     assert float(tex.sigma_d) > 0  # the noise dominates: it filtered
+    assert int(tex.levels) in sure.level_choices(ob.DEFAULT_LEVELS)
     path = tmp_path / "state.npz"
     ob.save_state(path, state)
     restored = ob.load_state(path, opt.init(params))

@@ -88,14 +88,15 @@ def bilateral_adam(
         default: one learning rate in the guide's units, measured per leaf and step
         from the guide's change, with a per-texel blend toward the unfiltered moments;
         docs/auto_sigma.md), or ``"sure"`` (an opt-in that picks among 3x the guide's
-        mean change per step times 1, 3, 10 and no filter by Stein's unbiased risk
-        estimate each step: a better worst case on the tuning scenes, at 4-8x a fixed
-        sigma_d's update time; :func:`postfilter`); a
+        mean change per step times 1, 3, 10 at F = 2 .. ``levels`` by Stein's unbiased
+        risk estimate each step; with ``levels=5``, a better worst case on the tuning
+        scenes at 7-10x a fixed sigma_d's update time; :func:`postfilter`); a
         pytree prefix of the parameters gives one value per leaf (``{"density":
         "auto", "albedo": 0.1}``). A number is traceable.
       levels: F, the number of a-trous levels (static; footprint radius
         ``2 (2^F - 1)``; ``0`` is Adam); a number or a pytree prefix. The authors'
-        ``stride_levels`` is ``levels + 1`` (their first level has stride 0).
+        ``stride_levels`` is ``levels + 1`` (their first level has stride 0). With
+        ``sigma_d="sure"``, the most levels it may choose.
       prefilter: filter the gradient before the moments (``A_t``, eq. 1).
       postfilter: filter the moments before the step (``B_t``, eqs. 6, 8).
       separable: one normalised 1-D pass per spatial axis (True) or all ``5^n`` taps

@@ -278,8 +278,9 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g):
 
 
 def _sure_moments(rule, m, v, guide, hyper, observed, g):
-    """``sigma_d="sure"``: one filter of (m, noise sample) per candidate sigma_d, the candidate
-    (or no filter) of least estimated risk (module sure), and v filtered at its sigma_d."""
+    """``sigma_d="sure"``: per candidate sigma_d one cascade of (m, noise sample), read after
+    each candidate F; the candidate of least estimated risk (module sure);
+    then v filtered with the chosen operator."""
     b1 = jnp.asarray(_number(rule, hyper, "b1"), m.dtype)
     ratio, usable = auto.noise_ratio(b1, hyper["c1"], hyper["count"])
     previous = hyper["previous_gradient"].astype(m.dtype)
@@ -289,15 +290,26 @@ def _sure_moments(rule, m, v, guide, hyper, observed, g):
         g = jnp.where(obs_full, g, previous)
     zeta = sure.noise_sample(g, previous, ratio, usable)
     scale = hyper["sigma_d"]
-    candidates = [
-        filter_fields(rule, (m, zeta), guide, dict(hyper, sigma_d=f * scale), observed)
-        for f in sure.FACTORS
-    ]
+    choices = sure.level_choices(rule.levels)
+    candidates = []
+    for f in sure.FACTORS:
+        fields, done = (m, zeta), 0
+        for levels in choices:
+            at = dict(hyper, sigma_d=f * scale)
+            fields = _filter(rule, fields, guide, at, observed, levels=levels, first_level=done)
+            candidates.append(fields)
+            done = levels
     c1 = jnp.asarray(hyper["c1"], m.dtype)
-    m_f, sigma_d, filtered = sure.choose(m, zeta, candidates, scale, c1, usable, obs_full)
-    v_f = filter_fields(rule, v, guide, dict(hyper, sigma_d=sigma_d), observed)
-    v_f = jnp.where(filtered, v_f, v)
-    return m_f, v_f, {"previous_gradient": g, "sigma_d": sigma_d}
+    m_f, pick = sure.choose(m, zeta, candidates, c1, usable, obs_full, sure.first(rule.levels))
+    sigmas, levels = sure.labels(rule.levels, scale)
+    sigma_d, chosen = sigmas[pick], levels[pick]
+
+    def filter_v(n):
+        return lambda: _filter(rule, v, guide, dict(hyper, sigma_d=sigma_d), observed, levels=n)
+
+    # Only the chosen F's branch runs.
+    v_f = lax.switch(chosen - choices[0], [filter_v(n) for n in choices])
+    return m_f, v_f, {"previous_gradient": g, "sigma_d": sigma_d, "levels": chosen}
 
 
 def _step(rule, m_f, v_f, hyper):
@@ -346,12 +358,13 @@ def _self_sigma(rule, field, hyper):
     return auto.sigma(guide, None, hyper["count"], rule.axes)
 
 
-def _filter(rule, fields, guide, hyper, observed):
+def _filter(rule, fields, guide, hyper, observed, levels=None, first_level=0):
     """Unobserved texels are left out of every sum by a NaN guide there (a non-finite
     guide weighs 0), not by the filter's ``mask``: then both branches of the step's cond
     compile to the same filter, and XLA sizes its temporaries by the larger branch. The
     outputs at unobserved texels are then their own inputs, not 0; every caller discards
     them, and their inputs must be finite (0 * inf would leak into the neighbours' sums).
+    ``levels`` (default: the rule's) and ``first_level`` run part of the cascade.
     """
     if observed is not None:
         nan_guide = nan_guide_at(guide, observed, rule.axes)
@@ -361,10 +374,11 @@ def _filter(rule, fields, guide, hyper, observed):
         fields,
         guide,
         sigma_d=_sigma(rule, hyper),
-        levels=rule.levels,
+        levels=rule.levels if levels is None else levels,
         spatial_axes=rule.axes,
         separable=rule.separable,
         mask=observed,
+        first_level=first_level,
     )
 
 

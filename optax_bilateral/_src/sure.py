@@ -1,6 +1,6 @@
 """``sigma_d="sure"``: the step scale (3x the guide's mean change per step, a prefilter's
-``"auto"`` scale) times one of a few factors, or no filter, chosen per leaf and step by
-Stein's unbiased risk estimate.
+``"auto"`` scale) times one of a few factors, at one of the levels ``F = 2 .. levels``,
+chosen per leaf and step by Stein's unbiased risk estimate.
 
 Derived and measured in docs/auto_sigma.md (section ``sigma_d="sure"``). For a fixed guide the
 postfilter ``B`` is linear, so with a sample ``zeta`` of the noise of ``m_hat`` the risk
@@ -10,13 +10,15 @@ of a candidate ``B`` is estimated without the true moments:
 
 (the bias's square, unbiased, then the filtered noise's variance, weighted by ``W``:
 ``W = 1`` is SURE, ``W < 1`` discounts the noise the optimiser averages out over steps).
-No filter is a candidate too, with risk ``W sum zeta^2``. The noise sample is the
+No filter is not a candidate: with ``W < 1`` it wins on a noisy risk estimate late in a
+run, and one unfiltered Adam step then moves every entry by a learning rate. The noise sample is the
 difference of successive gradients, ``sqrt(rho / 2) (g_t - g_{t-1})`` (``rho``: the
 variance ratio of Adam's bias-corrected EMA), which keeps the noise's correlation between
-neighbours (a renderer's splats, a transposed blur). The chosen ``B`` filters both ``m``
-and ``v`` (``v`` only once chosen: the risks need ``B m`` and ``B zeta``), then ``"auto"``'s
-blend follows: one non-negative, row-stochastic operator, so the step stays bounded
-(supplement §1.3).
+neighbours (a renderer's splats, a transposed blur). The candidates of one factor are one
+cascade, read after each F (``atrous_bilateral``'s ``first_level``). The chosen ``B``
+filters both ``m`` and ``v`` (``v`` only once chosen: the risks need ``B m`` and
+``B zeta``), then ``"auto"``'s blend follows: one non-negative, row-stochastic operator,
+so the step stays bounded (supplement §1.3).
 """
 
 from __future__ import annotations
@@ -31,8 +33,9 @@ from optax_bilateral._src import sharded
 
 SURE = "sure"
 FACTORS = (1.0, 3.0, 10.0)  # the candidates' sigma_d, times the step scale
+MIN_LEVELS = 2  # the candidates' F: MIN_LEVELS .. the leaf's levels
 VARIANCE_WEIGHT = 0.4  # W
-FIRST = 1  # the candidate before the noise can be estimated (t = 1, or b1 = 0)
+FIRST_FACTOR = 3.0  # before the noise is known (t = 1, or b1 = 0): this factor, the middle F
 
 
 class SureState(NamedTuple):
@@ -43,8 +46,9 @@ class SureState(NamedTuple):
       residual: ``"auto"``'s residual EMA of ``m_hat - B m_hat`` (the blend).
       previous_gradient: the gradient the last update saw, in the moments' arithmetic
         dtype (the noise sample is its difference from this step's).
-      sigma_d: the sigma_d the last update chose, a scalar; 0 where it chose no filter
-        (and where the guide is constant, which every sigma_d filters alike).
+      sigma_d: the sigma_d the last update chose, a scalar (0 before the first update, and
+        where the guide is constant, which every sigma_d filters alike).
+      levels: the F the last update chose (int32 scalar; 0 before the first update).
 
     Example::
 
@@ -53,16 +57,37 @@ class SureState(NamedTuple):
         >>> sure = state.auto["tex"]
         >>> type(sure).__name__, sure.previous_gradient.shape, float(sure.sigma_d)
         ('SureState', (16, 16, 3), 0.0)
+        >>> int(sure.levels)
+        0
     """
 
     previous_guide: jax.Array
     residual: jax.Array
     previous_gradient: jax.Array
     sigma_d: jax.Array
+    levels: jax.Array
 
 
 def is_sure(sigma_d) -> bool:
     return isinstance(sigma_d, str) and sigma_d == SURE
+
+
+def level_choices(levels: int) -> tuple[int, ...]:
+    """The candidates' F for a leaf filtered with ``levels`` levels at most."""
+    return tuple(range(min(MIN_LEVELS, levels), levels + 1))
+
+
+def labels(levels: int, scale: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(sigma_d, F)`` of every candidate, in :func:`choose`'s order (factor-major)."""
+    choices = level_choices(levels)
+    sigma_d = jnp.stack([f * scale for f in FACTORS for _ in choices])
+    return sigma_d, jnp.asarray([n for _ in FACTORS for n in choices], jnp.int32)
+
+
+def first(levels: int) -> int:
+    """The candidate taken before the noise can be estimated: ``FIRST_FACTOR`` at the middle F."""
+    choices = level_choices(levels)
+    return FACTORS.index(FIRST_FACTOR) * len(choices) + len(choices) // 2
 
 
 def noise_sample(g, previous, ratio, usable):
@@ -71,27 +96,23 @@ def noise_sample(g, previous, ratio, usable):
     return jnp.where(usable, jnp.sqrt(ratio / 2) * (g - previous), 0).astype(g.dtype)
 
 
-def choose(m, zeta, candidates, scale, c1, usable, observed):
-    """``(B m, sigma_d, filtered)`` of the candidate ``(B m, B zeta)`` of least estimated
-    risk, or ``(m, 0, False)`` for no filter; the middle factor until ``usable``.
+def choose(m, zeta, candidates, c1, usable, observed, first_pick):
+    """``(B m, pick)`` of the candidate ``(B m, B zeta)`` of least estimated risk;
+    ``first_pick`` until ``usable``.
 
-    ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``candidates`` has one
-    ``(B m, B zeta)`` per factor of ``scale``; ``observed`` (full shape) or None leaves
-    unobserved entries out of the sums. The caller filters ``v`` at the returned sigma_d
-    (if ``filtered``), so both moments get the chosen operator.
+    ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``observed`` (full shape) or
+    None leaves unobserved entries out of the sums. The caller filters ``v`` with the
+    chosen operator, so both moments get it.
     """
     keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
     risks = []
     for bm, bz in candidates:
         bias = _norm2(keep(m - bm)) / c1**2 - _norm2(keep(zeta - bz))
         risks.append(bias + VARIANCE_WEIGHT * _norm2(keep(bz)))
-    risks.append(VARIANCE_WEIGHT * _norm2(keep(zeta)))
     # An overflowing risk is no evidence for its candidate.
     risks = jnp.nan_to_num(jnp.stack(risks), nan=jnp.inf)
-    pick = jnp.where(usable, jnp.argmin(risks), FIRST).astype(jnp.int32)
-    m_f = lax.select_n(pick, *(c[0] for c in candidates), m)
-    sigma_d = jnp.append(jnp.asarray(FACTORS, scale.dtype) * scale, 0)[pick]
-    return m_f, sigma_d, pick < len(FACTORS)
+    pick = jnp.where(usable, jnp.argmin(risks), first_pick).astype(jnp.int32)
+    return lax.select_n(pick, *(c[0] for c in candidates)), pick
 
 
 def _norm2(x):

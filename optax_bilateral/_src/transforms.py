@@ -455,13 +455,13 @@ def postfilter(
         times ``sqrt(channels)``, and a per-entry blend ``lam m + (1 - lam) B m``
         (likewise ``v``, the same ``lam``) where the filter's residual persists beyond
         the moments' noise; docs/auto_sigma.md), or ``"sure"`` (an opt-in: 3x the
-        guide's mean change per step times 1, 3 or 10, or no filter, chosen per leaf
-        and step by Stein's unbiased risk estimate, then the same blend; per step
-        three filters of m and a noise sample and one of v; a guide and moments
-        needed; :class:`SureState`); a value or a pytree prefix of the parameters. A
-        number is traceable.
+        guide's mean change per step times 1, 3 or 10, at F = 2 .. ``levels``, chosen
+        per leaf and step by Stein's unbiased risk estimate, then the same blend; per
+        step three cascades of m and a noise sample and one of v; pass ``levels=5``
+        with it; a guide and moments needed; :class:`SureState`); a value or a pytree
+        prefix of the parameters. A number is traceable.
       levels: F, number of a-trous levels (static), a number or a prefix; the
-        authors' ``stride_levels`` - 1.
+        authors' ``stride_levels`` - 1. With ``sigma_d="sure"``, the most it may use.
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
       guide: ``"params"`` (cross-bilateral, the paper's method), ``"self"``, or a
         callable ``params -> guide pytree`` (a prefix of the parameters).
@@ -672,7 +672,9 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
         zeros = jnp.zeros(jnp.shape(leaf), dtype)
         if sure.is_sure(spec.sigma_d):  # a guide and moments: checked at construction
             guide_zeros = cast(jax.Array, previous_guide)
-            states.append(SureState(guide_zeros, zeros, zeros, jnp.zeros([], dtype)))
+            states.append(
+                SureState(guide_zeros, zeros, zeros, jnp.zeros([], dtype), jnp.zeros([], jnp.int32))
+            )
         else:
             direction = jnp.zeros([], dtype) if transform == "postfilter" else None
             states.append(AutoState(previous_guide, zeros if with_residual else None, direction))
