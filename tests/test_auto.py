@@ -244,13 +244,9 @@ def _sure_step(m, v, zeta, guide, scale):
     (v through its operator, as the step does it), then the blend."""
     levels = 3
     filt = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=(0, 1))
-    cands = []
-    for f in sure.FACTORS:
-        fields, done = (m, zeta), 0
-        for n in sure.level_choices(levels):
-            fields = filt(fields, sigma_d=f * scale, levels=n, first_level=done)
-            cands.append(fields)
-            done = n
+    cands = sure.candidates(
+        (m, zeta), levels, scale, lambda x, s, n, k: filt(x, sigma_d=s, levels=n, first_level=k)
+    )
     mc, pick = sure.choose(m, zeta, cands, 1.0, True, None, sure.first(levels))
     sigmas, chosen = sure.labels(levels, jnp.asarray(scale, jnp.float32))
     sigma_d, choices = sigmas[pick], sure.level_choices(levels)

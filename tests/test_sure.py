@@ -6,6 +6,8 @@ checked beside "auto"'s in test_auto.py.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,15 +33,13 @@ def _choice(mean, noise, guide, probe=None, seed=0):
     m = jnp.asarray(mean, jnp.float32) + n
     zeta = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32) if probe is None else n
     guide, scale = jnp.asarray(guide, jnp.float32), jnp.asarray(0.1, jnp.float32)
-    cands = []
-    for f in sure.FACTORS:
-        fields, done = (m, zeta), 0
-        for k in sure.level_choices(LEVELS):
-            fields = ob.atrous_bilateral(
-                fields, guide, sigma_d=f * scale, levels=k, spatial_axes=AXES, first_level=done
-            )
-            cands.append(fields)
-            done = k
+    filter_at = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
+    cands = sure.candidates(
+        (m, zeta),
+        LEVELS,
+        scale,
+        lambda x, s, n, k: filter_at(x, sigma_d=s, levels=n, first_level=k),
+    )
     m_f, pick = sure.choose(m, zeta, cands, 1.0, jnp.asarray(True), None, sure.first(LEVELS))
     np.testing.assert_array_equal(m_f, cands[int(pick)][0])
     sigma_d, levels = sure.labels(LEVELS, scale)
@@ -78,6 +78,22 @@ def test_the_candidates_are_every_factor_at_every_level_from_two(levels, choices
     expected = [(k * 2.0, n) for k in sure.FACTORS for n in choices]
     assert [(float(s), int(n)) for s, n in zip(sigma_d, f)] == expected
     assert int(f[sure.first(levels)]) == choices[len(choices) // 2]
+
+
+def test_each_candidate_is_the_filter_at_its_labels():
+    # sure.candidates reads one cascade per factor after each F: candidate i is the whole
+    # filter at labels(levels)[i].
+    rng = np.random.default_rng(2)
+    x = jnp.asarray(rng.normal(size=(24, 20, 2)), jnp.float32)
+    guide, scale = jnp.asarray(rng.random((24, 20)), jnp.float32), jnp.asarray(0.2, jnp.float32)
+    filt = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
+    cands = sure.candidates(
+        x, 4, scale, lambda y, s, n, k: filt(y, sigma_d=s, levels=n, first_level=k)
+    )
+    sigma_d, levels = sure.labels(4, scale)
+    assert len(cands) == len(sigma_d)
+    for c, s, n in zip(cands, sigma_d, levels):
+        np.testing.assert_allclose(c, filt(x, sigma_d=s, levels=int(n)), atol=1e-6)
 
 
 def _target(block=4):

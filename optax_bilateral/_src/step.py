@@ -290,15 +290,12 @@ def _sure_moments(rule, m, v, guide, hyper, observed, g):
         g = jnp.where(obs_full, g, previous)
     zeta = sure.noise_sample(g, previous, ratio, usable)
     scale = hyper["sigma_d"]
-    choices = sure.level_choices(rule.levels)
-    candidates = []
-    for f in sure.FACTORS:
-        fields, done = (m, zeta), 0
-        for levels in choices:
-            at = dict(hyper, sigma_d=f * scale)
-            fields = _filter(rule, fields, guide, at, observed, levels=levels, first_level=done)
-            candidates.append(fields)
-            done = levels
+
+    def filter_at(fields, sigma_d, levels, first_level):
+        at = dict(hyper, sigma_d=sigma_d)
+        return _filter(rule, fields, guide, at, observed, levels=levels, first_level=first_level)
+
+    candidates = sure.candidates((m, zeta), rule.levels, scale, filter_at)
     c1 = jnp.asarray(hyper["c1"], m.dtype)
     m_f, pick = sure.choose(m, zeta, candidates, c1, usable, obs_full, sure.first(rule.levels))
     sigmas, levels = sure.labels(rule.levels, scale)
@@ -308,6 +305,7 @@ def _sure_moments(rule, m, v, guide, hyper, observed, g):
         return lambda: _filter(rule, v, guide, dict(hyper, sigma_d=sigma_d), observed, levels=n)
 
     # Only the chosen F's branch runs.
+    choices = sure.level_choices(rule.levels)
     v_f = lax.switch(chosen - choices[0], [filter_v(n) for n in choices])
     return m_f, v_f, {"previous_gradient": g, "sigma_d": sigma_d, "levels": chosen}
 

@@ -11,8 +11,8 @@ of a candidate ``B`` is estimated without the true moments:
 (the bias's square, unbiased, then the filtered noise's variance, weighted by ``W``:
 ``W = 1`` is SURE, ``W < 1`` discounts the noise the optimiser averages out over steps).
 No filter is not a candidate: with ``W < 1`` it wins on a noisy risk estimate late in a
-run, and one unfiltered Adam step then moves every entry by a learning rate. The noise sample is the
-difference of successive gradients, ``sqrt(rho / 2) (g_t - g_{t-1})`` (``rho``: the
+run, and one unfiltered Adam step then moves every entry by a learning rate. The noise
+sample is the difference of successive gradients, ``sqrt(rho / 2) (g_t - g_{t-1})`` (``rho``: the
 variance ratio of Adam's bias-corrected EMA), which keeps the noise's correlation between
 neighbours (a renderer's splats, a transposed blur). The candidates of one factor are one
 cascade, read after each F (``atrous_bilateral``'s ``first_level``). The chosen ``B``
@@ -88,6 +88,20 @@ def first(levels: int) -> int:
     """The candidate taken before the noise can be estimated: ``FIRST_FACTOR`` at the middle F."""
     choices = level_choices(levels)
     return FACTORS.index(FIRST_FACTOR) * len(choices) + len(choices) // 2
+
+
+def candidates(fields, levels: int, scale, filter_at) -> list:
+    """Every candidate's filter of ``fields``, in :func:`choose`'s order: per factor one
+    cascade, read after each F. ``filter_at(fields, sigma_d, levels, first_level)`` runs
+    levels ``first_level .. levels - 1`` of the leaf's filter."""
+    out = []
+    for factor in FACTORS:
+        x, done = fields, 0
+        for n in level_choices(levels):
+            x = filter_at(x, factor * scale, n, done)
+            out.append(x)
+            done = n
+    return out
 
 
 def noise_sample(g, previous, ratio, usable):
