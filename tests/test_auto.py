@@ -247,7 +247,7 @@ def _sure_step(m, v, zeta, guide, scale):
     cands = sure.candidates(
         (m, zeta), levels, scale, lambda x, s, n, k: filt(x, sigma_d=s, levels=n, first_level=k)
     )
-    mc, pick = sure.choose(m, zeta, cands, 1.0, True, None, sure.first(levels))
+    mc, pick, _ = sure.choose(m, zeta, cands, 1.0, True, None, sure.first(levels))
     sigmas, chosen = sure.labels(levels, jnp.asarray(scale, jnp.float32))
     sigma_d, choices = sigmas[pick], sure.level_choices(levels)
     branches = [lambda n=n: filt(v, sigma_d=sigma_d, levels=n) for n in choices]

@@ -40,7 +40,7 @@ def _choice(mean, noise, guide, probe=None, seed=0):
         scale,
         lambda x, s, n, k: filter_at(x, sigma_d=s, levels=n, first_level=k),
     )
-    m_f, pick = sure.choose(m, zeta, cands, 1.0, jnp.asarray(True), None, sure.first(LEVELS))
+    m_f, pick, _ = sure.choose(m, zeta, cands, 1.0, jnp.asarray(True), None, sure.first(LEVELS))
     np.testing.assert_array_equal(m_f, cands[int(pick)][0])
     sigma_d, levels = sure.labels(LEVELS, scale)
     return round(float(sigma_d[pick] / scale), 3), int(levels[pick])
@@ -64,11 +64,59 @@ def test_the_first_step_takes_the_middle_factor_at_the_middle_level():
     m = jnp.ones((8, 8, 1))
     cands = [(m * k, m * 0) for k in range(len(sure.FACTORS) * 4)]
     first = sure.first(LEVELS)
-    m_f, pick = sure.choose(m, m * 0, cands, 1.0, False, None, first)
+    m_f, pick, risks = sure.choose(m, m * 0, cands, 1.0, False, None, first)
     sigma_d, levels = sure.labels(LEVELS, jnp.asarray(0.5))
     assert int(pick) == first and float(sigma_d[pick]) == sure.FIRST_FACTOR * 0.5
     assert int(levels[pick]) == 4
     np.testing.assert_array_equal(m_f, cands[first][0])
+    np.testing.assert_array_equal(risks, np.zeros(len(cands)))  # no evidence yet
+
+
+def _bias_candidates(m):
+    """Candidates ``(k m, 0)``: with a zero noise sample the risk of k is ``(1 - k)^2 |m|^2``,
+    least for k = 1."""
+    return [(m * k, m * 0) for k in range(len(sure.FACTORS) * 4)]
+
+
+def test_the_choice_follows_the_moving_average_of_the_risks():
+    # An average that favours candidate 3 outvotes one step's evidence for candidate 1; the
+    # same evidence step after step moves the choice there.
+    m = jnp.ones((8, 8, 1))
+    cands = _bias_candidates(m)
+    risks = jnp.zeros(len(cands)).at[3].set(-1.0)
+    picks = []
+    for _ in range(40):
+        _, pick, risks = sure.choose(m, m * 0, cands, 1.0, True, None, 0, risks)
+        picks.append(int(pick))
+    assert picks[0] == 3 and picks[-1] == 1, picks
+    switch = picks.index(1)
+    assert all(p == 3 for p in picks[:switch]) and all(p == 1 for p in picks[switch:])
+    # Steps without a usable noise sample leave the average as it is.
+    _, pick, kept = sure.choose(m, m * 0, cands, 1.0, False, None, 0, risks)
+    np.testing.assert_array_equal(kept, risks)
+    assert int(pick) == 0
+
+
+@pytest.mark.parametrize("c", [1e-6, 1e-3, 1.0, 1e3, 1e6])
+def test_every_step_casts_one_vote_whatever_the_gradients_scale(c):
+    # Each step's risks are divided by their largest magnitude: the average does not let
+    # the large early gradients outweigh the small late ones.
+    m = jnp.linspace(0.5, 1.5, 64, dtype=jnp.float32).reshape(8, 8, 1)
+    _, _, unit = sure.choose(m, m * 0, _bias_candidates(m), 1.0, True, None, 0)
+    mc = m * jnp.float32(c)
+    _, _, scaled = sure.choose(mc, mc * 0, _bias_candidates(mc), 1.0, True, None, 0)
+    np.testing.assert_allclose(scaled, unit, rtol=1e-5)
+    assert float(jnp.max(jnp.abs(unit))) == pytest.approx(1 - sure.RISK_DECAY)
+
+
+def test_an_overflowing_risk_votes_against_its_candidate():
+    m = jnp.ones((8, 8, 1))
+    cands = _bias_candidates(m)
+    cands[1] = (m * jnp.inf, m * 0)  # the otherwise least risk, now inf
+    cands[2] = (m * jnp.nan, m * 0)
+    _, pick, risks = sure.choose(m, m * 0, cands, 1.0, True, None, 0)
+    assert int(pick) == 0 and np.all(np.isfinite(risks))
+    assert float(risks[1]) == float(risks[2]) == pytest.approx(2 * (1 - sure.RISK_DECAY))
 
 
 @pytest.mark.parametrize("levels, choices", [(1, (1,)), (2, (2,)), (5, (2, 3, 4, 5))])
@@ -132,6 +180,10 @@ def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
     assert isinstance(tex, ob.SureState) and tex.residual.shape == target.shape
     assert float(tex.sigma_d) > 0  # the noise dominates: it filtered
     assert int(tex.levels) in sure.level_choices(ob.DEFAULT_LEVELS)
+    # The chosen F is the label of the least averaged risk.
+    assert tex.risks.shape == (sure.count(ob.DEFAULT_LEVELS),)
+    best = int(jnp.argmin(tex.risks))
+    assert int(tex.levels) == int(sure.labels(ob.DEFAULT_LEVELS, jnp.asarray(1.0))[1][best])
     path = tmp_path / "state.npz"
     ob.save_state(path, state)
     restored = ob.load_state(path, opt.init(params))

@@ -89,8 +89,9 @@ def bilateral_adam(
         from the guide's change, with a per-texel blend toward the unfiltered moments;
         docs/auto_sigma.md), or ``"sure"`` (an opt-in that picks among 3x the guide's
         mean change per step times 1, 3, 10 at F = 2 .. ``levels`` by Stein's unbiased
-        risk estimate each step; with ``levels=5``, a better worst case on the tuning
-        scenes at 7-10x a fixed sigma_d's update time; :func:`postfilter`); a
+        risk estimate, averaged over about ten steps; with ``levels=5``, a better worst
+        case on the tuning scenes at 6-10x a fixed sigma_d's update time;
+        :func:`postfilter`); a
         pytree prefix of the parameters gives one value per leaf (``{"density":
         "auto", "albedo": 0.1}``). A number is traceable.
       levels: F, the number of a-trous levels (static; footprint radius

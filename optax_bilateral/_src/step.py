@@ -123,7 +123,9 @@ def _auto_sigma(rule, g, guide, hyper, state):
     if state is not None and state.residual is not None:
         hyper["residual"] = state.residual
     if rule.sure_sigma:
-        hyper["previous_gradient"] = cast(sure.SureState, state).previous_gradient
+        sure_state = cast(sure.SureState, state)
+        hyper["previous_gradient"] = sure_state.previous_gradient
+        hyper["risks"] = sure_state.risks
     if rule.self_guided or guide is None:
         return hyper, state  # each field's own sigma_d, in filter_fields
     previous = None if state is None else state.previous_guide
@@ -279,7 +281,7 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g):
 
 def _sure_moments(rule, m, v, guide, hyper, observed, g):
     """``sigma_d="sure"``: per candidate sigma_d one cascade of (m, noise sample), read after
-    each candidate F; the candidate of least estimated risk (module sure);
+    each candidate F; the candidate of least moving-average risk (module sure);
     then v filtered with the chosen operator."""
     b1 = jnp.asarray(_number(rule, hyper, "b1"), m.dtype)
     ratio, usable = auto.noise_ratio(b1, hyper["c1"], hyper["count"])
@@ -297,7 +299,8 @@ def _sure_moments(rule, m, v, guide, hyper, observed, g):
 
     candidates = sure.candidates((m, zeta), rule.levels, scale, filter_at)
     c1 = jnp.asarray(hyper["c1"], m.dtype)
-    m_f, pick = sure.choose(m, zeta, candidates, c1, usable, obs_full, sure.first(rule.levels))
+    first = sure.first(rule.levels)
+    m_f, pick, risks = sure.choose(m, zeta, candidates, c1, usable, obs_full, first, hyper["risks"])
     sigmas, levels = sure.labels(rule.levels, scale)
     sigma_d, chosen = sigmas[pick], levels[pick]
 
@@ -307,7 +310,8 @@ def _sure_moments(rule, m, v, guide, hyper, observed, g):
     # Only the chosen F's branch runs.
     choices = sure.level_choices(rule.levels)
     v_f = lax.switch(chosen - choices[0], [filter_v(n) for n in choices])
-    return m_f, v_f, {"previous_gradient": g, "sigma_d": sigma_d, "levels": chosen}
+    learned = {"previous_gradient": g, "sigma_d": sigma_d, "levels": chosen, "risks": risks}
+    return m_f, v_f, learned
 
 
 def _step(rule, m_f, v_f, hyper):

@@ -10,6 +10,9 @@ of a candidate ``B`` is estimated without the true moments:
 
 (the bias's square, unbiased, then the filtered noise's variance, weighted by ``W``:
 ``W = 1`` is SURE, ``W < 1`` discounts the noise the optimiser averages out over steps).
+One step's estimate is noisy, and a choice that flips from step to step blurs more than a
+steady one; so each step's risks, over their largest magnitude (every step one vote),
+enter an exponential moving average over steps, and its least entry is chosen.
 No filter is not a candidate: with ``W < 1`` it wins on a noisy risk estimate late in a
 run, and one unfiltered Adam step then moves every entry by a learning rate. The noise
 sample is the difference of successive gradients, ``sqrt(rho / 2) (g_t - g_{t-1})`` (``rho``: the
@@ -34,7 +37,8 @@ from optax_bilateral._src import sharded
 SURE = "sure"
 FACTORS = (1.0, 3.0, 10.0)  # the candidates' sigma_d, times the step scale
 MIN_LEVELS = 2  # the candidates' F: MIN_LEVELS .. the leaf's levels
-VARIANCE_WEIGHT = 0.4  # W
+VARIANCE_WEIGHT = 0.1  # W
+RISK_DECAY = 0.9  # the risks' moving average over steps (~10 steps)
 FIRST_FACTOR = 3.0  # before the noise is known (t = 1, or b1 = 0): this factor, the middle F
 
 
@@ -49,6 +53,8 @@ class SureState(NamedTuple):
       sigma_d: the sigma_d the last update chose, a scalar (0 before the first update, and
         where the guide is constant, which every sigma_d filters alike).
       levels: the F the last update chose (int32 scalar; 0 before the first update).
+      risks: the moving average of every candidate's estimated risk, each step's over its
+        largest magnitude, in :func:`labels`' order (0 before the noise is known).
 
     Example::
 
@@ -57,8 +63,8 @@ class SureState(NamedTuple):
         >>> sure = state.auto["tex"]
         >>> type(sure).__name__, sure.previous_gradient.shape, float(sure.sigma_d)
         ('SureState', (16, 16, 3), 0.0)
-        >>> int(sure.levels)
-        0
+        >>> int(sure.levels), sure.risks.shape   # 3 factors at F = 2, 3 (levels=3)
+        (0, (6,))
     """
 
     previous_guide: jax.Array
@@ -66,6 +72,7 @@ class SureState(NamedTuple):
     previous_gradient: jax.Array
     sigma_d: jax.Array
     levels: jax.Array
+    risks: jax.Array
 
 
 def is_sure(sigma_d) -> bool:
@@ -75,6 +82,11 @@ def is_sure(sigma_d) -> bool:
 def level_choices(levels: int) -> tuple[int, ...]:
     """The candidates' F for a leaf filtered with ``levels`` levels at most."""
     return tuple(range(min(MIN_LEVELS, levels), levels + 1))
+
+
+def count(levels: int) -> int:
+    """How many candidates a leaf filtered with ``levels`` levels at most has."""
+    return len(FACTORS) * len(level_choices(levels))
 
 
 def labels(levels: int, scale: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -110,23 +122,36 @@ def noise_sample(g, previous, ratio, usable):
     return jnp.where(usable, jnp.sqrt(ratio / 2) * (g - previous), 0).astype(g.dtype)
 
 
-def choose(m, zeta, candidates, c1, usable, observed, first_pick):
-    """``(B m, pick)`` of the candidate ``(B m, B zeta)`` of least estimated risk;
-    ``first_pick`` until ``usable``.
+def choose(m, zeta, candidates, c1, usable, observed, first_pick, previous_risks=None):
+    """``(B m, pick, risks)``: the candidate ``(B m, B zeta)`` of least moving-average risk
+    (``first_pick`` until ``usable``) and the new average.
 
     ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``observed`` (full shape) or
-    None leaves unobserved entries out of the sums. The caller filters ``v`` with the
-    chosen operator, so both moments get it.
+    None leaves unobserved entries out of the sums; ``previous_risks`` is the average so
+    far (None: none, so this step's estimate alone decides). The caller filters ``v``
+    with the chosen operator, so both moments get it.
     """
     keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
     risks = []
     for bm, bz in candidates:
         bias = _norm2(keep(m - bm)) / c1**2 - _norm2(keep(zeta - bz))
         risks.append(bias + VARIANCE_WEIGHT * _norm2(keep(bz)))
-    # An overflowing risk is no evidence for its candidate.
-    risks = jnp.nan_to_num(jnp.stack(risks), nan=jnp.inf)
+    risks = _votes(jnp.stack(risks))
+    previous = jnp.zeros_like(risks) if previous_risks is None else previous_risks
+    previous = previous.astype(risks.dtype)
+    risks = jnp.where(usable, RISK_DECAY * previous + (1 - RISK_DECAY) * risks, previous)
     pick = jnp.where(usable, jnp.argmin(risks), first_pick).astype(jnp.int32)
-    return lax.select_n(pick, *(c[0] for c in candidates)), pick
+    return lax.select_n(pick, *(c[0] for c in candidates)), pick, risks
+
+
+def _votes(risks):
+    """One step's risks over their largest finite magnitude, so each step weighs the same in
+    the average (the risks shrink as the optimiser converges); an overflowing risk is no
+    evidence for its candidate: 2, worse than any finite one."""
+    finite = jnp.isfinite(risks)
+    largest = jnp.max(jnp.where(finite, jnp.abs(risks), 0))
+    scaled = risks / jnp.maximum(largest, jnp.finfo(risks.dtype).tiny)
+    return jnp.where(finite, scaled, 2)
 
 
 def _norm2(x):

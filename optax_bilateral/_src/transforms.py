@@ -456,7 +456,8 @@ def postfilter(
         (likewise ``v``, the same ``lam``) where the filter's residual persists beyond
         the moments' noise; docs/auto_sigma.md), or ``"sure"`` (an opt-in: 3x the
         guide's mean change per step times 1, 3 or 10, at F = 2 .. ``levels``, chosen
-        per leaf and step by Stein's unbiased risk estimate, then the same blend; per
+        per leaf and step by Stein's unbiased risk estimate averaged over about ten
+        steps, then the same blend; per
         step three cascades of m and a noise sample and one of v; pass ``levels=5``
         with it; a guide and moments needed; :class:`SureState`); a value or a pytree
         prefix of the parameters. A number is traceable.
@@ -673,7 +674,14 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
         if sure.is_sure(spec.sigma_d):  # a guide and moments: checked at construction
             guide_zeros = cast(jax.Array, previous_guide)
             states.append(
-                SureState(guide_zeros, zeros, zeros, jnp.zeros([], dtype), jnp.zeros([], jnp.int32))
+                SureState(
+                    guide_zeros,
+                    zeros,
+                    zeros,
+                    jnp.zeros([], dtype),
+                    jnp.zeros([], jnp.int32),
+                    jnp.zeros([sure.count(spec.levels)], dtype),
+                )
             )
         else:
             direction = jnp.zeros([], dtype) if transform == "postfilter" else None
