@@ -17,6 +17,7 @@ from optax_bilateral._src.sure import SureState
 from optax_bilateral._src.transforms import (
     DEFAULT_LEVELS,
     DEFAULT_SIGMA_D,
+    SURE_LEVELS,
     PostfilterState,
     PrefilterState,
     ScaleByAdamState,
@@ -33,6 +34,7 @@ except PackageNotFoundError:  # a source tree that is not installed
 __all__ = (
     "DEFAULT_LEVELS",
     "DEFAULT_SIGMA_D",
+    "SURE_LEVELS",
     "AutoState",
     "LaplacianPyramidState",
     "LeafRuleWarning",

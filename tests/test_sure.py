@@ -179,11 +179,11 @@ def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
     tex = post.auto["tex"]
     assert isinstance(tex, ob.SureState) and tex.residual.shape == target.shape
     assert float(tex.sigma_d) > 0  # the noise dominates: it filtered
-    assert int(tex.levels) in sure.level_choices(ob.DEFAULT_LEVELS)
+    assert int(tex.levels) in sure.level_choices(ob.SURE_LEVELS)
     # The chosen F is the label of the least averaged risk.
-    assert tex.risks.shape == (sure.count(ob.DEFAULT_LEVELS),)
+    assert tex.risks.shape == (sure.count(ob.SURE_LEVELS),)
     best = int(jnp.argmin(tex.risks))
-    assert int(tex.levels) == int(sure.labels(ob.DEFAULT_LEVELS, jnp.asarray(1.0))[1][best])
+    assert int(tex.levels) == int(sure.labels(ob.SURE_LEVELS, jnp.asarray(1.0))[1][best])
     path = tmp_path / "state.npz"
     ob.save_state(path, state)
     restored = ob.load_state(path, opt.init(params))
@@ -205,6 +205,21 @@ def test_an_unobserved_texel_keeps_its_last_gradient_for_the_noise_sample():
     np.testing.assert_array_equal(
         np.delete(kept.reshape(64, 2), 19, 0), np.delete(np.asarray(g2).reshape(64, 2), 19, 0)
     )
+
+
+@pytest.mark.parametrize("levels, expected", [(None, ob.SURE_LEVELS), (2, 2), (4, 4)])
+def test_a_sure_leaf_defaults_to_sure_levels_and_the_others_keep_default_levels(levels, expected):
+    params = {"tex": jnp.full((16, 16, 3), 0.5), "other": jnp.full((16, 16, 3), 0.5)}
+    opt = ob.bilateral_adam(0.05, sigma_d={"tex": "sure", "other": 0.1}, levels=levels)
+    state = opt.init(params)
+    assert state[0].auto["tex"].risks.shape == (sure.count(expected),)
+    # The leaf with a number filters exactly as with levels=3 (or the levels given).
+    alone = ob.bilateral_adam(0.05, sigma_d=0.1, levels=levels or ob.DEFAULT_LEVELS)
+    rng = np.random.default_rng(0)
+    g = {k: jnp.asarray(rng.normal(size=(16, 16, 3)), jnp.float32) for k in params}
+    u, _ = opt.update(g, state, params)
+    u_alone, _ = alone.update(g["other"], alone.init(params["other"]), params["other"])
+    np.testing.assert_array_equal(u["other"], u_alone)
 
 
 @pytest.mark.parametrize(

@@ -22,7 +22,7 @@ def bilateral_adam(
     eps: jax.typing.ArrayLike = 1e-8,
     *,
     sigma_d: Any = transforms.DEFAULT_SIGMA_D,
-    levels: Any = transforms.DEFAULT_LEVELS,
+    levels: Any = None,
     prefilter: bool = False,
     postfilter: bool = True,
     separable: bool = True,
@@ -63,7 +63,8 @@ def bilateral_adam(
     Defaults: the paper's ``b1 = 0.2``, ``b2 = 1 - (1 - b1)^2`` (= 0.36), postfilter
     only; ``sigma_d = "auto"`` (chosen from the data every step, docs/auto_sigma.md) with
     ``levels = 3`` (the authors' ``stride_levels = 4``; their texture runs use
-    ``stride_levels = 5``, i.e. ``levels = 4``, their volume runs ``levels = 2``). On the
+    ``stride_levels = 5``, i.e. ``levels = 4``, their volume runs ``levels = 2``); a leaf
+    with ``sigma_d="sure"`` chooses F up to ``levels = 5`` (``stride_levels = 6``). On the
     tuning benchmark's seven scenes the defaults were 0.96-1.55x the error of a
     per-scene tuned sigma_d, beat Adam on six and tied it on the seventh;
     docs/hyperparameters.md says when to tune a number instead.
@@ -89,15 +90,17 @@ def bilateral_adam(
         from the guide's change, with a per-texel blend toward the unfiltered moments;
         docs/auto_sigma.md), or ``"sure"`` (an opt-in that picks among 3x the guide's
         mean change per step times 1, 3, 10 at F = 2 .. ``levels`` by Stein's unbiased
-        risk estimate, averaged over about ten steps; with ``levels=5``, a better worst
-        case on the tuning scenes at 6-10x a fixed sigma_d's update time;
+        risk estimate, averaged over about ten steps; with its default ``levels``, 5,
+        a better worst case on the tuning scenes at 6-10x a fixed sigma_d's update time;
         :func:`postfilter`); a
         pytree prefix of the parameters gives one value per leaf (``{"density":
         "auto", "albedo": 0.1}``). A number is traceable.
       levels: F, the number of a-trous levels (static; footprint radius
         ``2 (2^F - 1)``; ``0`` is Adam); a number or a pytree prefix. The authors'
         ``stride_levels`` is ``levels + 1`` (their first level has stride 0). With
-        ``sigma_d="sure"``, the most levels it may choose.
+        ``sigma_d="sure"``, the most levels it may choose. None (the default): 3
+        (:data:`DEFAULT_LEVELS`), and 5 (:data:`SURE_LEVELS`) for the leaves with
+        ``sigma_d="sure"``.
       prefilter: filter the gradient before the moments (``A_t``, eq. 1).
       postfilter: filter the moments before the step (``B_t``, eqs. 6, 8).
       separable: one normalised 1-D pass per spatial axis (True) or all ``5^n`` taps

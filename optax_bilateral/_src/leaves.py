@@ -15,7 +15,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from optax_bilateral._src import sure
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
+
+# F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.
+DEFAULT_LEVELS = 3
+"""The default ``levels`` F = 3 of every transform: footprint radius ``2 (2^F - 1) = 14``
+texels; the authors' ``stride_levels = 4``. A leaf with ``sigma_d="sure"`` defaults to
+:data:`SURE_LEVELS` instead."""
+# With "sure", F is chosen per step among 2 .. levels; 5 is the suite's best bound.
+SURE_LEVELS = 5
+"""The default ``levels`` of a leaf with ``sigma_d="sure"``, the most F it may choose (F = 2
+.. 5, footprint radius up to 62 texels; the authors' ``stride_levels = 6``)."""
+
+
+def default_levels(sigma_d: Any) -> int:
+    """A leaf's ``levels`` when the transform's ``levels`` is None (the default)."""
+    return SURE_LEVELS if sure.is_sure(sigma_d) else DEFAULT_LEVELS
+
 
 LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
 
@@ -257,9 +274,13 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
     names = leaf_names(tree)
     axes_list = broadcast_prefix(spatial_axes, tree, _is_axes_atom, "spatial_axes")
     sigma_list = broadcast_prefix(sigma_d, tree, _is_scalar_atom, "sigma_d")
-    levels_list = broadcast_prefix(levels, tree, _is_scalar_atom, "levels")
+    if levels is None:
+        levels_list = [None] * len(leaves)
+    else:
+        levels_list = broadcast_prefix(levels, tree, _is_scalar_atom, "levels")
     specs = []
     for leaf, name, ax, sig, lev in zip(leaves, names, axes_list, sigma_list, levels_list):
+        lev = default_levels(sig) if lev is None else lev
         lev = check_levels(lev, name=f"levels (for leaf {name})")
         ax = _resolve_axes(leaf, ax, name, warn and lev > 0)
         if sig is None:

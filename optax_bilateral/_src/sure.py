@@ -63,8 +63,8 @@ class SureState(NamedTuple):
         >>> sure = state.auto["tex"]
         >>> type(sure).__name__, sure.previous_gradient.shape, float(sure.sigma_d)
         ('SureState', (16, 16, 3), 0.0)
-        >>> int(sure.levels), sure.risks.shape   # 3 factors at F = 2, 3 (levels=3)
-        (0, (6,))
+        >>> int(sure.levels), sure.risks.shape   # 3 factors at F = 2 .. 5 (SURE_LEVELS)
+        (0, (12,))
     """
 
     previous_guide: jax.Array

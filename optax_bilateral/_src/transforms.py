@@ -78,10 +78,8 @@ SecondMoment = Literal["elementwise", "uniform"]
 DEFAULT_SIGMA_D = "auto"
 """The default ``sigma_d`` of every transform: ``"auto"``, chosen per leaf and step from the
 guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes it."""
-# F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.
-DEFAULT_LEVELS = 3
-"""The default ``levels`` F = 3 of every transform: footprint radius ``2 (2^F - 1) = 14``
-texels; the authors' ``stride_levels = 4``."""
+DEFAULT_LEVELS = leaves.DEFAULT_LEVELS
+SURE_LEVELS = leaves.SURE_LEVELS
 
 
 # ----------------------------------------------------------------------------------------
@@ -217,7 +215,7 @@ class PrefilterState(NamedTuple):
 
 def prefilter(
     sigma_d: Any = DEFAULT_SIGMA_D,
-    levels: Any = DEFAULT_LEVELS,
+    levels: Any = None,
     *,
     separable: bool = True,
     guide: GuideSetting = "params",
@@ -241,9 +239,10 @@ def prefilter(
         not see the step it leads to; docs/auto_sigma.md),
         a value or a pytree prefix of the parameters. A number is traceable.
         (``"sure"`` needs Adam's moments: :func:`postfilter` only.)
-      levels: F, number of a-trous levels (static), a number or a prefix. The
-        authors' ``stride_levels = L`` is ``levels = L - 1`` (their strides are 0,
-        1, 2, 4, ...; the stride-0 level is the identity).
+      levels: F, number of a-trous levels (static), a number or a prefix; None (the
+        default): :data:`DEFAULT_LEVELS` = 3. The authors' ``stride_levels = L`` is
+        ``levels = L - 1`` (their strides are 0, 1, 2, 4, ...; the stride-0 level is
+        the identity).
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
       guide: ``"params"`` (cross-bilateral, the paper's method), ``"self"``
         (bilateral, the paper's baseline and the authors' ``cross_term_off``: the
@@ -412,7 +411,7 @@ def postfilter(
     eps: jax.typing.ArrayLike = 1e-8,
     *,
     sigma_d: Any = DEFAULT_SIGMA_D,
-    levels: Any = DEFAULT_LEVELS,
+    levels: Any = None,
     separable: bool = True,
     guide: GuideSetting = "params",
     log_guide: bool = False,
@@ -458,11 +457,13 @@ def postfilter(
         guide's mean change per step times 1, 3 or 10, at F = 2 .. ``levels``, chosen
         per leaf and step by Stein's unbiased risk estimate averaged over about ten
         steps, then the same blend; per
-        step three cascades of m and a noise sample and one of v; pass ``levels=5``
-        with it; a guide and moments needed; :class:`SureState`); a value or a pytree
-        prefix of the parameters. A number is traceable.
+        step three cascades of m and a noise sample and one of v; a guide and moments
+        needed; :class:`SureState`); a value or a pytree prefix of the parameters. A
+        number is traceable.
       levels: F, number of a-trous levels (static), a number or a prefix; the
         authors' ``stride_levels`` - 1. With ``sigma_d="sure"``, the most it may use.
+        None (the default): :data:`DEFAULT_LEVELS` = 3, and :data:`SURE_LEVELS` = 5
+        for the leaves with ``sigma_d="sure"`` (the tuning suite's best bound).
       separable: one 1-D pass per spatial axis (True) or all 5^n taps (False).
       guide: ``"params"`` (cross-bilateral, the paper's method), ``"self"``, or a
         callable ``params -> guide pytree`` (a prefix of the parameters).
