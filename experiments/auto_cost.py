@@ -4,8 +4,9 @@
     python -m experiments.auto_cost [--quick] [--out DIR]
 
 Times one jitted ``bilateral_adam`` update (postfilter, F = 3, separable) with
-``sigma_d="auto"``, ``"sure"`` and ``0.1``, ``"sure"`` with ``levels=5`` (F chosen among
-2-5, as docs/auto_sigma.md recommends it), and ``optax.adam``'s, on a 512x512x3 texture
+``sigma_d="auto"``, ``"sure"`` (F chosen among 2-3) and ``0.1``, ``"sure"`` with
+``levels=5`` (F chosen among 2-5, its default ``SURE_LEVELS``), and ``optax.adam``'s, on a
+512x512x3 texture
 and a 64^3x1 volume, interleaved in one process; prints and writes the paired ratios
 (median over rounds of the per-round ratio, :func:`experiments.common.paired_ratio`).
 Target (issue #17): auto / fixed <= 1.2 ("sure" is an opt-in that buys accuracy with time;

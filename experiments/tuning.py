@@ -562,7 +562,8 @@ def auto_factory(learning_rate, spatial_axes=None):
 
 
 def sure_factory(learning_rate, spatial_axes=None):
-    """``sigma_d="sure"`` with ``levels=5`` (F chosen among 2-5; docs/auto_sigma.md), as a
+    """``sigma_d="sure"`` with ``levels=5`` (F chosen among 2-5, its default; written out so
+    the measured setting stays fixed; docs/auto_sigma.md), as a
     candidate: ``--candidates sure=experiments.tuning:sure_factory``."""
     return ob.bilateral_adam(learning_rate, sigma_d="sure", levels=5, spatial_axes=spatial_axes)
 
