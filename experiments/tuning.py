@@ -2,6 +2,7 @@
 
     python -m experiments.tuning [--quick] [--out DIR] [--only-scenes a,b] [--jobs N]
                                  [--candidates [NAME=]module:factory,...] [--recompute]
+                                 [--reference FILE]
 
 For every scene of :mod:`experiments.scenes` (texture, its noise target, its
 low-noise variant, volume, a 1-D signal, deblurring, deblurring at 100x scale)
@@ -50,6 +51,23 @@ with its ratios to the best-tuned and to Adam's error. From Python::
 
 :func:`run_benchmark` runs the whole table (``candidates={"name": factory}``).
 
+Without the grids: ``--reference``
+----------------------------------
+The grids take about 17 minutes on two cores; a candidate's own learning-rate sweep
+one or two. Every run writes ``reference.json`` (per scene and grid family: a key of the
+scene's and the grid's configuration, and each setting's record at its best learning
+rate), and ``--reference FILE`` takes the best-tuned, Adam and pyramid grids from such a
+file instead of running them (``auto``, the defaults and the candidates still run). The
+repository keeps the full run's file, so on a fresh clone::
+
+    python -m experiments.tuning --reference experiments/tuning_reference.json \
+        --candidates mine=mymodule:factory --out results/mine
+
+A file of another setting (``--quick`` or not), without a requested scene, or whose
+scene, grid or settings no longer match this code's is refused with the reason: rerun
+the grids and commit that run's ``reference.json``. The table names the file and the
+library version that ran its grids.
+
 Cost: every scene compiles its noisy gradient once (``jax.vmap`` over a batch of
 runs: every run of every method advances together) and one update program per
 method and static setting (``levels``, ``log_guide``); the runs of a batch differ
@@ -60,9 +78,10 @@ seconds.
 
 Outputs in ``--out`` (default ``results/tuning``): ``summary.json`` (per scene:
 every method's median error, its hyperparameters and per-seed errors, and the
-whole grid), ``table.md``, ``<scene>.png`` (final error against ``sigma_d``, one
-curve per ``levels`` at that point's best learning rate, ``auto`` / Adam / pyramid
-as horizontal lines; 0 and inf at the ends of the log axis) and ``cache/``.
+whole grid), ``table.md``, ``reference.json`` (above), ``<scene>.png`` (final error
+against ``sigma_d``, one curve per ``levels`` at that point's best learning rate,
+``auto`` / Adam / pyramid as horizontal lines; 0 and inf at the ends of the log axis)
+and ``cache/``.
 """
 
 from __future__ import annotations
@@ -641,10 +660,12 @@ def _sigma(x: float, scale: float) -> float:
 # ----------------------------------------------------------------------------- caching
 
 
-def _cache_key(scene: sc.Scene, family: Family, s: Settings) -> str:
+def _cache_key(scene: sc.Scene, family: Family, s: Settings, *, library: bool = True) -> str:
+    """A hash of everything a family's grid depends on; ``library=False`` leaves out the
+    library's version (a reference is meant to outlive it)."""
     spec = {
         "version": CACHE_VERSION,
-        "library": ob.__version__,
+        "library": ob.__version__ if library else None,
         "scene": scene.config,
         "learning_rates": scene.learning_rates,
         "family": family.name,
@@ -734,12 +755,21 @@ def run_scene(
     recompute: bool = False,
     with_auto: bool | None = None,
     progress: bool = True,
+    reference: Mapping[str, Any] | None = None,
 ) -> dict:
-    """Every method on one scene; returns its ``summary.json`` entry."""
+    """Every method on one scene; returns its ``summary.json`` entry.
+
+    ``reference``: the scene's part of a ``reference.json`` (:func:`load_reference`); its
+    grids (:data:`REFERENCE_FAMILIES`) are then taken from it instead of being run.
+    """
     t0 = time.perf_counter()
     results: dict[str, Result] = {}
     from_cache: dict[str, bool] = {}
-    for name, fam in families(scene, s).items():
+    grids = families(scene, s)
+    for name, fam in grids.items():
+        if reference is not None and name in REFERENCE_FAMILIES:
+            results[name], from_cache[name] = _from_reference(reference, scene, fam, s), True
+            continue
         if name == "defaults" and (grid_part := _defaults_in_grid(scene, s, results["bilateral"])):
             results[name], from_cache[name] = grid_part, from_cache["bilateral"]
             continue
@@ -766,7 +796,7 @@ def run_scene(
             progress=progress,
         )
         from_cache[name] = False
-    return summarize_scene(
+    entry = summarize_scene(
         scene,
         s,
         results,
@@ -775,6 +805,11 @@ def run_scene(
         list((candidates or {}).keys()),
         time.perf_counter() - t0,
     )
+    entry["from_reference"] = list(REFERENCE_FAMILIES) if reference is not None else []
+    library = ob.__version__ if reference is None else reference["library"]
+    entry["reference_library"] = library
+    entry[_REFERENCE_PART] = reference_part(scene, s, grids, results, library)
+    return entry
 
 
 def _defaults_in_grid(scene: sc.Scene, s: Settings, grid: Result) -> Result | None:
@@ -857,6 +892,103 @@ def summarize_scene(scene, s, results, from_cache, with_auto, candidate_names, s
         },
         "lr_at_grid_edge": {k: r.at_edge for k, r in results.items() if r.at_edge},
     }
+
+
+# ----------------------------------------------------------------------------- references
+
+#: The families a reference holds: what a candidate is compared with, and what takes long.
+REFERENCE_FAMILIES = ("bilateral", "adam", "pyramid")
+REFERENCE_FORMAT = 1
+#: The key under which a scene's entry carries its reference part until it is written.
+_REFERENCE_PART = "reference_part"
+
+
+def reference_part(
+    scene: sc.Scene, s: Settings, grids: Mapping[str, Family], results, library: str
+) -> dict:
+    """One scene's part of ``reference.json``: per reference family the key of its grid's
+    configuration and, for every setting, the record at its best learning rate (the other
+    learning rates were the sweep's, not the comparison's); curves only for the family's best."""
+    part: dict[str, Any] = {"library": library, "families": {}}
+    for name in REFERENCE_FAMILIES:
+        result = results[name]
+        best: dict[str, Record] = {}
+        for r in result.records:
+            if _setting(r) not in best or r.median < best[_setting(r)].median:
+                best[_setting(r)] = r
+        overall = result.best
+        best[_setting(overall)] = overall  # a tie keeps the family's best as it was
+        records = [{**r.to_json(), "curve": r.curve if r is overall else []} for r in best.values()]
+        part["families"][name] = {
+            "key": _cache_key(scene, grids[name], s, library=False),
+            "seconds": result.seconds,
+            "at_edge": result.at_edge,
+            "records": records,
+        }
+    return part
+
+
+def _setting(r: Record) -> str:
+    """A record's setting: everything but the learning rate."""
+    hyper = {k: v for k, v in r.hyper.items() if k != "learning_rate"}
+    return json.dumps(_jsonable([r.static, hyper]), sort_keys=True)
+
+
+def load_reference(
+    path: str | pathlib.Path, scene_names: Sequence[str], quick: bool
+) -> dict[str, Any]:
+    """The parts of the reference file ``path`` (a run's ``reference.json``) for
+    ``scene_names``, with ``"file"`` and the run's ``"library"``; a clear error when it
+    holds another setting or lacks a scene."""
+    path = pathlib.Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"--reference {path}: not a readable JSON file ({e})") from e
+    found = data.get("format") if isinstance(data, dict) else None
+    if found != REFERENCE_FORMAT:
+        raise ValueError(
+            f"--reference {path}: expected a tuning run's reference.json "
+            f"(format {REFERENCE_FORMAT}), got format {found!r}"
+        )
+    if bool(data["quick"]) != quick:
+        held, this = ("a --quick", "a full") if data["quick"] else ("a full", "a --quick")
+        raise ValueError(f"--reference {path} holds {held} run and this is {this} run")
+    missing = [n for n in scene_names if n not in data["scenes"]]
+    if missing:
+        raise ValueError(
+            f"--reference {path} has no scene {', '.join(missing)} (it has "
+            f"{', '.join(sorted(data['scenes']))}); run their grids without --reference"
+        )
+    return {"file": str(path), "scenes": {n: data["scenes"][n] for n in scene_names}}
+
+
+def _from_reference(part: Mapping[str, Any], scene: sc.Scene, family: Family, s: Settings):
+    stored = part["families"].get(family.name)
+    if stored is None or stored["key"] != _cache_key(scene, family, s, library=False):
+        raise ValueError(
+            f"the reference's {family.name} grid on {scene.name} was run with another scene, "
+            f"grid or settings than this run's; rerun the grids (python -m experiments.tuning "
+            f"--only-scenes {scene.name}) and pass that run's reference.json"
+        )
+    return Result(
+        family=family.name,
+        records=[Record.from_json(r) for r in stored["records"]],
+        seconds=stored["seconds"],
+        at_edge=stored["at_edge"],
+    )
+
+
+def write_reference(path: pathlib.Path, entries: Mapping[str, dict], quick: bool, s: Settings):
+    """``reference.json``: the scenes' reference parts (taken out of their entries)."""
+    scenes = {n: e.pop(_REFERENCE_PART) for n, e in entries.items()}
+    data = {
+        "format": REFERENCE_FORMAT,
+        "quick": quick,
+        "settings": dataclasses.asdict(s),
+        "scenes": scenes,
+    }
+    path.write_text(json.dumps(_jsonable(data), indent=None, sort_keys=True) + "\n")
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -978,6 +1110,16 @@ def _cell(methods: dict, k: str, keys=None) -> str:
     return f"{x['error']:.4g} ({_hp(x['hyperparameters'], keys)})" if keys else f"{x['error']:.4g}"
 
 
+def _reference_note(summary: dict) -> str:
+    if not summary.get("reference"):
+        return ""
+    libraries = sorted({e["reference_library"] for e in summary["scenes"].values()})
+    return (
+        f"Best-tuned, Adam and pyramid: from `{summary['reference']}` (library "
+        f"{', '.join(libraries)}; each setting at its best learning rate), not rerun.\n\n"
+    )
+
+
 def markdown(summary: dict) -> str:
     """``table.md``: scenes x methods, ratios and the issue's targets."""
     scenes = summary["scenes"]
@@ -1017,6 +1159,7 @@ def markdown(summary: dict) -> str:
         f"Final parameter error, median over seeds {summary['settings']['seeds']}; every method "
         f"at its best learning rate. `auto` {auto_text}; "
         f"defaults = bilateral_adam {json.dumps(_jsonable(summary['defaults']))}.\n\n"
+        + _reference_note(summary)
         + "\n".join(lines)
         + "\n"
     )
@@ -1123,7 +1266,7 @@ _COST_RANK = {
 
 def _scene_job(args) -> dict:
     """One scene, end to end (a worker process's unit of work)."""
-    name, quick, cache, candidates, recompute, with_auto, progress, xla_cache = args
+    name, quick, cache, candidates, recompute, with_auto, progress, xla_cache, reference = args
     _use_xla_cache(xla_cache)
     t0 = time.perf_counter()
     scene = sc.make(name, quick)
@@ -1137,6 +1280,7 @@ def _scene_job(args) -> dict:
         recompute=recompute,
         with_auto=with_auto,
         progress=progress,
+        reference=reference,
     )
     entry["seconds"]["scene_setup"] = build
     entry["seconds"]["total"] += build
@@ -1178,9 +1322,13 @@ def run_benchmark(
     progress: bool = True,
     jobs: int = 1,
     xla_cache: str | None = "default",
+    reference: str | pathlib.Path | None = None,
 ) -> dict:
-    """Runs (or loads from ``out/cache``) every scene; writes ``summary.json``, ``table.md``
-    and one PNG per scene to ``out``; returns the summary.
+    """Runs (or loads from ``out/cache``) every scene; writes ``summary.json``, ``table.md``,
+    ``reference.json`` and one PNG per scene to ``out``; returns the summary.
+
+    ``reference``: a run's ``reference.json``; its best-tuned, Adam and pyramid grids are
+    used instead of running them (they must be of the same scenes and settings).
 
     ``jobs > 1`` runs scenes in that many worker processes (candidates must then be
     importable module-level functions, as ``--candidates`` gives). ``xla_cache``: JAX's
@@ -1194,6 +1342,7 @@ def run_benchmark(
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = settings(quick)
+    ref = None if reference is None else load_reference(reference, names, quick)
     with_auto = auto_available()
     cache = out / "cache"
     xla_cache = str(cache / "xla") if xla_cache == "default" else xla_cache
@@ -1201,7 +1350,18 @@ def run_benchmark(
         raise ValueError(f"jobs must be a positive int, got {jobs!r}")
     _use_xla_cache(xla_cache)
     args = [
-        (n, quick, str(cache), candidates, recompute, with_auto, progress, xla_cache) for n in names
+        (
+            n,
+            quick,
+            str(cache),
+            candidates,
+            recompute,
+            with_auto,
+            progress,
+            xla_cache,
+            None if ref is None else ref["scenes"][n],
+        )
+        for n in names
     ]
     if jobs == 1:
         done = map(_scene_job, args)
@@ -1234,6 +1394,7 @@ def run_benchmark(
     if jobs > 1:
         pool.shutdown()
     entries = {n: entries[n] for n in names}
+    write_reference(out / "reference.json", entries, quick, s)
     pngs = [str(plot_scene(e, out / f"{n}.png")) for n, e in entries.items()]
     summary = {
         "quick": quick,
@@ -1241,6 +1402,7 @@ def run_benchmark(
         "candidates": list(candidates or {}),
         "defaults": bilateral_defaults(),
         "settings": dataclasses.asdict(s),
+        "reference": None if ref is None else ref["file"],
         "targets": {"best_tuned": TARGET_BEST, "adam": TARGET_ADAM},
         "scenes": entries,
         "pngs": pngs,
@@ -1266,6 +1428,12 @@ def main(argv=None) -> dict:
             default="",
             help="comma-separated [NAME=]module:factory candidate methods; "
             "factory(learning_rate) -> optax transform",
+        )
+        parser.add_argument(
+            "--reference",
+            default=None,
+            help="a run's reference.json (e.g. experiments/tuning_reference.json): take the "
+            "best-tuned, Adam and pyramid grids from it instead of running them",
         )
         parser.add_argument(
             "--recompute",
@@ -1302,10 +1470,12 @@ def main(argv=None) -> dict:
         recompute=args.recompute,
         jobs=args.jobs,
         xla_cache=None if args.xla_cache == "none" else args.xla_cache,
+        reference=args.reference,
     )
     print(summary["table"])
     print(
         f"Total {summary['total_seconds']:.1f} s. Wrote {args.out}/summary.json, table.md, "
+        "reference.json, "
         f"{len(summary['pngs'])} PNGs."
     )
     return summary

@@ -3,6 +3,8 @@ reuses its grid cache, and compares a plugged-in candidate."""
 
 import json
 import math
+import pathlib
+import shutil
 
 import numpy as np
 import pytest
@@ -18,6 +20,8 @@ METHODS = ("best_tuned", "auto", "defaults", "adam", "pyramid")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("tuning")
     summary = T.main(["--quick", "--out", str(out)])
+    # Later tests rerun single scenes into ``out``, which rewrites its reference.json.
+    shutil.copy(out / "reference.json", out / "reference_all.json")
     return out, summary
 
 
@@ -89,6 +93,83 @@ def test_candidate_is_compared_and_grid_comes_from_the_cache(quick_run):
         e["methods"]["same"]["error"] / e["methods"]["best_tuned"]["error"]
     )
     assert "same/best-tuned" in (out / "table.md").read_text()
+
+
+def test_reference_replaces_the_grids(quick_run, tmp_path):
+    """With --reference the grids are read, not run: the reference methods' errors are the
+    reference run's, no grid is cached, the table names the file, and the new run's
+    reference.json carries the same grids on."""
+    out, first = quick_run
+    ref = out / "reference_all.json"
+    summary = T.main(
+        [
+            "--quick",
+            "--out",
+            str(tmp_path),
+            "--only-scenes",
+            "signal1d",
+            "--reference",
+            str(ref),
+            "--candidates",
+            "same=experiments.tuning:defaults_factory",
+        ]
+    )
+    e, e0 = summary["scenes"]["signal1d"], first["scenes"]["signal1d"]
+    assert e["from_reference"] == list(T.REFERENCE_FAMILIES)
+    for m in ("best_tuned", "adam", "pyramid"):
+        assert e["methods"][m]["error"] == e0["methods"][m]["error"], m
+        assert e["methods"][m]["hyperparameters"] == e0["methods"][m]["hyperparameters"], m
+    assert not (tmp_path / "cache" / "signal1d" / "bilateral.json").exists()
+    assert e["methods"]["same"]["error"] == pytest.approx(
+        e["methods"]["defaults"]["error"], rel=1e-5
+    )
+    assert f"from `{ref}`" in (tmp_path / "table.md").read_text()
+    again = json.loads((tmp_path / "reference.json").read_text())["scenes"]["signal1d"]
+    assert again == json.loads(ref.read_text())["scenes"]["signal1d"]
+    # Every setting of the grid keeps its best learning rate: the sensitivity curves survive.
+    assert T.sensitivity(e, False) == T.sensitivity(e0, False)
+
+
+def test_reference_that_does_not_match_is_refused(quick_run, tmp_path):
+    out, _ = quick_run
+    ref = json.loads((out / "reference_all.json").read_text())
+
+    def write(data) -> pathlib.Path:
+        path = tmp_path / "ref.json"
+        path.write_text(json.dumps(data))
+        return path
+
+    def run(path, names=("signal1d",), quick=True):
+        T.run_benchmark(list(names), quick=quick, out=tmp_path / "out", reference=path)
+
+    with pytest.raises(ValueError, match="holds a --quick run and this is a full run"):
+        run(write(ref), quick=False)
+    with pytest.raises(ValueError, match="has no scene nope_scene"):
+        T.load_reference(write(ref), ["signal1d", "nope_scene"], quick=True)
+    with pytest.raises(ValueError, match=r"expected a tuning run's reference\.json"):
+        run(write({"scenes": {}}))
+    with pytest.raises(ValueError, match="not a readable JSON file"):
+        run(tmp_path / "missing.json")
+    stale = json.loads(json.dumps(ref))
+    stale["scenes"]["signal1d"]["families"]["adam"]["key"] = "0" * 16
+    with pytest.raises(ValueError, match="adam grid on signal1d was run with another scene"):
+        run(write(stale))
+
+
+def test_committed_reference_matches_the_scenes():
+    """experiments/tuning_reference.json was run on today's scenes and settings: a change to
+    a scene or a grid makes it stale, and this fails until it is regenerated."""
+    path = pathlib.Path(__file__).parents[1] / "experiments" / "tuning_reference.json"
+    names = [*sc.SCENES, *sc.HELD_OUT]
+    ref = T.load_reference(path, names, quick=False)
+    s = T.settings(False)
+    for name in names:
+        scene = sc.make(name)
+        grids = T.families(scene, s)
+        for fam in T.REFERENCE_FAMILIES:
+            stored = ref["scenes"][name]["families"][fam]
+            assert stored["key"] == T._cache_key(scene, grids[fam], s, library=False), (name, fam)
+            assert stored["records"], (name, fam)
 
 
 def test_evaluate_shapes_and_rejects_bad_grids():
