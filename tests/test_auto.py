@@ -178,7 +178,7 @@ def test_the_blend_keeps_the_bounded_step(problem):
     bm, bv = ob.atrous_bilateral(
         (m, v), jnp.asarray(guide), sigma_d=0.5, levels=2, spatial_axes=(0, 1)
     )
-    mt, vt, new_residual = auto.blend(
+    mt, vt, new_residual, _ = auto.blend(
         m,
         v,
         bm,
@@ -205,7 +205,7 @@ def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
         m, v = b1 * m + (1 - b1) * g, b2 * v + (1 - b2) * g * g
         c1, c2 = 1 - b1**t, 1 - b2**t
         bm = m - bias * c1
-        mt, _, residual = auto.blend(
+        mt, _, residual, _ = auto.blend(
             m,
             v,
             bm,
@@ -252,7 +252,7 @@ def _sure_step(m, v, zeta, guide, scale):
     sigma_d, choices = sigmas[pick], sure.level_choices(levels)
     branches = [lambda n=n: filt(v, sigma_d=sigma_d, levels=n) for n in choices]
     vc = jax.lax.switch(chosen[pick] - choices[0], branches)
-    mt, vt, _ = auto.blend(
+    mt, vt, _, _ = auto.blend(
         m,
         v,
         mc,

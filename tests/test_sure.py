@@ -97,6 +97,69 @@ def test_the_choice_follows_the_moving_average_of_the_risks():
     assert int(pick) == 0
 
 
+def test_once_opened_the_mildest_candidate_is_taken():
+    """``opened`` > 0 overrides the least risk with the first candidate (the smallest factor at
+    the least F) once the noise is usable; before that the first pick stands."""
+    m = jnp.asarray(np.random.default_rng(0).normal(size=(32, 32, 1)), jnp.float32)
+    guide = jnp.zeros((32, 32), jnp.float32)
+    filter_at = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
+    cands = sure.candidates(
+        (m, m), LEVELS, 0.1, lambda x, s, n, k: filter_at(x, sigma_d=s, levels=n, first_level=k)
+    )
+    first = sure.first(LEVELS)
+
+    def pick(usable, opened):
+        u = jnp.asarray(usable)
+        m_f, p, _ = sure.choose(m, m, cands, 1.0, u, None, first, None, jnp.asarray(opened))
+        np.testing.assert_array_equal(m_f, cands[int(p)][0])
+        return int(p)
+
+    # All noise, and a constant guide (every factor filters alike): the deepest F.
+    assert int(sure.labels(LEVELS, 0.1)[1][pick(True, 0.0)]) == LEVELS
+    assert pick(True, 1.0) == 0
+    assert pick(False, 1.0) == first
+
+
+def _run_sure(steps, target, noise, then=None, seed=0):
+    """Each step's ``(opened, F, sigma_d, 3 x the mean guide step)`` of ``bilateral_adam(
+    sigma_d="sure")`` on ``(x - target) + noise N(0, 1)``; from step 10 on ``then``'s
+    ``(target, noise)`` if given."""
+    rng = np.random.default_rng(seed)
+    opt = ob.bilateral_adam(0.02, sigma_d="sure")
+    update = jax.jit(opt.update)
+    x = jnp.full((32, 32, 1), 0.5, jnp.float32)
+    state, previous, out = opt.init(x), None, []
+    for t in range(steps):
+        tg, nz = then if then is not None and t >= 10 else (target, noise)
+        g = (x - tg) + nz * jnp.asarray(rng.normal(size=x.shape), jnp.float32)
+        u, state = update(g, state, x)
+        step = 0.0 if previous is None else 3 * float(jnp.mean(jnp.abs(x - previous)))
+        s = state[0].auto
+        out.append((float(s.opened), int(s.levels), float(s.sigma_d), step))
+        previous, x = x, x + u
+    return out
+
+
+def test_the_gate_opens_on_an_iid_target_and_the_choice_stays_mild():
+    """A noise-free gradient toward an i.i.d. target: the filter's residual persists on every
+    texel, the blend's gate opens at the second step, and from then on the leaf takes
+    ``FACTORS[0]`` times the step scale at F = 2, also after the target turns smooth and
+    noisy (where the gate would close). A smooth, noisy target never opens it."""
+    rng = np.random.default_rng(1)
+    iid = jnp.asarray(rng.uniform(0.2, 0.8, (32, 32, 1)), jnp.float32)
+    i, j = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
+    smooth = jnp.asarray(0.5 + 0.3 * np.sin(i / 5) * np.cos(j / 7), jnp.float32)[..., None]
+    steps = _run_sure(30, iid, 0.0, then=(smooth, 0.3))
+    assert steps[0][0] == 0 and all(o == 1 for o, *_ in steps[1:])
+    for _, levels, sigma_d, scale in steps[2:]:
+        assert levels == 2
+        assert sigma_d == pytest.approx(sure.FACTORS[0] * scale, rel=1e-4)
+    never = _run_sure(30, smooth, 0.3)
+    assert all(o == 0 for o, *_ in never)
+    # ... and there the choice is free: a larger factor or a deeper F at some step.
+    assert any(lev > 2 or sig > 1.5 * sure.FACTORS[0] * sc for _, lev, sig, sc in never[2:])
+
+
 @pytest.mark.parametrize("c", [1e-6, 1e-3, 1.0, 1e3, 1e6])
 def test_every_step_casts_one_vote_whatever_the_gradients_scale(c):
     # Each step's risks are divided by their largest magnitude: the average does not let

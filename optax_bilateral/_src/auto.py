@@ -183,8 +183,9 @@ def blend(
     count: jax.Array,
     axes: tuple[int, ...],
     observed: jax.Array | None,
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """``(lam m + (1-lam) B m, lam v + (1-lam) B v, new residual EMA)`` for raw moments.
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """``(lam m + (1-lam) B m, lam v + (1-lam) B v, new residual EMA, gate)`` for raw
+    moments; ``gate`` (a scalar in [0, 1]) is how far the leaf's blend is open (``GATE``).
 
     ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``observed``
     (full-shape bool or None) keeps the residual where a texel was not observed.
@@ -207,8 +208,9 @@ def blend(
     floor, signal = _smooth((residual_noise, residual_hat**2), axes)
     lam = 1 - floor / (GAIN * jnp.where(signal > 0, signal, 1))
     lam = jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** POWER
-    lam = lam * jnp.clip((jnp.mean(lam) - GATE[0]) / (GATE[1] - GATE[0]), 0, 1)
-    return lam * m + (1 - lam) * bm, lam * v + (1 - lam) * bv, new_residual
+    gate = jnp.clip((jnp.mean(lam) - GATE[0]) / (GATE[1] - GATE[0]), 0, 1)
+    lam = lam * gate
+    return lam * m + (1 - lam) * bm, lam * v + (1 - lam) * bv, new_residual, gate
 
 
 def full_mask(observed: jax.Array | None, ndim: int, axes: tuple[int, ...]) -> jax.Array | None:

@@ -126,6 +126,7 @@ def _auto_sigma(rule, g, guide, hyper, state):
         sure_state = cast(sure.SureState, state)
         hyper["previous_gradient"] = sure_state.previous_gradient
         hyper["risks"] = sure_state.risks
+        hyper["opened"] = sure_state.opened
     if rule.self_guided or guide is None:
         return hyper, state  # each field's own sigma_d, in filter_fields
     previous = None if state is None else state.previous_guide
@@ -249,7 +250,8 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g):
     """B m and B v, with one set of weights (unfiltered where the leaf is not filtered, and
     each left as it is when ``filter_m`` / ``filter_v`` is off), and what the step learned
     for the leaf's auto state (``{}``, or with moments the new ``residual`` of
-    ``sigma_d="auto"``, and with ``"sure"`` the gradient ``g`` and the chosen sigma_d)."""
+    ``sigma_d="auto"``, and with ``"sure"`` the gradient ``g``, the chosen sigma_d and F,
+    the risks and whether the gate has opened)."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
         return m, v, {}
     if not rule.filter_v:
@@ -263,7 +265,7 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g):
         m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
     if "residual" not in hyper:
         return m_f, v_f, learned
-    m_f, v_f, residual = auto.blend(
+    m_f, v_f, residual, gate = auto.blend(
         m,
         v,
         m_f,
@@ -276,6 +278,8 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g):
         axes=rule.axes,
         observed=auto.full_mask(observed, m.ndim, rule.axes),
     )
+    if rule.sure_sigma:  # sticky: the bias it saw persists, the gate's view of it does not
+        learned["opened"] = jnp.maximum(hyper["opened"], (gate >= 1).astype(m.dtype))
     return m_f, v_f, {**learned, "residual": residual}
 
 
@@ -300,7 +304,9 @@ def _sure_moments(rule, m, v, guide, hyper, observed, g):
     candidates = sure.candidates((m, zeta), rule.levels, scale, filter_at)
     c1 = jnp.asarray(hyper["c1"], m.dtype)
     first = sure.first(rule.levels)
-    m_f, pick, risks = sure.choose(m, zeta, candidates, c1, usable, obs_full, first, hyper["risks"])
+    m_f, pick, risks = sure.choose(
+        m, zeta, candidates, c1, usable, obs_full, first, hyper["risks"], hyper["opened"]
+    )
     sigmas, levels = sure.labels(rule.levels, scale)
     sigma_d, chosen = sigmas[pick], levels[pick]
 

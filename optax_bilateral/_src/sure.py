@@ -22,6 +22,12 @@ cascade, read after each F (``atrous_bilateral``'s ``first_level``). The chosen 
 filters both ``m`` and ``v`` (``v`` only once chosen: the risks need ``B m`` and
 ``B zeta``), then ``"auto"``'s blend follows: one non-negative, row-stochastic operator,
 so the step stays bounded (supplement §1.3).
+
+Once the blend's gate has been fully open on a leaf (the filter's residual persisted over
+most of it: its guide does not predict its gradient, as on an i.i.d. target), the leaf takes
+the mildest candidate, ``FACTORS[0]`` at the least F, for the rest of the run: that bias is
+small against one step's noise, so the per-step risk cannot see it, and late in a run, once
+the gate has closed again, it would choose a deeper filter.
 """
 
 from __future__ import annotations
@@ -55,6 +61,8 @@ class SureState(NamedTuple):
       levels: the F the last update chose (int32 scalar; 0 before the first update).
       risks: the moving average of every candidate's estimated risk, each step's over its
         largest magnitude, in :func:`labels`' order (0 before the noise is known).
+      opened: 1 once the blend's gate has been fully open at a step, else 0 (a scalar); from
+        then on the leaf takes the mildest candidate.
 
     Example::
 
@@ -65,6 +73,8 @@ class SureState(NamedTuple):
         ('SureState', (16, 16, 3), 0.0)
         >>> int(sure.levels), sure.risks.shape   # 3 factors at F = 2 .. 5 (SURE_LEVELS)
         (0, (12,))
+        >>> float(sure.opened)
+        0.0
     """
 
     previous_guide: jax.Array
@@ -73,6 +83,7 @@ class SureState(NamedTuple):
     sigma_d: jax.Array
     levels: jax.Array
     risks: jax.Array
+    opened: jax.Array
 
 
 def is_sure(sigma_d) -> bool:
@@ -122,14 +133,15 @@ def noise_sample(g, previous, ratio, usable):
     return jnp.where(usable, jnp.sqrt(ratio / 2) * (g - previous), 0).astype(g.dtype)
 
 
-def choose(m, zeta, candidates, c1, usable, observed, first_pick, previous_risks=None):
+def choose(m, zeta, candidates, c1, usable, observed, first_pick, previous_risks=None, opened=None):
     """``(B m, pick, risks)``: the candidate ``(B m, B zeta)`` of least moving-average risk
     (``first_pick`` until ``usable``) and the new average.
 
     ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``observed`` (full shape) or
     None leaves unobserved entries out of the sums; ``previous_risks`` is the average so
-    far (None: none, so this step's estimate alone decides). The caller filters ``v``
-    with the chosen operator, so both moments get it.
+    far (None: none, so this step's estimate alone decides); ``opened`` (a scalar, see
+    :attr:`SureState.opened`) > 0 takes the mildest candidate once usable. The caller
+    filters ``v`` with the chosen operator, so both moments get it.
     """
     keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
     risks = []
@@ -141,6 +153,8 @@ def choose(m, zeta, candidates, c1, usable, observed, first_pick, previous_risks
     previous = previous.astype(risks.dtype)
     risks = jnp.where(usable, RISK_DECAY * previous + (1 - RISK_DECAY) * risks, previous)
     pick = jnp.where(usable, jnp.argmin(risks), first_pick).astype(jnp.int32)
+    if opened is not None:  # the mildest candidate, the first: FACTORS[0] at the least F
+        pick = jnp.where(usable & (opened > 0), 0, pick).astype(jnp.int32)
     return lax.select_n(pick, *(c[0] for c in candidates)), pick, risks
 
 

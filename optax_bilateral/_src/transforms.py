@@ -682,6 +682,7 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
                     jnp.zeros([], dtype),
                     jnp.zeros([], jnp.int32),
                     jnp.zeros([sure.count(spec.levels)], dtype),
+                    jnp.zeros([], dtype),
                 )
             )
         else:
