@@ -34,8 +34,9 @@ Scenes (:data:`SCENES`; ``quick`` is the test-suite size):
 =====================  ==========================================================================
 
 :data:`HELD_OUT` holds ``signal1d`` at 256 and 4096 samples and ``deblur`` at 64x64 and 96x96
-(the shapes scale with the image), outside the default run: a rule fitted on the suite is
-checked on them (docs/auto_sigma.md).
+(the shapes scale with the image), and ``texture_mixed50`` / ``texture_mixed75`` (the camera
+target with its right half / three quarters replaced by the noise target), outside the
+default run: a rule fitted on the suite is checked on them (docs/auto_sigma.md).
 
 Errors: ``texture*``: mean ``|alpha - alpha_target|`` over texels (roughness units);
 ``volume``: the mean of the density's mean absolute error and the target-density-weighted
@@ -119,14 +120,20 @@ def texture(
     spp_grad: int = 1,
     name: str = "texture",
     description: str | None = None,
+    noise_fraction: float = 0.0,
 ) -> Scene:
     """The toy texture scene (:mod:`optax_bilateral.toy.texture`), seed 0, from a
-    constant roughness of 0.1."""
+    constant roughness of 0.1; ``noise_fraction`` of its columns (the right ones) take the
+    ``"noise"`` target's values instead of ``target``'s."""
     from optax_bilateral.toy import texture as tex
 
     size, iterations = (32, 30) if quick else (64, 100)
     reference_spp = 64 if quick else 256
-    target_alpha = jnp.asarray(tex.target_roughness(target, size, seed=0))
+    target_np = np.array(tex.target_roughness(target, size, seed=0))  # a copy: edited below
+    noisy = round(size * noise_fraction)
+    if noisy:
+        target_np[:, size - noisy :] = tex.target_roughness("noise", size, seed=0)[:, -noisy:]
+    target_alpha = jnp.asarray(target_np)
     scene = tex.make_scene(size)
     data = {
         "scene": scene,
@@ -161,6 +168,8 @@ def texture(
             reference_spp=reference_spp,
             init_alpha=0.1,
             iterations=iterations,
+            # Only where used, so the other texture scenes keep their cached grids' keys.
+            **({"noise_fraction": noise_fraction} if noisy else {}),
         ),
     )
 
@@ -422,6 +431,10 @@ HELD_OUT: dict[str, Callable[[bool], Scene]] = {
     "signal1d_n4096": lambda q: signal1d(q, n=1024 if q else 4096, name="signal1d_n4096"),
     "deblur_n64": lambda q: deblur(q, size=16 if q else 64, name="deblur_n64"),
     "deblur_n96": lambda q: deblur(q, size=24 if q else 96, name="deblur_n96"),
+    # The camera target with its right half / three quarters replaced by the noise target:
+    # where the filter is right on part of a leaf and wrong on the rest.
+    "texture_mixed50": lambda q: texture(q, noise_fraction=0.5, name="texture_mixed50"),
+    "texture_mixed75": lambda q: texture(q, noise_fraction=0.75, name="texture_mixed75"),
 }
 ALL: dict[str, Callable[[bool], Scene]] = {**SCENES, **HELD_OUT}
 
