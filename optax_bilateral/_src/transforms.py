@@ -456,7 +456,8 @@ def postfilter(
         the moments' noise; docs/auto_sigma.md), or ``"sure"`` (an opt-in: 3x the
         guide's mean change per step times 1, 3 or 10, at F = 2 .. ``levels``, chosen
         per leaf and step by Stein's unbiased risk estimate averaged over about ten
-        steps, then the same blend; per
+        steps, then the same blend, and the mildest candidate once that blend has been
+        fully open on the leaf; per
         step three cascades of m and a noise sample and one of v; a guide and moments
         needed; :class:`SureState`); a value or a pytree prefix of the parameters. A
         number is traceable.
