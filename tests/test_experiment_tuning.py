@@ -172,6 +172,20 @@ def test_committed_reference_matches_the_scenes():
             assert stored["records"], (name, fam)
 
 
+@pytest.mark.parametrize("name, fraction", [("texture_mixed50", 0.5), ("texture_mixed75", 0.75)])
+def test_mixed_target_is_camera_left_and_noise_right(name, fraction):
+    """The held-out mixed scenes: the camera target's left columns, the noise target's right
+    ones; the suite's texture scenes keep their configuration (and so their grids' keys)."""
+    mixed, camera, noise = (sc.make(n, quick=True) for n in (name, "texture", "texture_noise"))
+    size = mixed.init.shape[1]
+    k = size - round(size * fraction)
+    t, c, n = (np.asarray(x.data["target"]) for x in (mixed, camera, noise))
+    np.testing.assert_array_equal(t[:, :k], c[:, :k])
+    np.testing.assert_array_equal(t[:, k:], n[:, k:])
+    assert mixed.config["noise_fraction"] == fraction
+    assert "noise_fraction" not in camera.config and "noise_fraction" not in noise.config
+
+
 def test_evaluate_shapes_and_rejects_bad_grids():
     scene = sc.make("signal1d", quick=True)
     errs = T.evaluate(

@@ -14,7 +14,7 @@ from optax_bilateral._src import auto
 AXES = (0, 1)
 
 
-@pytest.mark.parametrize("name", sorted(sc.HELD_OUT))
+@pytest.mark.parametrize("name", sorted(n for n in sc.HELD_OUT if "_n" in n))
 def test_held_out_scene_is_its_suite_scene_at_another_size(name):
     scene = sc.make(name, quick=True)
     assert scene.name == name and name not in sc.SCENES
