@@ -914,8 +914,9 @@ def reference_part(
         result = results[name]
         best: dict[str, Record] = {}
         for r in result.records:
-            if _setting(r) not in best or r.median < best[_setting(r)].median:
-                best[_setting(r)] = r
+            setting = _setting(r)
+            if setting not in best or r.median < best[setting].median:
+                best[setting] = r
         overall = result.best
         best[_setting(overall)] = overall  # a tie keeps the family's best as it was
         records = [{**r.to_json(), "curve": r.curve if r is overall else []} for r in best.values()]
@@ -937,9 +938,9 @@ def _setting(r: Record) -> str:
 def load_reference(
     path: str | pathlib.Path, scene_names: Sequence[str], quick: bool
 ) -> dict[str, Any]:
-    """The parts of the reference file ``path`` (a run's ``reference.json``) for
-    ``scene_names``, with ``"file"`` and the run's ``"library"``; a clear error when it
-    holds another setting or lacks a scene."""
+    """``{"file": path, "scenes": {name: part}}``: the parts of the reference file ``path``
+    (a run's ``reference.json``) for ``scene_names``; a clear error when it holds another
+    setting or lacks a scene."""
     path = pathlib.Path(path)
     try:
         data = json.loads(path.read_text())
@@ -988,7 +989,7 @@ def write_reference(path: pathlib.Path, entries: Mapping[str, dict], quick: bool
         "settings": dataclasses.asdict(s),
         "scenes": scenes,
     }
-    path.write_text(json.dumps(_jsonable(data), indent=None, sort_keys=True) + "\n")
+    path.write_text(json.dumps(_jsonable(data), sort_keys=True) + "\n")
 
 
 # ----------------------------------------------------------------------------- outputs

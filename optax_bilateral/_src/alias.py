@@ -90,7 +90,8 @@ def bilateral_adam(
         from the guide's change, with a per-texel blend toward the unfiltered moments;
         docs/auto_sigma.md), or ``"sure"`` (an opt-in that picks among 3x the guide's
         mean change per step times 1, 3, 10 at F = 2 .. ``levels`` by Stein's unbiased
-        risk estimate, averaged over about ten steps; with its default ``levels``, 5,
+        risk estimate, averaged over about ten steps, and the mildest of them once the
+        blend has been fully open on the leaf; with its default ``levels``, 5,
         a better worst case on the tuning scenes at 6-10x a fixed sigma_d's update time;
         :func:`postfilter`); a
         pytree prefix of the parameters gives one value per leaf (``{"density":

@@ -152,9 +152,10 @@ def choose(m, zeta, candidates, c1, usable, observed, first_pick, previous_risks
     previous = jnp.zeros_like(risks) if previous_risks is None else previous_risks
     previous = previous.astype(risks.dtype)
     risks = jnp.where(usable, RISK_DECAY * previous + (1 - RISK_DECAY) * risks, previous)
-    pick = jnp.where(usable, jnp.argmin(risks), first_pick).astype(jnp.int32)
+    best = jnp.argmin(risks)
     if opened is not None:  # the mildest candidate, the first: FACTORS[0] at the least F
-        pick = jnp.where(usable & (opened > 0), 0, pick).astype(jnp.int32)
+        best = jnp.where(opened > 0, 0, best)
+    pick = jnp.where(usable, best, first_pick).astype(jnp.int32)
     return lax.select_n(pick, *(c[0] for c in candidates)), pick, risks
 
 
