@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 import optax_bilateral as ob
 from optax_bilateral._src import auto, sure
+from optax_bilateral._src import step as step_module
 
 SHAPE = (16, 16, 3)
 
@@ -236,6 +237,75 @@ def test_the_blend_stays_closed_where_the_bias_persists_on_half_the_leaf():
     bias = jnp.zeros((32, 32, 1)).at[:, :16].set(1.0)
     mt, bm = _blend_after(bias)
     np.testing.assert_array_equal(np.asarray(mt), np.asarray(bm))
+
+
+def _run_auto(steps, target, noise, period=None, seed=0):
+    """Each step's ``(update, AutoState.gate, AutoState.residual)`` of ``bilateral_adam()``
+    (``sigma_d="auto"``) on ``(x - target) + noise N(0, 1)``, with ``auto.CHECK_PERIOD``
+    set to ``period`` if given (``leaf_step``'s trace, cached by the leaf's rule, is dropped
+    around the run)."""
+    saved = auto.CHECK_PERIOD
+    auto.CHECK_PERIOD = saved if period is None else period
+    step_module.leaf_step.clear_cache()
+    try:
+        rng = np.random.default_rng(seed)
+        opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
+        update = jax.jit(opt.update)
+        x = jnp.full((32, 32, 1), 0.5, jnp.float32)
+        state, out = opt.init(x), []
+        for _ in range(steps):
+            g = (x - target) + noise * jnp.asarray(rng.normal(size=x.shape), jnp.float32)
+            u, state = update(g, state, x)
+            auto_state = state[0].auto
+            out.append((np.asarray(u), float(auto_state.gate), np.asarray(auto_state.residual)))
+            x = x + u
+    finally:
+        auto.CHECK_PERIOD = saved
+        step_module.leaf_step.clear_cache()
+    return out
+
+
+def _targets():
+    rng = np.random.default_rng(1)
+    iid = jnp.asarray(rng.uniform(0.2, 0.8, (32, 32, 1)), jnp.float32)
+    i, j = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
+    smooth = jnp.asarray(0.5 + 0.3 * np.sin(i / 5) * np.cos(j / 7), jnp.float32)[..., None]
+    return iid, smooth
+
+
+def test_a_closed_gate_skips_the_blend_and_changes_no_update():
+    """Where the gate stays closed (a smooth, noisy target), skipping the blend's statistics
+    between checks gives the updates of computing them every step, bit for bit, and the
+    same residual average (to rounding: the two programs fuse its arithmetic differently)."""
+    _, smooth = _targets()
+    every = _run_auto(40, smooth, 0.3, period=1)
+    assert all(gate == 0 for _, gate, _ in every)
+    skipping = _run_auto(40, smooth, 0.3)
+    for (u, _, residual), (u_skip, _, residual_skip) in zip(every, skipping):
+        np.testing.assert_array_equal(u, u_skip)
+        scale = float(np.max(np.abs(residual)))
+        np.testing.assert_allclose(residual_skip, residual, rtol=1e-5, atol=1e-6 * scale)
+    assert np.any(every[-1][2] != 0)
+
+
+def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step():
+    """A noise-free gradient toward an i.i.d. target opens the gate at the second step when
+    it is checked every step; with the default period the opening waits for the first
+    multiple of ``CHECK_PERIOD``, and from then on the blend runs at every step."""
+    iid, _ = _targets()
+    every = _run_auto(3 * auto.CHECK_PERIOD, iid, 0.0, period=1)
+    assert every[0][1] == 0 and all(gate > 0 for _, gate, _ in every[1:])
+    gates = [gate for _, gate, _ in _run_auto(3 * auto.CHECK_PERIOD, iid, 0.0)]
+    first = next(t for t, gate in enumerate(gates, start=1) if gate > 0)
+    assert first == auto.CHECK_PERIOD
+    assert all(gate > 0 for gate in gates[first:])
+
+
+def test_checks_is_an_open_gate_or_a_multiple_of_the_period():
+    counts = jnp.arange(1, 3 * auto.CHECK_PERIOD + 1)
+    closed = np.asarray(auto.checks(jnp.zeros([]), counts))
+    np.testing.assert_array_equal(closed, np.asarray(counts) % auto.CHECK_PERIOD == 0)
+    assert bool(jnp.all(auto.checks(jnp.asarray(0.1), counts)))
 
 
 @jax.jit

@@ -248,3 +248,18 @@ def test_bench_gpu_quick_times_both_kernels(tmp_path):
         assert r["x adam (paired)"] > 0 and np.isfinite(r["x adam (paired)"])
     for name in ("bench_gpu.json", "bench_gpu.md", "bench_gpu.png"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_auto_cost_quick_times_auto_closed_and_open_against_a_fixed_sigma(tmp_path):
+    """``experiments.auto_cost --quick``: every ratio it reports is a positive finite number,
+    and the noisy-gradient run keeps ``"auto"``'s gate closed (its state says so)."""
+    from experiments import auto_cost
+
+    rows = auto_cost.main(["--quick", "--out", str(tmp_path)])
+    assert set(rows) == set(auto_cost.QUICK_GRIDS)
+    for row in rows.values():
+        assert row["gate"]["auto"] == 0 and row["gate"]["auto_open"] > 0
+        for key in ("auto_vs_fixed", "auto_open_vs_fixed", "sure_vs_fixed", "sure5_vs_fixed"):
+            assert 0 < row[key] < float("inf")
+    data = json.loads((tmp_path / "auto_cost.json").read_text())
+    assert data["quick"] is True and "auto, gate open" in (tmp_path / "auto_cost.md").read_text()

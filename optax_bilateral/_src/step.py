@@ -122,6 +122,8 @@ def _auto_sigma(rule, g, guide, hyper, state):
     hyper = dict(hyper)
     if state is not None and state.residual is not None:
         hyper["residual"] = state.residual
+        if isinstance(state, auto.AutoState):
+            hyper["gate"] = state.gate
     if rule.sure_sigma:
         sure_state = cast(sure.SureState, state)
         hyper["previous_gradient"] = sure_state.previous_gradient
@@ -134,7 +136,7 @@ def _auto_sigma(rule, g, guide, hyper, state):
     hyper["sigma_d"] = auto.sigma(guide, previous, hyper["count"], rule.axes, direction)
     keep = guide if previous is None else guide.astype(previous.dtype)
     if state is None:
-        return hyper, auto.AutoState(keep, None, None)
+        return hyper, auto.AutoState(keep, None, None, None)
     return hyper, state._replace(previous_guide=keep)
 
 
@@ -265,21 +267,35 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g):
         m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
     if "residual" not in hyper:
         return m_f, v_f, learned
-    m_f, v_f, residual, gate = auto.blend(
-        m,
-        v,
-        m_f,
-        v_f,
-        hyper["residual"].astype(m.dtype),
-        b1=_number(rule, hyper, "b1"),
-        c1=hyper["c1"],
-        c2=hyper["c2"],
-        count=hyper["count"],
-        axes=rule.axes,
-        observed=auto.full_mask(observed, m.ndim, rule.axes),
-    )
-    if rule.sure_sigma:  # sticky: the bias it saw persists, the gate's view of it does not
+    residual = hyper["residual"].astype(m.dtype)
+    obs_full = auto.full_mask(observed, m.ndim, rule.axes)
+
+    def blend(m_f, v_f):
+        return auto.blend(
+            m,
+            v,
+            m_f,
+            v_f,
+            residual,
+            b1=_number(rule, hyper, "b1"),
+            c1=hyper["c1"],
+            c2=hyper["c2"],
+            count=hyper["count"],
+            axes=rule.axes,
+            observed=obs_full,
+        )
+
+    def closed(m_f, v_f):
+        new = auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
+        return m_f, v_f, new, jnp.zeros([], m.dtype)
+
+    if rule.sure_sigma:
+        m_f, v_f, residual, gate = blend(m_f, v_f)
+        # Sticky: the bias it saw persists, the gate's view of it does not.
         learned["opened"] = jnp.maximum(hyper["opened"], (gate >= 1).astype(m.dtype))
+    else:  # between checks of a closed gate, no blend (only the branch taken runs)
+        check = auto.checks(hyper["gate"], hyper["count"])
+        m_f, v_f, residual, learned["gate"] = lax.cond(check, blend, closed, m_f, v_f)
     return m_f, v_f, {**learned, "residual": residual}
 
 

@@ -688,7 +688,8 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
             )
         else:
             direction = jnp.zeros([], dtype) if transform == "postfilter" else None
-            states.append(AutoState(previous_guide, zeros if with_residual else None, direction))
+            residual, gate = (zeros, jnp.zeros([], dtype)) if with_residual else (None, None)
+            states.append(AutoState(previous_guide, residual, direction, gate))
     return jax.tree.unflatten(jax.tree.structure(params), states)
 
 
