@@ -1,6 +1,9 @@
 import os
 
 import hypothesis
+import jax.numpy as jnp
+import numpy as np
+import pytest
 
 # The suite compiles hundreds of small programs, and LLVM's optimisations are most of their
 # compile time while changing results by float rounding at most; the tests assert properties
@@ -30,3 +33,14 @@ hypothesis.settings.register_profile(
     suppress_health_check=[hypothesis.HealthCheck.too_slow, hypothesis.HealthCheck.data_too_large],
 )
 hypothesis.settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+
+
+@pytest.fixture
+def iid_and_smooth_targets():
+    """Two 32x32x1 targets in (0, 1): i.i.d. uniform texels (the filter's bias persists on
+    every texel) and a smooth sinusoid (a filter that follows it has little bias)."""
+    rng = np.random.default_rng(1)
+    iid = jnp.asarray(rng.uniform(0.2, 0.8, (32, 32, 1)), jnp.float32)
+    i, j = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
+    smooth = jnp.asarray(0.5 + 0.3 * np.sin(i / 5) * np.cos(j / 7), jnp.float32)[..., None]
+    return iid, smooth

@@ -265,19 +265,11 @@ def _run_auto(steps, target, noise, period=None, seed=0):
     return out
 
 
-def _targets():
-    rng = np.random.default_rng(1)
-    iid = jnp.asarray(rng.uniform(0.2, 0.8, (32, 32, 1)), jnp.float32)
-    i, j = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
-    smooth = jnp.asarray(0.5 + 0.3 * np.sin(i / 5) * np.cos(j / 7), jnp.float32)[..., None]
-    return iid, smooth
-
-
-def test_a_closed_gate_skips_the_blend_and_changes_no_update():
+def test_a_closed_gate_skips_the_blend_and_changes_no_update(iid_and_smooth_targets):
     """Where the gate stays closed (a smooth, noisy target), skipping the blend's statistics
     between checks gives the updates of computing them every step, bit for bit, and the
     same residual average (to rounding: the two programs fuse its arithmetic differently)."""
-    _, smooth = _targets()
+    _, smooth = iid_and_smooth_targets
     every = _run_auto(40, smooth, 0.3, period=1)
     assert all(gate == 0 for _, gate, _ in every)
     skipping = _run_auto(40, smooth, 0.3)
@@ -288,11 +280,11 @@ def test_a_closed_gate_skips_the_blend_and_changes_no_update():
     assert np.any(every[-1][2] != 0)
 
 
-def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step():
+def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step(iid_and_smooth_targets):
     """A noise-free gradient toward an i.i.d. target opens the gate at the second step when
     it is checked every step; with the default period the opening waits for the first
     multiple of ``CHECK_PERIOD``, and from then on the blend runs at every step."""
-    iid, _ = _targets()
+    iid, _ = iid_and_smooth_targets
     every = _run_auto(3 * auto.CHECK_PERIOD, iid, 0.0, period=1)
     assert every[0][1] == 0 and all(gate > 0 for _, gate, _ in every[1:])
     gates = [gate for _, gate, _ in _run_auto(3 * auto.CHECK_PERIOD, iid, 0.0)]

@@ -140,15 +140,12 @@ def _run_sure(steps, target, noise, then=None, seed=0):
     return out
 
 
-def test_the_gate_opens_on_an_iid_target_and_the_choice_stays_mild():
+def test_the_gate_opens_on_an_iid_target_and_the_choice_stays_mild(iid_and_smooth_targets):
     """A noise-free gradient toward an i.i.d. target: the filter's residual persists on every
     texel, the blend's gate opens at the second step, and from then on the leaf takes
     ``FACTORS[0]`` times the step scale at F = 2, also after the target turns smooth and
     noisy (where the gate would close). A smooth, noisy target never opens it."""
-    rng = np.random.default_rng(1)
-    iid = jnp.asarray(rng.uniform(0.2, 0.8, (32, 32, 1)), jnp.float32)
-    i, j = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
-    smooth = jnp.asarray(0.5 + 0.3 * np.sin(i / 5) * np.cos(j / 7), jnp.float32)[..., None]
+    iid, smooth = iid_and_smooth_targets
     steps = _run_sure(30, iid, 0.0, then=(smooth, 0.3))
     assert steps[0][0] == 0 and all(o == 1 for o, *_ in steps[1:])
     for _, levels, sigma_d, scale in steps[2:]:

@@ -44,7 +44,7 @@ RESIDUAL_DECAY = 0.97  # the residual's EMA (~33 steps: a bias below one step's 
 GAIN = 0.25  # lam = 0 until the persistent residual exceeds 1/GAIN times its noise floor
 POWER = 2.0
 GATE = (0.5, 0.65)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
-CHECK_PERIOD = 8  # a closed gate skips the blend's statistics but every 8th step (~1/4 of an EMA)
+CHECK_PERIOD = 8  # a closed gate is re-checked every 8th step: a quarter of the residual's EMA
 
 
 class AutoState(NamedTuple):

@@ -252,8 +252,8 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g):
     """B m and B v, with one set of weights (unfiltered where the leaf is not filtered, and
     each left as it is when ``filter_m`` / ``filter_v`` is off), and what the step learned
     for the leaf's auto state (``{}``, or with moments the new ``residual`` of
-    ``sigma_d="auto"``, and with ``"sure"`` the gradient ``g``, the chosen sigma_d and F,
-    the risks and whether the gate has opened)."""
+    ``sigma_d="auto"`` and its blend's ``gate``, and with ``"sure"`` the gradient ``g``,
+    the chosen sigma_d and F, the risks and whether the gate has opened)."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
         return m, v, {}
     if not rule.filter_v:
