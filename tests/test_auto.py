@@ -179,18 +179,18 @@ def test_the_blend_keeps_the_bounded_step(problem):
     bm, bv = ob.atrous_bilateral(
         (m, v), jnp.asarray(guide), sigma_d=0.5, levels=2, spatial_axes=(0, 1)
     )
-    mt, vt, new_residual, _ = auto.blend(
+    new_residual = auto.update_residual(m, bm, jnp.asarray(residual), 1.0, None)
+    mt, vt, _ = auto.blend(
         m,
         v,
         bm,
         bv,
-        jnp.asarray(residual),
+        new_residual,
         b1=0.2,
         c1=1.0,
         c2=1.0,
         count=jnp.asarray(count),
         axes=(0, 1),
-        observed=None,
     )
     assert np.all(np.isfinite(np.asarray(new_residual)))
     _assert_bounded(m, v, mt, vt)
@@ -206,7 +206,8 @@ def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
         m, v = b1 * m + (1 - b1) * g, b2 * v + (1 - b2) * g * g
         c1, c2 = 1 - b1**t, 1 - b2**t
         bm = m - bias * c1
-        mt, _, residual, _ = auto.blend(
+        residual = auto.update_residual(m, bm, residual, c1, None)
+        mt, _, _ = auto.blend(
             m,
             v,
             bm,
@@ -217,7 +218,6 @@ def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
             c2=c2,
             count=jnp.asarray(t),
             axes=(0, 1),
-            observed=None,
         )
     return mt, bm
 
@@ -314,18 +314,17 @@ def _sure_step(m, v, zeta, guide, scale):
     sigma_d, choices = sigmas[pick], sure.level_choices(levels)
     branches = [lambda n=n: filt(v, sigma_d=sigma_d, levels=n) for n in choices]
     vc = jax.lax.switch(chosen[pick] - choices[0], branches)
-    mt, vt, _, _ = auto.blend(
+    mt, vt, _ = auto.blend(
         m,
         v,
         mc,
         vc,
-        m * 0,
+        auto.update_residual(m, mc, m * 0, 1.0, None),
         b1=0.2,
         c1=1.0,
         c2=1.0,
         count=jnp.asarray(5),
         axes=(0, 1),
-        observed=None,
     )
     return mt, vt, sigma_d
 
@@ -487,3 +486,48 @@ def test_auto_trace_reports_the_learning_rate_on_the_texture_scene(tmp_path):
     assert len(rate) == len(step) > 4 and np.isfinite(out["error"])
     assert np.all(rate <= 0.01 * (1 + 1e-5)) and np.median(rate) > 0.005
     assert np.median(step[-len(step) // 4 :]) < np.median(rate)
+
+
+@pytest.mark.parametrize(
+    "shape, axes, expected",
+    [
+        ((64, 64, 3), (0, 1), 1),  # the suite's textures: every texel
+        ((256, 256, 1), (0, 1), 2),
+        ((512, 512, 3), (0, 1), 4),
+        ((64, 64, 64, 1), (0, 1, 2), 2),
+        ((1 << 20,), (0,), 64),
+        ((3, 1000, 1000), (1, 2), 4),  # channels first
+    ],
+)
+def test_stride_leaves_at_least_min_texels(shape, axes, expected):
+    s = auto.stride(shape, axes)
+    assert s == expected
+    count = lambda s: math.prod(-(-shape[a] // s) for a in axes)
+    assert count(s) >= auto.MIN_TEXELS or s == 1
+    assert count(2 * s) < auto.MIN_TEXELS
+
+
+def test_a_large_leaf_keeps_a_sub_grid_of_its_guide_and_sigma_is_its_full_mean():
+    """Above MIN_TEXELS the state keeps every s-th texel; the guide's mean step over it is
+    the full grid's to a fraction of a percent, and an unprojected step still gives sqrt(C) lr."""
+    rng = np.random.default_rng(0)
+    shape, axes = (300, 260, 2), (0, 1)  # 78000 texels: stride 2, not dividing 300 or 260 evenly
+    assert auto.stride(shape, axes) == 2
+    guide = jnp.asarray(rng.random(shape), jnp.float32)
+    step = jnp.asarray(rng.standard_normal(shape) * rng.random(shape[:2])[..., None], jnp.float32)
+    kept = auto.kept_guide(guide, axes)
+    np.testing.assert_array_equal(kept, guide[::2, ::2])
+    sub = auto.sigma(guide + 0.01 * step, kept, jnp.asarray(2), axes)
+    full = auto.STEP_FACTOR * 0.01 * np.linalg.norm(np.asarray(step), axis=-1).mean()
+    np.testing.assert_allclose(sub, full, rtol=5e-3)
+    opt = ob.bilateral_adam(0.02)
+    params = jnp.asarray(rng.random(shape), jnp.float32)
+    state = opt.init(params)
+    assert state[0].auto.previous_guide.shape == (150, 130, 2)
+    for _ in range(3):
+        g = jnp.asarray(rng.standard_normal(shape), jnp.float32) + params - 0.5
+        u, state = opt.update(g, state, params)
+        np.testing.assert_array_equal(state[0].auto.previous_guide, params[::2, ::2])
+        params = optax.apply_updates(params, u)
+        moved = np.linalg.norm(np.asarray(u, np.float64), axis=-1).mean()
+        np.testing.assert_allclose(float(state[0].auto.direction) * 0.02, moved, rtol=5e-3)

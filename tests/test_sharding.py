@@ -258,8 +258,14 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
 
     device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
     keys = ("tex", "bias")
-    for sigma_d in ("auto", "sure"):
-        tx = ob.bilateral_adam(0.01, sigma_d=sigma_d, levels=2)
+    from optax_bilateral._src import auto, step
+
+    auto_min_texels = auto.MIN_TEXELS
+    for sigma_d in ("auto", "sure", "auto, sub-grid"):
+        if sigma_d == "auto, sub-grid":  # the 16x16 texture as a large leaf: stride 4
+            auto.MIN_TEXELS = 16
+            step.leaf_step.clear_cache()  # compiled per rule, not per module constant
+        tx = ob.bilateral_adam(0.01, sigma_d=sigma_d.removesuffix(", sub-grid"), levels=2)
         fn = jax.jit(functools.partial(two_steps, tx))
         ref = fn(subset(grads, keys), subset(params, keys))
         g_s, p_s = put(grads, device_mesh, keys), put(params, device_mesh, keys)
@@ -271,7 +277,10 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             sigma_diff=max_diff(out[1], ref[1]),
             sigma=[float(x) for x in out[1]],
             sharding_kept=out[0]["tex"].sharding.is_equivalent_to(p_s["tex"].sharding, 3),
+            kept_shape=list(jax.eval_shape(tx.init, p_s)[0].auto["tex"].previous_guide.shape),
         )
+    auto.MIN_TEXELS = auto_min_texels
+    step.leaf_step.clear_cache()
 
     # --- The benchmark's quick run (also checks its own results).
     import tempfile
@@ -375,9 +384,10 @@ def test_shard_map_route_gathers_nothing():
 
 def test_auto_and_sure_sigma_equal_single_device():
     recs = _checks("sigma_from_data")
-    assert [r["sigma_d"] for r in recs] == ["auto", "sure"]
+    assert [r["sigma_d"] for r in recs] == ["auto", "sure", "auto, sub-grid"]
     for r in recs:
         assert r["max_diff"] <= TOL and r["sharding_kept"], r
+    assert [r["kept_shape"] for r in recs] == [[16, 16, 3], [16, 16, 3], [4, 4, 3]]
     (sure,) = [r for r in recs if r["sigma_d"] == "sure"]
     assert sure["sigma_diff"] <= TOL * max(sure["sigma"]) and len(sure["sigma"]) == 1, sure
 

@@ -10,7 +10,10 @@ Two parts, derived in docs/auto_sigma.md and measured by ``python -m experiments
   follows the learning rate and its schedule, so it needs no unit. A prefilter, which does
   not see the step it leads to, uses ``STEP_FACTOR`` times the mean guide step instead.
   Before the guide has moved (the first step) the guide's mean neighbour difference
-  stands in (``CONTRAST_FACTOR`` times it).
+  stands in (``CONTRAST_FACTOR`` times it). On a leaf of more than ``MIN_TEXELS`` texels
+  both means run over a strided sub-grid of at least that many (``stride``), and only
+  that sub-grid of the guide is kept: such a mean is known to a fraction of a percent,
+  and copying and reading the whole guide is memory traffic the update is bound by.
 * **The blend** (postfilter with moments only). The filter's bias accumulates over steps,
   its noise reduction does not: texels where the residual ``r = m_hat - B m_hat`` persists
   over time beyond what the moments' noise (supplement eq. 24, ``v - m^2``) explains keep
@@ -45,6 +48,7 @@ GAIN = 0.25  # lam = 0 until the persistent residual exceeds 1/GAIN times its no
 POWER = 2.0
 GATE = (0.5, 0.65)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
 CHECK_PERIOD = 8  # a closed gate is re-checked every 8th step: a quarter of the residual's EMA
+MIN_TEXELS = 16384  # a larger leaf's scale is a mean over a strided sub-grid of >= this many texels
 
 
 class AutoState(NamedTuple):
@@ -61,7 +65,9 @@ class AutoState(NamedTuple):
 
     Attributes:
       previous_guide: the guide the last update saw, with the guide's shape (the
-        parameter leaf's, or a callable guide's); None for ``guide="self"``.
+        parameter leaf's, or a callable guide's), or on a leaf of more than
+        ``MIN_TEXELS`` (16384) texels its sub-grid (every ``s``-th texel along each
+        spatial axis, :func:`stride`); None for ``guide="self"``.
       residual: the exponential moving average (decay 0.97) of ``m_hat - B m_hat``, with
         the leaf's shape; None in a :func:`prefilter` or a memoryless postfilter (no
         moments).
@@ -119,10 +125,33 @@ def contrast(guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
     return _finite_mean(_texel_norm(guide - local, axes))
 
 
+def stride(shape: tuple[int, ...], axes: tuple[int, ...]) -> int:
+    """The sub-grid's stride along every spatial axis: the largest power of two that leaves
+    at least ``MIN_TEXELS`` texels (1 for a leaf with fewer)."""
+    s = 1
+    while math.prod(-(-shape[a] // (2 * s)) for a in axes) >= MIN_TEXELS:
+        s *= 2
+    return s
+
+
+def subgrid(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    """Every ``stride``-th texel of ``x`` along each of its spatial ``axes`` (all channels)."""
+    s = stride(x.shape, axes)
+    if s == 1:
+        return x
+    return x[tuple(slice(None, None, s) if a in axes else slice(None) for a in range(x.ndim))]
+
+
+def kept_guide(guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    """What :attr:`AutoState.previous_guide` keeps of a guide: its sub-grid."""
+    return subgrid(guide, _guide_axes(guide, axes))
+
+
 def direction_norm(d: jax.Array, axes: tuple[int, ...]) -> jax.Array:
-    """The mean norm per texel of a step's direction (:attr:`AutoState.direction`); ``d`` is
-    finite (unobserved entries step by 0), so a plain mean: one reduction, not two."""
-    return jnp.mean(_texel_norm(d, axes))
+    """The mean norm per texel of a step's direction (:attr:`AutoState.direction`), over the
+    same sub-grid as the guide's step; ``d`` is finite (unobserved entries step by 0), so a
+    plain mean: one reduction, not two."""
+    return jnp.mean(_texel_norm(subgrid(d, axes), axes))
 
 
 def sigma(
@@ -138,7 +167,8 @@ def sigma(
         return CONTRAST_FACTOR * contrast(guide, axes)
     guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
     guide_axes = _guide_axes(guide, axes)
-    step = _finite_mean(_texel_norm(guide - previous.astype(guide.dtype), guide_axes))
+    now = subgrid(guide, guide_axes)
+    step = _finite_mean(_texel_norm(now - previous.astype(guide.dtype), guide_axes))
     moved = (count > 1) & (step > 0)
     if direction is None:
         scale = STEP_FACTOR * step
@@ -179,11 +209,9 @@ def _smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.A
     return cast(tuple[jax.Array, ...], out)
 
 
-def blend(
+def weights(
     m: jax.Array,
     v: jax.Array,
-    bm: jax.Array,
-    bv: jax.Array,
     residual: jax.Array,
     *,
     b1: Any,
@@ -191,21 +219,19 @@ def blend(
     c2: jax.Array,
     count: jax.Array,
     axes: tuple[int, ...],
-    observed: jax.Array | None,
-) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
-    """``(lam m + (1-lam) B m, lam v + (1-lam) B v, new residual EMA, gate)`` for raw
-    moments; ``gate`` (a scalar in [0, 1]) is how far the leaf's blend is open (``GATE``).
+) -> tuple[jax.Array, jax.Array]:
+    """``(lam, gate)``: the blend's weight of the unfiltered moments per entry (the gate
+    applied) and how far the leaf's blend is open (a scalar in [0, 1], ``GATE``).
 
-    ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``observed``
-    (full-shape bool or None) keeps the residual where a texel was not observed.
+    ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``residual`` is the
+    residual's EMA with this step's (:func:`update_residual`).
     """
     dtype = m.dtype
     b1 = jnp.asarray(b1, dtype)
     c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
     t = count.astype(dtype)
     decay = jnp.asarray(RESIDUAL_DECAY, dtype)
-    new_residual = update_residual(m, bm, residual, c1, observed)
-    residual_hat = new_residual / (1 - decay**t)
+    residual_hat = residual / (1 - decay**t)
     # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
     ratio, usable = noise_ratio(b1, c1, count)
     k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
@@ -216,8 +242,19 @@ def blend(
     lam = 1 - floor / (GAIN * jnp.where(signal > 0, signal, 1))
     lam = jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** POWER
     gate = jnp.clip((jnp.mean(lam) - GATE[0]) / (GATE[1] - GATE[0]), 0, 1)
-    lam = lam * gate
-    return lam * m + (1 - lam) * bm, lam * v + (1 - lam) * bv, new_residual, gate
+    return lam * gate, gate
+
+
+def mix(lam: jax.Array, x: jax.Array, bx: jax.Array) -> jax.Array:
+    """``lam x + (1 - lam) B x``: with one ``lam`` for ``m`` and ``v``, one non-negative,
+    row-stochastic operator for both."""
+    return lam * x + (1 - lam) * bx
+
+
+def blend(m, v, bm, bv, residual, **statistics) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(m~, v~, gate)``: the moments blended by :func:`weights` (same keywords)."""
+    lam, gate = weights(m, v, residual, **statistics)
+    return mix(lam, m, bm), mix(lam, v, bv), gate
 
 
 def checks(gate: jax.Array, count: jax.Array) -> jax.Array:

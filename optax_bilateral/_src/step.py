@@ -134,7 +134,8 @@ def _auto_sigma(rule, g, guide, hyper, state):
     previous = None if state is None else state.previous_guide
     direction = state.direction if isinstance(state, auto.AutoState) else None
     hyper["sigma_d"] = auto.sigma(guide, previous, hyper["count"], rule.axes, direction)
-    keep = guide if previous is None else guide.astype(previous.dtype)
+    keep = auto.kept_guide(guide, rule.axes)
+    keep = keep if previous is None else keep.astype(previous.dtype)
     if state is None:
         return hyper, auto.AutoState(keep, None, None, None)
     return hyper, state._replace(previous_guide=keep)
@@ -194,8 +195,12 @@ def _prefilter_masked(rule, operands):
 def _postfilter_plain(rule, operands):
     g, guide, moments, hyper = operands
     m, v = _moments(rule, g, moments, hyper)
-    m_f, v_f, learned = _filtered_moments(rule, m, v, guide, hyper, None, g)
-    return _step(rule, m_f, v_f, hyper).astype(g.dtype), m, v, learned
+
+    def finish(m_f, v_f):
+        return _step(rule, m_f, v_f, hyper).astype(g.dtype)
+
+    d, learned = _filtered_moments(rule, m, v, guide, hyper, None, g, finish)
+    return d, m, v, learned
 
 
 def _postfilter_masked(rule, operands):
@@ -214,14 +219,16 @@ def _postfilter_masked(rule, operands):
     if moments is not None:
         m = jnp.where(obs_full, m, moments[0].astype(rule.compute_dtype))
         v = jnp.where(obs_full, v, moments[1].astype(rule.compute_dtype))
-    m_f, v_f, learned = _filtered_moments(
-        rule, m, v, guide, hyper, observed if rule.axes else None, g_obs
-    )
-    if rule.second_moment == "uniform":
-        # The max over the leaf counts unobserved texels by the moments they keep.
-        v_f = jnp.where(obs_full, v_f, v)
-    d = jnp.where(obs_full, _step(rule, m_f, v_f, hyper), 0)
-    return d.astype(g.dtype), m, v, learned
+
+    def finish(m_f, v_f):
+        if rule.second_moment == "uniform":
+            # The max over the leaf counts unobserved texels by the moments they keep.
+            v_f = jnp.where(obs_full, v_f, v)
+        return jnp.where(obs_full, _step(rule, m_f, v_f, hyper), 0).astype(g.dtype)
+
+    observed = observed if rule.axes else None
+    d, learned = _filtered_moments(rule, m, v, guide, hyper, observed, g_obs, finish)
+    return d, m, v, learned
 
 
 # ----------------------------------------------------------------------------------------
@@ -248,55 +255,49 @@ def _moments(rule, g, moments, hyper):
     return m, v
 
 
-def _filtered_moments(rule, m, v, guide, hyper, observed, g):
-    """B m and B v, with one set of weights (unfiltered where the leaf is not filtered, and
-    each left as it is when ``filter_m`` / ``filter_v`` is off), and what the step learned
-    for the leaf's auto state (``{}``, or with moments the new ``residual`` of
-    ``sigma_d="auto"`` and its blend's ``gate``, and with ``"sure"`` the gradient ``g``,
-    the chosen sigma_d and F, the risks and whether the gate has opened)."""
+def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish):
+    """``finish(B m, B v)`` (the step), with one set of weights for both moments
+    (unfiltered where the leaf is not filtered, and each left as it is when ``filter_m`` /
+    ``filter_v`` is off), and what the step learned for the leaf's auto state (``{}``, or
+    with moments the new ``residual`` of ``sigma_d="auto"`` and its blend's ``gate``, and
+    with ``"sure"`` the gradient ``g``, the chosen sigma_d and F, the risks and whether the
+    gate has opened)."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
-        return m, v, {}
+        return finish(m, v), {}
     if not rule.filter_v:
-        return filter_fields(rule, m, guide, hyper, observed), v, {}
+        return finish(filter_fields(rule, m, guide, hyper, observed), v), {}
     if not rule.filter_m:
-        return m, filter_fields(rule, v, guide, hyper, observed), {}
+        return finish(m, filter_fields(rule, v, guide, hyper, observed)), {}
     learned = {}
     if rule.sure_sigma:
         m_f, v_f, learned = _sure_moments(rule, m, v, guide, hyper, observed, g)
     else:
         m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
     if "residual" not in hyper:
-        return m_f, v_f, learned
-    residual = hyper["residual"].astype(m.dtype)
+        return finish(m_f, v_f), learned
     obs_full = auto.full_mask(observed, m.ndim, rule.axes)
-
-    def blend(m_f, v_f):
-        return auto.blend(
-            m,
-            v,
-            m_f,
-            v_f,
-            residual,
-            b1=_number(rule, hyper, "b1"),
-            c1=hyper["c1"],
-            c2=hyper["c2"],
-            count=hyper["count"],
-            axes=rule.axes,
-            observed=obs_full,
-        )
-
-    def closed(m_f, v_f):
-        new = auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
-        return m_f, v_f, new, jnp.zeros([], m.dtype)
-
+    residual = hyper["residual"].astype(m.dtype)
+    residual = auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
+    statistics = dict(
+        b1=_number(rule, hyper, "b1"),
+        c1=hyper["c1"],
+        c2=hyper["c2"],
+        count=hyper["count"],
+        axes=rule.axes,
+    )
     if rule.sure_sigma:
-        m_f, v_f, residual, gate = blend(m_f, v_f)
+        lam, gate = auto.weights(m, v, residual, **statistics)
         # Sticky: the bias it saw persists, the gate's view of it does not.
         learned["opened"] = jnp.maximum(hyper["opened"], (gate >= 1).astype(m.dtype))
-    else:  # between checks of a closed gate, no blend (only the branch taken runs)
+    else:  # between checks of a closed gate, no statistics (only the branch taken runs)
+        # Only lam crosses the cond: B m and B v stay outside, fused into the step.
         check = auto.checks(hyper["gate"], hyper["count"])
-        m_f, v_f, residual, learned["gate"] = lax.cond(check, blend, closed, m_f, v_f)
-    return m_f, v_f, {**learned, "residual": residual}
+        weights = lambda: auto.weights(m, v, residual, **statistics)
+        closed = lambda: (jnp.zeros_like(m), jnp.zeros([], m.dtype))
+        lam, gate = lax.cond(check, weights, closed)
+        learned["gate"] = gate
+    out = finish(auto.mix(lam, m, m_f), auto.mix(lam, v, v_f))
+    return out, {**learned, "residual": residual}
 
 
 def _sure_moments(rule, m, v, guide, hyper, observed, g):

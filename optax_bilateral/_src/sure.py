@@ -52,7 +52,8 @@ class SureState(NamedTuple):
     """One leaf's state for ``sigma_d="sure"`` (in :class:`PostfilterState`).
 
     Attributes:
-      previous_guide: the guide the last update saw (the step scale).
+      previous_guide: the guide the last update saw (the step scale; on a large leaf its
+        sub-grid, as :attr:`AutoState.previous_guide`).
       residual: ``"auto"``'s residual EMA of ``m_hat - B m_hat`` (the blend).
       previous_gradient: the gradient the last update saw, in the moments' arithmetic
         dtype (the noise sample is its difference from this step's).

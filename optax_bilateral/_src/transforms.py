@@ -671,7 +671,9 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
             states.append(None)
             continue
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
-        previous_guide = None if leaf_guide is None else jnp.zeros_like(leaf_guide)
+        previous_guide = None
+        if leaf_guide is not None:
+            previous_guide = jnp.zeros_like(auto.kept_guide(jnp.asarray(leaf_guide), spec.axes))
         zeros = jnp.zeros(jnp.shape(leaf), dtype)
         if sure.is_sure(spec.sigma_d):  # a guide and moments: checked at construction
             guide_zeros = cast(jax.Array, previous_guide)
