@@ -170,6 +170,12 @@ def _assert_bounded(m, v, mt, vt):
     assert np.all(got[np.isfinite(got)] <= bound * (1 + 1e-5) + 1e-6)
 
 
+def _blend(m, v, bm, bv, residual, **statistics):
+    """``(m~, v~, gate)``: the moments mixed by ``auto.weights``, as the step does it."""
+    lam, gate = auto.weights(m, v, residual, **statistics)
+    return auto.mix(lam, m, bm), auto.mix(lam, v, bv), gate
+
+
 @given(problem=blend_problems())
 def test_the_blend_keeps_the_bounded_step(problem):
     # Supplement 1.3: m~ and v~ come from one non-negative row-stochastic operator, so
@@ -180,7 +186,7 @@ def test_the_blend_keeps_the_bounded_step(problem):
         (m, v), jnp.asarray(guide), sigma_d=0.5, levels=2, spatial_axes=(0, 1)
     )
     new_residual = auto.update_residual(m, bm, jnp.asarray(residual), 1.0, None)
-    mt, vt, _ = auto.blend(
+    mt, vt, _ = _blend(
         m,
         v,
         bm,
@@ -197,7 +203,7 @@ def test_the_blend_keeps_the_bounded_step(problem):
 
 
 def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
-    """``auto.blend``'s moments after ``steps`` steps whose filter misses ``bias`` every
+    """The blended moments after ``steps`` steps whose filter misses ``bias`` every
     step (B m_hat = m_hat - bias) under unit gradient noise: the last ``(m~, B m)``."""
     key = jax.random.PRNGKey(seed)
     m = v = residual = jnp.zeros_like(bias)
@@ -207,7 +213,7 @@ def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
         c1, c2 = 1 - b1**t, 1 - b2**t
         bm = m - bias * c1
         residual = auto.update_residual(m, bm, residual, c1, None)
-        mt, _, _ = auto.blend(
+        mt, _, _ = _blend(
             m,
             v,
             bm,
@@ -314,7 +320,7 @@ def _sure_step(m, v, zeta, guide, scale):
     sigma_d, choices = sigmas[pick], sure.level_choices(levels)
     branches = [lambda n=n: filt(v, sigma_d=sigma_d, levels=n) for n in choices]
     vc = jax.lax.switch(chosen[pick] - choices[0], branches)
-    mt, vt, _ = auto.blend(
+    mt, vt, _ = _blend(
         m,
         v,
         mc,

@@ -251,12 +251,6 @@ def mix(lam: jax.Array, x: jax.Array, bx: jax.Array) -> jax.Array:
     return lam * x + (1 - lam) * bx
 
 
-def blend(m, v, bm, bv, residual, **statistics) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """``(m~, v~, gate)``: the moments blended by :func:`weights` (same keywords)."""
-    lam, gate = weights(m, v, residual, **statistics)
-    return mix(lam, m, bm), mix(lam, v, bv), gate
-
-
 def checks(gate: jax.Array, count: jax.Array) -> jax.Array:
     """Whether this step computes the blend's statistics: the gate was open at the last
     step, or the step is a multiple of ``CHECK_PERIOD``."""
