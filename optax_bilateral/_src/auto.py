@@ -24,8 +24,8 @@ Two parts, derived in docs/auto_sigma.md and measured by ``python -m experiments
   (``GATE``): a few texels with large ``lam`` early on are noise in the estimate itself.
   While a leaf's gate is closed, the blend's statistics are computed only every
   ``CHECK_PERIOD``-th step (the residual's average is kept every step): on most leaves of
-  most problems the gate stays closed, and the statistics cost nearly half a fixed
-  sigma_d's update.
+  most problems the gate stays closed, and the statistics are the blend's dearest part
+  (docs/auto_sigma.md, "Cost").
 """
 
 from __future__ import annotations

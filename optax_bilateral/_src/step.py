@@ -289,8 +289,8 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish):
         lam, gate = auto.weights(m, v, residual, **statistics)
         # Sticky: the bias it saw persists, the gate's view of it does not.
         learned["opened"] = jnp.maximum(hyper["opened"], (gate >= 1).astype(m.dtype))
-    else:  # between checks of a closed gate, no statistics (only the branch taken runs)
-        # Only lam crosses the cond: B m and B v stay outside, fused into the step.
+    else:  # no statistics between checks of a closed gate; lam alone crosses the cond so
+        # that B m and B v stay outside it, fused into the step (docs/design.md)
         check = auto.checks(hyper["gate"], hyper["count"])
         weights = lambda: auto.weights(m, v, residual, **statistics)
         closed = lambda: (jnp.zeros_like(m), jnp.zeros([], m.dtype))
