@@ -73,7 +73,7 @@ class CorrelationState(NamedTuple):
     correlated: jax.Array  # whether the last step took the heavier filter (for inspection)
 
 
-def _with_constants(fn, **constants):
+def with_constants(fn, **constants):
     """``fn`` traced with ``auto``'s module constants set (they are read while tracing)."""
 
     def traced(*args):
@@ -112,8 +112,8 @@ def _rule(learning_rate, spatial_axes, *, gate_shut: bool, extra: dict[int, int]
         correlated = c >= THRESHOLD
         u, new = jax.lax.cond(
             correlated,
-            _with_constants(lambda: heavy(updates).update(updates, inner, params), **constants),
-            _with_constants(lambda: plain.update(updates, inner, params)),
+            with_constants(lambda: heavy(updates).update(updates, inner, params), **constants),
+            with_constants(lambda: plain.update(updates, inner, params)),
         )
         return u, CorrelationState(new, correlated)
 

@@ -9,7 +9,7 @@ import pytest
 import optax_bilateral as ob
 from experiments import correlation_rule as cr
 from experiments import scenes as sc
-from optax_bilateral._src import auto, step
+from optax_bilateral._src import auto
 
 AXES = (0, 1)
 
@@ -66,16 +66,8 @@ def _run(opt, grads, x):
 
 def _library(levels, **constants):
     """``bilateral_adam(0.01, levels=levels)`` traced with ``auto``'s constants set."""
-    saved = {k: getattr(auto, k) for k in constants}
-    for k, v in constants.items():
-        setattr(auto, k, v)
-    step.leaf_step.clear_cache()
-    try:
-        return _run(ob.bilateral_adam(0.01, levels=levels, spatial_axes=AXES), _GRADS[levels], _X)
-    finally:
-        for k, v in saved.items():
-            setattr(auto, k, v)
-        step.leaf_step.clear_cache()
+    opt = ob.bilateral_adam(0.01, levels=levels, spatial_axes=AXES)
+    return cr.with_constants(lambda: _run(opt, _GRADS[levels], _X), **constants)()
 
 
 _X = jnp.asarray(np.random.default_rng(2).uniform(0.2, 0.8, (48, 48)), jnp.float32)
