@@ -537,3 +537,120 @@ def test_a_large_leaf_keeps_a_sub_grid_of_its_guide_and_sigma_is_its_full_mean()
         params = optax.apply_updates(params, u)
         moved = np.linalg.norm(np.asarray(u, np.float64), axis=-1).mean()
         np.testing.assert_allclose(float(state[0].auto.direction) * 0.02, moved, rtol=5e-3)
+
+
+# ----------------------------------------------------------------------------------------
+# Correlated gradient noise
+
+
+def _blurred(noise: np.ndarray, width: float) -> np.ndarray:
+    """``noise`` convolved along its first two axes with a Gaussian of ``width`` texels
+    (lag-1 correlation ``exp(-1 / (4 width^2))``), wrapping around."""
+    k = np.arange(-8, 9)
+    kernel = np.exp(-(k**2) / (2 * width**2))
+    out = noise
+    for axis in (0, 1):
+        out = sum(w * np.roll(out, int(d), axis=axis) for d, w in zip(k, kernel))
+    return out
+
+
+def _correlated(g, m_hat, t=5, b1=0.2, observed=None):
+    c1 = 1 - b1**t
+    g, m = jnp.asarray(g, jnp.float32), jnp.asarray(m_hat * c1, jnp.float32)
+    return bool(auto.correlated(g, m, b1=b1, c1=c1, axes=(0, 1), observed=observed))
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_correlated_tells_blurred_noise_from_white_noise_at_every_scale(scale):
+    rng = np.random.default_rng(0)
+    noise = rng.normal(size=(64, 64, 3))
+    signal = 0.1 * np.ones((64, 64, 3))
+    blurred = _blurred(noise, 1.5)  # lag-1 correlation exp(-1/9) = 0.89
+    blurred /= blurred.std()
+    assert not _correlated(scale * (signal + noise), scale * signal)
+    assert _correlated(scale * (signal + blurred), scale * signal)
+    # Gaussian-correlated noise half a texel wide: exp(-1) = 0.37, below CORRELATED.
+    assert not _correlated(scale * (signal + _blurred(noise, 0.5)), scale * signal)
+
+
+def test_correlated_needs_the_difference_to_be_noise_not_the_signals_drift():
+    """A smooth gradient that moved a little since the first moment (a noise-free run's
+    first steps) is perfectly correlated but not noise: ``NOISY`` keeps the step as it is."""
+    x = np.linspace(0, 1, 64)
+    signal = np.sin(3 * x)[:, None, None] * np.cos(2 * x)[None, :, None] * np.ones((1, 1, 3))
+    drift = np.cos(5 * x)[:, None, None] * np.ones((1, 64, 3))
+    lag = 1 - (1 - 0.2) / (1 - 0.2**5)  # z = lag (g - m_hat_{t-1})
+    small = 0.5 * math.sqrt(auto.NOISY) * lag * np.linalg.norm(signal) / np.linalg.norm(drift)
+    assert not _correlated(signal + small * drift, signal)
+    assert _correlated(signal + 4 * small * drift, signal)
+
+
+def test_correlated_is_false_without_memory_a_first_step_or_a_gradient():
+    rng = np.random.default_rng(1)
+    blurred = _blurred(rng.normal(size=(32, 32, 1)), 1.5)
+    g = jnp.asarray(blurred, jnp.float32)
+    # First step: m = (1 - b1) g and c1 = 1 - b1, so g - m_hat = 0.
+    assert not bool(auto.correlated(g, 0.8 * g, b1=0.2, c1=0.8, axes=(0, 1)))
+    # b1 = 0: m_hat is g.
+    assert not bool(auto.correlated(g, g, b1=0.0, c1=1.0, axes=(0, 1)))
+    assert not _correlated(np.zeros((32, 32, 1)), np.zeros((32, 32, 1)))
+    # Unobserved texels are left out: blurred noise only on a masked-out half counts for nothing.
+    observed = jnp.asarray(np.arange(32)[:, None, None] < 16) * jnp.ones((1, 32, 1), bool)
+    half = np.where(np.asarray(observed), 0.0, blurred)
+    assert _correlated(half + 0.01, 0.01 * np.ones_like(half))
+    assert not _correlated(half + 0.01, 0.01 * np.ones_like(half), observed=observed)
+
+
+def _correlated_problem(steps, **kwargs):
+    """``bilateral_adam`` on ``x - target`` plus noise blurred over 1.5 texels; each step's
+    ``AutoState.correlated``, and the last state and parameters."""
+    rng = np.random.default_rng(2)
+    target = _target()
+    opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1), **kwargs)
+    x = jnp.full(SHAPE, 0.5, jnp.float32)
+    state, flags = opt.init(x), []
+    update = jax.jit(opt.update)
+    for _ in range(steps):
+        noise = _blurred(rng.normal(size=SHAPE), 1.5)
+        g = (x - target) + jnp.asarray(noise / noise.std(), jnp.float32)
+        u, state = update(g, state, x)
+        flags.append(float(state[0].auto.correlated))
+        x = x + u
+    return flags, state, x
+
+
+def test_a_run_on_correlated_noise_switches_from_its_second_step_and_a_self_guided_one_never():
+    flags, _, _ = _correlated_problem(2 * auto.CHECK_PERIOD + 2)
+    assert flags[0] == 0  # the first step has no noise estimate
+    assert all(f == 1 for f in flags[1:])
+    flags, _, _ = _correlated_problem(4, guide="self")  # self-guided: never heavier
+    assert all(f == 0 for f in flags)
+
+
+def test_a_correlated_step_is_the_filter_at_heavy_factor_with_extra_levels_and_no_blend():
+    """With ``AutoState.correlated`` set, the update is the one of ``levels + 1`` levels at
+    ``HEAVY_FACTOR`` times sigma_d without the blend (clean and masked gradients alike)."""
+    _, state, x = _correlated_problem(2)
+    heavy = state[0]._replace(auto=state[0].auto._replace(correlated=jnp.ones([])))
+    light = state[0]._replace(auto=state[0].auto._replace(correlated=jnp.zeros([])))
+    g = jnp.asarray(_blurred(np.random.default_rng(3).normal(size=SHAPE), 1.5), jnp.float32)
+    masked = g.at[3, 4].set(jnp.nan)
+    opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
+    # count 3: not a check step, so the reference's blend stays closed as well.
+    reference = ob.bilateral_adam(0.02, spatial_axes=(0, 1), levels=ob.DEFAULT_LEVELS + 1)
+    saved = auto.RATE_FACTOR
+    for grad in (g, masked):
+        u, new = opt.update(grad, (heavy,) + tuple(state[1:]), x)
+        assert float(new[0].auto.correlated) == 1 and float(new[0].auto.gate) == 0
+        auto.RATE_FACTOR = saved * auto.HEAVY_FACTOR
+        step_module.leaf_step.clear_cache()
+        try:
+            u_ref, _ = reference.update(grad, (light,) + tuple(state[1:]), x)
+        finally:
+            auto.RATE_FACTOR = saved
+            step_module.leaf_step.clear_cache()
+        np.testing.assert_allclose(u, u_ref, rtol=1e-5, atol=1e-7)
+        assert np.all(np.isfinite(np.asarray(u)))
+        u_light, _ = opt.update(grad, (light,) + tuple(state[1:]), x)
+        assert np.max(np.abs(np.asarray(u_light) - np.asarray(u))) > 1e-3 * np.max(np.abs(u))
+    assert float(u[3, 4, 0]) == 0  # the masked texel does not move

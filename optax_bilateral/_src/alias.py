@@ -65,7 +65,7 @@ def bilateral_adam(
     ``levels = 3`` (the authors' ``stride_levels = 4``; their texture runs use
     ``stride_levels = 5``, i.e. ``levels = 4``, their volume runs ``levels = 2``); a leaf
     with ``sigma_d="sure"`` chooses F up to ``levels = 5`` (``stride_levels = 6``). On the
-    tuning benchmark's seven scenes the defaults were 0.96-1.55x the error of a
+    tuning benchmark's seven scenes the defaults were 0.97-1.10x the error of a
     per-scene tuned sigma_d, beat Adam on six and tied it on the seventh;
     docs/hyperparameters.md says when to tune a number instead.
 

@@ -1,6 +1,6 @@
 """``sigma_d="auto"``: the data term's scale, and how much to filter, chosen from the data.
 
-Two parts, derived in docs/auto_sigma.md and measured by ``python -m experiments.tuning``:
+Three parts, derived in docs/auto_sigma.md and measured by ``python -m experiments.tuning``:
 
 * **The scale.** In a postfilter, one learning rate in the guide's units:
   ``sigma_d = sqrt(C) mean_p ||guide_t[p] - guide_{t-1}[p]|| / mean_p ||d_{t-1}[p]||``
@@ -26,6 +26,14 @@ Two parts, derived in docs/auto_sigma.md and measured by ``python -m experiments
   ``CHECK_PERIOD``-th step (the residual's average is kept every step): on most leaves of
   most problems the gate stays closed, and the statistics are the blend's dearest part
   (docs/auto_sigma.md, "Cost").
+* **Correlated noise** (postfilter with moments, cross-guided). Where the gradient's noise
+  is spatially correlated (the transposed blur of a sparse residual: deconvolution or
+  tomography from random subsets), neighbouring texels share their noise and the finest
+  levels average little of it. Where the lag-1 correlation of ``g - m_hat`` between
+  neighbours is at least ``CORRELATED`` and that difference is noise, not the signal's
+  drift (``NOISY``; :func:`correlated`), the step filters at ``HEAVY_FACTOR`` times
+  sigma_d with :func:`extra_levels` more levels, and without the blend. The check runs
+  every ``CHECK_PERIOD``-th step and holds until the next (``AutoState.correlated``).
 """
 
 from __future__ import annotations
@@ -49,6 +57,9 @@ POWER = 2.0
 GATE = (0.5, 0.65)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
 CHECK_PERIOD = 8  # a closed gate is re-checked every 8th step: a quarter of the residual's EMA
 MIN_TEXELS = 16384  # a larger leaf's scale is a mean over a strided sub-grid of >= this many texels
+CORRELATED = math.exp(-0.25)  # lag-1 correlation of Gaussian-correlated noise one texel wide
+NOISY = 0.25  # g - m_hat_{t-1} has >= 1/4 of m_hat's energy (pure noise: 2.5 at b1 = 0.2)
+HEAVY_FACTOR = 3.0  # sigma_d per learning rate where the gradient's noise is correlated
 
 
 class AutoState(NamedTuple):
@@ -77,6 +88,11 @@ class AutoState(NamedTuple):
       gate: how far the blend was open at the last step (a scalar in [0, 1]; 0 at a step
         that skipped the blend's statistics); None where ``residual`` is. While it is 0,
         the statistics are computed only every ``CHECK_PERIOD`` (8) steps.
+      correlated: 1 where the gradient's noise was spatially correlated at the last
+        multiple of ``CHECK_PERIOD`` steps (:func:`correlated`), else 0 (a scalar): until
+        the next such step the postfilter filters at ``HEAVY_FACTOR`` times sigma_d with
+        :func:`extra_levels` more levels and without the blend. None where ``residual``
+        is.
 
     Example::
 
@@ -85,14 +101,15 @@ class AutoState(NamedTuple):
         >>> auto = state.auto["tex"]
         >>> type(auto).__name__, auto.previous_guide.shape, auto.residual.shape
         ('AutoState', (16, 16, 3), (16, 16, 3))
-        >>> float(auto.direction), float(auto.gate)
-        (0.0, 0.0)
+        >>> float(auto.direction), float(auto.gate), float(auto.correlated)
+        (0.0, 0.0, 0.0)
     """
 
     previous_guide: jax.Array | None
     residual: jax.Array | None
     direction: jax.Array | None
     gate: jax.Array | None
+    correlated: jax.Array | None = None
 
 
 def is_auto(sigma_d: Any) -> bool:
@@ -183,6 +200,65 @@ def sigma(
         lambda: scale,
         lambda: (CONTRAST_FACTOR * contrast(guide, axes)).astype(step.dtype),
     )
+
+
+def extra_levels(axes: tuple[int, ...]) -> int:
+    """The levels added where the noise is correlated: 2 on a 1-D grid, 1 on a 2-D one, none
+    on 3-D (there the compiled extra level slows every update, also where it does not run;
+    docs/auto_sigma.md, "Correlated gradient noise")."""
+    return {1: 2, 2: 1}.get(len(axes), 0)
+
+
+def _neighbours(x: jax.Array, axes: tuple[int, ...], axis: int) -> tuple[jax.Array, jax.Array]:
+    """``x[p]`` and ``x[p + 1 along axis]`` for every even ``p`` along ``axis``, on the
+    sub-grid (:func:`stride`) along the other spatial axes. Pairs from a reshape, not
+    shifted slices, which a grid sharded along ``axis`` cannot take."""
+    s = stride(x.shape, axes)
+    x = x[
+        tuple(
+            slice(None, None, s) if a in axes and a != axis else slice(None) for a in range(x.ndim)
+        )
+    ]
+    n = x.shape[axis]
+    if n % 2:
+        x = jax.lax.slice_in_dim(x, 0, n - 1, axis=axis)
+    pairs = x.reshape(x.shape[:axis] + (n // 2, 2) + x.shape[axis + 1 :])
+    return jnp.take(pairs, 0, axis=axis + 1), jnp.take(pairs, 1, axis=axis + 1)
+
+
+def correlated(
+    g: jax.Array,
+    m: jax.Array,
+    *,
+    b1: Any,
+    c1: jax.Array,
+    axes: tuple[int, ...],
+    observed: jax.Array | None = None,
+) -> jax.Array:
+    """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
+    between neighbours of ``z = g - m_hat`` (``m`` the updated first moment, ``c1`` its bias
+    correction), averaged over the spatial ``axes``, is at least ``CORRELATED``, and ``z``
+    is noise: ``z = (1 - (1 - b1) / c1) (g - m_hat_{t-1})``, whose energy is at least
+    ``NOISY`` times ``m_hat``'s. Sums run over the sub-grid (:func:`stride`) and the
+    ``observed`` entries (a leaf-shaped mask); False at the first step or with ``b1 = 0``."""
+    dtype = jnp.promote_types(m.dtype, jnp.float32)
+    c1 = jnp.asarray(c1, dtype)
+    m_hat = m.astype(dtype) / c1
+    z = g.astype(dtype) - m_hat
+    if observed is not None:
+        z, m_hat = jnp.where(observed, z, 0), jnp.where(observed, m_hat, 0)
+    corr = []
+    for a in axes:
+        if g.shape[a] > 1:
+            x0, x1 = _neighbours(z, axes, a)
+            den = jnp.sqrt(jnp.sum(x0 * x0) * jnp.sum(x1 * x1))
+            corr.append(jnp.where(den > 0, jnp.sum(x0 * x1) / jnp.where(den > 0, den, 1), 0))
+    if not corr:
+        return jnp.zeros([], bool)
+    lag = 1 - (1 - jnp.asarray(b1, dtype)) / c1
+    noise = jnp.sum(jnp.square(subgrid(z, axes)))
+    signal = jnp.sum(jnp.square(subgrid(m_hat, axes)))
+    return (jnp.mean(jnp.stack(corr)) >= CORRELATED) & (noise > NOISY * lag * lag * signal)
 
 
 def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:

@@ -104,7 +104,10 @@ def leaf_step(
     if rule.mask_unobserved:
         d, m, v, learned = _postfilter_masked(rule, operands)
     else:
-        d, m, v, learned = _when_clean(rule, g, _postfilter_plain, _postfilter_masked, operands)
+        heavy = hyper["correlated"] > 0 if "correlated" in hyper else None
+        d, m, v, learned = _when_clean(
+            rule, g, _postfilter_plain, _postfilter_masked, operands, heavy
+        )
     d = _guarded(rule, d, hyper)
     if isinstance(new_auto, auto.AutoState) and new_auto.direction is not None:
         learned = {**learned, "direction": auto.direction_norm(d, rule.axes)}
@@ -124,6 +127,8 @@ def _auto_sigma(rule, g, guide, hyper, state):
         hyper["residual"] = state.residual
         if isinstance(state, auto.AutoState):
             hyper["gate"] = state.gate
+            if not rule.self_guided and rule.filter_m and rule.filter_v:
+                hyper["correlated"] = state.correlated
     if rule.sure_sigma:
         sure_state = cast(sure.SureState, state)
         hyper["previous_gradient"] = sure_state.previous_gradient
@@ -141,15 +146,23 @@ def _auto_sigma(rule, g, guide, hyper, state):
     return hyper, state._replace(previous_guide=keep)
 
 
-def _when_clean(rule, g, plain, masked, operands):
+def _when_clean(rule, g, plain, masked, operands, heavy=None):
     """``plain`` when every entry of ``g`` is finite and within the limit, else ``masked``
-    (only one of them runs)."""
-    return lax.cond(
-        jnp.all(jnp.abs(g) <= rule.limit),
-        functools.partial(plain, rule),
+    (only one of them runs); with a traced ``heavy`` (``sigma_d="auto"``'s correlated
+    noise), ``plain(heavy=True)`` where it holds: a third branch, as a cond inside ``plain``
+    would keep the filter's last level out of the step's fusion."""
+    clean = jnp.all(jnp.abs(g) <= rule.limit)
+    if heavy is None:
+        return lax.cond(
+            clean, functools.partial(plain, rule), functools.partial(masked, rule), operands
+        )
+    index = jnp.where(clean, 1 + heavy.astype(jnp.int32), 0)
+    branches = [
         functools.partial(masked, rule),
-        operands,
-    )
+        functools.partial(plain, rule),
+        functools.partial(plain, rule, heavy=True),
+    ]
+    return lax.switch(index, branches, operands)
 
 
 def _guarded(rule, out, hyper):
@@ -192,14 +205,14 @@ def _prefilter_masked(rule, operands):
     return jnp.where(obs, out, g)
 
 
-def _postfilter_plain(rule, operands):
+def _postfilter_plain(rule, operands, heavy=False):
     g, guide, moments, hyper = operands
     m, v = _moments(rule, g, moments, hyper)
 
     def finish(m_f, v_f):
         return _step(rule, m_f, v_f, hyper).astype(g.dtype)
 
-    d, learned = _filtered_moments(rule, m, v, guide, hyper, None, g, finish)
+    d, learned = _filtered_moments(rule, m, v, guide, hyper, None, g, finish, heavy)
     return d, m, v, learned
 
 
@@ -255,26 +268,73 @@ def _moments(rule, g, moments, hyper):
     return m, v
 
 
-def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish):
+def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None):
     """``finish(B m, B v)`` (the step), with one set of weights for both moments
     (unfiltered where the leaf is not filtered, and each left as it is when ``filter_m`` /
     ``filter_v`` is off), and what the step learned for the leaf's auto state (``{}``, or
     with moments the new ``residual`` of ``sigma_d="auto"`` and its blend's ``gate``, and
     with ``"sure"`` the gradient ``g``, the chosen sigma_d and F, the risks and whether the
-    gate has opened)."""
+    gate has opened). ``heavy``: whether ``"auto"`` filters for correlated noise (a Python
+    bool, or None to read it from ``hyper``)."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
         return finish(m, v), {}
     if not rule.filter_v:
         return finish(filter_fields(rule, m, guide, hyper, observed), v), {}
     if not rule.filter_m:
         return finish(m, filter_fields(rule, v, guide, hyper, observed)), {}
+    if "correlated" in hyper:  # sigma_d="auto" with moments, cross-guided
+        learned = {"correlated": _correlation_check(rule, m, hyper, observed, g)}
+        heavy_step = lambda: _heavy_moments(rule, m, v, guide, hyper, observed, finish)
+        blend_step = lambda: _blend(rule, m, v, guide, hyper, observed, finish, {})
+        if heavy is None:
+            out, more = lax.cond(hyper["correlated"] > 0, heavy_step, blend_step)
+        else:
+            out, more = heavy_step() if heavy else blend_step()
+        return out, {**learned, **more}
     learned = {}
     if rule.sure_sigma:
         m_f, v_f, learned = _sure_moments(rule, m, v, guide, hyper, observed, g)
-    else:
-        m_f, v_f = filter_fields(rule, (m, v), guide, hyper, observed)
-    if "residual" not in hyper:
-        return finish(m_f, v_f), learned
+        if "residual" not in hyper:
+            return finish(m_f, v_f), learned
+        return _blend(rule, m, v, guide, hyper, observed, finish, learned, (m_f, v_f))
+    if "residual" in hyper:
+        return _blend(rule, m, v, guide, hyper, observed, finish, learned)
+    return finish(*filter_fields(rule, (m, v), guide, hyper, observed)), learned
+
+
+def _correlation_check(rule, m, hyper, observed, g):
+    """The new :attr:`auto.AutoState.correlated`: :func:`auto.correlated` at the second step
+    (the first with a noise estimate) and every ``auto.CHECK_PERIOD``-th, else the stored
+    one."""
+    obs_full = auto.full_mask(observed, m.ndim, rule.axes)
+    b1 = _number(rule, hyper, "b1")
+
+    def check():
+        now = auto.correlated(g, m, b1=b1, c1=hyper["c1"], axes=rule.axes, observed=obs_full)
+        return now.astype(m.dtype)
+
+    stored = lambda: hyper["correlated"].astype(m.dtype)
+    count = hyper["count"]
+    return lax.cond((count == 2) | (count % auto.CHECK_PERIOD == 0), check, stored)
+
+
+def _heavy_moments(rule, m, v, guide, hyper, observed, finish):
+    """``sigma_d="auto"`` where the gradient's noise is correlated (:func:`auto.correlated`):
+    ``auto.HEAVY_FACTOR`` times sigma_d, ``auto.extra_levels`` more levels, no blend."""
+    heavy = dict(hyper, sigma_d=hyper["sigma_d"] * auto.HEAVY_FACTOR)
+    levels = rule.levels + auto.extra_levels(rule.axes)
+    m_f, v_f = _filter(rule, (m, v), guide, heavy, observed, levels=levels)
+    obs_full = auto.full_mask(observed, m.ndim, rule.axes)
+    residual = hyper["residual"].astype(m.dtype)
+    residual = auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
+    return finish(m_f, v_f), {"gate": jnp.zeros([], m.dtype), "residual": residual}
+
+
+def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None):
+    """``finish`` of the moments blended with their filtered ``filtered`` (by default the
+    rule's filter of them), ``sigma_d="auto"``'s and ``"sure"``'s, and what the step learned:
+    the residual and (``"auto"``) the gate."""
+    m_f, v_f = filtered or filter_fields(rule, (m, v), guide, hyper, observed)
     obs_full = auto.full_mask(observed, m.ndim, rule.axes)
     residual = hyper["residual"].astype(m.dtype)
     residual = auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)

@@ -690,8 +690,9 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
             )
         else:
             direction = jnp.zeros([], dtype) if transform == "postfilter" else None
-            residual, gate = (zeros, jnp.zeros([], dtype)) if with_residual else (None, None)
-            states.append(AutoState(previous_guide, residual, direction, gate))
+            scalar = jnp.zeros([], dtype) if with_residual else None
+            residual = zeros if with_residual else None
+            states.append(AutoState(previous_guide, residual, direction, scalar, scalar))
     return jax.tree.unflatten(jax.tree.structure(params), states)
 
 
