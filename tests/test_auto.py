@@ -3,6 +3,7 @@ sigma_d="sure" beside it where the same check applies (test_sure.py has the rest
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
@@ -245,15 +246,27 @@ def test_the_blend_stays_closed_where_the_bias_persists_on_half_the_leaf():
     np.testing.assert_array_equal(np.asarray(mt), np.asarray(bm))
 
 
+@contextlib.contextmanager
+def _auto_constants(**constants):
+    """``auto``'s module constants set for the block; ``leaf_step``'s trace, cached by the
+    leaf's rule only, is dropped around it."""
+    saved = {k: getattr(auto, k) for k in constants}
+    for k, value in constants.items():
+        setattr(auto, k, value)
+    step_module.leaf_step.clear_cache()
+    try:
+        yield
+    finally:
+        for k, value in saved.items():
+            setattr(auto, k, value)
+        step_module.leaf_step.clear_cache()
+
+
 def _run_auto(steps, target, noise, period=None, seed=0):
     """Each step's ``(update, AutoState.gate, AutoState.residual)`` of ``bilateral_adam()``
     (``sigma_d="auto"``) on ``(x - target) + noise N(0, 1)``, with ``auto.CHECK_PERIOD``
-    set to ``period`` if given (``leaf_step``'s trace, cached by the leaf's rule, is dropped
-    around the run)."""
-    saved = auto.CHECK_PERIOD
-    auto.CHECK_PERIOD = saved if period is None else period
-    step_module.leaf_step.clear_cache()
-    try:
+    set to ``period`` if given."""
+    with _auto_constants(CHECK_PERIOD=auto.CHECK_PERIOD if period is None else period):
         rng = np.random.default_rng(seed)
         opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
         update = jax.jit(opt.update)
@@ -265,9 +278,6 @@ def _run_auto(steps, target, noise, period=None, seed=0):
             auto_state = state[0].auto
             out.append((np.asarray(u), float(auto_state.gate), np.asarray(auto_state.residual)))
             x = x + u
-    finally:
-        auto.CHECK_PERIOD = saved
-        step_module.leaf_step.clear_cache()
     return out
 
 
@@ -638,17 +648,11 @@ def test_a_correlated_step_is_the_filter_at_heavy_factor_with_extra_levels_and_n
     opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
     # count 3: not a check step, so the reference's blend stays closed as well.
     reference = ob.bilateral_adam(0.02, spatial_axes=(0, 1), levels=ob.DEFAULT_LEVELS + 1)
-    saved = auto.RATE_FACTOR
     for grad in (g, masked):
         u, new = opt.update(grad, (heavy,) + tuple(state[1:]), x)
         assert float(new[0].auto.correlated) == 1 and float(new[0].auto.gate) == 0
-        auto.RATE_FACTOR = saved * auto.HEAVY_FACTOR
-        step_module.leaf_step.clear_cache()
-        try:
+        with _auto_constants(RATE_FACTOR=auto.RATE_FACTOR * auto.HEAVY_FACTOR):
             u_ref, _ = reference.update(grad, (light,) + tuple(state[1:]), x)
-        finally:
-            auto.RATE_FACTOR = saved
-            step_module.leaf_step.clear_cache()
         np.testing.assert_allclose(u, u_ref, rtol=1e-5, atol=1e-7)
         assert np.all(np.isfinite(np.asarray(u)))
         u_light, _ = opt.update(grad, (light,) + tuple(state[1:]), x)

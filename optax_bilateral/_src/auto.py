@@ -32,8 +32,9 @@ Three parts, derived in docs/auto_sigma.md and measured by ``python -m experimen
   levels average little of it. Where the lag-1 correlation of ``g - m_hat`` between
   neighbours is at least ``CORRELATED`` and that difference is noise, not the signal's
   drift (``NOISY``; :func:`correlated`), the step filters at ``HEAVY_FACTOR`` times
-  sigma_d with :func:`extra_levels` more levels, and without the blend. The check runs
-  every ``CHECK_PERIOD``-th step and holds until the next (``AutoState.correlated``).
+  sigma_d with :func:`extra_levels` more levels, and without the blend. The check runs at
+  the second step and every ``CHECK_PERIOD``-th, and holds until the next
+  (``AutoState.correlated``).
 """
 
 from __future__ import annotations
@@ -88,9 +89,9 @@ class AutoState(NamedTuple):
       gate: how far the blend was open at the last step (a scalar in [0, 1]; 0 at a step
         that skipped the blend's statistics); None where ``residual`` is. While it is 0,
         the statistics are computed only every ``CHECK_PERIOD`` (8) steps.
-      correlated: 1 where the gradient's noise was spatially correlated at the last
-        multiple of ``CHECK_PERIOD`` steps (:func:`correlated`), else 0 (a scalar): until
-        the next such step the postfilter filters at ``HEAVY_FACTOR`` times sigma_d with
+      correlated: 1 where the gradient's noise was spatially correlated at the last check
+        (:func:`correlated`; the second step and every ``CHECK_PERIOD``-th), else 0 (a
+        scalar): until the next check the postfilter filters at ``HEAVY_FACTOR`` times sigma_d with
         :func:`extra_levels` more levels and without the blend. None where ``residual``
         is.
 
@@ -205,7 +206,7 @@ def sigma(
 def extra_levels(axes: tuple[int, ...]) -> int:
     """The levels added where the noise is correlated: 2 on a 1-D grid, 1 on a 2-D one, none
     on 3-D (there the compiled extra level slows every update, also where it does not run;
-    docs/auto_sigma.md, "Correlated gradient noise")."""
+    docs/auto_sigma.md, "Correlated noise")."""
     return {1: 2, 2: 1}.get(len(axes), 0)
 
 

@@ -324,10 +324,15 @@ def _heavy_moments(rule, m, v, guide, hyper, observed, finish):
     heavy = dict(hyper, sigma_d=hyper["sigma_d"] * auto.HEAVY_FACTOR)
     levels = rule.levels + auto.extra_levels(rule.axes)
     m_f, v_f = _filter(rule, (m, v), guide, heavy, observed, levels=levels)
+    residual = _residual(rule, m, m_f, hyper, observed)
+    return finish(m_f, v_f), {"gate": jnp.zeros([], m.dtype), "residual": residual}
+
+
+def _residual(rule, m, m_f, hyper, observed):
+    """The residual's EMA with this step's ``m_hat - B m_hat`` (:func:`auto.update_residual`)."""
     obs_full = auto.full_mask(observed, m.ndim, rule.axes)
     residual = hyper["residual"].astype(m.dtype)
-    residual = auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
-    return finish(m_f, v_f), {"gate": jnp.zeros([], m.dtype), "residual": residual}
+    return auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
 
 
 def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None):
@@ -335,9 +340,7 @@ def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None):
     rule's filter of them), ``sigma_d="auto"``'s and ``"sure"``'s, and what the step learned:
     the residual and (``"auto"``) the gate."""
     m_f, v_f = filtered or filter_fields(rule, (m, v), guide, hyper, observed)
-    obs_full = auto.full_mask(observed, m.ndim, rule.axes)
-    residual = hyper["residual"].astype(m.dtype)
-    residual = auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
+    residual = _residual(rule, m, m_f, hyper, observed)
     statistics = dict(
         b1=_number(rule, hyper, "b1"),
         c1=hyper["c1"],
