@@ -104,9 +104,8 @@ def leaf_step(
     if rule.mask_unobserved:
         d, m, v, learned = _postfilter_masked(rule, operands)
     else:
-        heavy = hyper["correlated"] > 0 if "correlated" in hyper else None
         d, m, v, learned = _when_clean(
-            rule, g, _postfilter_plain, _postfilter_masked, operands, heavy
+            rule, g, _postfilter_plain, _postfilter_masked, operands, _plain_variants(rule, hyper)
         )
     d = _guarded(rule, d, hyper)
     if isinstance(new_auto, auto.AutoState) and new_auto.direction is not None:
@@ -146,23 +145,34 @@ def _auto_sigma(rule, g, guide, hyper, state):
     return hyper, state._replace(previous_guide=keep)
 
 
-def _when_clean(rule, g, plain, masked, operands, heavy=None):
+def _plain_variants(rule, hyper):
+    """``sigma_d="auto"``'s forms of the plain step, and which one runs: without the blend's
+    statistics (a closed gate between checks), with them, and (correlated noise) heavier;
+    None where the step has one form."""
+    if "gate" not in hyper or not rule.axes or not (rule.filter_m and rule.filter_v):
+        return None
+    index = auto.checks(hyper["gate"], hyper["count"]).astype(jnp.int32)
+    variants = [{"stats": False}, {"stats": True}]
+    if "correlated" in hyper:
+        index = jnp.where(hyper["correlated"] > 0, 2, index)
+        variants.append({"heavy": True})
+    return index, variants
+
+
+def _when_clean(rule, g, plain, masked, operands, variants=None):
     """``plain`` when every entry of ``g`` is finite and within the limit, else ``masked``
-    (only one of them runs); with a traced ``heavy`` (``sigma_d="auto"``'s correlated
-    noise), ``plain(heavy=True)`` where it holds: a third branch, as a cond inside ``plain``
-    would keep the filter's last level out of the step's fusion."""
+    (only one of them runs); with ``variants`` (a traced index and the keyword arguments of
+    each form of ``plain``), that form of ``plain``: a branch each, as a cond inside
+    ``plain`` would keep the filter's last level out of the step's fusion."""
     clean = jnp.all(jnp.abs(g) <= rule.limit)
-    if heavy is None:
+    if variants is None:
         return lax.cond(
             clean, functools.partial(plain, rule), functools.partial(masked, rule), operands
         )
-    index = jnp.where(clean, 1 + heavy.astype(jnp.int32), 0)
-    branches = [
-        functools.partial(masked, rule),
-        functools.partial(plain, rule),
-        functools.partial(plain, rule, heavy=True),
-    ]
-    return lax.switch(index, branches, operands)
+    index, forms = variants
+    branches = [functools.partial(masked, rule)]
+    branches += [functools.partial(plain, rule, **form) for form in forms]
+    return lax.switch(jnp.where(clean, 1 + index, 0), branches, operands)
 
 
 def _guarded(rule, out, hyper):
@@ -205,14 +215,14 @@ def _prefilter_masked(rule, operands):
     return jnp.where(obs, out, g)
 
 
-def _postfilter_plain(rule, operands, heavy=False):
+def _postfilter_plain(rule, operands, heavy=False, stats=None):
     g, guide, moments, hyper = operands
     m, v = _moments(rule, g, moments, hyper)
 
     def finish(m_f, v_f):
         return _step(rule, m_f, v_f, hyper).astype(g.dtype)
 
-    d, learned = _filtered_moments(rule, m, v, guide, hyper, None, g, finish, heavy)
+    d, learned = _filtered_moments(rule, m, v, guide, hyper, None, g, finish, heavy, stats)
     return d, m, v, learned
 
 
@@ -268,14 +278,15 @@ def _moments(rule, g, moments, hyper):
     return m, v
 
 
-def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None):
+def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None, stats=None):
     """``finish(B m, B v)`` (the step), with one set of weights for both moments
     (unfiltered where the leaf is not filtered, and each left as it is when ``filter_m`` /
     ``filter_v`` is off), and what the step learned for the leaf's auto state (``{}``, or
     with moments the new ``residual`` of ``sigma_d="auto"`` and its blend's ``gate``, and
     with ``"sure"`` the gradient ``g``, the chosen sigma_d and F, the risks and whether the
-    gate has opened). ``heavy``: whether ``"auto"`` filters for correlated noise (a Python
-    bool, or None to read it from ``hyper``)."""
+    gate has opened). ``heavy``: whether ``"auto"`` filters for correlated noise, and
+    ``stats``: whether its blend computes its statistics (Python bools, or None to read
+    them from ``hyper``)."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
         return finish(m, v), {}
     if not rule.filter_v:
@@ -285,7 +296,7 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None)
     if "correlated" in hyper:  # sigma_d="auto" with moments, cross-guided
         learned = {"correlated": _correlation_check(rule, m, hyper, observed, g)}
         heavy_step = lambda: _heavy_moments(rule, m, v, guide, hyper, observed, finish)
-        blend_step = lambda: _blend(rule, m, v, guide, hyper, observed, finish, {})
+        blend_step = lambda: _blend(rule, m, v, guide, hyper, observed, finish, {}, stats=stats)
         if heavy is None:
             out, more = lax.cond(hyper["correlated"] > 0, heavy_step, blend_step)
         else:
@@ -298,7 +309,7 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None)
             return finish(m_f, v_f), learned
         return _blend(rule, m, v, guide, hyper, observed, finish, learned, (m_f, v_f))
     if "residual" in hyper:
-        return _blend(rule, m, v, guide, hyper, observed, finish, learned)
+        return _blend(rule, m, v, guide, hyper, observed, finish, learned, stats=stats)
     return finish(*filter_fields(rule, (m, v), guide, hyper, observed)), learned
 
 
@@ -335,10 +346,12 @@ def _residual(rule, m, m_f, hyper, observed):
     return auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
 
 
-def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None):
+def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None, stats=None):
     """``finish`` of the moments blended with their filtered ``filtered`` (by default the
     rule's filter of them), ``sigma_d="auto"``'s and ``"sure"``'s, and what the step learned:
-    the residual and (``"auto"``) the gate."""
+    the residual and (``"auto"``) the gate. ``stats`` (``"auto"``): whether the blend's
+    statistics are computed (a closed gate between checks skips them: no blend), or None
+    to decide in a cond (:func:`auto.checks`)."""
     m_f, v_f = filtered or filter_fields(rule, (m, v), guide, hyper, observed)
     residual = _residual(rule, m, m_f, hyper, observed)
     statistics = dict(
@@ -352,13 +365,17 @@ def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None):
         lam, gate = auto.weights(m, v, residual, **statistics)
         # Sticky: the bias it saw persists, the gate's view of it does not.
         learned["opened"] = jnp.maximum(hyper["opened"], (gate >= 1).astype(m.dtype))
-    else:  # no statistics between checks of a closed gate; lam alone crosses the cond so
-        # that B m and B v stay outside it, fused into the step (docs/design.md)
+    elif stats is False:  # between checks of a closed gate: no statistics, no blend
+        learned["gate"] = jnp.zeros([], m.dtype)
+        return finish(m_f, v_f), {**learned, "residual": residual}
+    elif stats:
+        lam, learned["gate"] = auto.weights(m, v, residual, **statistics)
+    else:  # lam alone crosses the cond so that B m and B v stay outside it, fused into the
+        # step (docs/design.md)
         check = auto.checks(hyper["gate"], hyper["count"])
         weights = lambda: auto.weights(m, v, residual, **statistics)
         closed = lambda: (jnp.zeros_like(m), jnp.zeros([], m.dtype))
-        lam, gate = lax.cond(check, weights, closed)
-        learned["gate"] = gate
+        lam, learned["gate"] = lax.cond(check, weights, closed)
     out = finish(auto.mix(lam, m, m_f), auto.mix(lam, v, v_f))
     return out, {**learned, "residual": residual}
 
