@@ -321,11 +321,42 @@ def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step(iid_and_
     assert all(gate > 0 for gate in gates[first:])
 
 
-def test_checks_is_an_open_gate_or_a_multiple_of_the_period():
+def test_stage_is_the_blend_on_an_open_gate_and_a_check_at_a_multiple_of_the_period():
     counts = jnp.arange(1, 3 * auto.CHECK_PERIOD + 1)
-    closed = np.asarray(auto.checks(jnp.zeros([]), counts))
-    np.testing.assert_array_equal(closed, np.asarray(counts) % auto.CHECK_PERIOD == 0)
-    assert bool(jnp.all(auto.checks(jnp.asarray(0.1), counts)))
+    closed = np.asarray(auto.stage(jnp.zeros([]), counts))
+    expected = np.where(np.asarray(counts) % auto.CHECK_PERIOD == 0, auto.CHECK, auto.SKIP)
+    np.testing.assert_array_equal(closed, expected)
+    assert bool(jnp.all(auto.stage(jnp.asarray(0.1), counts) == auto.BLEND))
+
+
+def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
+    """A closed gate's check computes the local averages at the sub-grid's entries only
+    (:func:`auto.stride`); they are the full local averages' sub-grid, and on leaves whose
+    blend weight is uniform in distribution the gate agrees with the full one."""
+    rng = np.random.default_rng(3)
+    for shape, axes in [
+        ((512, 512, 3), (0, 1)),
+        ((300, 7, 2), (0, 1)),
+        ((64, 64, 64, 1), (0, 1, 2)),
+    ]:
+        a = jnp.asarray(rng.normal(size=shape), jnp.float32)
+        full = [auto.subgrid(x, axes) for x in auto._smooth((a, a * a), axes)]
+        for x, y in zip(auto._smooth_subgrid((a, a * a), axes), full):
+            np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+    shape, axes = (256, 256, 2), (0, 1)
+    assert auto.stride(shape, axes) > 1
+    key = jax.random.PRNGKey(0)
+    m = jax.random.normal(key, shape)
+    v = m * m + jax.random.uniform(jax.random.fold_in(key, 1), shape)
+    stats = dict(b1=0.9, c1=jnp.asarray(1.0), c2=jnp.asarray(1.0), count=jnp.asarray(8))
+    gates = []
+    for scale in (0.0, 0.2, 0.22, 0.3):  # the gate closed, opening, and open
+        residual = scale * jax.random.normal(jax.random.fold_in(key, 2), shape)
+        _, full_gate = auto.weights(m, v, residual, axes=axes, **stats)
+        sub_gate = auto.gate(m, v, residual, axes=axes, **stats)
+        assert abs(float(sub_gate) - float(full_gate)) < 0.02, (scale, sub_gate, full_gate)
+        gates.append(float(full_gate))
+    assert gates[0] == 0 and 0 < gates[1] < gates[2] < 1 and gates[3] == 1
 
 
 @jax.jit
@@ -593,6 +624,20 @@ def test_correlated_tells_blurred_noise_from_white_noise_at_every_scale(scale):
     assert _correlated(scale * (signal + blurred), scale * signal)
     # Gaussian-correlated noise half a texel wide: exp(-1) = 0.37, below CORRELATED.
     assert not _correlated(scale * (signal + _blurred(noise, 0.5)), scale * signal)
+
+
+def test_correlated_reads_pairs_on_the_subgrid_of_a_large_leaf():
+    """On a leaf with a sub-grid (stride 4 at 512x512) the pairs are texels 4i and 4i + 1:
+    the same lag-1 correlation, from an eighth of the texels."""
+    assert auto.stride((512, 512, 1), (0, 1)) == 4
+    rng = np.random.default_rng(2)
+    noise = rng.normal(size=(512, 512, 1))
+    signal = 0.1 * np.ones((512, 512, 1))
+    blurred = _blurred(noise, 1.5)
+    blurred /= blurred.std()
+    assert not _correlated(signal + noise, signal)
+    assert _correlated(signal + blurred, signal)
+    assert not _correlated(signal + _blurred(noise, 0.5), signal)
 
 
 def test_correlated_needs_the_difference_to_be_noise_not_the_signals_drift():

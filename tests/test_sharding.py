@@ -279,6 +279,18 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             sharding_kept=out[0]["tex"].sharding.is_equivalent_to(p_s["tex"].sharding, 3),
             kept_shape=list(jax.eval_shape(tx.init, p_s)[0].auto["tex"].previous_guide.shape),
         )
+    # A closed gate's check on the sub-grid (stride 4 here), sharded and on one device.
+    gate = jax.jit(
+        functools.partial(
+            auto.gate, b1=0.9, c1=jnp.asarray(1.0), c2=jnp.asarray(1.0), count=jnp.asarray(8)
+        ),
+        static_argnames="axes",
+    )
+    gates = [
+        float(gate(m, m * m + 0.1, 0.12 * jnp.sin(9 * m), axes=(0, 1)))  # half open
+        for m in (params["tex"], p_s["tex"])
+    ]
+    emit(check="subgrid_gate", gates=gates)
     auto.MIN_TEXELS = auto_min_texels
     step.leaf_step.clear_cache()
 
@@ -388,6 +400,8 @@ def test_auto_and_sure_sigma_equal_single_device():
     for r in recs:
         assert r["max_diff"] <= TOL and r["sharding_kept"], r
     assert [r["kept_shape"] for r in recs] == [[16, 16, 3], [16, 16, 3], [4, 4, 3]]
+    ((gate, gate_sharded),) = [r["gates"] for r in _checks("subgrid_gate")]
+    assert abs(gate_sharded - gate) <= TOL and 0 < gate < 1, (gate, gate_sharded)
     (sure,) = [r for r in recs if r["sigma_d"] == "sure"]
     assert sure["sigma_diff"] <= TOL * max(sure["sigma"]) and len(sure["sigma"]) == 1, sure
 

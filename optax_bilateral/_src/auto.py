@@ -22,10 +22,11 @@ Three parts, derived in docs/auto_sigma.md and measured by ``python -m experimen
   from one non-negative, row-stochastic operator and the step stays bounded
   (supplement §1.3). A leaf blends only where persistent residuals are widespread
   (``GATE``): a few texels with large ``lam`` early on are noise in the estimate itself.
-  While a leaf's gate is closed, the blend's statistics are computed only every
-  ``CHECK_PERIOD``-th step (the residual's average is kept every step): on most leaves of
-  most problems the gate stays closed, and the statistics are the blend's dearest part
-  (docs/auto_sigma.md, "Cost").
+  While a leaf's gate is closed, it is checked only every ``CHECK_PERIOD``-th step, from
+  the sub-grid's entries (:func:`gate`), and the blend starts at the step after it opens
+  (the residual's average is kept every step): on most leaves of most problems the gate
+  stays closed, and the statistics are the blend's dearest part (docs/auto_sigma.md,
+  "Cost"; :func:`stage`).
 * **Correlated noise** (postfilter with moments, cross-guided). Where the gradient's noise
   is spatially correlated (the transposed blur of a sparse residual: deconvolution or
   tomography from random subsets), neighbouring texels share their noise and the finest
@@ -39,13 +40,15 @@ Three parts, derived in docs/auto_sigma.md and measured by ``python -m experimen
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from optax_bilateral._src import layout
+from optax_bilateral._src import layout, sharded
 from optax_bilateral._src.filter import atrous_bilateral
 
 AUTO = "auto"
@@ -88,7 +91,8 @@ class AutoState(NamedTuple):
         :func:`prefilter`.
       gate: how far the blend was open at the last step (a scalar in [0, 1]; 0 at a step
         that skipped the blend's statistics); None where ``residual`` is. While it is 0,
-        the statistics are computed only every ``CHECK_PERIOD`` (8) steps.
+        it is checked only every ``CHECK_PERIOD`` (8) steps, from a sub-grid of the leaf,
+        and a gate that opens there blends from the next step (:func:`stage`).
       correlated: 1 where the gradient's noise was spatially correlated at the last check
         (:func:`correlated`; the second step and every ``CHECK_PERIOD``-th), else 0 (a
         scalar): until the next check the postfilter filters at ``HEAVY_FACTOR`` times sigma_d with
@@ -211,8 +215,8 @@ def extra_levels(axes: tuple[int, ...]) -> int:
 
 
 def _neighbours(x: jax.Array, axes: tuple[int, ...], axis: int) -> tuple[jax.Array, jax.Array]:
-    """``x[p]`` and ``x[p + 1 along axis]`` for every even ``p`` along ``axis``, on the
-    sub-grid (:func:`stride`) along the other spatial axes. Pairs from a reshape, not
+    """``x[p]`` and ``x[p + 1 along axis]`` for every ``p`` on the sub-grid (:func:`stride`;
+    every even ``p`` along ``axis`` where the stride is 1). Pairs from a reshape, not
     shifted slices, which a grid sharded along ``axis`` cannot take."""
     s = stride(x.shape, axes)
     x = x[
@@ -220,11 +224,11 @@ def _neighbours(x: jax.Array, axes: tuple[int, ...], axis: int) -> tuple[jax.Arr
             slice(None, None, s) if a in axes and a != axis else slice(None) for a in range(x.ndim)
         )
     ]
-    n = x.shape[axis]
-    if n % 2:
-        x = jax.lax.slice_in_dim(x, 0, n - 1, axis=axis)
-    pairs = x.reshape(x.shape[:axis] + (n // 2, 2) + x.shape[axis + 1 :])
-    return jnp.take(pairs, 0, axis=axis + 1), jnp.take(pairs, 1, axis=axis + 1)
+    q = max(s, 2)
+    n = x.shape[axis] // q
+    x = jax.lax.slice_in_dim(x, 0, n * q, axis=axis)
+    blocks = x.reshape(x.shape[:axis] + (n, q) + x.shape[axis + 1 :])
+    return jnp.take(blocks, 0, axis=axis + 1), jnp.take(blocks, 1, axis=axis + 1)
 
 
 def correlated(
@@ -286,6 +290,74 @@ def _smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.A
     return cast(tuple[jax.Array, ...], out)
 
 
+_TAPS = np.array([1, 4, 6, 4, 1]) / 16  # the filter's first level: the B-spline at stride 1
+
+
+def _smooth_subgrid(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
+    """:func:`_smooth`'s local averages at the sub-grid's entries (:func:`subgrid`) only:
+    per spatial axis, the 5 taps read at every ``stride``-th texel, normalised over those
+    inside the grid (the filter's weight off the grid is 0). Without a sub-grid, or on a
+    grid split over devices in its type (whose axes take no slice of uneven length), the
+    full local averages' sub-grid."""
+    s = stride(fields[0].shape, axes)
+    if s == 1 or sharded.is_split(fields[0]):
+        return tuple(subgrid(f, axes) for f in _smooth(fields, axes))
+    out = []
+    for x in fields:
+        for a in axes:
+            x = _taps_at_stride(x, a, s)
+        out.append(x)
+    return tuple(out)
+
+
+def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
+    n = x.shape[axis]
+    r = len(_TAPS) // 2
+    kept = (n - 1) // s + 1
+    total, norm = 0.0, np.zeros(kept)
+    for k, w in enumerate(_TAPS):
+        # The sub-grid's texels whose tap k falls on the grid: i in [lo, hi).
+        lo = max(0, -(-(r - k) // s))
+        hi = min(kept, (n - 1 - k + r) // s + 1)
+        if hi <= lo:
+            continue
+        start = s * lo + k - r
+        taps = jax.lax.slice_in_dim(x, start, start + s * (hi - lo - 1) + 1, stride=s, axis=axis)
+        # Padded after the slice: only the sub-grid's rows are copied.
+        pad = [(0, 0)] * x.ndim
+        pad[axis] = (lo, kept - hi)
+        total = total + float(w) * jnp.pad(taps, pad)
+        norm[lo:hi] += w
+    shape = [1] * x.ndim
+    shape[axis] = kept
+    return total / jnp.asarray(norm.reshape(shape), x.dtype)
+
+
+def _blend_weight(m, v, residual, smooth, *, b1, c1, c2, count):
+    """The blend's weight of the unfiltered moments per entry, before the gate; ``smooth``
+    takes the local averages (:func:`_smooth`, or :func:`_smooth_subgrid` at the sub-grid's
+    entries only)."""
+    dtype = m.dtype
+    b1 = jnp.asarray(b1, dtype)
+    c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
+    t = count.astype(dtype)
+    decay = jnp.asarray(RESIDUAL_DECAY, dtype)
+    residual_hat = residual / (1 - decay**t)
+    # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
+    ratio, usable = noise_ratio(b1, c1, count)
+    k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
+    noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
+    residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)
+    residual_noise = residual_noise * (1 + b1 * decay) / (1 - b1 * decay)  # m_hat is correlated
+    floor, signal = smooth((residual_noise, residual_hat**2))
+    lam = 1 - floor / (GAIN * jnp.where(signal > 0, signal, 1))
+    return jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** POWER
+
+
+def _gate(lam: jax.Array) -> jax.Array:
+    return jnp.clip((jnp.mean(lam) - GATE[0]) / (GATE[1] - GATE[0]), 0, 1)
+
+
 def weights(
     m: jax.Array,
     v: jax.Array,
@@ -303,23 +375,19 @@ def weights(
     ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``residual`` is the
     residual's EMA with this step's (:func:`update_residual`).
     """
-    dtype = m.dtype
-    b1 = jnp.asarray(b1, dtype)
-    c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
-    t = count.astype(dtype)
-    decay = jnp.asarray(RESIDUAL_DECAY, dtype)
-    residual_hat = residual / (1 - decay**t)
-    # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
-    ratio, usable = noise_ratio(b1, c1, count)
-    k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
-    noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
-    residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)
-    residual_noise = residual_noise * (1 + b1 * decay) / (1 - b1 * decay)  # m_hat is correlated
-    floor, signal = _smooth((residual_noise, residual_hat**2), axes)
-    lam = 1 - floor / (GAIN * jnp.where(signal > 0, signal, 1))
-    lam = jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** POWER
-    gate = jnp.clip((jnp.mean(lam) - GATE[0]) / (GATE[1] - GATE[0]), 0, 1)
+    smooth = functools.partial(_smooth, axes=axes)
+    lam = _blend_weight(m, v, residual, smooth, b1=b1, c1=c1, c2=c2, count=count)
+    gate = _gate(lam)
     return lam * gate, gate
+
+
+def gate(m: jax.Array, v: jax.Array, residual: jax.Array, *, axes, **statistics) -> jax.Array:
+    """:func:`weights`' gate (the same arguments: ``b1``, ``c1``, ``c2``, ``count``) from the
+    sub-grid's entries (:func:`stride`) alone: a closed gate's check, which blends nothing
+    (the blend, if the gate opens, starts at the next step) and so needs no weight per
+    entry."""
+    smooth = functools.partial(_smooth_subgrid, axes=axes)
+    return _gate(_blend_weight(m, v, residual, smooth, **statistics))
 
 
 def mix(lam: jax.Array, x: jax.Array, bx: jax.Array) -> jax.Array:
@@ -328,10 +396,15 @@ def mix(lam: jax.Array, x: jax.Array, bx: jax.Array) -> jax.Array:
     return lam * x + (1 - lam) * bx
 
 
-def checks(gate: jax.Array, count: jax.Array) -> jax.Array:
-    """Whether this step computes the blend's statistics: the gate was open at the last
-    step, or the step is a multiple of ``CHECK_PERIOD``."""
-    return (gate > 0) | (count % CHECK_PERIOD == 0)
+SKIP, CHECK, BLEND = 0, 1, 2  # what a step computes of the blend (:func:`stage`), in order
+
+
+def stage(gate: jax.Array, count: jax.Array) -> jax.Array:
+    """What this step computes of the blend: ``BLEND`` (its statistics and the blend) if the
+    gate was open at the last step; else ``CHECK`` (the gate alone, :func:`gate`) at a
+    multiple of ``CHECK_PERIOD``; else ``SKIP`` (nothing)."""
+    check = jnp.where(count % CHECK_PERIOD == 0, CHECK, SKIP)
+    return jnp.where(gate > 0, BLEND, check).astype(jnp.int32)
 
 
 def update_residual(m, bm, residual, c1, observed):

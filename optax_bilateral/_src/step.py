@@ -146,15 +146,15 @@ def _auto_sigma(rule, g, guide, hyper, state):
 
 
 def _plain_variants(rule, hyper):
-    """``sigma_d="auto"``'s forms of the plain step, and which one runs: without the blend's
-    statistics (a closed gate between checks), with them, and (correlated noise) heavier;
-    None where the step has one form."""
+    """``sigma_d="auto"``'s forms of the plain step, and which one runs: one per
+    :func:`auto.stage` of the blend, and (correlated noise) the heavier one; None where the
+    step has one form."""
     if "gate" not in hyper or not rule.axes or not (rule.filter_m and rule.filter_v):
         return None
-    index = auto.checks(hyper["gate"], hyper["count"]).astype(jnp.int32)
-    variants = [{"stats": False}, {"stats": True}]
+    index = auto.stage(hyper["gate"], hyper["count"])
+    variants = [{"stage": auto.SKIP}, {"stage": auto.CHECK}, {"stage": auto.BLEND}]
     if "correlated" in hyper:
-        index = jnp.where(hyper["correlated"] > 0, 2, index)
+        index = jnp.where(hyper["correlated"] > 0, len(variants), index)
         variants.append({"heavy": True})
     return index, variants
 
@@ -215,14 +215,14 @@ def _prefilter_masked(rule, operands):
     return jnp.where(obs, out, g)
 
 
-def _postfilter_plain(rule, operands, heavy=False, stats=None):
+def _postfilter_plain(rule, operands, heavy=False, stage=None):
     g, guide, moments, hyper = operands
     m, v = _moments(rule, g, moments, hyper)
 
     def finish(m_f, v_f):
         return _step(rule, m_f, v_f, hyper).astype(g.dtype)
 
-    d, learned = _filtered_moments(rule, m, v, guide, hyper, None, g, finish, heavy, stats)
+    d, learned = _filtered_moments(rule, m, v, guide, hyper, None, g, finish, heavy, stage)
     return d, m, v, learned
 
 
@@ -278,15 +278,15 @@ def _moments(rule, g, moments, hyper):
     return m, v
 
 
-def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None, stats=None):
+def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None, stage=None):
     """``finish(B m, B v)`` (the step), with one set of weights for both moments
     (unfiltered where the leaf is not filtered, and each left as it is when ``filter_m`` /
     ``filter_v`` is off), and what the step learned for the leaf's auto state (``{}``, or
     with moments the new ``residual`` of ``sigma_d="auto"`` and its blend's ``gate``, and
     with ``"sure"`` the gradient ``g``, the chosen sigma_d and F, the risks and whether the
-    gate has opened). ``heavy``: whether ``"auto"`` filters for correlated noise, and
-    ``stats``: whether its blend computes its statistics (Python bools, or None to read
-    them from ``hyper``)."""
+    gate has opened). ``heavy``: whether ``"auto"`` filters for correlated noise (a Python
+    bool), and ``stage``: what its blend computes (:func:`auto.stage`); None to read them
+    from ``hyper``."""
     if not rule.axes or not (rule.filter_m or rule.filter_v):
         return finish(m, v), {}
     if not rule.filter_v:
@@ -296,7 +296,7 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None,
     if "correlated" in hyper:  # sigma_d="auto" with moments, cross-guided
         learned = {"correlated": _correlation_check(rule, m, hyper, observed, g)}
         heavy_step = lambda: _heavy_moments(rule, m, v, guide, hyper, observed, finish)
-        blend_step = lambda: _blend(rule, m, v, guide, hyper, observed, finish, {}, stats=stats)
+        blend_step = lambda: _blend(rule, m, v, guide, hyper, observed, finish, {}, stage=stage)
         if heavy is None:
             out, more = lax.cond(hyper["correlated"] > 0, heavy_step, blend_step)
         else:
@@ -309,7 +309,7 @@ def _filtered_moments(rule, m, v, guide, hyper, observed, g, finish, heavy=None,
             return finish(m_f, v_f), learned
         return _blend(rule, m, v, guide, hyper, observed, finish, learned, (m_f, v_f))
     if "residual" in hyper:
-        return _blend(rule, m, v, guide, hyper, observed, finish, learned, stats=stats)
+        return _blend(rule, m, v, guide, hyper, observed, finish, learned, stage=stage)
     return finish(*filter_fields(rule, (m, v), guide, hyper, observed)), learned
 
 
@@ -346,14 +346,14 @@ def _residual(rule, m, m_f, hyper, observed):
     return auto.update_residual(m, m_f, residual, hyper["c1"], obs_full)
 
 
-def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None, stats=None):
+def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None, stage=None):
     """``finish`` of the moments blended with their filtered ``filtered`` (by default the
     rule's filter of them), ``sigma_d="auto"``'s and ``"sure"``'s, and what the step learned:
-    the residual and (``"auto"``) the gate. ``stats`` (``"auto"``): whether the blend's
-    statistics are computed (a closed gate between checks skips them: no blend), or None
-    to decide in a cond (:func:`auto.checks`)."""
+    the residual and (``"auto"``) the gate. ``stage`` (``"auto"``): what the step computes
+    of the blend (:func:`auto.stage`), or None to choose it in a switch."""
     m_f, v_f = filtered or filter_fields(rule, (m, v), guide, hyper, observed)
     residual = _residual(rule, m, m_f, hyper, observed)
+    learned = {**learned, "residual": residual}
     statistics = dict(
         b1=_number(rule, hyper, "b1"),
         c1=hyper["c1"],
@@ -365,19 +365,23 @@ def _blend(rule, m, v, guide, hyper, observed, finish, learned, filtered=None, s
         lam, gate = auto.weights(m, v, residual, **statistics)
         # Sticky: the bias it saw persists, the gate's view of it does not.
         learned["opened"] = jnp.maximum(hyper["opened"], (gate >= 1).astype(m.dtype))
-    elif stats is False:  # between checks of a closed gate: no statistics, no blend
-        learned["gate"] = jnp.zeros([], m.dtype)
-        return finish(m_f, v_f), {**learned, "residual": residual}
-    elif stats:
+        return finish(auto.mix(lam, m, m_f), auto.mix(lam, v, v_f)), learned
+    closed = lambda: jnp.zeros([], m.dtype)
+    check = lambda: auto.gate(m, v, residual, **statistics)
+    if stage is None:  # lam alone crosses the switch so that B m and B v stay outside it,
+        # fused into the step (docs/design.md)
+        branches = [  # in the order SKIP, CHECK, BLEND
+            lambda: (jnp.zeros_like(m), closed()),
+            lambda: (jnp.zeros_like(m), check()),
+            lambda: auto.weights(m, v, residual, **statistics),
+        ]
+        lam, learned["gate"] = lax.switch(auto.stage(hyper["gate"], hyper["count"]), branches)
+    elif stage == auto.BLEND:
         lam, learned["gate"] = auto.weights(m, v, residual, **statistics)
-    else:  # lam alone crosses the cond so that B m and B v stay outside it, fused into the
-        # step (docs/design.md)
-        check = auto.checks(hyper["gate"], hyper["count"])
-        weights = lambda: auto.weights(m, v, residual, **statistics)
-        closed = lambda: (jnp.zeros_like(m), jnp.zeros([], m.dtype))
-        lam, learned["gate"] = lax.cond(check, weights, closed)
-    out = finish(auto.mix(lam, m, m_f), auto.mix(lam, v, v_f))
-    return out, {**learned, "residual": residual}
+    else:  # a closed gate: no blend (a check computes the gate for the next step)
+        learned["gate"] = check() if stage == auto.CHECK else closed()
+        return finish(m_f, v_f), learned
+    return finish(auto.mix(lam, m, m_f), auto.mix(lam, v, v_f)), learned
 
 
 def _sure_moments(rule, m, v, guide, hyper, observed, g):
