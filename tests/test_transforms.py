@@ -672,3 +672,22 @@ def test_weight_decay_through_inject_hyperparams():
     zero = adam(learning_rate=0.1, sigma_d=0.3, levels=2, weight_decay=0.0)
     u, _ = jax.jit(zero.update)(g, zero.init(theta), theta)
     np.testing.assert_allclose(np.asarray(u), np.asarray(u0), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("sigma_d", [0.1, "auto", "sure"])
+def test_the_state_can_be_donated(sigma_d):
+    """``jit(update, donate_argnums=1)``, the usual way to update in place, needs every
+    array of the state in a buffer of its own (XLA refuses one buffer donated twice)."""
+    params = {"tex": jnp.ones((16, 16, 3)), "bias": jnp.ones((4,))}
+    opt = optax.chain(
+        ob.prefilter(sigma_d="auto" if sigma_d == "sure" else sigma_d),
+        ob.bilateral_adam(0.01, sigma_d=sigma_d),
+    )
+    state = opt.init(params)
+    arrays = [x for x in jax.tree.leaves(state) if isinstance(x, jax.Array)]
+    assert len({id(x) for x in arrays}) == len(arrays)
+    update = jax.jit(opt.update, donate_argnums=1)
+    grads = jax.tree.map(jnp.ones_like, params)
+    for _ in range(2):
+        updates, state = update(grads, state, params)
+    assert all(bool(jnp.all(jnp.isfinite(u))) for u in jax.tree.leaves(updates))

@@ -49,6 +49,7 @@ them, docs/robustness.md has the full table):
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast
 
 import jax
@@ -674,14 +675,15 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
         previous_guide = None
         if leaf_guide is not None:
             previous_guide = jnp.zeros_like(auto.kept_guide(jnp.asarray(leaf_guide), spec.axes))
-        zeros = jnp.zeros(jnp.shape(leaf), dtype)
+        # Every field its own buffer: a state that holds one twice cannot be donated.
+        zeros = functools.partial(jnp.zeros, jnp.shape(leaf), dtype)
         if sure.is_sure(spec.sigma_d):  # a guide and moments: checked at construction
             guide_zeros = cast(jax.Array, previous_guide)
             states.append(
                 SureState(
                     guide_zeros,
-                    zeros,
-                    zeros,
+                    zeros(),
+                    zeros(),
                     jnp.zeros([], dtype),
                     jnp.zeros([], jnp.int32),
                     jnp.zeros([sure.count(spec.levels)], dtype),
@@ -690,9 +692,12 @@ def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_re
             )
         else:
             direction = jnp.zeros([], dtype) if transform == "postfilter" else None
-            scalar = jnp.zeros([], dtype) if with_residual else None
-            residual = zeros if with_residual else None
-            states.append(AutoState(previous_guide, residual, direction, scalar, scalar))
+            residual, gate, correlated = (
+                (zeros(), jnp.zeros([], dtype), jnp.zeros([], dtype))
+                if with_residual
+                else (None, None, None)
+            )
+            states.append(AutoState(previous_guide, residual, direction, gate, correlated))
     return jax.tree.unflatten(jax.tree.structure(params), states)
 
 
