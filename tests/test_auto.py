@@ -613,31 +613,29 @@ def _correlated(g, m_hat, t=5, b1=0.2, observed=None):
     return bool(auto.correlated(g, m, b1=b1, c1=c1, axes=(0, 1), observed=observed))
 
 
-@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
-def test_correlated_tells_blurred_noise_from_white_noise_at_every_scale(scale):
+def _tells_blurred_from_white(shape, scale=1.0):
+    """``correlated`` on white noise, noise blurred over 1.5 texels (lag-1 correlation
+    exp(-1/9) = 0.89) and over half a texel (exp(-1) = 0.37, below ``CORRELATED``)."""
     rng = np.random.default_rng(0)
-    noise = rng.normal(size=(64, 64, 3))
-    signal = 0.1 * np.ones((64, 64, 3))
-    blurred = _blurred(noise, 1.5)  # lag-1 correlation exp(-1/9) = 0.89
+    noise = rng.normal(size=shape)
+    signal = 0.1 * np.ones(shape)
+    blurred = _blurred(noise, 1.5)
     blurred /= blurred.std()
     assert not _correlated(scale * (signal + noise), scale * signal)
     assert _correlated(scale * (signal + blurred), scale * signal)
-    # Gaussian-correlated noise half a texel wide: exp(-1) = 0.37, below CORRELATED.
     assert not _correlated(scale * (signal + _blurred(noise, 0.5)), scale * signal)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_correlated_tells_blurred_noise_from_white_noise_at_every_scale(scale):
+    _tells_blurred_from_white((64, 64, 3), scale)
 
 
 def test_correlated_reads_pairs_on_the_subgrid_of_a_large_leaf():
     """On a leaf with a sub-grid (stride 4 at 512x512) the pairs are texels 4i and 4i + 1:
     the same lag-1 correlation, from an eighth of the texels."""
     assert auto.stride((512, 512, 1), (0, 1)) == 4
-    rng = np.random.default_rng(2)
-    noise = rng.normal(size=(512, 512, 1))
-    signal = 0.1 * np.ones((512, 512, 1))
-    blurred = _blurred(noise, 1.5)
-    blurred /= blurred.std()
-    assert not _correlated(signal + noise, signal)
-    assert _correlated(signal + blurred, signal)
-    assert not _correlated(signal + _blurred(noise, 0.5), signal)
+    _tells_blurred_from_white((512, 512, 1))
 
 
 def test_correlated_needs_the_difference_to_be_noise_not_the_signals_drift():
