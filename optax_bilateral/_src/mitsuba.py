@@ -39,7 +39,7 @@ GRID_NDIMS = (3, 4)
 """Parameter ranks :class:`SceneOptimizer` accepts: bitmap textures ``(H, W, C)`` and grid
 volumes ``(D, H, W, C)``."""
 
-_INSTALL_HINT = (
+INSTALL_HINT = (
     "pip install 'optax_bilateral[mitsuba]' (Mitsuba 3 and Dr.Jit, pinned), and for "
     "the llvm_* variants a libLLVM >= 16 on the system (Debian/Ubuntu: apt-get "
     "install libllvm19); see docs/mitsuba.md"
@@ -52,7 +52,7 @@ def _modules():
         import mitsuba as mi
     except ImportError as e:
         raise ImportError(
-            f"optax_bilateral.mitsuba needs Mitsuba 3 and Dr.Jit: {_INSTALL_HINT}"
+            f"optax_bilateral.mitsuba needs Mitsuba 3 and Dr.Jit: {INSTALL_HINT}"
         ) from e
     return mi, dr
 
@@ -115,7 +115,7 @@ def check_variant() -> str:
         version = llvm_version()
         if version is None:
             raise RuntimeError(
-                f"Dr.Jit found no libLLVM for the {variant!r} variant: {_INSTALL_HINT}; "
+                f"Dr.Jit found no libLLVM for the {variant!r} variant: {INSTALL_HINT}; "
                 "set DRJIT_LIBLLVM_PATH to the library if it is not in /usr/lib"
             )
         if version[0] < MIN_LLVM_MAJOR:
@@ -200,14 +200,14 @@ def _check_value(key, value, dr) -> tuple[int, ...]:
     return shape
 
 
-class _ById:
+class ById:
     """A static jit argument compared by identity (transforms need not be hashable)."""
 
     def __init__(self, obj):
         self.obj = obj
 
     def __eq__(self, other):
-        return isinstance(other, _ById) and other.obj is self.obj
+        return isinstance(other, ById) and other.obj is self.obj
 
     def __hash__(self):
         return id(self.obj)
@@ -446,9 +446,9 @@ class SceneOptimizer:
         self.mask_unobserved = mask_unobserved
         project = _projection(project, self.keys)
         if project is not None and not isinstance(project, _Clamp):
-            project = _ById(project)
+            project = ById(project)
         self._static = (
-            _ById(transform),
+            ById(transform),
             project,
             mask_unobserved,
             tuple(sorted(self.shapes.items())),
