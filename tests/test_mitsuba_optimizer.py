@@ -400,8 +400,9 @@ def test_load_state_dict_names_what_does_not_match(mi):
 # ------------------------------------------------------------------------ any transform, bad input
 
 
-def test_optax_optimizer_runs_a_mesh_transform_on_vertex_positions(mi):
-    # Large Steps wants (V, 3): registered as a tensor view of the flat vertex_positions.
+def test_optax_optimizer_runs_a_mesh_transform_on_flat_vertex_positions(mi):
+    # Large Steps wants (V, 3); a Mitsuba mesh holds its positions flat: `shapes` gives the
+    # transform its view, and the optimizer keeps (and params.update writes) the flat Float.
     dr = _dr()
     import optax_bilateral.triangle_mesh as obm
     from optax_bilateral.mitsuba import OptaxOptimizer
@@ -409,13 +410,45 @@ def test_optax_optimizer_runs_a_mesh_transform_on_vertex_positions(mi):
 
     v0, faces = toy.icosphere(2)
     tx = obm.large_steps(0.01, obm.mesh_laplacian(faces), 4.0)
-    opt = OptaxOptimizer(tx)
-    opt["v"] = mi.TensorXf(mi.Float(v0.ravel()), (len(v0), 3))
-    dr.backward(dr.sum(dr.square(opt["v"]), axis=None))  # gradient 2 v: shrink the sphere
+    opt = OptaxOptimizer(tx, shapes={"positions": (-1, 3)})
+    opt["positions"] = mi.Float(v0.ravel())
+    dr.backward(dr.sum(dr.square(opt["positions"])))  # gradient 2 v: shrink the sphere
     opt.step()
     u, _ = tx.update(2 * jnp.asarray(v0), tx.init(jnp.asarray(v0)), jnp.asarray(v0))
-    np.testing.assert_allclose(_np(opt["v"]), v0 + np.asarray(u), rtol=0, atol=1e-6)
-    assert isinstance(opt["v"].array, mi.Float)  # what params[key] = ... takes back
+    assert isinstance(opt["positions"], mi.Float)
+    np.testing.assert_allclose(_np(opt["positions"]), (v0 + np.asarray(u)).ravel(), atol=1e-6)
+    with pytest.raises(ValueError, match=r"shapes\['positions'\] = \(-1, 5\) does not fit"):
+        OptaxOptimizer(tx, shapes={"positions": (-1, 5)})["positions"] = mi.Float(v0.ravel())
+
+
+def test_large_steps_through_optax_optimizer_is_mitsubas_large_steps(mi):
+    # The library's large_steps on x and mi.ad.LargeSteps + mi.ad.Adam(uniform=True) on
+    # u = (I + lambda L) x are one method: the same positions from the same gradients, up to
+    # the solvers' and the two Adams' rounding (1e-5 of the unit sphere's size).
+    dr = _dr()
+    import optax_bilateral.triangle_mesh as obm
+    from optax_bilateral.mitsuba import OptaxOptimizer
+    from optax_bilateral.toy import triangle_mesh as toy
+
+    v0, faces = toy.icosphere(4)
+    ls = mi.ad.LargeSteps(mi.Float(v0.ravel()), mi.UInt(faces.ravel().astype(np.uint32)), 19.0)
+    theirs = mi.ad.Adam(lr=0.01, uniform=True)
+    theirs["u"] = ls.to_differential(mi.Float(v0.ravel()))
+    ours = OptaxOptimizer(
+        obm.large_steps(0.01, obm.mesh_laplacian(faces), 19.0, solver="cholesky"),
+        shapes={"x": (-1, 3)},
+    )
+    ours["x"] = mi.Float(v0.ravel())
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        g = mi.Float(rng.normal(size=v0.size).astype(np.float32))
+        dr.backward(dr.sum(ls.from_differential(theirs["u"]) * g))
+        theirs.step()
+        dr.backward(dr.sum(ours["x"] * g))
+        ours.step()
+    x_theirs = _np(ls.from_differential(theirs["u"]))
+    np.testing.assert_allclose(_np(ours["x"]), x_theirs, rtol=0, atol=1e-5)
+    assert np.abs(x_theirs - v0.ravel()).max() > 0.01  # five steps of about lr
 
 
 def test_bad_arguments_are_reported_early(mi):

@@ -84,18 +84,21 @@ def _restore_where(observed, new_tree, old_tree, shape):
     )
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _apply(transform: ById, mask: str | None, grad, state, value, lr, grad_scale):
-    """One key's step: ``value + lr * updates`` with the transform's updates, and with
-    ``mask`` ("texel" or "component") unobserved entries keep their value and state."""
-    grad = grad * grad_scale.astype(grad.dtype)
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _apply(transform: ById, mask: str | None, view, grad, state, value, lr, grad_scale):
+    """One key's step: ``value + lr * updates`` with the transform's updates on the value
+    seen as ``view`` (a shape), and with ``mask`` ("texel" or "component") unobserved
+    entries keep their value and state."""
+    shape = value.shape
+    grad = grad.reshape(view) * grad_scale.astype(grad.dtype)
+    value = value.reshape(view)
     updates, new_state = transform.obj.update(grad, state, value)
     new_value = value + lr.astype(value.dtype) * updates
     if mask is not None:
         observed = observed_texels(grad) if mask == "texel" else grad != 0
         new_value = jnp.where(observed, new_value, value)
         new_state = _restore_where(observed, new_state, state, value.shape)
-    return new_value.astype(value.dtype), new_state
+    return new_value.astype(value.dtype).reshape(shape), new_state
 
 
 class OptaxOptimizer(Optimizer):
@@ -122,9 +125,9 @@ class OptaxOptimizer(Optimizer):
     1) is a multiplier that :meth:`set_learning_rate` sets globally or per key. The
     transform sees the key's value as a JAX array: a texture ``(H, W, C)``, a volume
     ``(D, H, W, C)``, a ``Color3f`` as ``(3, 1)``, a flat ``Float`` (e.g. a mesh's
-    ``vertex_positions``) as ``(N,)``; ``obm.bilateral_large_steps`` wants ``(V, 3)``:
-    register ``mi.TensorXf(params[key], (V, 3))`` and write back with
-    ``params[key] = opt[key].array`` (docs/mitsuba.md, "Meshes").
+    ``vertex_positions``) as ``(N,)``, unless ``shapes`` gives the key another shape:
+    ``obm.bilateral_large_steps`` wants a mesh's positions as ``(V, 3)``, so
+    ``shapes={"shape.vertex_positions": (-1, 3)}`` (docs/mitsuba.md, "Meshes").
 
     State: :meth:`state_dict` returns every value, step count, learning rate and optax
     state as one pytree; ``ob.save_state(path, opt.state_dict())`` writes it and
@@ -139,6 +142,9 @@ class OptaxOptimizer(Optimizer):
       params: optional ``{key: value}`` to register at once (as ``opt.update(params)``).
       lr: a multiplier of the transform's updates (default 1), a number, a one-entry
         Dr.Jit array or an optax schedule of the key's step count.
+      shapes: ``{key: shape}``: the shape the transform sees a key's value in (a reshape,
+        ``-1`` allowed), e.g. ``(-1, 3)`` for a mesh's flat ``vertex_positions``; the
+        optimizer still holds (and ``params.update(opt)`` writes) the value as registered.
       mask_updates: entries without a gradient keep their value and their state (the
         state's leaves with the value's shape): per texel (every channel's gradient zero,
         or a non-finite one) for textures and volumes, per entry for other keys, as
@@ -168,6 +174,7 @@ class OptaxOptimizer(Optimizer):
         params: Mapping[str, dr.ArrayBase] | None = None,
         *,
         lr: LearningRate = 1.0,
+        shapes: Mapping[str, tuple[int, ...]] | None = None,
         mask_updates: bool = False,
         promote_fp16: bool = True,
     ) -> None:
@@ -176,10 +183,13 @@ class OptaxOptimizer(Optimizer):
                 f"transform must be an optax GradientTransformation, got {type(transform).__name__}"
             )
         self.transform = transform
-        self._init_common(lr, params, mask_updates, promote_fp16)
+        self._init_common(lr, params, mask_updates, promote_fp16, shapes)
 
-    def _init_common(self, lr, params, mask_updates, promote_fp16) -> None:
+    def _init_common(self, lr, params, mask_updates, promote_fp16, shapes=None) -> None:
         _check_lr(lr, "lr")
+        if shapes is not None and not isinstance(shapes, Mapping):
+            raise TypeError(f"shapes must be a dict {{key: shape}}, got {type(shapes).__name__}")
+        self.shapes = {k: tuple(int(n) for n in v) for k, v in (shapes or {}).items()}
         for name, flag in (("mask_updates", mask_updates), ("promote_fp16", promote_fp16)):
             if not isinstance(flag, bool):
                 raise TypeError(f"{name} must be a bool, got {flag!r}")
@@ -198,8 +208,24 @@ class OptaxOptimizer(Optimizer):
         transform = self.transform_for(key, value)
         # A reset keeps a per-key learning rate (Dr.Jit's Adam drops it).
         lr = self.state[key][2] if key in self.state else None
-        state = transform.init(to_jax(dr.detach(value)))
+        x = to_jax(dr.detach(value))
+        view = self.view(key, x.shape)
+        # Committed to the value's device as the step's outputs are: one compilation, not two.
+        state = jax.device_put(transform.init(x.reshape(view)), x.sharding)
         self.state[key] = value, promoted, lr, KeyState(0, state, transform)
+
+    def view(self, key: str, shape: tuple[int, ...]) -> tuple[int, ...]:
+        """The shape the transform sees ``key``'s value (of ``shape``) in."""
+        if key not in self.shapes:
+            return tuple(shape)
+        target = self.shapes[key]
+        size, known = math.prod(shape), math.prod(n for n in target if n != -1)
+        free = target.count(-1)
+        if free > 1 or known <= 0 or size % known or (free == 0 and known != size):
+            raise ValueError(
+                f"shapes[{key!r}] = {target} does not fit its value of shape {tuple(shape)}"
+            )
+        return tuple(size // known if n == -1 else n for n in target)
 
     # -- learning rates ----------------------------------------------------------------
 
@@ -269,6 +295,7 @@ class OptaxOptimizer(Optimizer):
             new_x, new_state = _apply(
                 ById(extra.transform),
                 self.mask_rule(value),
+                self.view(key, x.shape),
                 to_jax(grads[key]),
                 extra.state,
                 x,
@@ -325,7 +352,7 @@ class OptaxOptimizer(Optimizer):
                     f"the saved value of {k!r} is {saved_x.dtype}{list(saved_x.shape)}, "
                     f"but the registered one is {x.dtype}{list(x.shape)}"
                 )
-            state = jax.tree.map(jnp.asarray, entry["state"])
+            state = jax.device_put(jax.tree.map(jnp.asarray, entry["state"]), x.sharding)
             if jax.tree.structure(state) != jax.tree.structure(extra.state):
                 raise ValueError(
                     f"the saved optax state of {k!r} does not match this optimizer's "
