@@ -1,21 +1,21 @@
-"""Shared pieces of the Mitsuba 3 experiments (``mitsuba_texture``, ``mitsuba_volume``,
-``mitsuba_timing``): variant set-up, the methods, one optimisation run, interleaved timing.
+"""Shared pieces of the Mitsuba 3 experiments: variant set-up, the methods of the
+``SceneOptimizer`` experiments (``mitsuba_texture``, ``mitsuba_volume``, ``mitsuba_timing``)
+and their runs; :mod:`experiments.mitsuba_runner` runs and reports every experiment.
 
-A *problem* (``mitsuba_texture.Problem``, ``mitsuba_volume.Problem``) owns one scene
-and its ``mi.SceneParameters`` and provides:
+A ``SceneOptimizer`` problem (``mitsuba_texture.Problem``, ``mitsuba_volume.Problem``) owns
+one scene and its ``mi.SceneParameters`` and provides, besides the runner's
+``param_errors`` and ``evaluate``:
 
 * ``keys``, ``project`` (``key -> (lo, hi)``) and ``init`` (``key -> array``);
 * ``reset()``: writes ``init`` into the scene;
 * ``render_and_backward(i)``: renders with seed ``i``, ``dr.backward`` of the loss,
-  evaluates the gradients (``dr.sync_thread``) and returns the loss as a float;
-* ``param_errors(values)``: ``{"param_error": ..., ...}`` of ``{key: array}``;
-* ``evaluate(values, run_id)``: untimed, low-noise image loss (keeps the image for figures).
+  evaluates the gradients (``dr.sync_thread``) and returns the loss as a float.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-import os
 import subprocess
 import sys
 import textwrap
@@ -27,7 +27,8 @@ import numpy as np
 import optax
 
 import optax_bilateral as ob
-from experiments import common
+from experiments import mitsuba_runner as runner
+from experiments.mitsuba_runner import Entry
 
 VARIANT = "llvm_ad_rgb"
 
@@ -106,6 +107,16 @@ def auto_unavailable() -> str | None:
 
 DECAYS = ("constant", "cosine", "hold-cosine")
 
+#: The hyperparameters a sweep entry's name shows.
+SWEPT = ("learning_rate", "decay", "sigma_d")
+
+#: ``summary.json``'s final metrics of the SceneOptimizer experiments -> trace metrics.
+METRIC_KEYS = {
+    "final_param_error": "param_error",
+    "final_loss": "image_loss",
+    "final_train_loss": "loss",
+}
+
 
 def learning_rate(lr: float, decay: str, iterations: int):
     """The learning-rate schedule of a run.
@@ -173,264 +184,136 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def run_method(
-    problem,
-    name: str,
-    transform,
-    iterations: int,
-    *,
-    hyperparameters: dict,
-    record_every: int = 1,
-    progress: bool = True,
-) -> common.Trace:
-    """One optimisation from ``problem.init`` with :class:`SceneOptimizer`; returns the trace.
+def hyperparameters(method: str, entry: dict, *, b1: float, levels: int, log_guide: bool) -> dict:
+    """A sweep entry completed with the method's fixed settings: Adam's b1 0.9, b2 0.999;
+    the filtered methods' ``b1``, ``b2 = 1 - (1 - b1)^2``, ``levels``, ``log_guide``,
+    ``sigma_d`` (inf for low-pass, "auto" for auto) and guide ("self" for bilateral)."""
+    if method == "adam":
+        return dict(entry, b1=0.9, b2=0.999)
+    hp = dict(entry, b1=b1, b2=1 - (1 - b1) ** 2, levels=levels, log_guide=log_guide)
+    if method == "low-pass":
+        hp["sigma_d"] = math.inf
+    if method == "auto":
+        hp["sigma_d"] = "auto"
+    hp["guide"] = "self" if method == "bilateral" else "params"
+    return hp
 
-    The step is render + backward + update (timed); the final values are copied into
-    ``trace.final`` (``{key: np.ndarray}``) and evaluated with ``problem.evaluate``.
+
+class SceneOptimizerRun:
+    """A :class:`experiments.mitsuba_runner.Run` of one transform with
+    :class:`SceneOptimizer` on ``problem``, from ``problem.init``.
+
+    Its step's parts: ``render`` (render, loss, ``dr.backward``, gradients evaluated),
+    ``update`` (the whole :meth:`SceneOptimizer.step`), of which ``jit`` (the compiled
+    update, its inputs read from the scene) and ``write`` (the values written back,
+    ``params.update()``).
     """
-    import drjit as dr
 
-    from optax_bilateral.mitsuba import SceneOptimizer
+    def __init__(self, problem, transform: optax.GradientTransformation):
+        import jax.numpy as jnp
 
-    problem.reset()
-    opt = SceneOptimizer(transform, problem.params, problem.keys, project=problem.project)
+        from optax_bilateral.mitsuba import SceneOptimizer
 
-    def step(state, i):
-        loss = problem.render_and_backward(i)
-        state = opt.step(state)
+        problem.reset()
+        self.problem = problem
+        self.opt = SceneOptimizer(transform, problem.params, problem.keys, project=problem.project)
+        self.state = self.opt.init()
+        self._values = {k: jnp.array(v) for k, v in self.opt.values().items()}
+
+    def activate(self) -> None:
+        self.opt.set_values(self._values)
+
+    def step(self, i: int) -> tuple[float, dict[str, float]]:
+        import drjit as dr
+        import jax
+
+        t0 = time.perf_counter()
+        loss = self.problem.render_and_backward(i)
+        t1 = time.perf_counter()
+        opt = self.opt
+        values, self.state = jax.block_until_ready(
+            opt.update(opt.grads(), self.state, opt.values())
+        )
+        t2 = time.perf_counter()
+        opt.set_values(values)
         dr.sync_thread()
-        return state, {"loss": loss, **problem.param_errors(opt.values())}
+        t3 = time.perf_counter()
+        self._values = values
+        return loss, {"render": t1 - t0, "update": t3 - t1, "jit": t2 - t1, "write": t3 - t2}
 
-    trace = common.run_method(
-        name,
-        step,
-        opt.init(),
-        iterations,
-        record_every=record_every,
-        evaluate=lambda _: problem.evaluate(opt.values(), name),
-        evaluate_every=iterations,
-        hyperparameters=hyperparameters,
-        progress=progress,
-    )
-    trace.final = {k: np.array(v) for k, v in opt.values().items()}
-    return trace
+    def values(self):
+        return self._values
 
 
-def run_sweeps(
-    prob,
+def sweep_entries(
+    problem,
     sweeps: Mapping[str, list[dict]],
     hyperparameters: Callable[[str, dict], dict],
     swept: tuple[str, ...],
-    *,
     iterations: int,
-    record_every: int,
-    timing_rounds: int,
-    progress: bool = True,
-):
-    """Every method's sweep on ``prob``, then the best entries' steps timed interleaved.
-
-    ``auto`` is skipped, with the reason, while the library lacks it. Returns
-    ``(traces, samples, skipped)``: ``{method: [Trace]}``, :func:`time_interleaved`'s
-    samples of the best entries (their medians set ``seconds_per_iteration`` and the
-    time axis of every entry of the method), and ``{method: reason}``.
-    """
+) -> tuple[dict[str, list[Entry]], dict[str, str]]:
+    """The SceneOptimizer experiments' entries: every method's sweep (``auto`` skipped, with
+    the reason, while the library lacks it). Returns ``(entries, skipped)``; the entries of
+    one method share transform objects with the timing run (compiled once)."""
     skipped = {}
     why = auto_unavailable()
     if why is not None:
         skipped["auto"] = why
         print(f"skipping auto: {why}")
-    methods = [m for m in METHODS if m not in skipped]
-    traces: dict[str, list[common.Trace]] = {}
-    transforms = {}
-    for method in methods:
-        traces[method] = []
+    entries: dict[str, list[Entry]] = {}
+    for method in (m for m in METHODS if m not in skipped):
+        entries[method] = []
         for entry in sweeps[method]:
             hp = hyperparameters(method, entry)
-            name = run_id(method, hp, swept)
-            transforms[name] = make_transform(method, hp, iterations)
-            traces[method].append(
-                run_method(
-                    prob,
-                    name,
-                    transforms[name],
-                    iterations,
-                    hyperparameters=hp,
-                    record_every=record_every,
-                    progress=progress,
+            transform = make_transform(method, hp, iterations)
+            entries[method].append(
+                Entry(
+                    run_id(method, hp, swept),
+                    hp,
+                    functools.partial(SceneOptimizerRun, problem, transform),
                 )
             )
-    # The same transform objects as the runs: their compiled updates are reused.
-    samples = time_interleaved(
-        prob, {m: transforms[best(traces[m]).name] for m in methods}, rounds=timing_rounds, warmup=1
+    return entries, skipped
+
+
+def run_sweeps(problem, cfg, hyperparameters, swept: tuple[str, ...], progress: bool = True):
+    """:func:`sweep_entries` run by the runner with ``cfg``'s ``sweeps``, ``iterations``,
+    ``record_every`` and ``timing_rounds``; returns ``(traces, samples, skipped)``."""
+    entries, skipped = sweep_entries(problem, cfg.sweeps, hyperparameters, swept, cfg.iterations)
+    traces, samples = runner.run_entries(
+        problem,
+        entries,
+        iterations=cfg.iterations,
+        record_every=cfg.record_every,
+        timing_rounds=cfg.timing_rounds,
+        progress=progress,
     )
-    for m in methods:
-        for tr in traces[m]:
-            tr.timed_seconds_per_iteration = float(np.median(samples[m]["total"]))
     return traces, samples, skipped
 
 
-def time_interleaved(
-    problem,
-    transforms: Mapping[str, optax.GradientTransformation],
-    rounds: int,
-    warmup: int = 2,
-    first_seed: int = 500_000,
-) -> dict[str, dict[str, list[float]]]:
-    """Seconds per iteration of each method's render + backward, update, and their total.
-
-    Every method runs its own optimisation from ``problem.init`` on ``problem``'s one
-    scene: before its iteration its own values are written in (untimed), so every
-    render sees that method's parameters. One scene, because renders got slower with
-    more scenes alive in the process. A round runs one iteration of each method, in an
-    order rotated every round, so load from other processes hits all alike.
-    ``dr.sync_thread()`` / ``jax.block_until_ready`` end each timed part; ``warmup``
-    untimed rounds first (compilation). Returns ``{name: {part: [seconds per round]}}``
-    with parts ``render`` (render, loss, ``dr.backward``, gradients evaluated),
-    ``update`` (the whole :meth:`SceneOptimizer.step`), of which ``jit`` (the compiled
-    update, its inputs read from the scene) and ``write`` (the values written back,
-    ``params.update()``), and ``total``.
-    """
+def render_reference(scene, spp: int, seed: int):
+    """``(image, seconds)``: a render of ``scene`` as it is (the reference), timed."""
     import drjit as dr
-    import jax
-    import jax.numpy as jnp
+    import mitsuba as mi
 
-    from optax_bilateral.mitsuba import SceneOptimizer
-
-    problem.reset()
-    runs = {}
-    for name, transform in transforms.items():
-        opt = SceneOptimizer(transform, problem.params, problem.keys, project=problem.project)
-        runs[name] = [opt, opt.init(), {k: jnp.array(v) for k, v in opt.values().items()}]
-    parts = ("render", "update", "jit", "write", "total")
-    samples = {name: {p: [] for p in parts} for name in transforms}
-    names = list(transforms)
-    seed = first_seed
-    for r in range(warmup + rounds):
-        for name in names[r % len(names) :] + names[: r % len(names)]:
-            opt, state, values = runs[name]
-            opt.set_values(values)
-            dr.sync_thread()
-            t0 = time.perf_counter()
-            problem.render_and_backward(seed)
-            t1 = time.perf_counter()
-            values, state = jax.block_until_ready(opt.update(opt.grads(), state, opt.values()))
-            t2 = time.perf_counter()
-            opt.set_values(values)
-            dr.sync_thread()
-            t3 = time.perf_counter()
-            runs[name][1:] = [state, values]
-            if r >= warmup:
-                for p, dt in zip(parts, (t1 - t0, t3 - t1, t2 - t1, t3 - t2, t3 - t0)):
-                    samples[name][p].append(dt)
-        seed += 1
-    return samples
+    t0 = time.perf_counter()
+    image = mi.render(scene, spp=spp, seed=seed)
+    dr.eval(image)
+    dr.sync_thread()
+    return image, time.perf_counter() - t0
 
 
-def timing_rows(samples: Mapping[str, Mapping[str, list[float]]], baseline: str) -> list[dict]:
-    """Medians (ms) of each part and the total's change against ``baseline``: the median over
-    rounds of the per-round ratio (:func:`experiments.common.paired_ratio`)."""
-    totals = {k: v["total"] for k, v in samples.items()}
-    rows = []
-    for name, s in samples.items():
-        render, update, jit, total = (
-            1e3 * float(np.median(s[p])) for p in ("render", "update", "jit", "total")
-        )
-        rows.append(
-            {
-                "method": name,
-                "render + backward ms": render,
-                "update ms": update,
-                "of which jitted ms": jit,
-                "total ms": total,
-                "update share %": 100.0
-                * float(np.median(np.asarray(s["update"]) / np.asarray(s["total"]))),
-                "total vs " + baseline + " %": 100.0
-                * (common.paired_ratio(totals, name, baseline) - 1.0),
-                "rounds": len(s["total"]),
-            }
-        )
-    return rows
+def render_views(scene, sensors, spp: int, seed: int) -> list[np.ndarray]:
+    """Renders of ``scene`` as it is from each sensor (a ``mi.Sensor`` or the index of one of
+    the scene's), without gradients, as NumPy arrays."""
+    import drjit as dr
+    import mitsuba as mi
 
-
-def load_average() -> list[float]:
-    """The 1, 5 and 15 minute load averages (the machine's conditions during a timing)."""
-    return [round(x, 2) for x in os.getloadavg()]
+    with dr.suspend_grad():
+        return [np.array(mi.render(scene, sensor=s, spp=spp, seed=seed)) for s in sensors]
 
 
 def tone_map(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Log tone map of a linear image into [0, 1] between radiances ``lo`` and ``hi``."""
     img = np.maximum(np.asarray(img, np.float64), lo)
     return np.clip((np.log(img) - np.log(lo)) / (np.log(hi) - np.log(lo)), 0.0, 1.0)
-
-
-def best(traces: list[common.Trace]) -> common.Trace:
-    """The sweep entry with the smallest final parameter error."""
-    return common.best_trace(traces, "param_error")
-
-
-def summary_methods(
-    traces: Mapping[str, list[common.Trace]], metric_keys: Mapping[str, str]
-) -> dict[str, dict]:
-    """``summary.json``'s ``methods``: the best sweep entry per method, with every entry listed."""
-
-    def entry(t):
-        e = {"run": t.name, **common.summary_entry(t, metric_keys)}
-        errors = t.metrics["param_error"]
-        i = int(np.nanargmin(errors))
-        e["lowest_param_error"] = float(errors[i])  # a run that drifts up after it
-        e["lowest_param_error_iteration"] = int(t.iterations[i])
-        return e
-
-    out = {}
-    for method, trs in traces.items():
-        out[method] = {**entry(best(trs)), "sweep": [entry(t) for t in trs]}
-    return out
-
-
-def time_budget(traces: Mapping[str, list[common.Trace]]) -> float:
-    """Equal-time budget: the shortest total (timed) run time of the best entries."""
-    return min(float(best(trs).time_axis[-1]) for trs in traces.values())
-
-
-def write_tables(
-    out,
-    title: str,
-    methods: Mapping[str, dict],
-    budget: float,
-    traces: Mapping[str, list[common.Trace]],
-    extra_columns: Callable[[dict], dict],
-    notes: str = "",
-) -> str:
-    """``table.md``: the best run per method, then every sweep entry; returns the text."""
-    rows = []
-    for m, e in methods.items():
-        rows.append(
-            {
-                "method": m,
-                "best run": e["run"],
-                "param error": e["final_param_error"],
-                **extra_columns(e),
-                "image loss": e["final_loss"],
-                f"param error @ {budget:.1f} s": best(traces[m]).metric_at_time(
-                    "param_error", budget
-                ),
-                "s/iter": e["seconds_per_iteration"],
-            }
-        )
-    sweep_rows = [
-        {
-            "run": s["run"],
-            "param error": s["final_param_error"],
-            "lowest (iteration)": f"{s['lowest_param_error']:.4g} "
-            f"({s['lowest_param_error_iteration']})",
-            "image loss": s["final_loss"],
-        }
-        for e in methods.values()
-        for s in e["sweep"]
-    ]
-    text = (
-        f"{title}\n\n{notes}{common.markdown_table(rows)}\n\nEvery sweep entry:\n\n"
-        f"{common.markdown_table(sweep_rows)}\n"
-    )
-    (out / "table.md").write_text(text)
-    return text

@@ -34,7 +34,7 @@ Outputs in ``--out`` (default ``results/mitsuba_texture``): ``summary.json``,
 ``table.md``, ``images.png`` (renders, error images, recovered textures) and
 ``{loss,param_error}_vs_{iteration,time}.png``. ``seconds_per_iteration`` and the
 time axis come from the methods' steps timed interleaved in one process
-(:func:`experiments.mitsuba_common.time_interleaved`).
+(:func:`experiments.mitsuba_runner.time_interleaved`).
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import common
 from experiments import mitsuba_common as mc
+from experiments import mitsuba_runner as runner
 from optax_bilateral.toy import texture as tex
 
 #: The optimized parameter: the roughness bitmap of the plane's BSDF.
@@ -143,26 +143,11 @@ def default_config(quick: bool = False) -> Config:
     )
 
 
-SWEPT = ("learning_rate", "decay", "sigma_d")
-
-
 def hyperparameters(method: str, entry: dict, cfg: Config) -> dict:
-    """A sweep entry completed with the method's fixed settings."""
-    if method == "adam":
-        return dict(entry, b1=0.9, b2=0.999)
-    hp = dict(
-        entry,
-        b1=cfg.b1_filtered,
-        b2=1 - (1 - cfg.b1_filtered) ** 2,
-        levels=cfg.levels,
-        log_guide=method != "low-pass",
+    """A sweep entry completed with the method's fixed settings (log guide but for low-pass)."""
+    return mc.hyperparameters(
+        method, entry, b1=cfg.b1_filtered, levels=cfg.levels, log_guide=method != "low-pass"
     )
-    if method == "low-pass":
-        hp["sigma_d"] = math.inf
-    if method == "auto":
-        hp["sigma_d"] = "auto"
-    hp["guide"] = "self" if method == "bilateral" else "params"
-    return hp
 
 
 # ----------------------------------------------------------------------------- scene
@@ -241,7 +226,7 @@ class Problem:
     """The scene (its own ``mi.SceneParameters``), target, reference image and metrics."""
 
     def __init__(self, cfg: Config):
-        mi, dr = mc.setup()
+        mi, _ = mc.setup()
         self.cfg = cfg
         self.keys = (KEY,)
         self.project = {KEY: (ALPHA_MIN, ALPHA_MAX)}
@@ -252,11 +237,9 @@ class Problem:
             scene_dict(self.target_alpha, cfg.image_size, environment_map(cfg.env_height))
         )
         self.params = mi.traverse(self.scene)
-        t0 = time.perf_counter()
-        self.reference = mi.render(self.scene, spp=cfg.reference_spp, seed=REFERENCE_SEED)
-        dr.eval(self.reference)
-        dr.sync_thread()
-        self.reference_seconds = time.perf_counter() - t0
+        self.reference, self.reference_seconds = mc.render_reference(
+            self.scene, cfg.reference_spp, REFERENCE_SEED
+        )
         self.images: dict[str, np.ndarray] = {}
         self.reset()
 
@@ -334,73 +317,34 @@ class Problem:
         return {"image_loss": float(np.mean((img - ref) ** 2 / (ref**2 + LOSS_EPS)))}
 
 
-METRIC_KEYS = {
-    "final_param_error": "param_error",
-    "final_loss": "image_loss",
-    "final_train_loss": "loss",
-}
-
-
 def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     """Runs every method and sweep entry, writes all outputs to ``out``; returns the summary."""
-    t_start = time.perf_counter()
+    started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     prob = Problem(cfg)
     observed = prob.observed_fractions(20)
     traces, samples, skipped = mc.run_sweeps(
-        prob,
-        cfg.sweeps,
-        lambda m, e: hyperparameters(m, e, cfg),
-        SWEPT,
-        iterations=cfg.iterations,
-        record_every=cfg.record_every,
-        timing_rounds=cfg.timing_rounds,
-        progress=progress,
+        prob, cfg, lambda m, e: hyperparameters(m, e, cfg), mc.SWEPT, progress
     )
-    methods = list(traces)
-    summary_methods = mc.summary_methods(traces, METRIC_KEYS)
-    best = {m: mc.best(traces[m]) for m in methods}
-    labels = {
-        "loss": f"training loss ({cfg.spp}-spp render)",
-        "param_error": "param error: mean |alpha - target|",
-    }
-    pngs = [
-        common.plot_curves(
-            best,
-            m,
-            out / f"{m}_vs_{x}.png",
-            x=x,
-            ylabel=labels[m],
-            title=f"Mitsuba texture {cfg.texture_size}^2: {m} vs {x}",
-        )
-        for m in ("loss", "param_error")
-        for x in ("iteration", "time")
-    ]
-    pngs.append(plot_images(prob, best, out / "images.png"))
-    budget = mc.time_budget(traces)
     initial = float(np.mean(np.abs(prob.init[KEY] - prob.target[KEY])))
-    title = (
-        f"Mitsuba 3 texture recovery: {cfg.texture_size}^2 GGX roughness, {cfg.image_size}^2 "
-        f"image, prb, spp {cfg.spp}, {cfg.iterations} iterations (initial param error "
-        f"{initial:.4f}). Best entry of each sweep by final param error."
-    )
-    notes = (
-        f"Texels with a gradient: {100 * observed[0]:.1f}% per iteration, "
-        f"{100 * observed[1]:.2f}% within 20 iterations (spp {cfg.spp}).\n\n"
-    )
-    notes += f"Skipped: {skipped}\n\n" if skipped else ""
-    table = mc.write_tables(out, title, summary_methods, budget, traces, lambda e: {}, notes)
-    total = time.perf_counter() - t_start
-    common.write_summary(
-        out,
-        summary_methods,
-        skipped=skipped,
-        pngs=[str(p) for p in pngs],
-        total_seconds=total,
-        timing_ms={
-            m: {p: 1e3 * float(np.median(v)) for p, v in samples[m].items()} for m in methods
+    report = runner.Report(
+        title=(
+            f"Mitsuba 3 texture recovery: {cfg.texture_size}^2 GGX roughness, {cfg.image_size}^2 "
+            f"image, prb, spp {cfg.spp}, {cfg.iterations} iterations (initial param error "
+            f"{initial:.4f}). Best entry of each sweep by final param error."
+        ),
+        curves={
+            "loss": f"training loss ({cfg.spp}-spp render)",
+            "param_error": "param error: mean |alpha - target|",
         },
-        load_average=mc.load_average(),
+        curve_title=f"Mitsuba texture {cfg.texture_size}^2",
+        metric_keys=mc.METRIC_KEYS,
+        figures=lambda best, out: [plot_images(prob, best, out / "images.png")],
+        notes=(
+            f"Texels with a gradient: {100 * observed[0]:.1f}% per iteration, "
+            f"{100 * observed[1]:.2f}% within 20 iterations (spp {cfg.spp}).\n\n"
+        ),
+        skipped=skipped,
         setting={
             **dataclasses.asdict(cfg),
             "key": KEY,
@@ -414,7 +358,7 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
             "final_param_error": "mean |alpha - alpha_target| over texels",
         },
     )
-    return {"table": table, "total_seconds": total, "pngs": pngs, "methods": summary_methods}
+    return runner.write_report(out, traces, samples, report, started)
 
 
 def plot_images(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
@@ -451,28 +395,18 @@ def plot_images(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
         axes[r, 2].set_title(f"roughness, err {tr.final_metric('param_error'):.4f}")
         axes[r, 3].imshow(np.abs(alpha - prob.target_alpha), cmap="magma", vmin=0, vmax=0.1)
         axes[r, 3].set_title("|alpha - target| (0..0.1)")
-    for ax in axes.ravel():
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return runner.save_figure(fig, path)
 
 
 def main(argv=None) -> dict:
-    args = common.parse_args(
+    return runner.main(
         "Texture recovery in Mitsuba 3 (paper Fig. 5 analogue): adam, "
         "low-pass, bilateral, cross-bilateral, auto.",
-        default_out="results/mitsuba_texture",
-        argv=argv,
+        "results/mitsuba_texture",
+        run,
+        default_config,
+        argv,
     )
-    summary = run(default_config(args.quick), args.out)
-    print(summary["table"])
-    print(f"Total {summary['total_seconds']:.1f} s. Summary: {args.out / 'summary.json'}")
-    for p in summary["pngs"]:
-        print(f"  {p}")
-    return summary
 
 
 if __name__ == "__main__":

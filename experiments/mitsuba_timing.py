@@ -34,8 +34,14 @@ import optax
 import optax_bilateral as ob
 from experiments import common, mitsuba_texture, mitsuba_volume
 from experiments import mitsuba_common as mc
+from experiments import mitsuba_runner as runner
 
 LEVELS = (3, 5)
+TIMED_PARTS = (
+    ("render", "render + backward ms"),
+    ("update", "update ms"),
+    ("jit", "of which jitted ms"),
+)
 SCENES = ("texture", "volume")
 
 
@@ -61,11 +67,12 @@ def time_scene(scene: str, quick: bool, rounds: int) -> dict:
     module = mitsuba_texture if scene == "texture" else mitsuba_volume
     cfg = module.default_config(quick)
     problem = module.Problem(cfg)
-    load_before = mc.load_average()
+    load_before = runner.load_average()
     t0 = time.perf_counter()
-    samples = mc.time_interleaved(problem, transforms(scene, cfg), rounds=rounds)
+    runs = {name: mc.SceneOptimizerRun(problem, tx) for name, tx in transforms(scene, cfg).items()}
+    samples = runner.time_interleaved(runs, rounds=rounds)
     seconds = time.perf_counter() - t0
-    rows = mc.timing_rows(samples, "Adam")
+    rows = runner.timing_rows(samples, "Adam", TIMED_PARTS)
     size = (
         f"{cfg.texture_size}^2 texture, {cfg.image_size}^2 image"
         if scene == "texture"
@@ -78,7 +85,7 @@ def time_scene(scene: str, quick: bool, rounds: int) -> dict:
         "samples_s": samples,
         "seconds": seconds,
         "load_average_before": load_before,
-        "load_average_after": mc.load_average(),
+        "load_average_after": runner.load_average(),
         "config": {k: v for k, v in dataclasses.asdict(cfg).items() if k != "sweeps"},
     }
 

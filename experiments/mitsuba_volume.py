@@ -42,14 +42,13 @@ grids) and ``{loss,param_error,density_error,albedo_error}_vs_{iteration,time}.p
 from __future__ import annotations
 
 import dataclasses
-import math
 import pathlib
 import time
 
 import numpy as np
 
-from experiments import common
 from experiments import mitsuba_common as mc
+from experiments import mitsuba_runner as runner
 from optax_bilateral.toy import volume as toy
 
 DENSITY = "cube.interior_medium.sigma_t.data"
@@ -143,26 +142,11 @@ def default_config(quick: bool = False) -> Config:
     )
 
 
-SWEPT = ("learning_rate", "decay", "sigma_d")
-
-
 def hyperparameters(method: str, entry: dict, cfg: Config) -> dict:
-    """A sweep entry completed with the method's fixed settings."""
-    if method == "adam":
-        return dict(entry, b1=0.9, b2=0.999)
-    hp = dict(
-        entry,
-        b1=cfg.b1_filtered,
-        b2=1 - (1 - cfg.b1_filtered) ** 2,
-        levels=cfg.levels,
-        log_guide=method == "bilateral",
+    """A sweep entry completed with the method's fixed settings (log guide for bilateral)."""
+    return mc.hyperparameters(
+        method, entry, b1=cfg.b1_filtered, levels=cfg.levels, log_guide=method == "bilateral"
     )
-    if method == "low-pass":
-        hp["sigma_d"] = math.inf
-    if method == "auto":
-        hp["sigma_d"] = "auto"
-    hp["guide"] = "self" if method == "bilateral" else "params"
-    return hp
 
 
 # ----------------------------------------------------------------------------- scene
@@ -257,7 +241,7 @@ class Problem:
     """The scene (its own ``mi.SceneParameters``), target, reference images and metrics."""
 
     def __init__(self, cfg: Config):
-        mi, dr = mc.setup()
+        mi, _ = mc.setup()
         self.cfg = cfg
         self.keys = KEYS
         self.project = {DENSITY: (0.0, 1.0), ALBEDO: (0.0, 1.0)}
@@ -266,11 +250,9 @@ class Problem:
         self.init = {DENSITY: init["density"], ALBEDO: init["albedo"]}
         self.scene = mi.load_dict(scene_dict(self.target, cfg))
         self.params = mi.traverse(self.scene)
-        t0 = time.perf_counter()
-        self.reference = mi.render(self.scene, spp=cfg.reference_spp, seed=REFERENCE_SEED)
-        dr.eval(self.reference)
-        dr.sync_thread()
-        self.reference_seconds = time.perf_counter() - t0
+        self.reference, self.reference_seconds = mc.render_reference(
+            self.scene, cfg.reference_spp, REFERENCE_SEED
+        )
         self.images: dict[str, np.ndarray] = {}
         self.reset()
 
@@ -328,9 +310,7 @@ class Problem:
 
 
 METRIC_KEYS = {
-    "final_param_error": "param_error",
-    "final_loss": "image_loss",
-    "final_train_loss": "loss",
+    **mc.METRIC_KEYS,
     "final_density_error": "density_error",
     "final_albedo_error": "albedo_error",
 }
@@ -338,63 +318,32 @@ METRIC_KEYS = {
 
 def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
     """Runs every method and sweep entry, writes all outputs to ``out``; returns the summary."""
-    t_start = time.perf_counter()
+    started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     prob = Problem(cfg)
     traces, samples, skipped = mc.run_sweeps(
-        prob,
-        cfg.sweeps,
-        lambda m, e: hyperparameters(m, e, cfg),
-        SWEPT,
-        iterations=cfg.iterations,
-        record_every=cfg.record_every,
-        timing_rounds=cfg.timing_rounds,
-        progress=progress,
+        prob, cfg, lambda m, e: hyperparameters(m, e, cfg), mc.SWEPT, progress
     )
-    methods = list(traces)
-    summary_methods = mc.summary_methods(traces, METRIC_KEYS)
-    best = {m: mc.best(traces[m]) for m in methods}
-    pngs = [
-        common.plot_curves(
-            best, m, out / f"{m}_vs_{x}.png", x=x, title=f"Mitsuba volume {cfg.size}^3: {m} vs {x}"
-        )
-        for m in ("loss", "param_error", "density_error", "albedo_error")
-        for x in ("iteration", "time")
-    ]
-    pngs.append(plot_views(prob, best, out / "views.png"))
-    pngs.append(plot_slices(prob, best, out / "slices.png"))
-    budget = mc.time_budget(traces)
     initial = {k: float(v) for k, v in prob.param_errors(prob.init).items()}
-    title = (
-        f"Mitsuba 3 volume recovery: {cfg.size}^3 density + RGB albedo grids, {cfg.n_views} "
-        f"views of {cfg.image_size}^2 px, prbvolpath (max_depth {cfg.max_depth}), spp "
-        f"{cfg.spp}, {cfg.iterations} iterations (initial param error "
-        f"{initial['param_error']:.4f}). Best entry of each sweep by final param error."
-    )
-    notes = f"Skipped: {skipped}\n\n" if skipped else ""
-    table = mc.write_tables(
-        out,
-        title,
-        summary_methods,
-        budget,
-        traces,
-        lambda e: {
+    report = runner.Report(
+        title=(
+            f"Mitsuba 3 volume recovery: {cfg.size}^3 density + RGB albedo grids, {cfg.n_views} "
+            f"views of {cfg.image_size}^2 px, prbvolpath (max_depth {cfg.max_depth}), spp "
+            f"{cfg.spp}, {cfg.iterations} iterations (initial param error "
+            f"{initial['param_error']:.4f}). Best entry of each sweep by final param error."
+        ),
+        curves={m: m for m in ("loss", "param_error", "density_error", "albedo_error")},
+        curve_title=f"Mitsuba volume {cfg.size}^3",
+        metric_keys=METRIC_KEYS,
+        figures=lambda best, out: [
+            plot_views(prob, best, out / "views.png"),
+            plot_slices(prob, best, out / "slices.png"),
+        ],
+        extra_columns=lambda e: {
             "density MAE": e["final_density_error"],
             "albedo MAE (weighted)": e["final_albedo_error"],
         },
-        notes,
-    )
-    total = time.perf_counter() - t_start
-    common.write_summary(
-        out,
-        summary_methods,
         skipped=skipped,
-        pngs=[str(p) for p in pngs],
-        total_seconds=total,
-        timing_ms={
-            m: {p: 1e3 * float(np.median(v)) for p, v in samples[m].items()} for m in methods
-        },
-        load_average=mc.load_average(),
         setting={
             **dataclasses.asdict(cfg),
             "keys": list(KEYS),
@@ -405,7 +354,7 @@ def run(cfg: Config, out: pathlib.Path, progress: bool = True) -> dict:
             "final_param_error": "mean of the density MAE and the density-weighted albedo MAE",
         },
     )
-    return {"table": table, "total_seconds": total, "pngs": pngs, "methods": summary_methods}
+    return runner.write_report(out, traces, samples, report, started)
 
 
 def _tiles(img: np.ndarray, n_views: int) -> list[np.ndarray]:
@@ -450,16 +399,10 @@ def plot_views(prob: Problem, best: dict, path: pathlib.Path, max_views: int = 4
                 axes[r, 2 * c].set_title(f"view {v}", fontsize=8)
                 axes[r, 2 * c + 1].set_title(f"|error| view {v}", fontsize=8)
         axes[r, 0].set_ylabel(name, fontsize=8)
-    for ax in axes.ravel():
-        ax.set_xticks([])
-        ax.set_yticks([])
     fig.suptitle(
         f"renders ({cfg.eval_spp} spp) and |render - reference| (0..{0.25 * hi:.2g})", fontsize=9
     )
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return runner.save_figure(fig, path)
 
 
 def plot_slices(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
@@ -489,28 +432,18 @@ def plot_slices(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
                 axes[r, 2 * j].set_title(f"density, slice {z}", fontsize=8)
                 axes[r, 2 * j + 1].set_title(f"albedo, slice {z}", fontsize=8)
         axes[r, 0].set_ylabel(name, fontsize=8)
-    for ax in axes.ravel():
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return runner.save_figure(fig, path)
 
 
 def main(argv=None) -> dict:
-    args = common.parse_args(
+    return runner.main(
         "Volume recovery in Mitsuba 3 (paper Figs. 8-9 analogue): adam, "
         "low-pass, bilateral, cross-bilateral, auto.",
-        default_out="results/mitsuba_volume",
-        argv=argv,
+        "results/mitsuba_volume",
+        run,
+        default_config,
+        argv,
     )
-    summary = run(default_config(args.quick), args.out)
-    print(summary["table"])
-    print(f"Total {summary['total_seconds']:.1f} s. Summary: {args.out / 'summary.json'}")
-    for p in summary["pngs"]:
-        print(f"  {p}")
-    return summary
 
 
 if __name__ == "__main__":

@@ -542,7 +542,10 @@ def test_timing_table_has_adam_and_both_filter_sizes(mi, tmp_path):
         assert rows["Adam"]["total vs Adam %"] == 0.0
         for r in rows.values():  # one round: the medians are the samples
             assert r["rounds"] == 1 and 0 < r["of which jitted ms"] <= r["update ms"]
-            assert r["total ms"] == pytest.approx(r["render + backward ms"] + r["update ms"])
+            # The total is timed around the whole step, its parts inside it: the parts add
+            # up to it but for the timer's own calls (a sync, a return), well under 2%.
+            parts = r["render + backward ms"] + r["update ms"]
+            assert parts <= r["total ms"] <= 1.02 * parts
     assert "Ours (F = 5)" in result["table"] and (tmp_path / "timing.md").exists()
 
 
