@@ -556,19 +556,30 @@ def _docs_block(name):
     return m.group(1)
 
 
-def test_docs_loop_runs_verbatim(mi, tmp_path, monkeypatch):
-    import optax_bilateral as ob
+@pytest.fixture
+def docs_setup(mi, tmp_path, monkeypatch):
+    """The namespace after docs/mitsuba.md's setup block, run on the quick configuration
+    (32^2 texture and image, 6 iterations) in a temporary folder; the blocks run unchanged."""
     from experiments import mitsuba_texture
 
-    # The docs' blocks, unchanged, on the quick configuration (32^2 texture, 6 iterations).
     quick = mitsuba_texture.default_config(quick=True)
     monkeypatch.setattr(mitsuba_texture, "default_config", lambda quick_=False: quick)
     monkeypatch.chdir(tmp_path)
     ns = {}
     exec(compile(_docs_block("setup"), "docs/mitsuba.md:setup", "exec"), ns)
-    problem = ns["problem"]
-    err0 = float(problem.param_errors(problem.init)["param_error"])
-    exec(compile(_docs_block("loop"), "docs/mitsuba.md:loop", "exec"), ns)
+    ns["err0"] = float(ns["problem"].param_errors(ns["problem"].init)["param_error"])
+    return ns
+
+
+def _run_block(ns, name):
+    exec(compile(_docs_block(name), f"docs/mitsuba.md:{name}", "exec"), ns)
+
+
+def test_docs_loop_runs_verbatim(docs_setup):
+    import optax_bilateral as ob
+
+    ns = docs_setup
+    _run_block(ns, "loop")
     saved = ob.load_state(
         "checkpoint.npz", {"state": ns["opt"].init(), "values": ns["opt"].values()}
     )
@@ -576,5 +587,18 @@ def test_docs_loop_runs_verbatim(mi, tmp_path, monkeypatch):
     np.testing.assert_array_equal(
         np.asarray(saved["values"][key]), np.asarray(ns["opt"].values()[key])
     )
-    err = float(problem.param_errors(ns["opt"].values())["param_error"])
-    assert err < err0
+    err = float(ns["problem"].param_errors(ns["opt"].values())["param_error"])
+    assert err < ns["err0"]
+
+
+def test_docs_one_line_swap_runs_verbatim_and_resumes(docs_setup):
+    ns = docs_setup
+    _run_block(ns, "swap")
+    opt, key, params = ns["opt"], ns["key"], ns["params"]
+    values = {key: np.array(opt[key])}
+    assert float(ns["problem"].param_errors(values)["param_error"]) < ns["err0"]
+    assert np.array_equal(np.array(params[key]), values[key])  # the scene holds them
+    _run_block(ns, "resume")  # a new optimizer, restored from the checkpoint
+    assert ns["opt"] is not opt and ns["opt"].state[key][3].count == ns["config"].iterations
+    np.testing.assert_array_equal(np.array(ns["opt"][key]), values[key])
+    np.testing.assert_array_equal(np.array(params[key]), values[key])

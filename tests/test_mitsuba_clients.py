@@ -1,0 +1,147 @@
+"""Mitsuba users' own loops with this library: Mitsuba's tutorials as clients
+(experiments/mitsuba_tutorials.py) and meshes against mi.ad.LargeSteps
+(experiments/mitsuba_mesh.py). The one-line swap of docs/mitsuba.md runs verbatim in
+tests/test_mitsuba.py, beside the docs' other blocks.
+
+The experiments run in their quick form (tiny films and grids, a few iterations), so the
+tests check what a quick run can show: every output is written, the swap changes nothing
+where there is nothing to filter, the volume tutorial's upsampling restarts the key's
+state, the mesh's Hausdorff metric measures what it says. Without a usable Mitsuba this
+module is skipped with one line saying why, and fails under CI (tests/mitsuba_env.py).
+"""
+
+import json
+import math
+import pathlib
+import re
+
+import numpy as np
+import pytest
+
+from mitsuba_env import fail_under_ci, require_mitsuba
+
+MI = require_mitsuba()  # skips this module without a usable Mitsuba; None under CI
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def mi():
+    return fail_under_ci(MI)
+
+
+def _pngs(summary):
+    for p in summary["pngs"]:
+        assert pathlib.Path(p).read_bytes()[:8] == PNG_MAGIC
+
+
+# ----------------------------------------------------------------------------- the tutorials
+
+
+@pytest.fixture(scope="module")
+def tutorials(mi, tmp_path_factory):
+    from experiments import mitsuba_tutorials as E
+
+    out = tmp_path_factory.mktemp("mitsuba_tutorials")
+    E.main(["--quick", "--out", str(out)])
+    return out
+
+
+def test_every_tutorial_runs_with_both_optimizers_and_writes_its_outputs(tutorials):
+    from experiments import mitsuba_tutorials as E
+
+    for tutorial in E.TUTORIALS:
+        data = json.loads((tutorials / tutorial / "summary.json").read_text())
+        cfg = E.default_config(tutorial, quick=True)
+        assert set(data["methods"]) == {"mi.ad.Adam", "BilateralAdam"}
+        for name, m in data["methods"].items():
+            for key in ("final_param_error", "final_loss", "seconds_per_iteration"):
+                assert math.isfinite(m[key]) and m[key] > 0, (tutorial, name, key)
+            stages = 2 if tutorial == "volume" else 1
+            assert m["iterations"] == stages * cfg.iterations
+        timing = {r["method"]: r for r in data["timing"]}
+        assert timing["mi.ad.Adam"]["total vs mi.ad.Adam %"] == 0.0
+        assert all(0 < r["update ms"] < r["total ms"] for r in timing.values())
+        _pngs(data)
+        table = (tutorials / tutorial / "table.md").read_text()
+        assert "| BilateralAdam |" in table and "Time per iteration" in table
+    assert "## volume" in (tutorials / "summary.md").read_text()
+
+
+def test_the_swap_changes_nothing_on_the_red_walls_colour(tutorials):
+    # gradient_based_opt optimizes a Color3f: BilateralAdam gives it Adam's rule, so both
+    # optimizers end where the other does, up to Dr.Jit's and optax's rounding of Adam.
+    data = json.loads((tutorials / "cbox" / "summary.json").read_text())
+    errors = [m["final_param_error"] for m in data["methods"].values()]
+    assert errors[0] == pytest.approx(errors[1], rel=1e-4)
+    assert max(errors) < 0.9 * data["setting"]["initial_param_error"]
+
+
+def test_the_volume_tutorials_upsampling_restarts_the_keys_state(mi):
+    from experiments import mitsuba_tutorials as E
+
+    cfg = E.default_config("volume", quick=True)
+    problem = E.Volume(cfg)
+    run = E.TutorialRun(problem, "BilateralAdam", 0.02)
+    for i in range(cfg.iterations + 1):
+        run.step(i)
+    count = run.opt.state[problem.key][3].count
+    # Five steps a stage-one iteration; the resample restarts the count, then five more.
+    assert count == E.Volume.sensor_count
+    assert run.values()[problem.key].shape == (cfg.grids[1],) * 3 + (1,)
+    assert np.asarray(run.values()[problem.key]).min() >= 1e-6  # the tutorial's clip
+
+
+# ----------------------------------------------------------------------------- meshes
+
+
+def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
+    from experiments import mitsuba_mesh as E
+
+    result = E.main(["--quick", "--out", str(tmp_path)])
+    cfg = E.default_config(quick=True)
+    rows = json.loads((tmp_path / "summary.json").read_text())["rows"]
+    assert [r["vertices"] for r in rows] == [10 * f * f + 2 for f in cfg.frequencies]
+    for r in rows:
+        assert (
+            r["Large Steps ms/iter"] > 0 and r["ours ms/iter"] > 0 and r["ours / Large Steps"] > 0
+        )
+        for k in ("Large Steps Hausdorff", "ours Hausdorff"):
+            assert 0 < r[k] < 1.5 * r["initial Hausdorff"]
+    for r in result["results"].values():
+        _pngs(r)
+        assert set(r["methods"]) == set(E.METHODS)
+    assert "ours / Large Steps" in (tmp_path / "table.md").read_text()
+
+
+def test_hausdorff_distance_to_the_rounded_cube(mi):
+    # The target mesh is on the surface (to its triangles' sag); a sphere of radius R around
+    # the cube's centre is at least R - (its corner distance) away, measured exactly.
+    from experiments import mitsuba_mesh as E
+    from optax_bilateral.toy import triangle_mesh as toy
+
+    cfg = E.default_config(quick=True)
+    target = E.rounded_cube(16, cfg.half, cfg.radius)
+    assert np.abs(E.rounded_cube_sdf(target[0], cfg.half, cfg.radius)).max() < 1e-6
+    assert E.hausdorff(*target, target, cfg) < 0.05
+    sphere, faces = toy.icosphere(8, radius=2.0)
+    corner = np.sqrt(3) * (cfg.half - cfg.radius) + cfg.radius
+    assert E.hausdorff(sphere, faces, target, cfg) == pytest.approx(2.0 - cfg.half, abs=0.01)
+    assert 2.0 - corner < E.hausdorff(sphere, faces, target, cfg)
+
+
+def test_docs_mesh_block_runs_verbatim(mi, monkeypatch):
+    # Its names mi and dr come from the docs' setup block, which runs in tests/test_mitsuba.py.
+    from experiments import mitsuba_mesh
+
+    docs = pathlib.Path(__file__).resolve().parents[1] / "docs" / "mitsuba.md"
+    block = re.search(r"<!-- docs-test: mesh -->\s*```python\n(.*?)```", docs.read_text(), re.S)
+    assert block, "docs/mitsuba.md has no 'mesh' block"
+    quick = mitsuba_mesh.default_config(quick=True)
+    monkeypatch.setattr(mitsuba_mesh, "default_config", lambda quick_=False: quick)
+    ns = {"mi": mi, "dr": __import__("drjit")}
+    exec(compile(block.group(1), "docs/mitsuba.md:mesh", "exec"), ns)
+    opt, key, problem = ns["opt"], ns["key"], ns["problem"]
+    moved = np.array(opt[key]).reshape(-1, 3)
+    assert opt.state[key][3].count == quick.iterations
+    assert 0 < np.abs(moved - problem.init).max() < 0.5  # a few steps of lr 0.03
+    assert np.isfinite(problem.param_errors({key: moved})["hausdorff"])
