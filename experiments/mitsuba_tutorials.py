@@ -17,8 +17,8 @@ builds ``opt``. Scenes are built in code, no downloads:
   this client checks that the swap changes nothing where there is nothing to filter.
 * ``cbox-texture``: the same loop with the back wall's reflectance a 96^2 RGB bitmap
   (``back.bsdf.reflectance.data``, ``raw=True``) from a constant 0.5 towards
-  ``skimage.data.astronaut()`` (mapped to [0.05, 0.95]), spp 1, 80 iterations (the issue's
-  textured-plane setting, in the tutorial's scene); error: the mean absolute texel error
+  ``skimage.data.astronaut()`` (mapped to [0.05, 0.95]), spp 1, 80 iterations (a 96^2
+  texture at 1 spp, in the tutorial's scene and loop); error: the mean absolute texel error
   over the texels the camera sees (the boxes hide some of the wall).
 * ``volume`` (``volume_optimization``): five cameras around a ``cube`` holding a
   ``heterogeneous`` medium (``scale`` 40, ``prbvolpath``, constant emitter); the reference
@@ -34,7 +34,7 @@ tutorial advance together, one iteration of each in turn, each timed
 (:func:`experiments.mitsuba_runner.run_interleaved`): error against iteration and
 against time, side by side. Outputs in ``--out/<tutorial>`` (default
 ``results/mitsuba_tutorials``): ``summary.json``, ``table.md``, curves, ``images.png``;
-``--out/summary.md`` gathers the tables.
+``--out/summary.md`` gathers the tables of every tutorial in ``--out``.
 """
 
 from __future__ import annotations
@@ -533,7 +533,9 @@ def main(argv=None) -> dict:
             tutorial, default_config(tutorial, args.quick), args.out / tutorial
         )
         print(results[tutorial]["table"])
-    text = "\n".join(f"## {t}\n\n{r['table']}" for t, r in results.items())
+    # Every tutorial run so far into this folder, so that one can be rerun alone.
+    tables = [(t, args.out / t / "table.md") for t in TUTORIALS]
+    text = "\n".join(f"## {t}\n\n{p.read_text()}" for t, p in tables if p.exists())
     (args.out / "summary.md").write_text(text)
     print(f"Wrote {args.out / 'summary.md'}")
     return results
