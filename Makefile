@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 
 # `make lint`: ruff (lint and format) on every Python source of the repository, pyright on
 # the library (its settings in pyproject.toml).
-LINT_PATHS := optax_bilateral tests experiments notebooks docs
+LINT_PATHS := optax_bilateral tests experiments tools notebooks docs
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)

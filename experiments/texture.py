@@ -47,7 +47,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-import optax_bilateral as ob
 from experiments import common
 from optax_bilateral.toy import texture as tex
 
@@ -133,16 +132,17 @@ def make_optimizer(method: str, cfg: Config) -> optax.GradientTransformation:
     # The texture is one (H, W) channel: said explicitly (the default rule would warn).
     fixed = dict(b1=cfg.b1_filtered, levels=cfg.levels, spatial_axes=(0, 1))
     static = ("levels", "b1", "guide", "log_guide", "spatial_axes")
+    inject = functools.partial(optax.inject_hyperparams, common.filtered_adam)
     if method == "low-pass":
-        return optax.inject_hyperparams(ob.bilateral_adam, static_args=static + ("sigma_d",))(
+        return inject(static_args=static + ("sigma_d",))(
             learning_rate=0.01, sigma_d=math.inf, **fixed
         )
     if method == "bilateral":
-        return optax.inject_hyperparams(ob.bilateral_adam, static_args=static)(
+        return inject(static_args=static)(
             learning_rate=0.01, sigma_d=1.0, guide="self", log_guide=True, **fixed
         )
     if method == "cross-bilateral":
-        return optax.inject_hyperparams(ob.bilateral_adam, static_args=static)(
+        return inject(static_args=static)(
             learning_rate=0.01, sigma_d=0.1, guide="params", log_guide=True, **fixed
         )
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")

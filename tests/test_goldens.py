@@ -76,13 +76,13 @@ def _covered(kind, states):
     """What the trajectory exercised: the rule's branches it must keep covering."""
     post = [s[1] if kind == "auto-both" else s for s in states]
     if kind == "sure":
-        chosen = {int(s.auto[k].levels) for s in post for k in ("tex", "vol")}
+        chosen = {int(s.sigma_state[k].levels) for s in post for k in ("tex", "vol")}
         return {
             "several F chosen": len(chosen) > 1,
-            "opened": float(post[-1].auto["tex"].opened) > 0,
+            "opened": float(post[-1].sigma_state["tex"].opened) > 0,
         }
-    gates = [float(s.auto["tex"].gate) for s in post]
-    covered = {"heavier filter": any(float(s.auto["vol"].correlated) > 0 for s in post)}
+    gates = [float(s.sigma_state["tex"].gate) for s in post]
+    covered = {"heavier filter": any(float(s.sigma_state["vol"].correlated) > 0 for s in post)}
     if kind == "auto":
         covered["gate opened"] = max(gates) > 0.5
         covered["gate closed again"] = gates[-1] == 0

@@ -133,15 +133,14 @@ UPDATE_CONFIGS = [
 @functools.cache
 def _update(shape, dtype, separable):
     """One compiled update per configuration; sigma_d is traced (set per example)."""
-    opt = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels", "separable"))(
-        learning_rate=LR,
-        b1=B1,
-        b2=B2,
-        sigma_d=0.3,
-        levels=2,
-        separable=separable,
-        spatial_axes=(0, 1),
-    )
+
+    def postfilter(learning_rate, b1, b2, sigma_d):
+        post = ob.postfilter(
+            b1, b2, sigma_d=sigma_d, levels=2, separable=separable, spatial_axes=(0, 1)
+        )
+        return optax.chain(post, optax.scale_by_learning_rate(learning_rate))
+
+    opt = optax.inject_hyperparams(postfilter)(learning_rate=LR, b1=B1, b2=B2, sigma_d=0.3)
     return opt, jax.jit(opt.update)
 
 

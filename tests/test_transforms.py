@@ -83,7 +83,7 @@ def test_bilateral_adam_levels_zero_equals_optax_adam(prefilter):
 
 def test_default_b2_is_one_minus_squared():
     params = jnp.zeros((6, 6))
-    a = ob.bilateral_adam(0.1, b1=0.2, levels=0)
+    a = optax.chain(ob.postfilter(0.2, levels=0), optax.scale_by_learning_rate(0.1))
     b = optax.adam(0.1, 0.2, 1 - 0.8**2)
     _, _, t1 = _run(a, params, 5)
     _, _, t2 = _run(b, params, 5)
@@ -460,31 +460,39 @@ def test_nonfinite_texel_does_not_poison_neighbours_or_state(bad):
     np.testing.assert_allclose(np.asarray(u), np.asarray(u_m), rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("sigma_d", [0.1, "auto"])
 @pytest.mark.parametrize("prefilter", [False, True])
-def test_finite_gradients_build_no_observation_mask(prefilter):
-    """The unobserved-texel masks belong to the masked branch: a finite step must not
-    pay for them (a cond's closed-over values are computed before it, every step)."""
-    theta = jax.random.uniform(KEY, (16, 16, 3))
-    opt = ob.bilateral_adam(0.1, sigma_d=0.1, levels=2, prefilter=prefilter)
+def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d):
+    """Clean and unobserved texels take one path (a NaN guide leaves the unobserved out), so
+    a fixed sigma_d's update holds one cascade of F levels per transform: no second copy in a
+    branch, which would double the compile time. ``"auto"``'s postfilter holds one per way it
+    may filter (``Auto.combine``: plain, blending and, in 2-D, heavier with one more level),
+    and one-level passes for its statistics, never a copy per case of the gradient."""
+    theta = jax.random.uniform(KEY, (64, 64, 3))  # large enough for every level's offsets
+    opt = ob.bilateral_adam(0.1, sigma_d=sigma_d, levels=3, prefilter=prefilter)
     jaxpr = jax.make_jaxpr(opt.update)(_grads(0, theta), opt.init(theta), theta).jaxpr
 
-    def top_level_prims(jx):
-        """Primitives that run on every call: everything but the cond branches."""
+    def filters(jx):
+        """The levels of every atrous_bilateral call traced into the update."""
         out = []
         for eqn in jx.eqns:
-            out.append(eqn.primitive.name)
-            if eqn.primitive.name == "cond":
-                continue  # the branches: only one of them runs
+            if eqn.params.get("name") == "_filter_jit":
+                out.append(eqn.params["jaxpr"].jaxpr)
+                continue
             for v in eqn.params.values():
                 for sub in v if isinstance(v, (tuple, list)) else (v,):
                     sub = getattr(sub, "jaxpr", sub)
                     if hasattr(sub, "eqns"):
-                        out += top_level_prims(sub)
+                        out += filters(sub)
         return out
 
-    prims = top_level_prims(jaxpr)
-    assert "cond" in prims
-    assert "is_finite" not in prims
+    exps = [str(f).count(" exp ") for f in filters(jaxpr)]  # the weights of every level
+    cascade = 8  # F = 3, two axes: the weights of 2 pairs per pass, shared between levels
+    if sigma_d == 0.1:
+        assert exps == [cascade] * (1 + prefilter), exps
+    else:
+        deeper = [e for e in exps if e > cascade]  # the heavier way: one level more
+        assert exps.count(cascade) == 2 + prefilter and len(deeper) == 1, exps
 
 
 # --- Interop ------------------------------------------------------------------------------
@@ -494,7 +502,7 @@ def test_finite_gradients_build_no_observation_mask(prefilter):
 def test_eager_update_compiles_nothing_after_the_first_call(kind):
     """Without jax.jit around it, an update must reuse its compiled programs (it recompiled a
     lax.cond every call: 1-3 s per step); and it equals the jitted update."""
-    from experiments.common import CompileCounter
+    from tools.compiles import CompileCounter
 
     opt = {
         "bilateral_adam": ob.bilateral_adam(0.1, levels=2),
@@ -620,10 +628,10 @@ def test_vmap_over_independent_problems():
 @pytest.mark.parametrize("separable", [True, False])
 @pytest.mark.parametrize("guide_kind", ["spatial", "channels", "integer"])
 def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kind):
-    # The transforms leave unobserved texels out of the sums with a NaN guide there (one
-    # program for both branches of their lax.cond); at observed texels that must equal
-    # atrous_bilateral's mask. An integer guide has no NaN: it falls back to the mask.
-    from optax_bilateral._src import step
+    # The transforms leave unobserved texels out of the sums with a NaN guide there (it costs
+    # the kernel nothing); at observed texels that must equal atrous_bilateral's mask. An
+    # integer guide has no NaN: it falls back to the mask.
+    from optax_bilateral._src import operators
 
     k1, k2, k3 = jax.random.split(KEY, 3)
     m = jax.random.normal(k1, (9, 7, 3))
@@ -634,20 +642,9 @@ def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kin
         "integer": jax.random.randint(k2, (9, 7), 0, 3),
     }[guide_kind]
     obs = jax.random.uniform(k3, (9, 7)) > 0.3
-    assert (step.nan_guide_at(guide, obs, (0, 1)) is None) == (guide_kind == "integer")
-    rule = step.LeafRule(
-        stage="postfilter",
-        axes=(0, 1),
-        levels=2,
-        separable=separable,
-        self_guided=False,
-        log_guide=False,
-        mask_unobserved=False,
-        limit=1.0,
-        guard_sigma=False,
-        constants=(("sigma_d", 0.2),),
-    )
-    out = step.filter_fields(rule, (m, v), guide, {}, obs)
+    assert (operators.nan_guide_at(guide, obs, (0, 1)) is None) == (guide_kind == "integer")
+    plan = operators.FilterPlan((0, 1), 2, separable, self_guided=False, log_guide=False)
+    out = operators.operator(plan, guide, obs).apply((m, v), 0.2)
     ref = atrous_bilateral(
         (m, v), guide, sigma_d=0.2, levels=2, spatial_axes=(0, 1), separable=separable, mask=obs
     )

@@ -16,6 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from optax_bilateral._src import sure
+from optax_bilateral._src.bilateral import log_transform
+from optax_bilateral._src.sigma import SigmaRule
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 # F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.
@@ -33,8 +35,6 @@ def default_levels(sigma_d: Any) -> int:
     """A leaf's ``levels`` when the transform's ``levels`` is None (the default)."""
     return SURE_LEVELS if sure.is_sure(sigma_d) else DEFAULT_LEVELS
 
-
-LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
 
 # "params" | "self" | a callable params -> guide pytree (a prefix of the parameters).
 GuideSetting = str | Callable[[Any], Any]
@@ -198,6 +198,12 @@ def _is_scalar_atom(x) -> bool:
     )
 
 
+def is_sigma_atom(x) -> bool:
+    """One leaf's ``sigma_d`` inside a pytree prefix: a number, an array, None, a name or a
+    rule object."""
+    return _is_scalar_atom(x) or isinstance(x, (str, SigmaRule))
+
+
 def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) -> list:
     """One value of ``prefix`` per leaf of ``tree`` (in ``jax.tree.leaves`` order)."""
     n = len(jax.tree.leaves(tree))
@@ -273,7 +279,7 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
     leaves = jax.tree.leaves(tree)
     names = leaf_names(tree)
     axes_list = broadcast_prefix(spatial_axes, tree, _is_axes_atom, "spatial_axes")
-    sigma_list = broadcast_prefix(sigma_d, tree, _is_scalar_atom, "sigma_d")
+    sigma_list = broadcast_prefix(sigma_d, tree, is_sigma_atom, "sigma_d")
     if levels is None:
         levels_list = [None] * len(leaves)
     else:
@@ -285,10 +291,11 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
         ax = _resolve_axes(leaf, ax, name, warn and lev > 0)
         if sig is None:
             raise ValueError(
-                f"sigma_d is None for leaf {name}; "
-                "pass a number (inf for a low-pass), 'auto' or 'sure'"
+                f"sigma_d is None for leaf {name}; pass a number >= 0 (inf for a low-pass), "
+                "'auto', 'sure' or a sigma_d rule (ob.auto_sigma(), ob.sure_sigma())"
             )
-        check_sigma_d(sig, name=f"sigma_d (for leaf {name})", allow_auto=True)
+        if not isinstance(sig, SigmaRule):
+            check_sigma_d(sig, name=f"sigma_d (for leaf {name})", allow_auto=True)
         if ax and lev > 0:
             check_real_floating(
                 leaf,
@@ -355,15 +362,15 @@ def _guide_spatial_shape(guide_shape, leaf_shape, axes, name):
     return tuple(guide_shape[a] for a in axes)
 
 
-def check_params(
-    params, *, spatial_axes, sigma_d, levels, guide, transform: str, all_leaves: bool
-) -> list[LeafSpec]:
+def check_params(params, settings, *, transform: str, all_leaves: bool) -> list[LeafSpec]:
     """Init-time checks: leaf dtypes and dimensions, the settings per leaf, the guide's shapes.
 
+    ``settings`` has the transform's ``spatial_axes``, ``sigma_d``, ``levels`` and ``guide``;
     ``all_leaves``: every leaf must be floating point (it has moments), not only the
     filtered ones.
     """
-    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels, warn=True)
+    guide = settings.guide
+    specs = settings.specs(params, warn=True)
     names = leaf_names(params)
     leaves = jax.tree.leaves(params)
     if all_leaves:
@@ -442,10 +449,3 @@ def guide_leaves(
                     "an array for it or give it spatial_axes=()"
                 )
     return [log_transform(x) if (log_guide and x is not None) else x for x in g]
-
-
-def log_transform(x):
-    """log(|x| + 1e-8): the log-domain guide of the paper's texture runs."""
-    x = jnp.asarray(x)
-    x = x.astype(jnp.promote_types(x.dtype, jnp.float32))
-    return jnp.log(jnp.abs(x) + LOG_GUIDE_EPS)
