@@ -7,6 +7,7 @@ import subprocess
 import sys
 import zipfile
 
+import check_min_versions
 import optax_bilateral as ob
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -55,3 +56,18 @@ def test_license_is_the_apache_2_text():
     text = (ROOT / "LICENSE").read_text()
     assert "Apache License" in text and "Version 2.0, January 2004" in text
     assert "END OF TERMS AND CONDITIONS" in text
+
+
+def test_the_declared_lower_bounds_are_the_pinned_minimum_versions():
+    # make test-min runs the core tests with constraints-min.txt's pins: they must be the
+    # lower bounds pyproject.toml declares (jaxlib: jax's own, which jax requires exactly).
+    pinned = check_min_versions.pins(ROOT / "constraints-min.txt")
+    text = (ROOT / "pyproject.toml").read_text()
+    block = re.search(r"^dependencies = \[(.*?)\]", text, re.M | re.S).group(1)
+    bounds = dict(re.findall(r'"([\w\-]+)>=([\d.]+)"', block))
+    assert set(bounds) == {"jax", "optax", "numpy"}
+    for name, bound in bounds.items():
+        assert pinned[name].split(".")[: len(bound.split("."))] == bound.split("."), name
+    assert pinned["jaxlib"] == pinned["jax"]
+    assert check_min_versions.oldest_python() == (3, 11)
+
