@@ -1,5 +1,6 @@
 """What is installed: only the library, typed, with its license and one version."""
 
+import datetime
 import importlib.metadata
 import pathlib
 import re
@@ -71,3 +72,20 @@ def test_the_declared_lower_bounds_are_the_pinned_minimum_versions():
     assert pinned["jaxlib"] == pinned["jax"]
     assert check_min_versions.oldest_python() == (3, 11)
 
+
+def test_the_release_is_dated_in_the_changelog_and_names_its_urls():
+    version = _pyproject_version()
+    releases = re.findall(
+        r"^## (\d+\.\d+\.\d+) — (\d{4}-\d{2}-\d{2})$", (ROOT / "CHANGELOG.md").read_text(), re.M
+    )
+    assert releases and releases[0][0] == version, releases
+    datetime.date.fromisoformat(releases[0][1])
+    meta = importlib.metadata.metadata("optax_bilateral")
+    urls = dict(u.split(", ", 1) for u in meta.get_all("Project-URL"))
+    assert {"Documentation", "Source", "Changelog"} <= set(urls)
+    assert all(u.startswith("https://") for u in urls.values()), urls
+    assert urls["Changelog"].startswith(urls["Source"] + "/")
+    assert urls["Changelog"].endswith("/CHANGELOG.md")
+    classifiers = meta.get_all("Classifier")
+    assert "Programming Language :: Python :: 3.11" in classifiers
+    assert meta["Requires-Python"] == ">=3.11"
