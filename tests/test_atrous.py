@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+import jax_compat
 import optax_bilateral as ob
 from optax_bilateral import atrous_bilateral
 from optax_bilateral._src import atrous
@@ -206,7 +207,7 @@ def test_low_precision_inputs_keep_dtype(dtype):
 
 
 def test_float64_when_enabled():
-    with jax.enable_x64(True):
+    with jax_compat.enable_x64(True):
         rng = np.random.default_rng(7)
         x = rng.normal(size=(6, 6, 1))
         g = rng.normal(size=(6, 6, 1))

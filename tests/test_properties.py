@@ -21,6 +21,7 @@ import optax
 from hypothesis import given
 from hypothesis import strategies as st
 
+import jax_compat
 import optax_bilateral as ob
 
 SIGMAS = st.one_of(st.sampled_from([0.0, 1e-30, 1e30, math.inf]), st.floats(1e-3, 1e3))
@@ -30,7 +31,7 @@ GRADIENTS = st.one_of(st.floats(-3, 3), st.sampled_from([*EXTREMES, math.nan, ma
 
 def _x64(dtype: str):
     """float64 needs JAX's 64-bit mode, for the compile and every call."""
-    return jax.enable_x64(True) if dtype == "float64" else contextlib.nullcontext()
+    return jax_compat.enable_x64(True) if dtype == "float64" else contextlib.nullcontext()
 
 
 def _cast(x: np.ndarray, dtype: str) -> np.ndarray:

@@ -60,7 +60,7 @@ else:
     REFERENCE_SPP, EVAL_SPP = 256, 64
 LR = 0.02  # every filtered run (and F = 0)
 B1 = 0.2
-SIGMA_D = 0.1  # "ours" in Figs. 4-5: the library default
+SIGMA_D = 0.1  # "ours" in Figs. 4-5: the paper's sigma_d (the library's default is "auto")
 SIGMA_D_SELF = 1.0  # the bilateral (self-guided) filter, log-domain moments
 print(
     f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F grid {LEVELS_GRID}, "

@@ -54,7 +54,7 @@ else:
     LRS = [0.003, 0.01, 0.03, 0.1]
     REFERENCE_SPP, EVAL_SPP = 256, 64
     N_SAMPLES, KS, REPEATS = 1024, [1, 4, 16, 64, 256], 4
-SIGMA_D = 0.1  # the library default; log-domain guide, as the paper's texture runs
+SIGMA_D = 0.1  # the paper's (the library default is "auto"); log guide, as its texture runs
 NOISE_SCALES = [0.0, 0.1, 0.3, 1.0, 3.0, 10.0]
 print(
     f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F={LEVELS}, sigma_d={SIGMA_D}, "
