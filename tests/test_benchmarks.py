@@ -314,3 +314,19 @@ def test_bench_sharding_quick_writes_results_and_matches_single_device(tmp_path)
         assert x["max_abs_diff"] <= 1e-5 and x["sharding_kept"] and x["step_ms"] > 0, x
         assert x["all_gather_count"] == 0, x
     assert r["channels"] and all(x["1 / 2 channels (paired)"] > 0 for x in r["channels"])
+
+
+def test_eager_wrappers_quick_counts_compilations_per_call(tmp_path):
+    """``tools.eager_wrappers --quick``: a bare or chained eager update compiles nothing after
+    its first call; optax's MultiSteps and apply_if_finite compile at every call, around
+    optax.adam as around bilateral_adam (docs/jit.md)."""
+    from tools import eager_wrappers
+
+    measured = eager_wrappers.main(["--quick", "--out", str(tmp_path)])
+    rows = {(r["optimizer"], r["wrapper"]): r for r in measured}
+    for inner in eager_wrappers.INNER:
+        for wrapper in ("bare", "chain"):
+            assert rows[inner, wrapper]["compilations per call"][1:] == [0]
+        for wrapper in ("MultiSteps", "apply_if_finite"):
+            assert rows[inner, wrapper]["compilations per call"][1:] == [1]
+    assert (tmp_path / "eager_wrappers.json").exists()

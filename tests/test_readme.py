@@ -1,6 +1,7 @@
 """The README's code runs and prints what the README says it prints."""
 
 import math
+import os
 import pathlib
 import subprocess
 import sys
@@ -46,7 +47,11 @@ def test_quickstart_lowers_the_error_and_prints_what_the_readme_shows():
         text=True,
         timeout=600,
         check=True,
+        env={**os.environ, "JAX_LOG_COMPILES": "1"},
     )
+    # Its jitted step compiles once per optimizer: the state keeps its types (no weak type
+    # lost after the first update), so the second call finds the first one's program.
+    assert run.stderr.count("Compiling jit(step)") == 2, run.stderr[-3000:]
     printed = numbers(run.stdout)
     expected = numbers(shown)
     assert printed.keys() == expected.keys()

@@ -384,11 +384,12 @@ def test_transforms_keep_parameter_sharding():
 def test_shard_map_route_gathers_nothing():
     for r in _checks("transforms"):
         if r["route"] == "shard_map":
-            # Halos by collective-permute; all-reduces only of the scalar "all texels
-            # observed?" predicate of the non-finite fast path.
+            # Halos by collective-permute; all-reduces only of scalars: the "all texels
+            # observed?" predicate of the non-finite fast path and the state's count of
+            # non-finite entries (XLA may combine a few into one all-reduce).
             assert set(r["kinds"]) <= {"collective-permute", "all-reduce"}, r
             assert "collective-permute" in r["kinds"], r
-            assert r["all_reduce_max_bytes"] <= 8, r
+            assert r["all_reduce_max_bytes"] <= 32, r
 
 
 def test_auto_and_sure_sigma_equal_single_device():

@@ -91,10 +91,9 @@ def optimizer(lib, levels: int, separable: bool, log_guide: bool):
 
 
 def arrays(shape):
-    """(params, grad) of ``shape`` (``HxW``: one 2-D leaf) with positive params."""
+    """(params, grad) of ``shape`` with positive params; ``HxW`` is one channel, ``(H, W, 1)``
+    (a layout every revision's default leaf rule filters)."""
     params, grad = bm.update_arrays(shape if len(shape) > 2 else shape + (1,))
-    if len(shape) == 2:
-        params, grad = params[..., 0], grad[..., 0]
     return abs(params) + 0.05, grad  # positive: the log guide is defined
 
 

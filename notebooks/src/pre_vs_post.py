@@ -71,7 +71,9 @@ print(
 # %%
 def filtered(**kw):
     def factory(learning_rate):
-        return ob.bilateral_adam(learning_rate, b1=B1, b2=B2, levels=LEVELS, log_guide=True, **kw)
+        return ob.bilateral_adam(
+            learning_rate, b1=B1, b2=B2, levels=LEVELS, log_guide=True, spatial_axes=(0, 1), **kw
+        )
 
     return factory
 

@@ -38,13 +38,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from optax_bilateral._src import layout, sharded
+from optax_bilateral._src import layout, numerics, sharded
 from optax_bilateral._src.bilateral import log_transform
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.sigma import Filtered, SigmaRule
 from optax_bilateral._src.validation import check_integer, check_number
 
-SKIP, CHECK, BLEND, HEAVY = 0, 1, 2, 3  # what a postfilter step computes (blend_phase), in order
+SKIP, CHECK, BLEND = 0, 1, 2  # what a postfilter step computes of the blend (blend_phase)
 
 
 class AutoState(NamedTuple):
@@ -164,7 +164,7 @@ class Auto(SigmaRule):
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         previous_guide = None
         if guide is not None:
-            previous_guide = jnp.zeros_like(self.kept_guide(jnp.asarray(guide), plan.axes))
+            previous_guide = numerics.zeros(self.kept_guide(jnp.asarray(guide), plan.axes))
         # Every field its own buffer: a state that holds one twice cannot be donated.
         scalar = functools.partial(jnp.zeros, [], dtype)
         direction = None if kind == "prefilter" else scalar()
@@ -183,52 +183,44 @@ class Auto(SigmaRule):
     def combine(self, moments, op, sigma, state, ctx):
         if state.residual is None or not (op.plan.filter_m and op.plan.filter_v):
             return super().combine(moments, op, sigma, state, ctx)
+        axes = op.plan.axes
         phase = self.blend_phase(state.gate, ctx.count)
         heavy, learned = jnp.zeros([], bool), {}
-        if op.plan.one_operator:
-            learned["correlated"] = self._check_correlation(moments, op.plan.axes, state, ctx)
+        if op.plan.one_operator:  # self-guided: each field's own sigma_d, never heavier
+            learned["correlated"] = self._check_correlation(moments, axes, state, ctx)
             heavy = state.correlated > 0
-        way = functools.partial(self._way, moments, op, state, ctx, learned)
+            sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
+        # One cascade for both ways: the ways differ only in the blend after it.
+        m_f, v_f = self._cascade(op, moments, sigma, heavy)
+        learned["residual"] = residual = self.update_residual(
+            moments.m, m_f, state.residual, ctx.c1, moments.observed
+        )
+        statistics = dict(b1=ctx.b1, c1=ctx.c1, c2=ctx.c2, count=ctx.count, axes=axes)
+        weights = functools.partial(self.weights, moments.m, moments.v, residual, **statistics)
+        zero = functools.partial(jnp.zeros, [], moments.m.dtype)
+
+        def plain():  # no blend; at a CHECK step the gate's check alone
+            check = (phase == CHECK) & ~heavy
+            gate = lax.cond(check, lambda: weights()[1], zero)
+            return Filtered(m_f, v_f, None, _replace_cast(state, dict(learned, gate=gate)))
+
+        def blended():
+            lam, gate = weights()
+            lam = self.upsample(lam, moments.m.shape, axes)
+            return Filtered(m_f, v_f, lam, _replace_cast(state, dict(learned, gate=gate)))
+
+        return ((phase == BLEND) & ~heavy).astype(jnp.int32), (plain, blended)
+
+    def _cascade(self, op, moments, sigma, heavy):
+        """``(B m, B v)`` at ``sigma``; where the noise is correlated (``heavy``, a traced
+        bool), :func:`extra_levels` more levels after the plan's F."""
+        out = op.apply((moments.m, moments.v), sigma)
         extra = extra_levels(op.plan.axes) if op.plan.one_operator else 0
-        if not extra:  # the heavier filter (if any) is the plain one at a larger sigma_d
-            if op.plan.one_operator:
-                sigma_plain = jnp.where(heavy, sigma * self.heavy_factor, sigma)
-            else:  # self-guided: each field's own sigma_d, never heavier
-                sigma_plain = sigma
-            plain = way(sigma_plain, phase=jnp.where(heavy, HEAVY, phase))
-            index = ((phase == BLEND) & ~heavy).astype(jnp.int32)
-            return index, (plain, way(sigma, phase=BLEND))
-        index = jnp.where(heavy, 2, (phase == BLEND).astype(jnp.int32))
-        heavier = way(sigma * self.heavy_factor, phase=HEAVY, levels=op.plan.levels + extra)
-        return index, (way(sigma, phase=phase), way(sigma, phase=BLEND), heavier)
-
-    def _way(self, moments, op, state, ctx, learned, sigma, *, phase, levels=None):
-        """A way to filter this step (:class:`~optax_bilateral._src.sigma.Filtered`): the
-        cascade at ``sigma`` (``levels``: the plan's F unless given), the residual's average,
-        and by ``phase`` the blend (``BLEND``), the gate's check alone (``CHECK``) or neither
-        (``SKIP``, ``HEAVY``; a traced ``phase`` picks between a check and a skip)."""
-        axes = op.plan.axes
-
-        def filtered():
-            m_f, v_f = op.apply((moments.m, moments.v), sigma, levels=levels)
-            residual = self.update_residual(
-                moments.m, m_f, state.residual, ctx.c1, moments.observed
-            )
-            statistics = dict(b1=ctx.b1, c1=ctx.c1, c2=ctx.c2, count=ctx.count, axes=axes)
-            weights = functools.partial(self.weights, moments.m, moments.v, residual, **statistics)
-            lam = None
-            if isinstance(phase, int) and phase == BLEND:
-                lam, gate = weights()
-                lam = self.upsample(lam, moments.m.shape, axes)
-            elif isinstance(phase, int):  # HEAVY
-                gate = jnp.zeros([], moments.m.dtype)
-            else:  # the gate's check at a CHECK step, else closed
-                closed = lambda: jnp.zeros([], moments.m.dtype)
-                gate = lax.cond(phase == CHECK, lambda: weights()[1], closed)
-            new = dict(learned, residual=residual, gate=gate)
-            return Filtered(m_f, v_f, lam, _replace_cast(state, new))
-
-        return filtered
+        if not extra:
+            return out
+        levels = op.plan.levels
+        more = lambda: op.apply(out, sigma, levels=levels + extra, first_level=levels)
+        return lax.cond(heavy, more, lambda: out)
 
     def after_step(self, d, state, plan):
         if state is None or state.direction is None:
@@ -497,7 +489,7 @@ def smooth_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
     (the filter's weight off the grid is 0). Without a sub-grid, or on a grid split over
     devices in its type (whose axes take no slice of uneven length), the full local
     averages' sub-grid."""
-    if stride == 1 or sharded.is_split(fields[0]):
+    if sharded.is_split(fields[0]):
         return tuple(_every(f, axes, stride) for f in smooth(fields, axes))
     out = []
     for x in fields:

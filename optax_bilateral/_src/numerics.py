@@ -25,6 +25,13 @@ from optax_bilateral._src.validation import is_concrete
 NEAR_ONE = 2.0**-14
 
 
+def zeros(x: Any, dtype: Any = None) -> jax.Array:
+    """Zeros like ``x`` (its shape and sharding) in ``dtype`` (``x``'s by default), never
+    weakly typed: a state made of them keeps its types through the first update (one
+    compile, not two)."""
+    return jnp.zeros_like(x, dtype=dtype or jnp.result_type(x))
+
+
 def one_minus(b: Any) -> Any:
     """``1 - b``, in float64 when ``b`` is a concrete number (keeps its digits for b near 1)."""
     if is_concrete(b):

@@ -41,6 +41,7 @@ class LeafPlan(NamedTuple):
     limit: float  # |g| is clipped to it (moments and v = g^2 stay finite)
     compute_dtype: Any = None  # postfilter: the moments' arithmetic dtype
     uniform: bool = False  # second_moment="uniform": one second moment, the max over the leaf
+    complex_view: bool = False  # a complex leaf's real view (re, im last): v = |g|^2 for both
 
 
 @jax.tree_util.register_pytree_node_class
@@ -99,7 +100,7 @@ def postfilter_leaf(
     seen = observe(g, plan)
     g_obs = jnp.where(seen.entries, g, 0).astype(plan.compute_dtype)
     g_obs = jnp.clip(g_obs, -plan.limit, plan.limit)
-    m, v = adam_moments(g_obs, moments, seen, adam, plan.compute_dtype)
+    m, v = adam_moments(g_obs, moments, seen, adam, plan.compute_dtype, plan.complex_view)
     if plan.filter is None:
         d = bounded_step(m, v, v, seen, adam, ctx, plan.uniform).astype(g.dtype)
     else:
@@ -142,7 +143,10 @@ def observe(g: jax.Array, plan: LeafPlan) -> Seen:
     filtered leaf a texel counts as a whole (all its channels)."""
     if plan.filter is None:
         ok = jnp.isfinite(g)
-        return Seen(None, ok & (g != 0) if plan.mask_unobserved else ok)
+        ok = ok & (g != 0) if plan.mask_unobserved else ok
+        if plan.complex_view:  # a complex entry counts as a whole
+            ok = jnp.all(ok, axis=-1, keepdims=True)
+        return Seen(None, ok)
     axes = plan.filter.axes
     texels = layout.texel_mask(jnp.isfinite(g), axes)
     if plan.mask_unobserved:
@@ -150,15 +154,19 @@ def observe(g: jax.Array, plan: LeafPlan) -> Seen:
     return Seen(texels, layout.expand_mask(texels, g.ndim, axes))
 
 
-def adam_moments(g, moments, seen: Seen, adam: AdamHyper, dtype):
+def adam_moments(g, moments, seen: Seen, adam: AdamHyper, dtype, complex_view=False):
     """Adam's ``(m, v)`` in the arithmetic ``dtype``, kept at unobserved entries (supplement
-    eqs. 2, 4); without stored moments (memoryless, supplement §1.1) ``(g, g^2)``."""
+    eqs. 2, 4); without stored moments (memoryless, supplement §1.1) ``(g, g^2)``. On a
+    complex leaf's real view ``g^2`` is ``|g|^2``, the same for both parts (optax.adam's)."""
     g = g.astype(dtype)
+    g2 = g * g
+    if complex_view:
+        g2 = jnp.broadcast_to(jnp.sum(g2, axis=-1, keepdims=True), g2.shape)
     if moments is None:
-        return g, g * g
+        return g, g2
     m_old, v_old = (x.astype(dtype) for x in moments)
     m = adam.one_minus_b1 * g + adam.b1 * m_old
-    v = adam.one_minus_b2 * (g**2) + adam.b2 * v_old
+    v = adam.one_minus_b2 * g2 + adam.b2 * v_old
     return jnp.where(seen.entries, m, m_old), jnp.where(seen.entries, v, v_old)
 
 

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src import sharded
+from optax_bilateral._src import numerics, sharded
 from optax_bilateral._src.auto import Auto, noise_ratio
 from optax_bilateral._src.sigma import Filtered, SigmaRule
 from optax_bilateral._src.validation import check_integer, check_number
@@ -128,7 +128,7 @@ class Sure(SigmaRule):
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         zeros = lambda shape, dt=dtype: jnp.zeros(shape, dt)  # every field its own buffer
         return SureState(
-            jnp.zeros_like(self.auto.kept_guide(jnp.asarray(guide), plan.axes)),
+            numerics.zeros(self.auto.kept_guide(jnp.asarray(guide), plan.axes)),
             zeros(jnp.shape(leaf)),
             zeros(jnp.shape(leaf)),
             zeros([]),

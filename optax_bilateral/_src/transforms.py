@@ -56,7 +56,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from optax_bilateral._src import leaves, numerics, rules, sure
+from optax_bilateral._src import layout, leaves, numerics, rules, sure
 from optax_bilateral._src.operators import FilterPlan
 from optax_bilateral._src.sigma import Kind, SigmaRule
 from optax_bilateral._src.step import AdamHyper, Clock, LeafPlan, postfilter_leaf, prefilter_leaf
@@ -158,20 +158,22 @@ def scale_by_adam(
 
     def init_fn(params):
         for leaf, name in zip(jax.tree.leaves(params), leaves.leaf_names(params)):
-            leaves.check_real_floating(
+            leaves.check_floating(
                 leaf,
                 name,
                 "scale_by_adam keeps Adam moments for every "
-                "leaf, which needs real floating point parameters",
+                "leaf, which needs floating point parameters (real or complex)",
             )
-        mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
-        nu = jax.tree.map(jnp.zeros_like, params)
+        mu = jax.tree.map(lambda p: numerics.zeros(p, mu_dtype), params)
+        nu = jax.tree.map(numerics.zeros, params)
         return ScaleByAdamState(count=jnp.zeros([], jnp.int32), mu=mu, nu=nu)
 
     def update_fn(updates, state, params=None, **extra_args):
         del params, extra_args
+        leaves.check_update_shapes(updates, state.mu, "scale_by_adam", "moments")
         mu = jax.tree.map(lambda g, m: (1 - b1) * g + b1 * m, updates, state.mu)
-        nu = jax.tree.map(lambda g, v: (1 - b2) * (g**2) + b2 * v, updates, state.nu)
+        # |g|^2: a complex leaf's second moment is real, as in optax.adam.
+        nu = jax.tree.map(lambda g, v: (1 - b2) * _abs_sq(g) + b2 * v, updates, state.nu)
         count_inc = jnp.asarray(optax.safe_increment(state.count))
         c1 = jnp.asarray(1 - b1**count_inc)
         c2 = jnp.asarray(1 - b2**count_inc)
@@ -187,6 +189,10 @@ def scale_by_adam(
         return new, ScaleByAdamState(count=count_inc, mu=mu, nu=nu)
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
+
+
+def _abs_sq(g: jax.Array) -> jax.Array:
+    return jnp.real(g) ** 2 + jnp.imag(g) ** 2 if jnp.iscomplexobj(g) else g**2
 
 
 # ----------------------------------------------------------------------------------------
@@ -256,7 +262,11 @@ class _Filtering(NamedTuple):
             return None
         guides = self.guides(params, params, specs, transform)
         states = [
-            None if plan is None else rules.resolve(spec.sigma_d).init(leaf, guide, plan, kind)
+            None
+            if plan is None
+            else rules.resolve(spec.sigma_d).init(
+                layout.real_view(leaf), layout.real_view(guide), plan, kind
+            )
             for leaf, guide, spec, plan in zip(jax.tree.leaves(params), guides, specs, plans)
         ]
         if all(s is None for s in states):
@@ -382,6 +392,7 @@ def prefilter(
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
+        leaves.check_update_shapes(updates, params, "prefilter")
         specs = settings.specs(updates)
         guides = settings.guides(params, updates, specs, "prefilter")
         flat, treedef = jax.tree.flatten(updates)
@@ -391,11 +402,22 @@ def prefilter(
         out, new_states = [], []
         for g, leaf_guide, spec, leaf_state in zip(flat, guides, specs, _per_leaf(tree, treedef)):
             plan = LeafPlan(
-                settings.filter_plan(spec), mask_unobserved, numerics.prefilter_limit(g.dtype)
+                settings.filter_plan(spec),
+                mask_unobserved,
+                numerics.prefilter_limit(jnp.finfo(g.dtype).dtype),
+                complex_view=jnp.iscomplexobj(g),
             )
             if plan.filter is not None:
                 rule = rules.resolve(spec.sigma_d)
-                g, leaf_state = prefilter_leaf(g, leaf_guide, leaf_state, rule, count, plan=plan)
+                a_g, leaf_state = prefilter_leaf(
+                    layout.real_view(g),
+                    layout.real_view(leaf_guide),
+                    leaf_state,
+                    rule,
+                    count,
+                    plan=plan,
+                )
+                g = layout.from_real_view(a_g, g.dtype) if plan.complex_view else a_g
             out.append(g)
             new_states.append(leaf_state)
         if tree is None:
@@ -433,6 +455,10 @@ class PostfilterState(NamedTuple):
         parameters' structure holding, per leaf, its rule's state (an :class:`AutoState`
         for ``"auto"``, a :class:`SureState` for ``"sure"``; None for leaves with a numeric
         ``sigma_d`` or not filtered).
+      nonfinite_count: per leaf (a pytree like the parameters), how many gradient entries
+        were not finite (NaN or infinite) since ``init``, an int32 scalar that saturates at
+        its maximum. Those entries are dropped from the moments and the filter, and their
+        step is 0; a count that grows is a renderer or a loss to look at.
 
     Example::
 
@@ -448,6 +474,7 @@ class PostfilterState(NamedTuple):
     mu: optax.Updates | None
     nu: optax.Updates | None
     sigma_state: Any = None
+    nonfinite_count: Any = None
 
 
 def postfilter(
@@ -582,14 +609,17 @@ def postfilter(
         kind = "memoryless" if memoryless else "postfilter"
         sigma_state = settings.init_states(params, specs, "postfilter", kind)
         count = jnp.zeros([], jnp.int32)
+        nonfinite = jax.tree.map(lambda _: jnp.zeros([], jnp.int32), params)
         if memoryless:
-            return PostfilterState(count=count, mu=None, nu=None, sigma_state=sigma_state)
-        mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
-        nu = jax.tree.map(jnp.zeros_like, params)
-        return PostfilterState(count=count, mu=mu, nu=nu, sigma_state=sigma_state)
+            return PostfilterState(count, None, None, sigma_state, nonfinite)
+        mu = jax.tree.map(lambda p: numerics.zeros(p, mu_dtype), params)
+        nu = jax.tree.map(numerics.zeros, params)
+        return PostfilterState(count, mu, nu, sigma_state, nonfinite)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
+        leaves.check_update_shapes(updates, params, "postfilter")
+        leaves.check_update_shapes(updates, state.mu, "postfilter", "moments")
         count = jnp.asarray(optax.safe_increment(state.count))
         adams = _adams((b1, b2), unfiltered_betas, eps, eps_root, count)
         specs = settings.specs(updates)
@@ -604,7 +634,7 @@ def postfilter(
             rule = rules.resolve(spec.sigma_d)
             adam, clock = adams[plan.filter is not None]
             outs.append(
-                postfilter_leaf(
+                _postfilter_leaf(
                     g, leaf_guide, leaf_moments, leaf_state, rule, adam, clock, plan=plan
                 )
             )
@@ -615,10 +645,25 @@ def postfilter(
             mu=None if state.mu is None else unflatten(m for m, _ in new_moments),
             nu=None if state.nu is None else unflatten(v for _, v in new_moments),
             sigma_state=None if state.sigma_state is None else unflatten(new_states),
+            nonfinite_count=_count_nonfinite(state.nonfinite_count, updates),
         )
 
     # optax's OptState alias admits no None fields (the memoryless state has them).
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)  # pyright: ignore[reportArgumentType]
+
+
+def _count_nonfinite(counts, updates):
+    """The per-leaf counts of non-finite gradient entries, with this step's added (saturating
+    at int32's maximum); None stays None (a state from before the field existed)."""
+    if counts is None:
+        return None
+    top = jnp.iinfo(jnp.int32).max
+
+    def add(total, g):
+        new = jnp.sum(~jnp.isfinite(g), dtype=jnp.int32)
+        return jnp.where(total > top - new, top, total + new)
+
+    return jax.tree.map(add, counts, updates)
 
 
 def _check_betas(betas, default) -> tuple:
@@ -663,17 +708,36 @@ def _moments(state: PostfilterState, treedef) -> list:
 
 def _post_plan(settings, spec, g, moments, mask_unobserved, second_moment) -> LeafPlan:
     """A postfilter leaf's plan: moments updated in at least float32 (stored back in their own
-    dtypes), gradients clipped where ``m``, ``v = g^2`` and ``g`` itself stay finite."""
-    stored = [] if moments is None else list(moments)
-    compute_dtype = jnp.promote_types(jnp.result_type(g, *stored), jnp.float32)
-    dtypes = () if moments is None else (moments[0].dtype, moments[1].dtype)
+    dtypes), gradients clipped where ``m``, ``v = g^2`` and ``g`` itself stay finite; a
+    complex leaf's in its real parts' dtypes (it is updated through its real view)."""
+    real = lambda x: jnp.finfo(jnp.result_type(x)).dtype
+    stored = [] if moments is None else [real(x) for x in moments]
+    compute_dtype = jnp.promote_types(jnp.result_type(real(g), *stored), jnp.float32)
     return LeafPlan(
         settings.filter_plan(spec),
         mask_unobserved,
-        numerics.moment_limit(g.dtype, compute_dtype, *dtypes),
+        numerics.moment_limit(real(g), compute_dtype, *stored),
         compute_dtype,
         second_moment == "uniform",
+        jnp.iscomplexobj(g),
     )
+
+
+def _postfilter_leaf(g, guide, moments, state, rule, adam, clock, *, plan: LeafPlan):
+    """:func:`postfilter_leaf`; a complex leaf through its real view (its parts as a last axis
+    of 2, one ``|g|^2`` second moment for both: optax.adam's rule), its moments stored
+    complex like the leaf, as optax.adam stores them."""
+    if not plan.complex_view:
+        return postfilter_leaf(g, guide, moments, state, rule, adam, clock, plan=plan)
+    view = None if moments is None else (layout.real_view(moments[0]), layout.norm_view(moments[1]))
+    guide = layout.real_view(guide)
+    d, new, state = postfilter_leaf(
+        layout.real_view(g), guide, view, state, rule, adam, clock, plan=plan
+    )
+    if new is not None and moments is not None:
+        m, v = new
+        new = (layout.from_real_view(m, moments[0].dtype), v[..., 0].astype(moments[1].dtype))
+    return layout.from_real_view(d, g.dtype), new, state
 
 
 def _sure_unusable(memoryless: bool, guide, filter_m: bool, filter_v: bool) -> str | None:
