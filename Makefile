@@ -1,13 +1,14 @@
 # Set-up commands: `make demo`, `make test`, `make lint` and `make docs`. They create .venv on first use.
+# `make test-min` and `make dist` make venvs of their own (.venv-min, build/dist-venv).
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: demo test lint docs install install-dev clean
+.PHONY: demo test test-min lint docs dist install install-dev clean
 
 # `make lint`: ruff (lint and format) on every Python source of the repository, pyright on
 # the library (its settings in pyproject.toml).
-LINT_PATHS := optax_bilateral tests experiments notebooks docs
+LINT_PATHS := optax_bilateral tests experiments tools notebooks docs
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +34,45 @@ demo: $(VENV)/.installed
 test: $(VENV)/.installed-dev
 	OPTAX_BILATERAL_QUICK=1 HYPOTHESIS_PROFILE=ci $(PY) -m pytest -q -n 2 --dist loadfile --durations=25
 
+# `make test-min`: the core tests (the filter, the transforms and bilateral_adam,
+# checkpointing, the goldens to a tolerance) under the oldest versions pyproject.toml
+# declares, pinned by constraints-min.txt, on the oldest Python it declares. Hypothesis's
+# default profile: this run checks compatibility; `make test` explores.
+PYTHON_MIN ?= python3.11
+VENV_MIN := .venv-min
+CORE_TESTS := tests/test_atrous.py tests/test_kernels.py tests/test_transforms.py tests/test_rules.py \
+	tests/test_robustness.py tests/test_goldens.py
+
+$(VENV_MIN)/.installed: pyproject.toml constraints-min.txt
+	rm -rf $(VENV_MIN)
+	$(PYTHON_MIN) -m venv $(VENV_MIN)
+	$(VENV_MIN)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV_MIN)/bin/python -m pip install --quiet -c constraints-min.txt -e . \
+		pytest pytest-xdist hypothesis optimistix
+	touch $@
+
+test-min: $(VENV_MIN)/.installed
+	$(VENV_MIN)/bin/python -m pip check
+	$(VENV_MIN)/bin/python tests/check_min_versions.py constraints-min.txt
+	OPTAX_BILATERAL_QUICK=1 $(VENV_MIN)/bin/python -m pytest -q -n 2 --dist loadfile $(CORE_TESTS)
+
+# `make dist`: the sdist and the wheel (python -m build) in dist/, checked by twine; then the
+# wheel in a clean venv outside the checkout (build/dist-venv): alone, it runs the README's
+# quick start; with every extra, each gives what it promises (tests/check_dist.py).
+# Nothing is uploaded (RELEASING.md).
+DIST_VENV := build/dist-venv
+
+dist: $(VENV)/.installed-dev
+	rm -rf dist $(DIST_VENV)
+	$(PY) -m build --outdir dist .
+	$(VENV)/bin/twine check --strict dist/*
+	$(PYTHON) -m venv $(DIST_VENV)
+	$(DIST_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(DIST_VENV)/bin/python -m pip install --quiet dist/*.whl
+	cd $(DIST_VENV) && bin/python $(CURDIR)/tests/check_dist.py base
+	$(DIST_VENV)/bin/python -m pip install --quiet "$$(ls dist/*.whl)[dev]"
+	cd $(DIST_VENV) && bin/python $(CURDIR)/tests/check_dist.py extras
+
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check $(LINT_PATHS)
 	$(VENV)/bin/ruff format --check $(LINT_PATHS)
@@ -44,4 +84,4 @@ docs: $(VENV)/.installed-dev
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
 clean:
-	rm -rf $(VENV) results site .pytest_cache
+	rm -rf $(VENV) $(VENV_MIN) build dist results site .pytest_cache

@@ -121,7 +121,7 @@ def update_rows(quick: bool, levels: int, rounds: int, inner: int) -> list[dict]
         for kernel in KERNELS:
             for separable in _modes(quick):
                 for sigma_d in (0.1,) if quick else (0.1, "auto"):
-                    opt = ob.bilateral_adam(
+                    opt = common.filtered_adam(
                         1e-2, sigma_d=sigma_d, levels=levels, separable=separable
                     )
                     prog = benchmark.update_program(opt)

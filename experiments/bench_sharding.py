@@ -57,9 +57,8 @@ import numpy as np
 from jax.sharding import AxisType, Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-import optax_bilateral as ob
 from experiments import common
-from experiments.collectives import collective_stats, halo_bytes
+from tools.collectives import collective_stats, halo_bytes
 
 # ----------------------------------------------------------------------------------------
 # The benchmark
@@ -102,7 +101,7 @@ def _problem(case: Case):
     full = case.shape + (case.channels,)
     params = {"grid": jax.random.uniform(key, full, jnp.float32, 0.05, 1.0)}
     grads = {"grid": jax.random.normal(jax.random.fold_in(key, 1), full, jnp.float32)}
-    tx = ob.bilateral_adam(1e-2, sigma_d=0.1, levels=case.levels, separable=case.separable)
+    tx = common.filtered_adam(1e-2, sigma_d=0.1, levels=case.levels, separable=case.separable)
     state = tx.init(params)
     # One step first, so the state's moments are not all zero.
     _, state = jax.jit(tx.update)(grads, state, params)

@@ -33,12 +33,51 @@ import os
 import pathlib
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar
+from typing import Any
 
 import jax
 import numpy as np
 
 QUICK_ENV = "OPTAX_BILATERAL_QUICK"
+
+
+def filtered_adam(
+    learning_rate,
+    b1=0.2,
+    b2=None,
+    eps=1e-8,
+    *,
+    sigma_d="auto",
+    levels=None,
+    prefilter=False,
+    separable=True,
+    guide="params",
+    log_guide=False,
+    spatial_axes=None,
+    mask_unobserved=False,
+    mu_dtype=None,
+):
+    """``bilateral_adam``'s chain for grids with the postfilter's knobs: ``optax.chain(
+    ob.prefilter(...)?, ob.postfilter(b1, b2, eps, ...), optax.scale_by_learning_rate(
+    learning_rate))``, every leaf by the settings' leaf rule (``bilateral_adam`` gives the
+    leaves it does not filter to Adam). Every argument is named, so that
+    ``optax.inject_hyperparams(filtered_adam, static_args=(...))`` takes any of them."""
+    import optax
+
+    import optax_bilateral as ob
+
+    shared = dict(
+        sigma_d=sigma_d,
+        levels=levels,
+        separable=separable,
+        guide=guide,
+        log_guide=log_guide,
+        spatial_axes=spatial_axes,
+        mask_unobserved=mask_unobserved,
+    )
+    parts = [ob.prefilter(**shared)] if prefilter else []
+    parts.append(ob.postfilter(b1, b2, eps, mu_dtype=mu_dtype, **shared))
+    return optax.chain(*parts, optax.scale_by_learning_rate(learning_rate))
 
 
 def quick_from_env() -> bool:
@@ -481,32 +520,3 @@ def write_results(out: pathlib.Path, name: str, data: Mapping, md: str) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(json.dumps(jsonable(data), indent=1) + "\n")
     (out / f"{name}.md").write_text(md + "\n")
-
-
-class CompileCounter:
-    """Counts XLA compilations while active: ``with CompileCounter() as c: ...; c.count``.
-
-    Listens to JAX's ``/jax/core/compile/backend_compile_duration`` event (one per
-    program handed to XLA), so cache hits do not count.
-    """
-
-    _active: ClassVar[list] = []
-    _registered = False
-    EVENT = "/jax/core/compile/backend_compile_duration"
-
-    def __enter__(self) -> CompileCounter:
-        if not CompileCounter._registered:
-            jax.monitoring.register_event_duration_secs_listener(CompileCounter._listen)
-            CompileCounter._registered = True
-        self.count = 0
-        CompileCounter._active.append(self)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        CompileCounter._active.remove(self)
-
-    @staticmethod
-    def _listen(event: str, duration: float, **kwargs) -> None:
-        if event == CompileCounter.EVENT:
-            for counter in CompileCounter._active:
-                counter.count += 1

@@ -34,7 +34,7 @@ from experiments import common
 from experiments import texture as texp
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-# The best settings of `python -m experiments.texture` (README of docs/experiments.md).
+# The best settings of `python -m experiments.texture --full` (docs/experiments.md).
 ADAM = dict(learning_rate=0.01, b1=0.9)
 OURS = dict(learning_rate=0.02, sigma_d=0.05, log_guide=True)
 FILTER_TABLE = "Filter time and error vs the full float64 filter"

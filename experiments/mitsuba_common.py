@@ -27,6 +27,7 @@ import numpy as np
 import optax
 
 import optax_bilateral as ob
+from experiments import common
 from experiments import mitsuba_runner as runner
 from experiments.mitsuba_runner import Entry
 
@@ -157,11 +158,12 @@ def make_transform(
     if method == "low-pass":
         return ob.bilateral_adam(lr, sigma_d=math.inf, **common_hp)
     if method == "bilateral":
-        return ob.bilateral_adam(lr, sigma_d=hp["sigma_d"], guide="self", **common_hp)
+        # The self guide is a postfilter argument: bilateral_adam's chain with it.
+        return common.filtered_adam(lr, sigma_d=hp["sigma_d"], guide="self", **common_hp)
     if method == "cross-bilateral":
-        return ob.bilateral_adam(lr, sigma_d=hp["sigma_d"], guide="params", **common_hp)
+        return ob.bilateral_adam(lr, sigma_d=hp["sigma_d"], **common_hp)
     if method == "auto":
-        return ob.bilateral_adam(lr, sigma_d="auto", guide="params", **common_hp)
+        return ob.bilateral_adam(lr, sigma_d="auto", **common_hp)
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")
 
 

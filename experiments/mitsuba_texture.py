@@ -21,8 +21,8 @@ Methods (as experiments/texture.py; best of each sweep reported, every entry lis
 
 * ``adam``: ``optax.adam`` (b1 0.9, b2 0.999), a small learning-rate sweep.
 * ``low-pass``: ``bilateral_adam`` with ``sigma_d = inf``.
-* ``bilateral``: ``bilateral_adam(guide="self", log_guide=True)``.
-* ``cross-bilateral``: ``bilateral_adam(guide="params", log_guide=True)``, the paper's.
+* ``bilateral``: ``bilateral_adam``'s chain with ``postfilter(guide="self", log_guide=True)``.
+* ``cross-bilateral``: ``bilateral_adam(log_guide=True)`` (guided by the parameters), the paper's.
 * ``auto``: as cross-bilateral with ``sigma_d="auto"``; run only once the library
   has it (:func:`experiments.mitsuba_common.auto_unavailable`).
 

@@ -151,6 +151,7 @@ def texture(
         name=name,
         description=description or f"toy texture {size}^2, {target} target, {spp}/{spp_grad} spp",
         init=jnp.full((size, size), 0.1, jnp.float32),
+        spatial_axes=(0, 1),  # a one-channel image (the leaf rule leaves square 2-D to Adam)
         data=data,
         grad=grad,
         project=lambda data, a: jnp.clip(a, tex.ALPHA_MIN, tex.ALPHA_MAX),
@@ -391,6 +392,7 @@ def deblur(
             f"{fraction:.0%} pixels per step, noise {noise:g}"
         ),
         init=jnp.full((size, size), 0.5 * scale, jnp.float32),
+        spatial_axes=(0, 1),  # a one-channel image (the leaf rule leaves square 2-D to Adam)
         # The scale is data, not a constant: both scales then share compiled programs.
         data={"y": y, "k": k, "target": x_t, "scale": jnp.float32(scale)},
         grad=grad,

@@ -55,7 +55,6 @@ import numpy as np
 import optax
 
 from experiments import common
-from optax_bilateral import bilateral_adam
 from optax_bilateral.toy import volume as toy
 
 METHODS = ("adam", "low-pass", "bilateral", "cross-bilateral")
@@ -194,14 +193,14 @@ def _optimizer(kind: str, static: dict, hp: dict) -> optax.GradientTransformatio
         return optax.adam(hp["learning_rate"], b1=hp["b1"], b2=hp["b2"])
     levels = static["levels"]
     levels = dict(levels) if isinstance(levels, tuple) else levels  # per-leaf, kept hashable
-    return bilateral_adam(
+    return common.filtered_adam(
         hp["learning_rate"],
         static["b1"],
         sigma_d=hp["sigma_d"],
         levels=levels,
         guide=static["guide"],
         log_guide=static["log_guide"],
-        spatial_axes=(0, 1, 2),  # (D, H, W, C) grids: said explicitly (the rule would warn)
+        spatial_axes=(0, 1, 2),  # (D, H, W, C) grids: said explicitly
     )
 
 

@@ -218,6 +218,20 @@ def record(name: str, quick: bool) -> pathlib.Path:
     return path
 
 
+def rekey(name: str, why: str) -> None:
+    """Points ``name``'s record at the notebook's current code cells without re-running it,
+    for a change that leaves every output as it was; ``why`` says so, on the page."""
+    rec = json.loads((OUTPUTS / f"{name}.json").read_text())
+    nb = nbformat.read(HERE / f"{name}.ipynb", as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    if len(code) != len(rec["cells"]):
+        raise ValueError(f"{name}: cells were added or removed; re-run and re-record it")
+    for cell, recorded in zip(code, rec["cells"]):
+        recorded["source_sha256"] = source_hash(cell.source)
+    rec["rekeyed"] = why
+    (OUTPUTS / f"{name}.json").write_text(json.dumps(rec, indent=1, ensure_ascii=False) + "\n")
+
+
 def load_record(name: str) -> dict:
     """The recorded outputs of ``name``, checked against the code cells of ``notebooks/NAME.ipynb``.
 
@@ -262,6 +276,8 @@ def page(name: str) -> str:
         f"repository, `notebooks/{name}.ipynb`, is stored without outputs: run it with that "
         "command, or open it in Jupyter from the repository root after `make install-dev`."
     )
+    if "rekeyed" in rec:  # the code changed since the run in a way stated not to change it
+        note += f"\n\n    {rec['rekeyed']}"
     nb = nbformat.read(HERE / f"{name}.ipynb", as_version=4)
     cells = iter(rec["cells"])
     parts = []

@@ -8,12 +8,15 @@ from importlib.metadata import PackageNotFoundError, version
 
 from optax_bilateral import mesh, triangle_mesh
 from optax_bilateral._src.alias import bilateral_adam
-from optax_bilateral._src.auto import AutoState
+from optax_bilateral._src.auto import Auto, AutoState
 from optax_bilateral._src.filter import atrous_bilateral
+from optax_bilateral._src.fixed import Fixed
 from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
 from optax_bilateral._src.pyramid import LaplacianPyramidState, laplacian_pyramid, pyramid_adam
+from optax_bilateral._src.rules import auto_sigma, sure_sigma
+from optax_bilateral._src.sigma import SigmaRule
 from optax_bilateral._src.state_io import load_state, save_state
-from optax_bilateral._src.sure import SureState
+from optax_bilateral._src.sure import Sure, SureState
 from optax_bilateral._src.transforms import (
     DEFAULT_LEVELS,
     DEFAULT_SIGMA_D,
@@ -35,14 +38,19 @@ __all__ = (
     "DEFAULT_LEVELS",
     "DEFAULT_SIGMA_D",
     "SURE_LEVELS",
+    "Auto",
     "AutoState",
+    "Fixed",
     "LaplacianPyramidState",
     "LeafRuleWarning",
     "PostfilterState",
     "PrefilterState",
     "ScaleByAdamState",
+    "SigmaRule",
+    "Sure",
     "SureState",
     "atrous_bilateral",
+    "auto_sigma",
     "bilateral_adam",
     "default_spatial_axes",
     "filtered_axes",
@@ -54,5 +62,6 @@ __all__ = (
     "pyramid_adam",
     "save_state",
     "scale_by_adam",
+    "sure_sigma",
     "triangle_mesh",
 )

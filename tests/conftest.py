@@ -10,9 +10,10 @@ import pytest
 # and tolerances, and the goldens compile with the same option (tests/goldens.py). Set before
 # JAX starts its backend, so pytest's workers and the children they start inherit it; a level
 # the caller chose wins.
+FAST_COMPILE = "--xla_backend_optimization_level=0"
 _FLAGS = os.environ.get("XLA_FLAGS", "")
 if "xla_backend_optimization_level" not in _FLAGS:
-    os.environ["XLA_FLAGS"] = f"{_FLAGS} --xla_backend_optimization_level=0".strip()
+    os.environ["XLA_FLAGS"] = f"{_FLAGS} {FAST_COMPILE}".strip()
 
 # Each new shape or static setting compiles a new XLA program, so the property tests draw
 # those from small sets (shared compiled programs) and explore the data freely.

@@ -3,6 +3,7 @@
     .venv/bin/python tests/goldens.py            # re-record tests/goldens.npz
     .venv/bin/python tests/goldens.py --check    # compare all configurations (slow)
     .venv/bin/python tests/goldens.py --only self  # re-record one factor level's configurations
+    .venv/bin/python tests/goldens.py --trajectories  # re-record the sigma_d rules' trajectories
 
 A *configuration* is one compiled update: transform (``prefilter``, ``postfilter``, both
 chained, memoryless ``postfilter``) x ``separable`` x ``guide`` (``"params"``, ``"self"``,
@@ -25,6 +26,15 @@ final state, upcast to float32 (exact for the three dtypes) and concatenated.
 * Bit-equality holds for one toolchain (the jax and jaxlib versions recorded in the
   file): another XLA may fuse, and so round, differently. Under another toolchain the
   test compares to a tolerance instead and says so.
+
+*Trajectories* (``tests/goldens_trajectories.npz``) guard the data-driven sigma_d rules,
+whose branches (a blend gate that opens, the heavier filter for correlated noise, a risk
+average over steps) only show over many steps: 30 steps of ``postfilter`` with
+``sigma_d="auto"``, with ``"sure"``, and ``prefilter`` + ``postfilter`` with ``"auto"``, on a
+2-D leaf large enough for the rules' sub-grid (264x256x2, i.i.d. target: the gate opens) and a
+3-D leaf (16x14x12x1, noise blurred over neighbours: the heavier filter engages), beside an
+unfiltered scalar; a NaN texel at two steps and huge gradients at one take the masked path.
+Per step the update's digest is kept (so a failure names its step), and the final state's.
 
 Only the public API is used, so the file survives any restructuring of the library.
 """
@@ -247,7 +257,113 @@ def check(path=PATH) -> int:
     return bad
 
 
+# ----------------------------------------------------------------------------- trajectories
+
+TRAJECTORY_PATH = PATH.with_name("goldens_trajectories.npz")
+TRAJECTORIES = ("auto", "sure", "auto-both")
+TRAJECTORY_STEPS = 30
+TRAJECTORY_SHAPES = {"tex": (264, 256, 2), "vol": (16, 14, 12, 1), "s": ()}
+TRAJECTORY_AXES = {"tex": (0, 1), "vol": (0, 1, 2), "s": ()}
+TRAJECTORY_LR = 0.02
+NAN_STEPS, HUGE_STEP = (5, 19), 25
+
+
+def trajectory_optimizer(kind):
+    post = ob.postfilter(0.2, sigma_d=kind.split("-")[0], spatial_axes=TRAJECTORY_AXES)
+    if kind == "auto-both":
+        return optax.chain(ob.prefilter(sigma_d="auto", spatial_axes=TRAJECTORY_AXES), post)
+    return post
+
+
+def _trajectory_targets():
+    k = jax.random.PRNGKey(30)
+    i, j, k3 = jnp.meshgrid(*(jnp.arange(n) for n in TRAJECTORY_SHAPES["vol"][:3]), indexing="ij")
+    vol = 0.5 + 0.3 * jnp.sin(i / 3.0) * jnp.cos(j / 4.0) * jnp.sin(k3 / 5.0 + 1)
+    return {
+        "tex": jax.random.uniform(k, TRAJECTORY_SHAPES["tex"], jnp.float32, 0.2, 0.8),
+        "vol": vol[..., None].astype(jnp.float32),
+        "s": jnp.asarray(0.3, jnp.float32),
+    }
+
+
+def _blur(x, axes):
+    """Noise shared by neighbours: a [1, 2, 1] / 4 blur, twice, along each spatial axis."""
+    for a in axes:
+        for _ in range(2):
+            x = 0.25 * jnp.roll(x, 1, a) + 0.5 * x + 0.25 * jnp.roll(x, -1, a)
+    return x
+
+
+def _trajectory_gradient(x, step):
+    """The gradient at ``step``: ``x - target`` plus noise (i.i.d. on the texture, blurred on
+    the volume), with a NaN texel at ``NAN_STEPS`` and everything times 1e30 at ``HUGE_STEP``."""
+    target = _trajectory_targets()
+    key = jax.random.fold_in(jax.random.PRNGKey(31), step)
+    noise = {
+        k: jax.random.normal(jax.random.fold_in(key, n), np.shape(v), jnp.float32)
+        for n, (k, v) in enumerate(sorted(x.items()))
+    }
+    g = {
+        "tex": (x["tex"] - target["tex"]) + 0.1 * noise["tex"],
+        "vol": (x["vol"] - target["vol"]) + 2.0 * _blur(noise["vol"], (0, 1, 2)),
+        "s": (x["s"] - target["s"]) + 0.1 * noise["s"],
+    }
+    nan = (step == NAN_STEPS[0]) | (step == NAN_STEPS[1])
+    g["tex"] = g["tex"].at[7, 9, 1].set(jnp.where(nan, jnp.nan, g["tex"][7, 9, 1]))
+    g["vol"] = g["vol"].at[3, 4, 5, 0].set(jnp.where(nan, jnp.nan, g["vol"][3, 4, 5, 0]))
+    return jax.tree.map(lambda v: jnp.where(step == HUGE_STEP, v * 1e30, v), g)
+
+
+def _apply(x, u):
+    return jax.tree.map(lambda p, d: p - TRAJECTORY_LR * d, x, u)
+
+
+def trajectory(kind: str) -> dict[str, np.ndarray]:
+    """Every step's update digest (a string array), the final state's, and per step the
+    float64 sum of |update| per leaf (for a tolerance check under another toolchain)."""
+    return _trajectory(kind)[0]
+
+
+def _trajectory(kind: str) -> tuple[dict[str, np.ndarray], list]:
+    """:func:`trajectory`'s record, and every step's state (for the coverage test)."""
+    opt = trajectory_optimizer(kind)
+    x = {k: jnp.full(shape, 0.5, jnp.float32) for k, shape in TRAJECTORY_SHAPES.items()}
+    state = opt.init(x)
+    step_spec = jax.ShapeDtypeStruct((), jnp.int32)
+    grad = (
+        jax.jit(_trajectory_gradient).lower(x, step_spec).compile(compiler_options=COMPILER_OPTIONS)
+    )
+    g0 = grad(x, jnp.int32(1))
+    update = jax.jit(opt.update).lower(g0, state, x).compile(compiler_options=COMPILER_OPTIONS)
+    apply = jax.jit(_apply).lower(x, g0).compile(compiler_options=COMPILER_OPTIONS)
+    digests, sums, states = [], [], []
+    for step in range(1, TRAJECTORY_STEPS + 1):
+        u, state = update(grad(x, jnp.int32(step)), state, x)
+        states.append(state)
+        digests.append(digest(_flat(u)))
+        sums.append([np.abs(np.asarray(u[k], np.float64)).sum() for k in sorted(u)])
+        x = apply(x, u)
+    return {
+        "digests": np.asarray(digests),
+        "state": np.asarray(digest(_flat(state))),
+        "sums": np.asarray(sums),
+    }, states
+
+
+def record_trajectories(path=TRAJECTORY_PATH) -> None:
+    arrays = {}
+    for kind in TRAJECTORIES:
+        t = time.time()
+        for key, value in trajectory(kind).items():
+            arrays[f"{kind}/{key}"] = value
+        print(f"{kind}: {time.time() - t:.1f} s", flush=True)
+    np.savez_compressed(path, toolchain=np.asarray(toolchain()), **arrays)
+
+
 if __name__ == "__main__":
+    if "--trajectories" in sys.argv[1:]:
+        record_trajectories()
+        sys.exit(0)
     if "--check" in sys.argv[1:]:
         n = check()
         print(f"{n} differ" if n else "all equal")

@@ -3,9 +3,7 @@ sigma_d="sure" beside it where the same check applies (test_sure.py has the rest
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import json
 import math
 
 import hypothesis.extra.numpy as hnp
@@ -18,8 +16,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import optax_bilateral as ob
-from optax_bilateral._src import auto, sure
-from optax_bilateral._src import step as step_module
+from optax_bilateral._src import auto
+from optax_bilateral._src.sigma import blend
+from states import filtered_state, with_filtered_state
+
+AUTO, SURE = ob.Auto(), ob.Sure()
+EVERY_TEXEL = ob.auto_sigma(min_texels=2**40)  # statistics over every texel (no sub-grid)
 
 SHAPE = (16, 16, 3)
 
@@ -106,18 +108,18 @@ def test_auto_beats_adam_on_a_noisy_denoising_problem():
 def test_sigma_follows_the_guide_step_and_starts_from_its_contrast():
     guide = jnp.asarray(np.random.default_rng(1).random((8, 8, 2)), jnp.float32)
     axes = (0, 1)
-    first = auto.sigma(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
+    first = AUTO.scale(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
     local = ob.atrous_bilateral(guide, guide, sigma_d=math.inf, levels=1, spatial_axes=axes)
     deviation = np.linalg.norm(np.asarray(guide - local), axis=-1).mean()
-    np.testing.assert_allclose(first, auto.CONTRAST_FACTOR * deviation, rtol=1e-5)
+    np.testing.assert_allclose(first, AUTO.contrast_factor * deviation, rtol=1e-5)
     # On white noise that is about the mean neighbour difference.
     diffs = [np.linalg.norm(np.diff(np.asarray(guide), axis=a), axis=-1).mean() for a in axes]
     assert 0.7 < float(first) / np.mean(diffs) < 1.3
     moved = guide + 0.01
-    later = auto.sigma(moved, guide, jnp.asarray(2), axes)
-    np.testing.assert_allclose(later, auto.STEP_FACTOR * 0.01 * math.sqrt(2), rtol=1e-4)
+    later = AUTO.scale(moved, guide, jnp.asarray(2), axes)
+    np.testing.assert_allclose(later, AUTO.step_factor * 0.01 * math.sqrt(2), rtol=1e-4)
     # A guide that did not move falls back to the contrast.
-    np.testing.assert_allclose(auto.sigma(guide, guide, jnp.asarray(5), axes), first)
+    np.testing.assert_allclose(AUTO.scale(guide, guide, jnp.asarray(5), axes), first)
 
 
 def test_postfilter_sigma_is_one_learning_rate_in_the_guides_units():
@@ -125,12 +127,12 @@ def test_postfilter_sigma_is_one_learning_rate_in_the_guides_units():
     axes = (0, 1)
     # Each texel moved by 0.01 * (1, 1): 0.01 sqrt(2) per step, along a direction of norm 0.5.
     moved = guide + 0.01
-    rate = auto.sigma(moved, guide, jnp.asarray(2), axes, jnp.asarray(0.5))
+    rate = AUTO.scale(moved, guide, jnp.asarray(2), axes, jnp.asarray(0.5))
     np.testing.assert_allclose(rate, math.sqrt(2) * 0.01 * math.sqrt(2) / 0.5, rtol=1e-5)
-    first = auto.sigma(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
+    first = AUTO.scale(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
     # No direction yet (0), or a guide at rest: the contrast.
-    np.testing.assert_allclose(auto.sigma(moved, guide, jnp.asarray(2), axes, 0.0 * rate), first)
-    np.testing.assert_allclose(auto.sigma(guide, guide, jnp.asarray(3), axes, 1 + 0 * rate), first)
+    np.testing.assert_allclose(AUTO.scale(moved, guide, jnp.asarray(2), axes, 0.0 * rate), first)
+    np.testing.assert_allclose(AUTO.scale(guide, guide, jnp.asarray(3), axes, 1 + 0 * rate), first)
 
 
 @pytest.mark.parametrize("learning_rate", [1e-3, 0.5])
@@ -140,15 +142,17 @@ def test_the_state_keeps_the_direction_so_sigma_follows_the_learning_rate(learni
     opt = ob.bilateral_adam(learning_rate)
     params = _target()
     state = opt.init(params)
-    assert float(state[0].auto.direction) == 0.0
+    assert float(filtered_state(state).sigma_state.direction) == 0.0
     for i in range(3):
         g = _noisy_grad(params, jax.random.PRNGKey(i), _target())
         u, state = opt.update(g, state, params)
         params = optax.apply_updates(params, u)
         step = np.linalg.norm(np.asarray(u, np.float64), axis=-1).mean()
-        np.testing.assert_allclose(float(state[0].auto.direction) * learning_rate, step, rtol=1e-5)
+        np.testing.assert_allclose(
+            float(filtered_state(state).sigma_state.direction) * learning_rate, step, rtol=1e-5
+        )
     prefilter = ob.prefilter().init(params)
-    assert prefilter.auto.direction is None
+    assert prefilter.sigma_state.direction is None
 
 
 @st.composite
@@ -173,8 +177,9 @@ def _assert_bounded(m, v, mt, vt):
 
 def _blend(m, v, bm, bv, residual, **statistics):
     """``(m~, v~, gate)``: the moments mixed by ``auto.weights``, as the step does it."""
-    lam, gate = auto.weights(m, v, residual, **statistics)
-    return auto.mix(lam, m, bm), auto.mix(lam, v, bv), gate
+    lam, gate = AUTO.weights(m, v, residual, **statistics)
+    lam = AUTO.upsample(lam, m.shape, statistics["axes"])
+    return blend(lam, m, bm), blend(lam, v, bv), gate
 
 
 @given(problem=blend_problems())
@@ -186,7 +191,7 @@ def test_the_blend_keeps_the_bounded_step(problem):
     bm, bv = ob.atrous_bilateral(
         (m, v), jnp.asarray(guide), sigma_d=0.5, levels=2, spatial_axes=(0, 1)
     )
-    new_residual = auto.update_residual(m, bm, jnp.asarray(residual), 1.0, None)
+    new_residual = AUTO.update_residual(m, bm, jnp.asarray(residual), 1.0, None)
     mt, vt, _ = _blend(
         m,
         v,
@@ -213,7 +218,7 @@ def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
         m, v = b1 * m + (1 - b1) * g, b2 * v + (1 - b2) * g * g
         c1, c2 = 1 - b1**t, 1 - b2**t
         bm = m - bias * c1
-        residual = auto.update_residual(m, bm, residual, c1, None)
+        residual = AUTO.update_residual(m, bm, residual, c1, None)
         mt, _, _ = _blend(
             m,
             v,
@@ -246,38 +251,22 @@ def test_the_blend_stays_closed_where_the_bias_persists_on_half_the_leaf():
     np.testing.assert_array_equal(np.asarray(mt), np.asarray(bm))
 
 
-@contextlib.contextmanager
-def _auto_constants(**constants):
-    """``auto``'s module constants set for the block; ``leaf_step``'s trace, cached by the
-    leaf's rule only, is dropped around it."""
-    saved = {k: getattr(auto, k) for k in constants}
-    for k, value in constants.items():
-        setattr(auto, k, value)
-    step_module.leaf_step.clear_cache()
-    try:
-        yield
-    finally:
-        for k, value in saved.items():
-            setattr(auto, k, value)
-        step_module.leaf_step.clear_cache()
-
-
 def _run_auto(steps, target, noise, period=None, seed=0):
     """Each step's ``(update, AutoState.gate, AutoState.residual)`` of ``bilateral_adam()``
-    (``sigma_d="auto"``) on ``(x - target) + noise N(0, 1)``, with ``auto.CHECK_PERIOD``
-    set to ``period`` if given."""
-    with _auto_constants(CHECK_PERIOD=auto.CHECK_PERIOD if period is None else period):
-        rng = np.random.default_rng(seed)
-        opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
-        update = jax.jit(opt.update)
-        x = jnp.full((32, 32, 1), 0.5, jnp.float32)
-        state, out = opt.init(x), []
-        for _ in range(steps):
-            g = (x - target) + noise * jnp.asarray(rng.normal(size=x.shape), jnp.float32)
-            u, state = update(g, state, x)
-            auto_state = state[0].auto
-            out.append((np.asarray(u), float(auto_state.gate), np.asarray(auto_state.residual)))
-            x = x + u
+    (``sigma_d="auto"``) on ``(x - target) + noise N(0, 1)``, with the gate's check period
+    ``period`` if given."""
+    rule = ob.auto_sigma(check_period=AUTO.check_period if period is None else period)
+    rng = np.random.default_rng(seed)
+    opt = ob.bilateral_adam(0.02, sigma_d=rule, spatial_axes=(0, 1))
+    update = jax.jit(opt.update)
+    x = jnp.full((32, 32, 1), 0.5, jnp.float32)
+    state, out = opt.init(x), []
+    for _ in range(steps):
+        g = (x - target) + noise * jnp.asarray(rng.normal(size=x.shape), jnp.float32)
+        u, state = update(g, state, x)
+        auto_state = filtered_state(state).sigma_state
+        out.append((np.asarray(u), float(auto_state.gate), np.asarray(auto_state.residual)))
+        x = x + u
     return out
 
 
@@ -288,17 +277,19 @@ def test_a_closed_gate_skips_the_blend_and_changes_no_update(iid_and_smooth_targ
     differently)."""
     _, smooth = iid_and_smooth_targets
     opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
-    with _auto_constants(CHECK_PERIOD=1):
-        every = jax.jit(lambda *args: opt.update(*args))  # a trace of its own
-        x = jnp.full((32, 32, 1), 0.5, jnp.float32)
-        every(x, opt.init(x), x)  # compiled with the period of 1
+    every_step = ob.auto_sigma(check_period=1)
+    every = jax.jit(ob.bilateral_adam(0.02, sigma_d=every_step, spatial_axes=(0, 1)).update)
+    x = jnp.full((32, 32, 1), 0.5, jnp.float32)
     skipping = jax.jit(opt.update)
     rng = np.random.default_rng(0)
     state = opt.init(x)
-    for _ in range(3 * auto.CHECK_PERIOD):
+    for _ in range(3 * AUTO.check_period):
         g = (x - smooth) + 0.3 * jnp.asarray(rng.normal(size=x.shape), jnp.float32)
         (u, new), (u_skip, new_skip) = every(g, state, x), skipping(g, state, x)
-        auto_state, auto_skip = new[0].auto, new_skip[0].auto
+        auto_state, auto_skip = (
+            filtered_state(new).sigma_state,
+            filtered_state(new_skip).sigma_state,
+        )
         assert float(auto_state.gate) == 0 and float(auto_skip.gate) == 0
         np.testing.assert_allclose(u_skip, u, rtol=1e-6, atol=1e-6 * float(jnp.max(jnp.abs(u))))
         residual, residual_skip = np.asarray(auto_state.residual), auto_skip.residual
@@ -313,20 +304,20 @@ def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step(iid_and_
     it is checked every step; with the default period the opening waits for the first
     multiple of ``CHECK_PERIOD``, and from then on the blend runs at every step."""
     iid, _ = iid_and_smooth_targets
-    every = _run_auto(3 * auto.CHECK_PERIOD, iid, 0.0, period=1)
+    every = _run_auto(3 * AUTO.check_period, iid, 0.0, period=1)
     assert every[0][1] == 0 and all(gate > 0 for _, gate, _ in every[1:])
-    gates = [gate for _, gate, _ in _run_auto(3 * auto.CHECK_PERIOD, iid, 0.0)]
+    gates = [gate for _, gate, _ in _run_auto(3 * AUTO.check_period, iid, 0.0)]
     first = next(t for t, gate in enumerate(gates, start=1) if gate > 0)
-    assert first == auto.CHECK_PERIOD
+    assert first == AUTO.check_period
     assert all(gate > 0 for gate in gates[first:])
 
 
 def test_stage_is_the_blend_on_an_open_gate_and_a_check_at_a_multiple_of_the_period():
-    counts = jnp.arange(1, 3 * auto.CHECK_PERIOD + 1)
-    closed = np.asarray(auto.stage(jnp.zeros([]), counts))
-    expected = np.where(np.asarray(counts) % auto.CHECK_PERIOD == 0, auto.CHECK, auto.SKIP)
+    counts = jnp.arange(1, 3 * AUTO.check_period + 1)
+    closed = np.asarray(AUTO.blend_phase(jnp.zeros([]), counts))
+    expected = np.where(np.asarray(counts) % AUTO.check_period == 0, auto.CHECK, auto.SKIP)
     np.testing.assert_array_equal(closed, expected)
-    assert bool(jnp.all(auto.stage(jnp.asarray(0.1), counts) == auto.BLEND))
+    assert bool(jnp.all(AUTO.blend_phase(jnp.asarray(0.1), counts) == auto.BLEND))
 
 
 def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
@@ -340,11 +331,11 @@ def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
         ((64, 64, 64, 1), (0, 1, 2)),
     ]:
         a = jnp.asarray(rng.normal(size=shape), jnp.float32)
-        full = [auto.subgrid(x, axes) for x in auto._smooth((a, a * a), axes)]
-        for x, y in zip(auto._smooth_subgrid((a, a * a), axes), full):
+        full = [AUTO.subgrid(x, axes) for x in auto.smooth((a, a * a), axes)]
+        for x, y in zip(auto.smooth_subgrid((a, a * a), axes, AUTO.stride(shape, axes)), full):
             np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
     shape, axes = (256, 256, 2), (0, 1)
-    assert auto.stride(shape, axes) > 1
+    assert AUTO.stride(shape, axes) > 1
     key = jax.random.PRNGKey(0)
     m = jax.random.normal(key, shape)
     v = m * m + jax.random.uniform(jax.random.fold_in(key, 1), shape)
@@ -352,8 +343,8 @@ def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
     gates = []
     for scale in (0.0, 0.2, 0.22, 0.3):  # the gate closed, opening, and open
         residual = scale * jax.random.normal(jax.random.fold_in(key, 2), shape)
-        _, full_gate = auto.weights(m, v, residual, axes=axes, **stats)
-        sub_gate = auto.gate(m, v, residual, axes=axes, **stats)
+        _, full_gate = EVERY_TEXEL.weights(m, v, residual, axes=axes, **stats)
+        _, sub_gate = AUTO.weights(m, v, residual, axes=axes, **stats)
         assert abs(float(sub_gate) - float(full_gate)) < 0.02, (scale, sub_gate, full_gate)
         gates.append(float(full_gate))
     assert gates[0] == 0 and 0 < gates[1] < gates[2] < 1 and gates[3] == 1
@@ -365,12 +356,12 @@ def _sure_step(m, v, zeta, guide, scale):
     (v through its operator, as the step does it), then the blend."""
     levels = 3
     filt = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=(0, 1))
-    cands = sure.candidates(
+    cands = SURE.candidates(
         (m, zeta), levels, scale, lambda x, s, n, k: filt(x, sigma_d=s, levels=n, first_level=k)
     )
-    mc, pick, _ = sure.choose(m, zeta, cands, 1.0, True, None, sure.first(levels))
-    sigmas, chosen = sure.labels(levels, jnp.asarray(scale, jnp.float32))
-    sigma_d, choices = sigmas[pick], sure.level_choices(levels)
+    mc, pick, _ = SURE.choose(m, zeta, cands, 1.0, True, None, SURE.first(levels))
+    sigmas, chosen = SURE.labels(levels, jnp.asarray(scale, jnp.float32))
+    sigma_d, choices = sigmas[pick], SURE.level_choices(levels)
     branches = [lambda n=n: filt(v, sigma_d=sigma_d, levels=n) for n in choices]
     vc = jax.lax.switch(chosen[pick] - choices[0], branches)
     mt, vt, _ = _blend(
@@ -378,7 +369,7 @@ def _sure_step(m, v, zeta, guide, scale):
         v,
         mc,
         vc,
-        auto.update_residual(m, mc, m * 0, 1.0, None),
+        AUTO.update_residual(m, mc, m * 0, 1.0, None),
         b1=0.2,
         c1=1.0,
         c2=1.0,
@@ -401,10 +392,10 @@ def test_state_holds_the_previous_guide_and_residual_and_checkpoints(tmp_path):
     params = {"tex": jnp.full(SHAPE, 0.5), "light": jnp.zeros(())}
     opt = ob.bilateral_adam(0.05, sigma_d={"tex": "auto", "light": 0.1})
     _, state = _run_dict(opt, params, steps=3)
-    post = state[0]
-    assert post.auto["light"] is None
-    np.testing.assert_array_equal(post.auto["tex"].previous_guide, _prev_params(opt, params))
-    assert post.auto["tex"].residual.shape == SHAPE
+    post = filtered_state(state)
+    assert post.sigma_state["light"] is None  # not filtered: Adam's rule
+    np.testing.assert_array_equal(post.sigma_state["tex"].previous_guide, _prev_params(opt, params))
+    assert post.sigma_state["tex"].residual.shape == SHAPE
     path = tmp_path / "state.npz"
     ob.save_state(path, state)
     restored = ob.load_state(path, opt.init(params))
@@ -501,7 +492,7 @@ def test_every_composition_runs_and_stays_finite_at_the_extremes(sigma_d, kwargs
         if "prefilter" not in kwargs or kwargs.get("postfilter", True):
             assert np.all(np.asarray(u)[bad] == 0)
         if sigma_d == "sure":
-            assert np.isfinite(float(state[0].auto.sigma_d))
+            assert np.isfinite(float(filtered_state(state).sigma_state.sigma_d))
         x = optax.apply_updates(x, u)
 
 
@@ -534,19 +525,6 @@ def test_the_filter_itself_takes_numbers_only():
         )
 
 
-def test_auto_trace_reports_the_learning_rate_on_the_texture_scene(tmp_path):
-    """A projection only shortens steps, so the rate rule never exceeds the learning rate
-    (one channel); the step rule shrinks below it as the run converges."""
-    from experiments import auto_trace
-
-    out = auto_trace.main(["--quick", "--out", str(tmp_path)])
-    assert json.loads((tmp_path / "auto_trace.json").read_text())["rate"] == out["rate"]
-    rate, step = np.asarray(out["rate"]), np.asarray(out["step"])
-    assert len(rate) == len(step) > 4 and np.isfinite(out["error"])
-    assert np.all(rate <= 0.01 * (1 + 1e-5)) and np.median(rate) > 0.005
-    assert np.median(step[-len(step) // 4 :]) < np.median(rate)
-
-
 @pytest.mark.parametrize(
     "shape, axes, expected",
     [
@@ -559,11 +537,11 @@ def test_auto_trace_reports_the_learning_rate_on_the_texture_scene(tmp_path):
     ],
 )
 def test_stride_leaves_at_least_min_texels(shape, axes, expected):
-    s = auto.stride(shape, axes)
+    s = AUTO.stride(shape, axes)
     assert s == expected
     count = lambda s: math.prod(-(-shape[a] // s) for a in axes)
-    assert count(s) >= auto.MIN_TEXELS or s == 1
-    assert count(2 * s) < auto.MIN_TEXELS
+    assert count(s) >= AUTO.min_texels or s == 1
+    assert count(2 * s) < AUTO.min_texels
 
 
 def test_a_large_leaf_keeps_a_sub_grid_of_its_guide_and_sigma_is_its_full_mean():
@@ -571,25 +549,29 @@ def test_a_large_leaf_keeps_a_sub_grid_of_its_guide_and_sigma_is_its_full_mean()
     the full grid's to a fraction of a percent, and an unprojected step still gives sqrt(C) lr."""
     rng = np.random.default_rng(0)
     shape, axes = (300, 260, 2), (0, 1)  # 78000 texels: stride 2, not dividing 300 or 260 evenly
-    assert auto.stride(shape, axes) == 2
+    assert AUTO.stride(shape, axes) == 2
     guide = jnp.asarray(rng.random(shape), jnp.float32)
     step = jnp.asarray(rng.standard_normal(shape) * rng.random(shape[:2])[..., None], jnp.float32)
-    kept = auto.kept_guide(guide, axes)
+    kept = AUTO.kept_guide(guide, axes)
     np.testing.assert_array_equal(kept, guide[::2, ::2])
-    sub = auto.sigma(guide + 0.01 * step, kept, jnp.asarray(2), axes)
-    full = auto.STEP_FACTOR * 0.01 * np.linalg.norm(np.asarray(step), axis=-1).mean()
+    sub = AUTO.scale(guide + 0.01 * step, kept, jnp.asarray(2), axes)
+    full = AUTO.step_factor * 0.01 * np.linalg.norm(np.asarray(step), axis=-1).mean()
     np.testing.assert_allclose(sub, full, rtol=5e-3)
     opt = ob.bilateral_adam(0.02)
     params = jnp.asarray(rng.random(shape), jnp.float32)
     state = opt.init(params)
-    assert state[0].auto.previous_guide.shape == (150, 130, 2)
+    assert filtered_state(state).sigma_state.previous_guide.shape == (150, 130, 2)
     for _ in range(3):
         g = jnp.asarray(rng.standard_normal(shape), jnp.float32) + params - 0.5
         u, state = opt.update(g, state, params)
-        np.testing.assert_array_equal(state[0].auto.previous_guide, params[::2, ::2])
+        np.testing.assert_array_equal(
+            filtered_state(state).sigma_state.previous_guide, params[::2, ::2]
+        )
         params = optax.apply_updates(params, u)
         moved = np.linalg.norm(np.asarray(u, np.float64), axis=-1).mean()
-        np.testing.assert_allclose(float(state[0].auto.direction) * 0.02, moved, rtol=5e-3)
+        np.testing.assert_allclose(
+            float(filtered_state(state).sigma_state.direction) * 0.02, moved, rtol=5e-3
+        )
 
 
 # ----------------------------------------------------------------------------------------
@@ -610,7 +592,7 @@ def _blurred(noise: np.ndarray, width: float) -> np.ndarray:
 def _correlated(g, m_hat, t=5, b1=0.2, observed=None):
     c1 = 1 - b1**t
     g, m = jnp.asarray(g, jnp.float32), jnp.asarray(m_hat * c1, jnp.float32)
-    return bool(auto.correlated(g, m, b1=b1, c1=c1, axes=(0, 1), observed=observed))
+    return bool(AUTO.correlated_noise(g, m, b1=b1, c1=c1, axes=(0, 1), observed=observed))
 
 
 def _tells_blurred_from_white(shape, scale=1.0):
@@ -634,7 +616,7 @@ def test_correlated_tells_blurred_noise_from_white_noise_at_every_scale(scale):
 def test_correlated_reads_pairs_on_the_subgrid_of_a_large_leaf():
     """On a leaf with a sub-grid (stride 4 at 512x512) the pairs are texels 4i and 4i + 1:
     the same lag-1 correlation, from an eighth of the texels."""
-    assert auto.stride((512, 512, 1), (0, 1)) == 4
+    assert AUTO.stride((512, 512, 1), (0, 1)) == 4
     _tells_blurred_from_white((512, 512, 1))
 
 
@@ -645,7 +627,7 @@ def test_correlated_needs_the_difference_to_be_noise_not_the_signals_drift():
     signal = np.sin(3 * x)[:, None, None] * np.cos(2 * x)[None, :, None] * np.ones((1, 1, 3))
     drift = np.cos(5 * x)[:, None, None] * np.ones((1, 64, 3))
     lag = 1 - (1 - 0.2) / (1 - 0.2**5)  # z = lag (g - m_hat_{t-1})
-    small = 0.5 * math.sqrt(auto.NOISY) * lag * np.linalg.norm(signal) / np.linalg.norm(drift)
+    small = 0.5 * math.sqrt(AUTO.noisy) * lag * np.linalg.norm(signal) / np.linalg.norm(drift)
     assert not _correlated(signal + small * drift, signal)
     assert _correlated(signal + 4 * small * drift, signal)
 
@@ -655,9 +637,9 @@ def test_correlated_is_false_without_memory_a_first_step_or_a_gradient():
     blurred = _blurred(rng.normal(size=(32, 32, 1)), 1.5)
     g = jnp.asarray(blurred, jnp.float32)
     # First step: m = (1 - b1) g and c1 = 1 - b1, so g - m_hat = 0.
-    assert not bool(auto.correlated(g, 0.8 * g, b1=0.2, c1=0.8, axes=(0, 1)))
+    assert not bool(AUTO.correlated_noise(g, 0.8 * g, b1=0.2, c1=0.8, axes=(0, 1)))
     # b1 = 0: m_hat is g.
-    assert not bool(auto.correlated(g, g, b1=0.0, c1=1.0, axes=(0, 1)))
+    assert not bool(AUTO.correlated_noise(g, g, b1=0.0, c1=1.0, axes=(0, 1)))
     assert not _correlated(np.zeros((32, 32, 1)), np.zeros((32, 32, 1)))
     # Unobserved texels are left out: blurred noise only on a masked-out half counts for nothing.
     observed = jnp.asarray(np.arange(32)[:, None, None] < 16) * jnp.ones((1, 32, 1), bool)
@@ -679,13 +661,13 @@ def _correlated_problem(steps, **kwargs):
         noise = _blurred(rng.normal(size=SHAPE), 1.5)
         g = (x - target) + jnp.asarray(noise / noise.std(), jnp.float32)
         u, state = update(g, state, x)
-        flags.append(float(state[0].auto.correlated))
+        flags.append(float(filtered_state(state).sigma_state.correlated))
         x = x + u
     return flags, state, x
 
 
 def test_a_run_on_correlated_noise_switches_from_its_second_step_and_a_self_guided_one_never():
-    flags, _, _ = _correlated_problem(2 * auto.CHECK_PERIOD + 2)
+    flags, _, _ = _correlated_problem(2 * AUTO.check_period + 2)
     assert flags[0] == 0  # the first step has no noise estimate
     assert all(f == 1 for f in flags[1:])
     flags, _, _ = _correlated_problem(4, guide="self")  # self-guided: never heavier
@@ -696,20 +678,30 @@ def test_a_correlated_step_is_the_filter_at_heavy_factor_with_extra_levels_and_n
     """With ``AutoState.correlated`` set, the update is the one of ``levels + 1`` levels at
     ``HEAVY_FACTOR`` times sigma_d without the blend (clean and masked gradients alike)."""
     _, state, x = _correlated_problem(2)
-    heavy = state[0]._replace(auto=state[0].auto._replace(correlated=jnp.ones([])))
-    light = state[0]._replace(auto=state[0].auto._replace(correlated=jnp.zeros([])))
+    post = filtered_state(state)
+    heavy = with_filtered_state(
+        state, post._replace(sigma_state=post.sigma_state._replace(correlated=jnp.ones([])))
+    )
+    light = with_filtered_state(
+        state, post._replace(sigma_state=post.sigma_state._replace(correlated=jnp.zeros([])))
+    )
     g = jnp.asarray(_blurred(np.random.default_rng(3).normal(size=SHAPE), 1.5), jnp.float32)
     masked = g.at[3, 4].set(jnp.nan)
     opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
     # count 3: not a check step, so the reference's blend stays closed as well.
-    reference = ob.bilateral_adam(0.02, spatial_axes=(0, 1), levels=ob.DEFAULT_LEVELS + 1)
+    heavier = ob.auto_sigma(rate_factor=AUTO.rate_factor * AUTO.heavy_factor)
+    reference = ob.bilateral_adam(
+        0.02, sigma_d=heavier, spatial_axes=(0, 1), levels=ob.DEFAULT_LEVELS + 1
+    )
     for grad in (g, masked):
-        u, new = opt.update(grad, (heavy,) + tuple(state[1:]), x)
-        assert float(new[0].auto.correlated) == 1 and float(new[0].auto.gate) == 0
-        with _auto_constants(RATE_FACTOR=auto.RATE_FACTOR * auto.HEAVY_FACTOR):
-            u_ref, _ = reference.update(grad, (light,) + tuple(state[1:]), x)
+        u, new = opt.update(grad, heavy, x)
+        assert (
+            float(filtered_state(new).sigma_state.correlated) == 1
+            and float(filtered_state(new).sigma_state.gate) == 0
+        )
+        u_ref, _ = reference.update(grad, light, x)
         np.testing.assert_allclose(u, u_ref, rtol=1e-5, atol=1e-7)
         assert np.all(np.isfinite(np.asarray(u)))
-        u_light, _ = opt.update(grad, (light,) + tuple(state[1:]), x)
+        u_light, _ = opt.update(grad, light, x)
         assert np.max(np.abs(np.asarray(u_light) - np.asarray(u))) > 1e-3 * np.max(np.abs(u))
     assert float(u[3, 4, 0]) == 0  # the masked texel does not move

@@ -152,9 +152,9 @@ def test_targets_use_the_paired_ratios_when_the_rows_have_them():
 
 
 def test_auto_is_amortised_over_its_check_period():
-    from optax_bilateral._src import auto
+    import optax_bilateral as ob
 
-    period = auto.CHECK_PERIOD
+    period = ob.Auto().check_period
     # Round 2 is slow for every program; per round, one check and period - 1 skips.
     check, between, fixed = [3.0, 30.0, 3.0], [1.0, 10.0, 1.0], [1.0, 10.0, 0.5]
     per_round = [(c + (period - 1) * b) / (period * f) for c, b, f in zip(check, between, fixed)]
@@ -215,7 +215,7 @@ def test_processes_run_fresh_workers_and_write_their_measurements(tmp_path, monk
 
 
 def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
-    from experiments import ab_update
+    from tools import ab_update
 
     summary = ab_update.main(
         ["--quick", "--rev", "HEAD", "--shape", "16x16x1", "--levels", "1", "--out", str(tmp_path)]
@@ -231,7 +231,7 @@ def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
 
 
 def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
-    from experiments import profile_update
+    from tools import profile_update
 
     result = profile_update.main(
         ["--quick", "--shape", "16x16", "--levels", "2", "--log-guide", "--out", str(tmp_path)]
@@ -264,9 +264,9 @@ def test_bench_gpu_quick_times_both_kernels(tmp_path):
 
 
 def test_auto_cost_quick_times_auto_closed_and_open_against_a_fixed_sigma(tmp_path):
-    """``experiments.auto_cost --quick``: every ratio it reports is a positive finite number,
+    """``tools.auto_cost --quick``: every ratio it reports is a positive finite number,
     and the noisy-gradient run keeps ``"auto"``'s gate closed (its state says so)."""
-    from experiments import auto_cost
+    from tools import auto_cost
 
     rows = auto_cost.main(["--quick", "--out", str(tmp_path)])
     assert set(rows) == set(auto_cost.QUICK_GRIDS)
@@ -276,3 +276,57 @@ def test_auto_cost_quick_times_auto_closed_and_open_against_a_fixed_sigma(tmp_pa
             assert 0 < row[key] < float("inf")
     data = json.loads((tmp_path / "auto_cost.json").read_text())
     assert data["quick"] is True and "auto, gate open" in (tmp_path / "auto_cost.md").read_text()
+
+
+def test_bench_sharding_quick_writes_results_and_matches_single_device(tmp_path):
+    """``experiments.bench_sharding --quick`` on 8 virtual CPU devices (a fresh process: the
+    device count is fixed when jax starts): its files, and sharded updates equal to one
+    device's without gathering the grid."""
+    import os
+    import pathlib
+    import subprocess
+    import sys
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=8"
+    env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")])
+    code = (
+        "import json, sys; from experiments import bench_sharding as b; "
+        "s = b.main(['--quick', '--out', sys.argv[1]]); "
+        "print(json.dumps({'rows': s['rows'], 'channels': s['channels']}))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path)],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    files = {p.name for p in tmp_path.iterdir()}
+    assert {"summary.json", "table.md", "step_time.png"} <= files, files
+    rows = [x for x in r["rows"] if x["path"] != "unsharded"]
+    assert sorted({x["devices"] for x in rows}) == [1, 2, 4, 8]
+    for x in rows:  # float32 sums of the same terms in the same order: a few ulps
+        assert x["max_abs_diff"] <= 1e-5 and x["sharding_kept"] and x["step_ms"] > 0, x
+        assert x["all_gather_count"] == 0, x
+    assert r["channels"] and all(x["1 / 2 channels (paired)"] > 0 for x in r["channels"])
+
+
+def test_eager_wrappers_quick_counts_compilations_per_call(tmp_path):
+    """``tools.eager_wrappers --quick``: a bare or chained eager update compiles nothing after
+    its first call; optax's MultiSteps and apply_if_finite compile at every call, around
+    optax.adam as around bilateral_adam (docs/jit.md)."""
+    from tools import eager_wrappers
+
+    measured = eager_wrappers.main(["--quick", "--out", str(tmp_path)])
+    rows = {(r["optimizer"], r["wrapper"]): r for r in measured}
+    for inner in eager_wrappers.INNER:
+        for wrapper in ("bare", "chain"):
+            assert rows[inner, wrapper]["compilations per call"][1:] == [0]
+        for wrapper in ("MultiSteps", "apply_if_finite"):
+            assert rows[inner, wrapper]["compilations per call"][1:] == [1]
+    assert (tmp_path / "eager_wrappers.json").exists()

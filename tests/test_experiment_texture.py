@@ -1,10 +1,13 @@
-"""End to end: ``python -m experiments.texture --quick`` writes a valid summary and figures."""
+"""End to end: ``python -m experiments.texture --quick`` writes a valid summary and figures;
+the demo (``make demo``) and ``--full`` settings run the methods they name."""
 
+import inspect
 import json
 import math
 
 import pytest
 
+import optax_bilateral as ob
 from experiments import texture as E
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -42,6 +45,23 @@ def test_methods_are_configured_as_the_paper(quick_run):
     assert methods["bilateral"]["hyperparameters"]["guide"] == "self"
     assert methods["cross-bilateral"]["hyperparameters"]["guide"] == "params"
     assert methods["cross-bilateral"]["hyperparameters"]["log_guide"] is True
+    # The defaults run sets nothing but the learning rate and the layout, and reports the
+    # library's own defaults (sigma_d="auto" among them).
+    hp = methods["defaults"]["hyperparameters"]
+    defaults = inspect.signature(ob.bilateral_adam).parameters
+    assert hp["sigma_d"] == defaults["sigma_d"].default == "auto"
+    assert hp["spatial_axes"] == [0, 1]
+    for sweep in E.default_config(quick=True).sweeps["defaults"]:
+        assert set(sweep) == {"learning_rate"}
+
+
+def test_demo_shows_adam_the_defaults_and_the_tuned_filter():
+    demo = E.demo_config()
+    assert demo.methods == ("adam", "defaults", "cross-bilateral")
+    assert all(set(s) == {"learning_rate"} for s in demo.sweeps["defaults"])
+    assert len(demo.sweeps["adam"]) >= 3  # Adam at its best learning rate of a sweep
+    full = E.default_config()
+    assert full.methods == E.METHODS and full.size == 512 and full.iterations == 150
 
 
 def test_cross_bilateral_recovers_the_texture_better_than_adam(quick_run):
@@ -50,13 +70,15 @@ def test_cross_bilateral_recovers_the_texture_better_than_adam(quick_run):
     # test was written: cross-bilateral 0.020, Adam 0.067, initial 0.081, and the same
     # optimizer with the filter switched off (levels=0: Adam with b1 = 0.2) 0.049. The bounds
     # (half the initial error; 0.6x Adam's) leave room for numeric drift across XLA versions
-    # yet fail if the filter stops doing its work (0.049 breaks both).
+    # yet fail if the filter stops doing its work (0.049 breaks both). The defaults
+    # (sigma_d="auto", learning rate 0.02) measured 0.020.
     out, _, _ = quick_run
     data = json.loads((out / "summary.json").read_text())
     err = {m: data["methods"][m]["final_param_error"] for m in E.METHODS}
     initial = data["setting"]["initial_param_error"]
     assert err["cross-bilateral"] < 0.5 * initial, (err, initial)
     assert err["cross-bilateral"] < 0.6 * err["adam"], err
+    assert err["defaults"] < 0.6 * err["adam"], err
 
 
 def test_equal_wall_time_block_is_consistent(quick_run):

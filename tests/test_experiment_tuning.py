@@ -1,6 +1,7 @@
 """End to end: ``python -m experiments.tuning --quick`` writes a valid summary, table and figures,
 reuses its grid cache, and compares a plugged-in candidate."""
 
+import functools
 import json
 import math
 import pathlib
@@ -9,6 +10,8 @@ import shutil
 import numpy as np
 import pytest
 
+import docs_blocks
+import optax_bilateral as ob
 from experiments import scenes as sc
 from experiments import tuning as T
 
@@ -212,3 +215,30 @@ def test_bad_cli_arguments():
         T.load_candidates(["no_colon"])
     with pytest.raises(ValueError, match="taken"):
         T.load_candidates(["adam=experiments.tuning:adam_factory"])
+
+
+@pytest.mark.parametrize("name", ["api", "cost"])
+def test_docs_blocks_run_on_the_quick_scenes(name, quick_run, monkeypatch, tmp_path, capsys):
+    """docs/tuning.md's "From Python" and "Cost" blocks, verbatim, on the quick scenes; the
+    benchmark reads the quick run's grids (--reference) and writes into a temporary folder."""
+    out, _ = quick_run
+    make = sc.make
+    monkeypatch.setattr(sc, "make", lambda scene, quick=False: make(scene, True))
+    monkeypatch.setattr(
+        T,
+        "run_benchmark",
+        functools.partial(
+            T.run_benchmark, quick=True, reference=out / "reference_all.json", out=tmp_path
+        ),
+    )
+    factory = lambda learning_rate: ob.bilateral_adam(learning_rate, levels=3)
+    ns = {"ob": ob, "factory": factory}
+    exec(compile(docs_blocks.by("docs/tuning.md", name).code, f"docs/tuning.md:{name}", "exec"), ns)
+    if name == "api":
+        assert ns["errors"].shape == (4, 3) and np.isfinite(ns["errors"]).all()
+        assert ns["result"].family == "mine"
+        e = ns["summary"]["scenes"]["deblur"]
+        assert math.isfinite(e["methods"]["mine"]["error"])
+    else:
+        lines = capsys.readouterr().out.strip().splitlines()
+        assert [line.split()[0] for line in lines] == ["texture", "deblur", "signal1d"]

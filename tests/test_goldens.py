@@ -66,3 +66,42 @@ def test_transform_outputs_equal_the_goldens(cid):
             _compare(cid, variant, got)
         if SAME_TOOLCHAIN:
             assert goldens.digest(got) == DIGESTS[f"{cid}/{variant}"], f"{cid}/{variant}"
+
+
+TRAJECTORIES = np.load(goldens.TRAJECTORY_PATH)
+SAME_TRAJECTORY_TOOLCHAIN = str(TRAJECTORIES["toolchain"]) == goldens.toolchain()
+
+
+def _covered(kind, states):
+    """What the trajectory exercised: the rule's branches it must keep covering."""
+    post = [s[1] if kind == "auto-both" else s for s in states]
+    if kind == "sure":
+        chosen = {int(s.sigma_state[k].levels) for s in post for k in ("tex", "vol")}
+        return {
+            "several F chosen": len(chosen) > 1,
+            "opened": float(post[-1].sigma_state["tex"].opened) > 0,
+        }
+    gates = [float(s.sigma_state["tex"].gate) for s in post]
+    covered = {"heavier filter": any(float(s.sigma_state["vol"].correlated) > 0 for s in post)}
+    if kind == "auto":
+        covered["gate opened"] = max(gates) > 0.5
+        covered["gate closed again"] = gates[-1] == 0
+    return covered
+
+
+@pytest.mark.parametrize("kind", goldens.TRAJECTORIES)
+def test_sigma_rule_trajectories_equal_the_goldens(kind):
+    record, states = goldens._trajectory(kind)
+    assert all(_covered(kind, states).values()), _covered(kind, states)
+    want = {
+        k.split("/", 1)[1]: TRAJECTORIES[k] for k in TRAJECTORIES.files if k.startswith(f"{kind}/")
+    }
+    if SAME_TRAJECTORY_TOOLCHAIN:
+        bad = [t + 1 for t, (a, b) in enumerate(zip(record["digests"], want["digests"])) if a != b]
+        assert not bad, f"{kind}: the update differs in its bits from step {bad[0]} on"
+        assert record["state"] == want["state"], f"{kind}: the final state differs"
+    else:
+        # Another XLA rounds differently, and 30 steps of a data-driven rule amplify it: the
+        # first steps agree to rounding, the run as a whole to a few per cent.
+        np.testing.assert_allclose(record["sums"][:3], want["sums"][:3], rtol=1e-3)
+        np.testing.assert_allclose(record["sums"].sum(0), want["sums"].sum(0), rtol=5e-2)

@@ -11,7 +11,6 @@ Mitsuba this module is skipped with one line saying why, and fails under CI
 import json
 import math
 import pathlib
-import re
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +18,7 @@ import numpy as np
 import optax
 import pytest
 
+import docs_blocks
 import optax_bilateral as ob
 from mitsuba_env import fail_under_ci, require_mitsuba
 
@@ -448,7 +448,6 @@ def test_resized_parameter_and_bad_values_are_reported(tiny, mi):
 # ----------------------------------------------------------------------------- experiments, docs
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs" / "mitsuba.md"
 
 
 def _check_summary(out, module):
@@ -550,10 +549,7 @@ def test_timing_table_has_adam_and_both_filter_sizes(mi, tmp_path):
 
 
 def _docs_block(name):
-    text = DOCS.read_text()
-    m = re.search(rf"<!-- docs-test: {name} -->\s*```python\n(.*?)```", text, re.S)
-    assert m, f"docs/mitsuba.md has no '{name}' block"
-    return m.group(1)
+    return docs_blocks.by("docs/mitsuba.md", name).code
 
 
 @pytest.fixture
@@ -575,20 +571,22 @@ def _run_block(ns, name):
     exec(compile(_docs_block(name), f"docs/mitsuba.md:{name}", "exec"), ns)
 
 
-def test_docs_loop_runs_verbatim(docs_setup):
-    import optax_bilateral as ob
-
+def test_docs_loop_runs_verbatim_and_resumes(docs_setup):
     ns = docs_setup
     _run_block(ns, "loop")
-    saved = ob.load_state(
-        "checkpoint.npz", {"state": ns["opt"].init(), "values": ns["opt"].values()}
-    )
     key = "plane.bsdf.alpha.data"
-    np.testing.assert_array_equal(
-        np.asarray(saved["values"][key]), np.asarray(ns["opt"].values()[key])
-    )
+    values = np.asarray(ns["opt"].values()[key])
     err = float(ns["problem"].param_errors(ns["opt"].values())["param_error"])
     assert err < ns["err0"]
+    # The resume block brings back the values and the state the loop saved, over a fresh
+    # state and other values.
+    state_at_save = ns["state"]
+    ns["state"] = ns["opt"].init()
+    ns["opt"].set_values({key: np.full_like(values, 0.3)})
+    _run_block(ns, "loop-resume")
+    np.testing.assert_array_equal(np.asarray(ns["opt"].values()[key]), values)
+    for a, b in zip(jax.tree.leaves(ns["state"]), jax.tree.leaves(state_at_save)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_docs_one_line_swap_runs_verbatim_and_resumes(docs_setup):

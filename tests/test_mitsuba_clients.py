@@ -13,11 +13,11 @@ module is skipped with one line saying why, and fails under CI (tests/mitsuba_en
 import json
 import math
 import pathlib
-import re
 
 import numpy as np
 import pytest
 
+import docs_blocks
 from mitsuba_env import fail_under_ci, require_mitsuba
 
 MI = require_mitsuba()  # skips this module without a usable Mitsuba; None under CI
@@ -133,13 +133,11 @@ def test_docs_mesh_block_runs_verbatim(mi, monkeypatch):
     # Its names mi and dr come from the docs' setup block, which runs in tests/test_mitsuba.py.
     from experiments import mitsuba_mesh
 
-    docs = pathlib.Path(__file__).resolve().parents[1] / "docs" / "mitsuba.md"
-    block = re.search(r"<!-- docs-test: mesh -->\s*```python\n(.*?)```", docs.read_text(), re.S)
-    assert block, "docs/mitsuba.md has no 'mesh' block"
+    block = docs_blocks.by("docs/mitsuba.md", "mesh").code
     quick = mitsuba_mesh.default_config(quick=True)
     monkeypatch.setattr(mitsuba_mesh, "default_config", lambda quick_=False: quick)
     ns = {"mi": mi, "dr": __import__("drjit")}
-    exec(compile(block.group(1), "docs/mitsuba.md:mesh", "exec"), ns)
+    exec(compile(block, "docs/mitsuba.md:mesh", "exec"), ns)
     opt, key, problem = ns["opt"], ns["key"], ns["problem"]
     moved = np.array(opt[key]).reshape(-1, 3)
     assert opt.state[key][3].count == quick.iterations

@@ -1,5 +1,6 @@
 """What is installed: only the library, typed, with its license and one version."""
 
+import datetime
 import importlib.metadata
 import pathlib
 import re
@@ -7,6 +8,7 @@ import subprocess
 import sys
 import zipfile
 
+import check_min_versions
 import optax_bilateral as ob
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -55,3 +57,35 @@ def test_license_is_the_apache_2_text():
     text = (ROOT / "LICENSE").read_text()
     assert "Apache License" in text and "Version 2.0, January 2004" in text
     assert "END OF TERMS AND CONDITIONS" in text
+
+
+def test_the_declared_lower_bounds_are_the_pinned_minimum_versions():
+    # make test-min runs the core tests with constraints-min.txt's pins: they must be the
+    # lower bounds pyproject.toml declares (jaxlib: jax's own, which jax requires exactly).
+    pinned = check_min_versions.pins(ROOT / "constraints-min.txt")
+    text = (ROOT / "pyproject.toml").read_text()
+    block = re.search(r"^dependencies = \[(.*?)\]", text, re.M | re.S).group(1)
+    bounds = dict(re.findall(r'"([\w\-]+)>=([\d.]+)"', block))
+    assert set(bounds) == {"jax", "optax", "numpy"}
+    for name, bound in bounds.items():
+        assert pinned[name].split(".")[: len(bound.split("."))] == bound.split("."), name
+    assert pinned["jaxlib"] == pinned["jax"]
+    assert check_min_versions.oldest_python() == (3, 11)
+
+
+def test_the_release_is_dated_in_the_changelog_and_names_its_urls():
+    version = _pyproject_version()
+    releases = re.findall(
+        r"^## (\d+\.\d+\.\d+) — (\d{4}-\d{2}-\d{2})$", (ROOT / "CHANGELOG.md").read_text(), re.M
+    )
+    assert releases and releases[0][0] == version, releases
+    datetime.date.fromisoformat(releases[0][1])
+    meta = importlib.metadata.metadata("optax_bilateral")
+    urls = dict(u.split(", ", 1) for u in meta.get_all("Project-URL"))
+    assert {"Documentation", "Source", "Changelog"} <= set(urls)
+    assert all(u.startswith("https://") for u in urls.values()), urls
+    assert urls["Changelog"].startswith(urls["Source"] + "/")
+    assert urls["Changelog"].endswith("/CHANGELOG.md")
+    classifiers = meta.get_all("Classifier")
+    assert "Programming Language :: Python :: 3.11" in classifiers
+    assert meta["Requires-Python"] == ">=3.11"

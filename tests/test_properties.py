@@ -21,6 +21,7 @@ import optax
 from hypothesis import given
 from hypothesis import strategies as st
 
+import jax_compat
 import optax_bilateral as ob
 
 SIGMAS = st.one_of(st.sampled_from([0.0, 1e-30, 1e30, math.inf]), st.floats(1e-3, 1e3))
@@ -30,7 +31,7 @@ GRADIENTS = st.one_of(st.floats(-3, 3), st.sampled_from([*EXTREMES, math.nan, ma
 
 def _x64(dtype: str):
     """float64 needs JAX's 64-bit mode, for the compile and every call."""
-    return jax.enable_x64(True) if dtype == "float64" else contextlib.nullcontext()
+    return jax_compat.enable_x64(True) if dtype == "float64" else contextlib.nullcontext()
 
 
 def _cast(x: np.ndarray, dtype: str) -> np.ndarray:
@@ -133,15 +134,14 @@ UPDATE_CONFIGS = [
 @functools.cache
 def _update(shape, dtype, separable):
     """One compiled update per configuration; sigma_d is traced (set per example)."""
-    opt = optax.inject_hyperparams(ob.bilateral_adam, static_args=("levels", "separable"))(
-        learning_rate=LR,
-        b1=B1,
-        b2=B2,
-        sigma_d=0.3,
-        levels=2,
-        separable=separable,
-        spatial_axes=(0, 1),
-    )
+
+    def postfilter(learning_rate, b1, b2, sigma_d):
+        post = ob.postfilter(
+            b1, b2, sigma_d=sigma_d, levels=2, separable=separable, spatial_axes=(0, 1)
+        )
+        return optax.chain(post, optax.scale_by_learning_rate(learning_rate))
+
+    opt = optax.inject_hyperparams(postfilter)(learning_rate=LR, b1=B1, b2=B2, sigma_d=0.3)
     return opt, jax.jit(opt.update)
 
 

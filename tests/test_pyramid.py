@@ -132,7 +132,7 @@ def test_equals_adam_on_the_coefficients():
 def test_constant_gradient_steps_levels_times_lr():
     """Adam's first step is -lr sign(g) on every coefficient; upsampling keeps constants, so the
     grid moves by levels * lr (the levels add up)."""
-    opt = ob.pyramid_adam(0.01, 4)
+    opt = ob.pyramid_adam(0.01, 4, spatial_axes=(0, 1))
     params = jnp.zeros((16, 16))
     u, _ = jax.jit(opt.update)(jnp.ones((16, 16)), opt.init(params), params)
     np.testing.assert_allclose(np.asarray(u), -0.04, rtol=1e-5)

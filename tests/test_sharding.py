@@ -44,8 +44,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     from jax.sharding import PartitionSpec as P
 
     import optax_bilateral as ob
-    from experiments import bench_sharding as bench
-    from experiments import collectives
+    from tools import collectives
 
     assert jax.device_count() == 8, jax.device_count()
     records = []
@@ -168,17 +167,25 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     def make(names, sep, levels, masked):
         # masked: mask_unobserved=True, one code path (no lax.cond): halves the compile.
         kw = dict(sigma_d=0.2, levels=levels, separable=sep)
+
+        def filtered(learning_rate, sigma_d, levels, separable, mask_unobserved):
+            """bilateral_adam's chain with the postfilter's knobs, prefilter + postfilter."""
+            knobs = dict(levels=levels, separable=separable, mask_unobserved=mask_unobserved)
+            return optax.chain(
+                ob.prefilter(sigma_d, **knobs),
+                ob.postfilter(0.2, sigma_d=sigma_d, **knobs),
+                optax.scale_by_learning_rate(learning_rate),
+            )
+
         adam = optax.inject_hyperparams(
-            ob.bilateral_adam, static_args=("levels", "separable", "prefilter", "mask_unobserved")
+            filtered, static_args=("levels", "separable", "mask_unobserved")
         )
         txs = {
             "prefilter": lambda: ob.prefilter(mask_unobserved=masked, **kw),
             "postfilter": lambda: ob.postfilter(mask_unobserved=masked, **kw),
             "scale_by_adam": ob.scale_by_adam,
             # sigma_d traced (a hyperparameter in the state), prefilter + postfilter.
-            "bilateral_adam": lambda: adam(
-                learning_rate=0.1, prefilter=True, mask_unobserved=masked, **kw
-            ),
+            "bilateral_adam": lambda: adam(learning_rate=0.1, mask_unobserved=masked, **kw),
         }
         return {n: txs[n]() for n in names}
 
@@ -253,19 +260,19 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         p = jax.tree.map(lambda a, b: a - 0.01 * jnp.nan_to_num(b), p, g)
         g = jax.tree.map(lambda b, a: 0.5 * b + jnp.sin(7 * a), g, p)
         u, state = tx.update(g, state, p)
-        autos = jax.tree.leaves(state[0].auto, is_leaf=is_sure)
+        autos = jax.tree.leaves(state, is_leaf=is_sure)
         return u, [a.sigma_d for a in autos if is_sure(a)]
+
+    def kept_guide(tx, p):
+        state = optax.tree.get(jax.eval_shape(tx.init, p), "PostfilterState")
+        return list(state.sigma_state["tex"].previous_guide.shape)
 
     device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
     keys = ("tex", "bias")
-    from optax_bilateral._src import auto, step
-
-    auto_min_texels = auto.MIN_TEXELS
-    for sigma_d in ("auto", "sure", "auto, sub-grid"):
-        if sigma_d == "auto, sub-grid":  # the 16x16 texture as a large leaf: stride 4
-            auto.MIN_TEXELS = 16
-            step.leaf_step.clear_cache()  # compiled per rule, not per module constant
-        tx = ob.bilateral_adam(0.01, sigma_d=sigma_d.removesuffix(", sub-grid"), levels=2)
+    subgrid = ob.auto_sigma(min_texels=16)  # the 16x16 texture as a large leaf: stride 4
+    rules = {"auto": "auto", "sure": "sure", "auto, sub-grid": subgrid}
+    for sigma_d, rule in rules.items():
+        tx = ob.bilateral_adam(0.01, sigma_d=rule, levels=2)
         fn = jax.jit(functools.partial(two_steps, tx))
         ref = fn(subset(grads, keys), subset(params, keys))
         g_s, p_s = put(grads, device_mesh, keys), put(params, device_mesh, keys)
@@ -277,30 +284,20 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             sigma_diff=max_diff(out[1], ref[1]),
             sigma=[float(x) for x in out[1]],
             sharding_kept=out[0]["tex"].sharding.is_equivalent_to(p_s["tex"].sharding, 3),
-            kept_shape=list(jax.eval_shape(tx.init, p_s)[0].auto["tex"].previous_guide.shape),
+            kept_shape=kept_guide(tx, p_s),
         )
+
     # A closed gate's check on the sub-grid (stride 4 here), sharded and on one device.
-    gate = jax.jit(
-        functools.partial(
-            auto.gate, b1=0.9, c1=jnp.asarray(1.0), c2=jnp.asarray(1.0), count=jnp.asarray(8)
-        ),
-        static_argnames="axes",
-    )
+    def gate_of(m, v, residual, axes):
+        stats = dict(b1=0.9, c1=jnp.asarray(1.0), c2=jnp.asarray(1.0), count=jnp.asarray(8))
+        return subgrid.weights(m, v, residual, axes=axes, **stats)[1]
+
+    gate = jax.jit(gate_of, static_argnames="axes")
     gates = [
         float(gate(m, m * m + 0.1, 0.12 * jnp.sin(9 * m), axes=(0, 1)))  # half open
         for m in (params["tex"], p_s["tex"])
     ]
     emit(check="subgrid_gate", gates=gates)
-    auto.MIN_TEXELS = auto_min_texels
-    step.leaf_step.clear_cache()
-
-    # --- The benchmark's quick run (also checks its own results).
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as tmp:
-        summary = bench.main(["--quick", "--out", tmp])
-        files = sorted(os.listdir(tmp))
-    emit(check="bench", files=files, rows=summary["rows"], channels=summary["channels"])
 
 
 # ----------------------------------------------------------------------------------------
@@ -387,11 +384,12 @@ def test_transforms_keep_parameter_sharding():
 def test_shard_map_route_gathers_nothing():
     for r in _checks("transforms"):
         if r["route"] == "shard_map":
-            # Halos by collective-permute; all-reduces only of the scalar "all texels
-            # observed?" predicate of the non-finite fast path.
+            # Halos by collective-permute; all-reduces only of scalars: the "all texels
+            # observed?" predicate of the non-finite fast path and the state's count of
+            # non-finite entries (XLA may combine a few into one all-reduce).
             assert set(r["kinds"]) <= {"collective-permute", "all-reduce"}, r
             assert "collective-permute" in r["kinds"], r
-            assert r["all_reduce_max_bytes"] <= 8, r
+            assert r["all_reduce_max_bytes"] <= 32, r
 
 
 def test_auto_and_sure_sigma_equal_single_device():
@@ -406,34 +404,5 @@ def test_auto_and_sure_sigma_equal_single_device():
     assert sure["sigma_diff"] <= TOL * max(sure["sigma"]) and len(sure["sigma"]) == 1, sure
 
 
-def test_bench_quick_writes_results_and_matches_single_device():
-    (r,) = _checks("bench")
-    assert {"summary.json", "table.md", "step_time.png"} <= set(r["files"]), r["files"]
-    rows = [x for x in r["rows"] if x["path"] != "unsharded"]
-    assert sorted({x["devices"] for x in rows}) == [1, 2, 4, 8]
-    for x in rows:
-        assert x["max_abs_diff"] <= TOL and x["sharding_kept"] and x["step_ms"] > 0, x
-        assert x["all_gather_count"] == 0, x
-    assert r["channels"] and all(x["1 / 2 channels (paired)"] > 0 for x in r["channels"])
-
-
 if __name__ == "__main__":
     _child()
-
-
-def test_docs_multi_device_example_runs_as_documented():
-    # docs/sharding.md's runnable example, verbatim, in a fresh process (it sets its own XLA_FLAGS).
-    import re
-
-    page = (ROOT / "docs" / "sharding.md").read_text()
-    code = re.search(r"```python\n(.*?)```", page, re.S).group(1)
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    proc = subprocess.run(
-        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    specs, error = proc.stdout.strip().splitlines()[-2:]
-    assert specs == "P('x', 'y', None) P('x', 'y', None)", specs
-    # The page states 0.0068 from 0.20: the filtered run must recover the texture.
-    assert float(error) < 0.01, error

@@ -1,17 +1,13 @@
-"""The lowered update programs and the public API equal their snapshots (tests/snapshots.py).
+"""The public API equals its snapshot (tests/snapshots.py), and the normalisation of the
+opt-in HLO check (``python tests/snapshots.py --check``) drops names and locations only.
 
 An intentional change re-records them (``python tests/snapshots.py``) in the same commit
 and says why in its message.
 """
 
 import difflib
-import json
-
-import pytest
 
 import snapshots
-
-HLO = json.loads(snapshots.HLO_PATH.read_text())
 
 
 def test_normalisation_drops_names_and_locations_only():
@@ -25,19 +21,6 @@ def test_normalisation_drops_names_and_locations_only():
     assert snapshots.normalise_hlo(a) == snapshots.normalise_hlo(b)
     c = a.replace("tensor<f32>) -> tensor<f32> loc", "tensor<f32>) -> tensor<f64> loc")
     assert snapshots.normalise_hlo(a) != snapshots.normalise_hlo(c)
-
-
-@pytest.mark.parametrize("name", list(snapshots.HLO_CASES))
-def test_lowered_update_is_unchanged(name):
-    assert HLO["toolchain"] == snapshots.toolchain(), (
-        f"the hashes were recorded with {HLO['toolchain']}, this is {snapshots.toolchain()}: "
-        "lowering differs between versions; re-record with `python tests/snapshots.py` at a "
-        "commit whose programs are known good"
-    )
-    assert snapshots.hlo_hash(*snapshots.HLO_CASES[name]) == HLO["hashes"][name], (
-        f"the lowered {name} update changed; if intended (e.g. a measured speed-up), re-record "
-        "with `python tests/snapshots.py` and say why in the commit message"
-    )
 
 
 def test_public_api_is_unchanged():

@@ -15,7 +15,9 @@ import optax
 import pytest
 
 import optax_bilateral as ob
-from optax_bilateral._src import sure
+from states import filtered_state
+
+SURE = ob.Sure()
 
 SHAPE = (16, 16, 3)
 AXES = (0, 1)
@@ -34,15 +36,15 @@ def _choice(mean, noise, guide, probe=None, seed=0):
     zeta = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32) if probe is None else n
     guide, scale = jnp.asarray(guide, jnp.float32), jnp.asarray(0.1, jnp.float32)
     filter_at = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
-    cands = sure.candidates(
+    cands = SURE.candidates(
         (m, zeta),
         LEVELS,
         scale,
         lambda x, s, n, k: filter_at(x, sigma_d=s, levels=n, first_level=k),
     )
-    m_f, pick, _ = sure.choose(m, zeta, cands, 1.0, jnp.asarray(True), None, sure.first(LEVELS))
+    m_f, pick, _ = SURE.choose(m, zeta, cands, 1.0, jnp.asarray(True), None, SURE.first(LEVELS))
     np.testing.assert_array_equal(m_f, cands[int(pick)][0])
-    sigma_d, levels = sure.labels(LEVELS, scale)
+    sigma_d, levels = SURE.labels(LEVELS, scale)
     return round(float(sigma_d[pick] / scale), 3), int(levels[pick])
 
 
@@ -57,16 +59,16 @@ def test_the_risk_estimate_filters_noise_and_keeps_detail():
     checker = ((i + j) % 2 * 2.0 - 1.0)[..., None]
     assert _choice(checker, noise=1e-3, guide=np.zeros((32, 32)))[1] == 2
     # The same mean as the guide: the smallest sigma_d stops at every edge and keeps it.
-    assert _choice(checker, noise=1e-3, guide=checker[..., 0])[0] == sure.FACTORS[0]
+    assert _choice(checker, noise=1e-3, guide=checker[..., 0])[0] == SURE.factors[0]
 
 
 def test_the_first_step_takes_the_middle_factor_at_the_middle_level():
     m = jnp.ones((8, 8, 1))
-    cands = [(m * k, m * 0) for k in range(len(sure.FACTORS) * 4)]
-    first = sure.first(LEVELS)
-    m_f, pick, risks = sure.choose(m, m * 0, cands, 1.0, False, None, first)
-    sigma_d, levels = sure.labels(LEVELS, jnp.asarray(0.5))
-    assert int(pick) == first and float(sigma_d[pick]) == sure.FIRST_FACTOR * 0.5
+    cands = [(m * k, m * 0) for k in range(len(SURE.factors) * 4)]
+    first = SURE.first(LEVELS)
+    m_f, pick, risks = SURE.choose(m, m * 0, cands, 1.0, False, None, first)
+    sigma_d, levels = SURE.labels(LEVELS, jnp.asarray(0.5))
+    assert int(pick) == first and float(sigma_d[pick]) == SURE.first_factor * 0.5
     assert int(levels[pick]) == 4
     np.testing.assert_array_equal(m_f, cands[first][0])
     np.testing.assert_array_equal(risks, np.zeros(len(cands)))  # no evidence yet
@@ -75,7 +77,7 @@ def test_the_first_step_takes_the_middle_factor_at_the_middle_level():
 def _bias_candidates(m):
     """Candidates ``(k m, 0)``: with a zero noise sample the risk of k is ``(1 - k)^2 |m|^2``,
     least for k = 1."""
-    return [(m * k, m * 0) for k in range(len(sure.FACTORS) * 4)]
+    return [(m * k, m * 0) for k in range(len(SURE.factors) * 4)]
 
 
 def test_the_choice_follows_the_moving_average_of_the_risks():
@@ -86,13 +88,13 @@ def test_the_choice_follows_the_moving_average_of_the_risks():
     risks = jnp.zeros(len(cands)).at[3].set(-1.0)
     picks = []
     for _ in range(40):
-        _, pick, risks = sure.choose(m, m * 0, cands, 1.0, True, None, 0, risks)
+        _, pick, risks = SURE.choose(m, m * 0, cands, 1.0, True, None, 0, risks)
         picks.append(int(pick))
     assert picks[0] == 3 and picks[-1] == 1, picks
     switch = picks.index(1)
     assert all(p == 3 for p in picks[:switch]) and all(p == 1 for p in picks[switch:])
     # Steps without a usable noise sample leave the average as it is.
-    _, pick, kept = sure.choose(m, m * 0, cands, 1.0, False, None, 0, risks)
+    _, pick, kept = SURE.choose(m, m * 0, cands, 1.0, False, None, 0, risks)
     np.testing.assert_array_equal(kept, risks)
     assert int(pick) == 0
 
@@ -103,19 +105,19 @@ def test_once_opened_the_mildest_candidate_is_taken():
     m = jnp.asarray(np.random.default_rng(0).normal(size=(32, 32, 1)), jnp.float32)
     guide = jnp.zeros((32, 32), jnp.float32)
     filter_at = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
-    cands = sure.candidates(
+    cands = SURE.candidates(
         (m, m), LEVELS, 0.1, lambda x, s, n, k: filter_at(x, sigma_d=s, levels=n, first_level=k)
     )
-    first = sure.first(LEVELS)
+    first = SURE.first(LEVELS)
 
     def pick(usable, opened):
         u = jnp.asarray(usable)
-        m_f, p, _ = sure.choose(m, m, cands, 1.0, u, None, first, None, jnp.asarray(opened))
+        m_f, p, _ = SURE.choose(m, m, cands, 1.0, u, None, first, None, jnp.asarray(opened))
         np.testing.assert_array_equal(m_f, cands[int(p)][0])
         return int(p)
 
     # All noise, and a constant guide (every factor filters alike): the deepest F.
-    assert int(sure.labels(LEVELS, 0.1)[1][pick(True, 0.0)]) == LEVELS
+    assert int(SURE.labels(LEVELS, 0.1)[1][pick(True, 0.0)]) == LEVELS
     assert pick(True, 1.0) == 0
     assert pick(False, 1.0) == first
 
@@ -134,7 +136,7 @@ def _run_sure(steps, target, noise, then=None, seed=0):
         g = (x - tg) + nz * jnp.asarray(rng.normal(size=x.shape), jnp.float32)
         u, state = update(g, state, x)
         step = 0.0 if previous is None else 3 * float(jnp.mean(jnp.abs(x - previous)))
-        s = state[0].auto
+        s = filtered_state(state).sigma_state
         out.append((float(s.opened), int(s.levels), float(s.sigma_d), step))
         previous, x = x, x + u
     return out
@@ -150,11 +152,11 @@ def test_the_gate_opens_on_an_iid_target_and_the_choice_stays_mild(iid_and_smoot
     assert steps[0][0] == 0 and all(o == 1 for o, *_ in steps[1:])
     for _, levels, sigma_d, scale in steps[2:]:
         assert levels == 2
-        assert sigma_d == pytest.approx(sure.FACTORS[0] * scale, rel=1e-4)
+        assert sigma_d == pytest.approx(SURE.factors[0] * scale, rel=1e-4)
     never = _run_sure(30, smooth, 0.3)
     assert all(o == 0 for o, *_ in never)
     # ... and there the choice is free: a larger factor or a deeper F at some step.
-    assert any(lev > 2 or sig > 1.5 * sure.FACTORS[0] * sc for _, lev, sig, sc in never[2:])
+    assert any(lev > 2 or sig > 1.5 * SURE.factors[0] * sc for _, lev, sig, sc in never[2:])
 
 
 @pytest.mark.parametrize("c", [1e-6, 1e-3, 1.0, 1e3, 1e6])
@@ -162,11 +164,11 @@ def test_every_step_casts_one_vote_whatever_the_gradients_scale(c):
     # Each step's risks are divided by their largest magnitude: the average does not let
     # the large early gradients outweigh the small late ones.
     m = jnp.linspace(0.5, 1.5, 64, dtype=jnp.float32).reshape(8, 8, 1)
-    _, _, unit = sure.choose(m, m * 0, _bias_candidates(m), 1.0, True, None, 0)
+    _, _, unit = SURE.choose(m, m * 0, _bias_candidates(m), 1.0, True, None, 0)
     mc = m * jnp.float32(c)
-    _, _, scaled = sure.choose(mc, mc * 0, _bias_candidates(mc), 1.0, True, None, 0)
+    _, _, scaled = SURE.choose(mc, mc * 0, _bias_candidates(mc), 1.0, True, None, 0)
     np.testing.assert_allclose(scaled, unit, rtol=1e-5)
-    assert float(jnp.max(jnp.abs(unit))) == pytest.approx(1 - sure.RISK_DECAY)
+    assert float(jnp.max(jnp.abs(unit))) == pytest.approx(1 - SURE.risk_decay)
 
 
 def test_an_overflowing_risk_votes_against_its_candidate():
@@ -174,18 +176,18 @@ def test_an_overflowing_risk_votes_against_its_candidate():
     cands = _bias_candidates(m)
     cands[1] = (m * jnp.inf, m * 0)  # the otherwise least risk, now inf
     cands[2] = (m * jnp.nan, m * 0)
-    _, pick, risks = sure.choose(m, m * 0, cands, 1.0, True, None, 0)
+    _, pick, risks = SURE.choose(m, m * 0, cands, 1.0, True, None, 0)
     assert int(pick) == 0 and np.all(np.isfinite(risks))
-    assert float(risks[1]) == float(risks[2]) == pytest.approx(2 * (1 - sure.RISK_DECAY))
+    assert float(risks[1]) == float(risks[2]) == pytest.approx(2 * (1 - SURE.risk_decay))
 
 
 @pytest.mark.parametrize("levels, choices", [(1, (1,)), (2, (2,)), (5, (2, 3, 4, 5))])
 def test_the_candidates_are_every_factor_at_every_level_from_two(levels, choices):
-    assert sure.level_choices(levels) == choices
-    sigma_d, f = sure.labels(levels, jnp.asarray(2.0))
-    expected = [(k * 2.0, n) for k in sure.FACTORS for n in choices]
+    assert SURE.level_choices(levels) == choices
+    sigma_d, f = SURE.labels(levels, jnp.asarray(2.0))
+    expected = [(k * 2.0, n) for k in SURE.factors for n in choices]
     assert [(float(s), int(n)) for s, n in zip(sigma_d, f)] == expected
-    assert int(f[sure.first(levels)]) == choices[len(choices) // 2]
+    assert int(f[SURE.first(levels)]) == choices[len(choices) // 2]
 
 
 def test_each_candidate_is_the_filter_at_its_labels():
@@ -195,10 +197,10 @@ def test_each_candidate_is_the_filter_at_its_labels():
     x = jnp.asarray(rng.normal(size=(24, 20, 2)), jnp.float32)
     guide, scale = jnp.asarray(rng.random((24, 20)), jnp.float32), jnp.asarray(0.2, jnp.float32)
     filt = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
-    cands = sure.candidates(
+    cands = SURE.candidates(
         x, 4, scale, lambda y, s, n, k: filt(y, sigma_d=s, levels=n, first_level=k)
     )
-    sigma_d, levels = sure.labels(4, scale)
+    sigma_d, levels = SURE.labels(4, scale)
     assert len(cands) == len(sigma_d)
     for c, s, n in zip(cands, sigma_d, levels):
         np.testing.assert_allclose(c, filt(x, sigma_d=s, levels=int(n)), atol=1e-6)
@@ -234,16 +236,16 @@ def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
     p_adam, _ = run(adam, 60)
     err = float(jnp.mean(jnp.abs(p["tex"] - target)))
     assert err < 0.9 * float(jnp.mean(jnp.abs(p_adam["tex"] - target))), err
-    post = state[0]
-    assert post.auto["light"] is None
-    tex = post.auto["tex"]
+    post = filtered_state(state)
+    assert post.sigma_state["light"] is None  # not filtered: Adam's rule
+    tex = post.sigma_state["tex"]
     assert isinstance(tex, ob.SureState) and tex.residual.shape == target.shape
     assert float(tex.sigma_d) > 0  # the noise dominates: it filtered
-    assert int(tex.levels) in sure.level_choices(ob.SURE_LEVELS)
+    assert int(tex.levels) in SURE.level_choices(ob.SURE_LEVELS)
     # The chosen F is the label of the least averaged risk.
-    assert tex.risks.shape == (sure.count(ob.SURE_LEVELS),)
+    assert tex.risks.shape == (SURE.count(ob.SURE_LEVELS),)
     best = int(jnp.argmin(tex.risks))
-    assert int(tex.levels) == int(sure.labels(ob.SURE_LEVELS, jnp.asarray(1.0))[1][best])
+    assert int(tex.levels) == int(SURE.labels(ob.SURE_LEVELS, jnp.asarray(1.0))[1][best])
     path = tmp_path / "state.npz"
     ob.save_state(path, state)
     restored = ob.load_state(path, opt.init(params))
@@ -260,7 +262,7 @@ def test_an_unobserved_texel_keeps_its_last_gradient_for_the_noise_sample():
     g2 = g2.at[2, 3].set(0.0)  # unobserved this step
     _, state = opt.update(g1, opt.init(x), x)
     _, state = opt.update(g2, state, x + 0.01)
-    kept = np.asarray(state[0].auto.previous_gradient)
+    kept = np.asarray(filtered_state(state).sigma_state.previous_gradient)
     np.testing.assert_array_equal(kept[2, 3], g1[2, 3])
     np.testing.assert_array_equal(
         np.delete(kept.reshape(64, 2), 19, 0), np.delete(np.asarray(g2).reshape(64, 2), 19, 0)
@@ -272,7 +274,7 @@ def test_a_sure_leaf_defaults_to_sure_levels_and_the_others_keep_default_levels(
     params = {"tex": jnp.full((16, 16, 3), 0.5), "other": jnp.full((16, 16, 3), 0.5)}
     opt = ob.bilateral_adam(0.05, sigma_d={"tex": "sure", "other": 0.1}, levels=levels)
     state = opt.init(params)
-    assert state[0].auto["tex"].risks.shape == (sure.count(expected),)
+    assert filtered_state(state).sigma_state["tex"].risks.shape == (SURE.count(expected),)
     # The leaf with a number filters exactly as with levels=3 (or the levels given).
     alone = ob.bilateral_adam(0.05, sigma_d=0.1, levels=levels or ob.DEFAULT_LEVELS)
     rng = np.random.default_rng(0)

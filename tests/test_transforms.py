@@ -1,6 +1,7 @@
 """The Optax transforms: Adam equivalence, the paper's equations, composition and interop."""
 
 import functools
+import inspect
 import warnings
 
 import jax
@@ -83,7 +84,7 @@ def test_bilateral_adam_levels_zero_equals_optax_adam(prefilter):
 
 def test_default_b2_is_one_minus_squared():
     params = jnp.zeros((6, 6))
-    a = ob.bilateral_adam(0.1, b1=0.2, levels=0)
+    a = optax.chain(ob.postfilter(0.2, levels=0), optax.scale_by_learning_rate(0.1))
     b = optax.adam(0.1, 0.2, 1 - 0.8**2)
     _, _, t1 = _run(a, params, 5)
     _, _, t2 = _run(b, params, 5)
@@ -267,8 +268,9 @@ def test_default_leaf_rule():
     rule = lambda *shape: ob.default_spatial_axes(jnp.zeros(shape))
     assert rule() == () and rule(5) == ()
     assert rule(16, 12, 3) == (0, 1) and rule(5, 6, 4) == (0, 1)  # (H, W, C): textures
-    assert rule(16, 12) == (0, 1)  # (H, W), both sides > 4
+    assert rule(16, 12) == () and rule(784, 128) == ()  # (H, W), or weights: Adam's
     assert rule(4, 8) == () and rule(8, 4) == ()  # weight matrices
+    assert rule(1024) == () and rule(64, 3) == ()  # 1-D signals, or weights: Adam's
     assert rule(3, 16, 16) == ()  # (C, H, W)
     assert rule(16, 16, 16) == ()  # scalar (D, H, W) volume
     assert rule(8, 9, 10, 1) == (0, 1, 2)  # (D, H, W, C) volume
@@ -279,12 +281,16 @@ def test_default_leaf_rule():
 @pytest.mark.parametrize(
     "shape,axes,advice",
     [
-        ((4, 8), (), "spatial_axes=(0, 1)"),
-        ((8, 4), (), "spatial_axes=(0, 1)"),
-        ((24, 20), (0, 1), "spatial_axes=()"),
+        ((1024,), (), "spatial_axes=(0,)"),
+        ((16,), (), "spatial_axes=(0,)"),
+        ((24, 20), (), "spatial_axes=(0, 1)"),
+        ((784, 128), (), "spatial_axes=(0, 1)"),
+        ((8, 8), (), "spatial_axes=(0, 1)"),
+        ((64, 3), (), "spatial_axes=(0,)"),
+        ((2, 100), (), "spatial_axes=(1,)"),
         ((3, 16, 16), (), "spatial_axes=(1, 2)"),
         ((16, 16, 16), (), "spatial_axes=(0, 1, 2)"),
-        ((16, 8, 8, 3), (0, 1, 2), "spatial_axes=(1, 2)"),
+        ((2, 16, 16, 16, 3), (), "spatial_axes"),
     ],
 )
 def test_ambiguous_leaves_warn_once_naming_the_leaf_and_the_setting(shape, axes, advice):
@@ -304,6 +310,35 @@ def test_ambiguous_leaves_warn_once_naming_the_leaf_and_the_setting(shape, axes,
         ob.bilateral_adam(0.1, levels=1, spatial_axes={name: axes, "tex": (0, 1), "b": ()}).init(
             {**params, name: jnp.ones(shape)}
         )
+
+
+@pytest.mark.parametrize(
+    "shape,axes",
+    [
+        ((), ()),
+        ((15,), ()),
+        ((4, 8), ()),
+        ((8, 4), ()),
+        ((3, 3, 3), ()),
+        ((8, 8, 3), (0, 1)),
+        ((16, 8, 8, 3), (0, 1, 2)),
+        ((5, 5, 5, 1), (0, 1, 2)),
+    ],
+)
+def test_leaves_that_read_one_way_are_decided_silently(shape, axes):
+    params = {"leaf": jnp.zeros(shape)}
+    assert ob.filtered_axes(params) == {"['leaf']": axes}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ob.LeafRuleWarning)
+        ob.bilateral_adam(0.1, levels=1).init(params)
+
+
+def test_the_leaf_rule_warning_points_at_the_users_line_through_optax_wrappers():
+    opt = optax.MultiSteps(optax.chain(optax.clip(1.0), ob.bilateral_adam(0.1)), 2)
+    with pytest.warns(ob.LeafRuleWarning) as record:
+        line = inspect.currentframe().f_lineno + 1
+        opt.init({"stacklevel_probe": jnp.zeros((40, 40))})
+    assert (record[0].filename, record[0].lineno) == (__file__, line)
 
 
 def test_filtered_axes_resolves_prefixes_callables_and_levels():
@@ -332,12 +367,13 @@ def test_filtered_axes_resolves_prefixes_callables_and_levels():
         lambda: ob.bilateral_adam(0.1, levels=0),
     ],
 )
-def test_complex_parameters_are_refused_with_a_message_that_says_complex(make):
-    # Refused rather than supported: the filter's weights and the bounded step (supplement
-    # 1.3) are defined for real fields; the message says how to optimise such a leaf.
+def test_complex_parameters_are_taken_and_the_raw_filter_refuses_complex_fields(make):
+    # The transforms take complex leaves through their real view (tests/test_complex.py);
+    # atrous_bilateral, which has no such view, refuses complex fields and guides.
     params = {"tex": jnp.zeros((8, 8, 2), jnp.complex64), "s": jnp.zeros(())}
-    with pytest.raises(TypeError, match=r"\['tex'\] is complex \(complex64\).*real and imaginary"):
-        make().init(params)
+    state = make().init(params)
+    dtypes = {x.dtype for x in jax.tree.leaves(state)}
+    assert dtypes <= {jnp.dtype(jnp.complex64), jnp.dtype(jnp.float32), jnp.dtype(jnp.int32)}
     with pytest.raises(TypeError, match="complex"):
         ob.atrous_bilateral(
             jnp.zeros((8, 8), jnp.complex64),
@@ -460,31 +496,38 @@ def test_nonfinite_texel_does_not_poison_neighbours_or_state(bad):
     np.testing.assert_allclose(np.asarray(u), np.asarray(u_m), rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("sigma_d", [0.1, "auto"])
 @pytest.mark.parametrize("prefilter", [False, True])
-def test_finite_gradients_build_no_observation_mask(prefilter):
-    """The unobserved-texel masks belong to the masked branch: a finite step must not
-    pay for them (a cond's closed-over values are computed before it, every step)."""
-    theta = jax.random.uniform(KEY, (16, 16, 3))
-    opt = ob.bilateral_adam(0.1, sigma_d=0.1, levels=2, prefilter=prefilter)
+def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d):
+    """Clean and unobserved texels take one path (a NaN guide leaves the unobserved out), so
+    a fixed sigma_d's update holds one cascade of F levels per transform: no second copy in a
+    branch, which would double the compile time. ``"auto"``'s postfilter holds one cascade for
+    every way it may filter (``Auto.combine``: plain and blending differ after it), plus, in
+    2-D, the correlated-noise step's one more level; its statistics run no filter level."""
+    theta = jax.random.uniform(KEY, (64, 64, 3))  # large enough for every level's offsets
+    opt = ob.bilateral_adam(0.1, sigma_d=sigma_d, levels=3, prefilter=prefilter)
     jaxpr = jax.make_jaxpr(opt.update)(_grads(0, theta), opt.init(theta), theta).jaxpr
 
-    def top_level_prims(jx):
-        """Primitives that run on every call: everything but the cond branches."""
+    def filters(jx):
+        """The levels of every atrous_bilateral call traced into the update."""
         out = []
         for eqn in jx.eqns:
-            out.append(eqn.primitive.name)
-            if eqn.primitive.name == "cond":
-                continue  # the branches: only one of them runs
+            if eqn.params.get("name") == "_filter_jit":
+                out.append(eqn.params["jaxpr"].jaxpr)
+                continue
             for v in eqn.params.values():
                 for sub in v if isinstance(v, (tuple, list)) else (v,):
                     sub = getattr(sub, "jaxpr", sub)
                     if hasattr(sub, "eqns"):
-                        out += top_level_prims(sub)
+                        out += filters(sub)
         return out
 
-    prims = top_level_prims(jaxpr)
-    assert "cond" in prims
-    assert "is_finite" not in prims
+    exps = [str(f).count(" exp ") for f in filters(jaxpr)]  # the weights of every level
+    cascade = 8  # F = 3, two axes: the weights of 2 pairs per pass, shared between levels
+    if sigma_d == 0.1:
+        assert exps == [cascade] * (1 + prefilter), exps
+    else:  # the extra level: one pass per axis, 2 pairs each
+        assert exps == [cascade] * (1 + prefilter) + [4], exps
 
 
 # --- Interop ------------------------------------------------------------------------------
@@ -494,7 +537,7 @@ def test_finite_gradients_build_no_observation_mask(prefilter):
 def test_eager_update_compiles_nothing_after_the_first_call(kind):
     """Without jax.jit around it, an update must reuse its compiled programs (it recompiled a
     lax.cond every call: 1-3 s per step); and it equals the jitted update."""
-    from experiments.common import CompileCounter
+    from tools.compiles import CompileCounter
 
     opt = {
         "bilateral_adam": ob.bilateral_adam(0.1, levels=2),
@@ -620,10 +663,10 @@ def test_vmap_over_independent_problems():
 @pytest.mark.parametrize("separable", [True, False])
 @pytest.mark.parametrize("guide_kind", ["spatial", "channels", "integer"])
 def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kind):
-    # The transforms leave unobserved texels out of the sums with a NaN guide there (one
-    # program for both branches of their lax.cond); at observed texels that must equal
-    # atrous_bilateral's mask. An integer guide has no NaN: it falls back to the mask.
-    from optax_bilateral._src import step
+    # The transforms leave unobserved texels out of the sums with a NaN guide there (it costs
+    # the kernel nothing); at observed texels that must equal atrous_bilateral's mask. An
+    # integer guide has no NaN: it falls back to the mask.
+    from optax_bilateral._src import operators
 
     k1, k2, k3 = jax.random.split(KEY, 3)
     m = jax.random.normal(k1, (9, 7, 3))
@@ -634,20 +677,9 @@ def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kin
         "integer": jax.random.randint(k2, (9, 7), 0, 3),
     }[guide_kind]
     obs = jax.random.uniform(k3, (9, 7)) > 0.3
-    assert (step.nan_guide_at(guide, obs, (0, 1)) is None) == (guide_kind == "integer")
-    rule = step.LeafRule(
-        stage="postfilter",
-        axes=(0, 1),
-        levels=2,
-        separable=separable,
-        self_guided=False,
-        log_guide=False,
-        mask_unobserved=False,
-        limit=1.0,
-        guard_sigma=False,
-        constants=(("sigma_d", 0.2),),
-    )
-    out = step.filter_fields(rule, (m, v), guide, {}, obs)
+    assert (operators.nan_guide_at(guide, obs, (0, 1)) is None) == (guide_kind == "integer")
+    plan = operators.FilterPlan((0, 1), 2, separable, self_guided=False, log_guide=False)
+    out = operators.operator(plan, guide, obs).apply((m, v), 0.2)
     ref = atrous_bilateral(
         (m, v), guide, sigma_d=0.2, levels=2, spatial_axes=(0, 1), separable=separable, mask=obs
     )

@@ -60,7 +60,9 @@ else:
     REFERENCE_SPP, EVAL_SPP = 256, 64
 LR = 0.02  # every filtered run (and F = 0)
 B1 = 0.2
-SIGMA_D = 0.1  # "ours" in Figs. 4-5: the library default
+AXES = (0, 1)  # the texture is one (H, W) channel: filter it along both axes
+STATIC = ("levels", "spatial_axes")  # settings, not injected hyperparameters
+SIGMA_D = 0.1  # "ours" in Figs. 4-5: the paper's sigma_d (the library's default is "auto")
 SIGMA_D_SELF = 1.0  # the bilateral (self-guided) filter, log-domain moments
 print(
     f"quick={QUICK}: {SIZE}^2 texels, {ITERATIONS} iterations, F grid {LEVELS_GRID}, "
@@ -87,23 +89,39 @@ sigma_schedule = optax.exponential_decay(
 grid_names = {F: f"F={F}" for F in LEVELS_GRID}
 METHODS = {
     "Adam": nu.Method(inject(optax.adam)(learning_rate=ADAM_LRS[0]), {"learning_rate": ADAM_LRS}),
-    "F=0 (Adam, b1=0.2)": inject(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=LR, b1=B1, levels=0
+    "F=0 (Adam, b1=0.2)": inject(ob.bilateral_adam, static_args=STATIC)(
+        learning_rate=LR, b1=B1, levels=0, spatial_axes=AXES
     ),
     **{
         grid_names[F]: nu.Method(
-            inject(ob.bilateral_adam, static_args=("levels",))(
-                learning_rate=LR, b1=B1, sigma_d=SIGMAS[0], levels=F, log_guide=True
+            inject(ob.bilateral_adam, static_args=STATIC)(
+                learning_rate=LR,
+                b1=B1,
+                sigma_d=SIGMAS[0],
+                levels=F,
+                log_guide=True,
+                spatial_axes=AXES,
             ),
             {"sigma_d": SIGMAS},
         )
         for F in LEVELS_GRID
     },
-    "bilateral (self-guided)": inject(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=LR, b1=B1, sigma_d=SIGMA_D_SELF, levels=F_MAIN, guide="self", log_guide=True
+    "bilateral (self-guided)": inject(ob.bilateral_adam, static_args=STATIC)(
+        learning_rate=LR,
+        b1=B1,
+        sigma_d=SIGMA_D_SELF,
+        levels=F_MAIN,
+        guide="self",
+        log_guide=True,
+        spatial_axes=AXES,
     ),
-    "sigma_d schedule": inject(ob.bilateral_adam, static_args=("levels",))(
-        learning_rate=LR, b1=B1, sigma_d=sigma_schedule, levels=F_MAIN, log_guide=True
+    "sigma_d schedule": inject(ob.bilateral_adam, static_args=STATIC)(
+        learning_rate=LR,
+        b1=B1,
+        sigma_d=sigma_schedule,
+        levels=F_MAIN,
+        log_guide=True,
+        spatial_axes=AXES,
     ),
 }
 

@@ -71,7 +71,9 @@ print(
 # %%
 def filtered(**kw):
     def factory(learning_rate):
-        return ob.bilateral_adam(learning_rate, b1=B1, b2=B2, levels=LEVELS, log_guide=True, **kw)
+        return ob.bilateral_adam(
+            learning_rate, b1=B1, b2=B2, levels=LEVELS, log_guide=True, spatial_axes=(0, 1), **kw
+        )
 
     return factory
 
@@ -214,10 +216,11 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 # scene the larger steps did not hurt its final error.
 #
 # How often the self-guided filter breaks the bound depends on its σ_d. A second full-size run
-# the same day (`SIGMA_D_SELF = 2`, the best of `python -m experiments.texture`'s bilateral sweep
-# 0.5 / 1 / 2 / 4 / 8 on this scene; 1718 s, load 10–16; this page shows the σ_d = 1 run) gave
-# the same rows for Adam, prefilter, postfilter and both, a self-guided error of **0.00787** at
-# lr 0.04 (the lowest of all, image loss 0.026), and **65 of 1050** steps over the bound, up to
+# the same day (`SIGMA_D_SELF = 2`, the best of the bilateral sweep 0.5 / 1 / 2 / 4 / 8 of
+# `python -m experiments.texture --full` on this scene; 1718 s, load 10–16; this page shows
+# the σ_d = 1 run) gave the same rows for Adam, prefilter, postfilter and both, a self-guided
+# error of **0.00787** at lr 0.04 (the lowest of all, image loss 0.026), and **65 of 1050**
+# steps over the bound, up to
 # 1.88 (1.77 `c_t`). The drop from 1050 to 65 comes from the larger σ_d, not from the re-guiding:
 # at equal σ_d = 1, the re-guided filter breaks the bound more often than the fixed-guide variant
 # did (1050 vs 944 of 1050 steps, up to 7.82 vs 3.71; the run below).

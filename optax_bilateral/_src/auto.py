@@ -1,88 +1,60 @@
 """``sigma_d="auto"``: the data term's scale, and how much to filter, chosen from the data.
 
-Three parts, derived in docs/auto_sigma.md and measured by ``python -m experiments.tuning``:
+Three parts, derived in docs/auto_sigma.md and measured by ``python -m experiments.tuning``;
+their constants are the fields of :class:`Auto` (``"auto"`` is ``Auto()``):
 
 * **The scale.** In a postfilter, one learning rate in the guide's units:
   ``sigma_d = sqrt(C) mean_p ||guide_t[p] - guide_{t-1}[p]|| / mean_p ||d_{t-1}[p]||``
-  (``C`` channels per texel, ``d`` the postfilter's last output ``m~ / (sqrt(v~) + eps)``):
-  a guide difference that one step at the learning rate could make or undo is noise the
-  optimiser is still moving through; larger ones are edges. It scales with the guide and
-  follows the learning rate and its schedule, so it needs no unit. A prefilter, which does
-  not see the step it leads to, uses ``STEP_FACTOR`` times the mean guide step instead.
-  Before the guide has moved (the first step) the guide's mean neighbour difference
-  stands in (``CONTRAST_FACTOR`` times it). On a leaf of more than ``MIN_TEXELS`` texels
-  both means run over a strided sub-grid of at least that many (``stride``), and only
-  that sub-grid of the guide is kept: such a mean is known to a fraction of a percent,
-  and copying and reading the whole guide is memory traffic the update is bound by.
-* **The blend** (postfilter with moments only). The filter's bias accumulates over steps,
-  its noise reduction does not: texels where the residual ``r = m_hat - B m_hat`` persists
-  over time beyond what the moments' noise (supplement eq. 24, ``v - m^2``) explains keep
-  more of their unfiltered moments, ``m~ = lam m_hat + (1 - lam) B m_hat`` and likewise
-  ``v``. ``lam`` is per entry and the same for ``m`` and ``v``, so ``m~`` and ``v~`` come
-  from one non-negative, row-stochastic operator and the step stays bounded
-  (supplement §1.3). A leaf blends only where persistent residuals are widespread
-  (``GATE``): a few texels with large ``lam`` early on are noise in the estimate itself.
-  While a leaf's gate is closed, it is checked only every ``CHECK_PERIOD``-th step, from
-  the sub-grid's entries (:func:`gate`), and the blend starts at the step after it opens
-  (the residual's average is kept every step): on most leaves of most problems the gate
-  stays closed, and the statistics are the blend's dearest part (docs/auto_sigma.md,
-  "Cost"; :func:`stage`).
-* **Correlated noise** (postfilter with moments, cross-guided). Where the gradient's noise
-  is spatially correlated (the transposed blur of a sparse residual: deconvolution or
-  tomography from random subsets), neighbouring texels share their noise and the finest
-  levels average little of it. Where the lag-1 correlation of ``g - m_hat`` between
-  neighbours is at least ``CORRELATED`` and that difference is noise, not the signal's
-  drift (``NOISY``; :func:`correlated`), the step filters at ``HEAVY_FACTOR`` times
-  sigma_d with :func:`extra_levels` more levels, and without the blend. The check runs at
-  the second step and every ``CHECK_PERIOD``-th, and holds until the next
-  (``AutoState.correlated``).
+  (``C`` channels per texel, ``d`` the postfilter's last output ``m~ / (sqrt(v~) + eps)``).
+  A prefilter, which does not see the step it leads to, uses ``step_factor`` times the mean
+  guide step instead. Before the guide has moved (the first step) ``contrast_factor`` times
+  the guide's mean deviation from its local average stands in. On a leaf of more than
+  ``min_texels`` texels both means run over a strided sub-grid of at least that many
+  (:meth:`Auto.stride`), and only that sub-grid of the guide is kept.
+* **The blend** (postfilter with moments). Texels where the residual ``r = m_hat - B m_hat``
+  persists over time beyond what the moments' noise (supplement eq. 24, ``v - m^2``)
+  explains keep more of their unfiltered moments, ``m~ = lam m_hat + (1 - lam) B m_hat`` and
+  likewise ``v``, with one ``lam`` for both, so the step stays bounded (supplement §1.3). A
+  leaf blends only where persistent residuals are widespread (``gate``); while its gate is
+  closed it is checked only every ``check_period``-th step, from the sub-grid
+  (:func:`blend_phase`).
+* **Correlated noise** (postfilter with moments, cross-guided). Where the lag-1 correlation
+  of ``g - m_hat`` between neighbours is at least ``correlated`` and that difference is
+  noise, not the signal's drift (``noisy``), the step filters at ``heavy_factor`` times
+  sigma_d with :func:`extra_levels` more levels, and without the blend. The check runs at the
+  second step and every ``check_period``-th, and holds until the next.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+from numbers import Real
 from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
-from optax_bilateral._src import layout, sharded
+from optax_bilateral._src import layout, numerics, sharded
+from optax_bilateral._src.bilateral import log_transform
 from optax_bilateral._src.filter import atrous_bilateral
+from optax_bilateral._src.sigma import Filtered, SigmaRule
+from optax_bilateral._src.validation import check_integer, check_number
 
-AUTO = "auto"
-RATE_FACTOR = 1.0  # postfilter: sigma_d per learning rate (in guide units) per sqrt(channel)
-STEP_FACTOR = 3.0  # prefilter and "sure": sigma_d per mean guide step
-CONTRAST_FACTOR = 1.5  # sigma_d per mean deviation from the local average (~ neighbour difference)
-RESIDUAL_DECAY = 0.97  # the residual's EMA (~33 steps: a bias below one step's noise shows)
-GAIN = 0.25  # lam = 0 until the persistent residual exceeds 1/GAIN times its noise floor
-POWER = 2.0
-GATE = (0.5, 0.65)  # mean lam of a leaf below GATE[0]: no blend; above GATE[1]: full blend
-CHECK_PERIOD = 8  # a closed gate is re-checked every 8th step: a quarter of the residual's EMA
-MIN_TEXELS = 16384  # a larger leaf's scale is a mean over a strided sub-grid of >= this many texels
-CORRELATED = math.exp(-0.25)  # lag-1 correlation of Gaussian-correlated noise one texel wide
-NOISY = 0.25  # g - m_hat_{t-1} has >= 1/4 of m_hat's energy (pure noise: 2.5 at b1 = 0.2)
-HEAVY_FACTOR = 3.0  # sigma_d per learning rate where the gradient's noise is correlated
+SKIP, CHECK, BLEND = 0, 1, 2  # what a postfilter step computes of the blend (blend_phase)
 
 
 class AutoState(NamedTuple):
     """One leaf's state for ``sigma_d="auto"`` (in :class:`PrefilterState` and
-    :class:`PostfilterState`).
-
-    ``sigma_d`` is, in a postfilter, one learning rate in the guide's units: the mean change
-    of the guide per step over the mean norm of the step's direction, times ``sqrt(C)``
-    for ``C`` channels per texel (in a prefilter, 3 times the mean change of the guide per
-    step; before the guide moves: 1.5 times its mean deviation from the local average),
-    and the postfilter blends
-    ``lam m_hat + (1 - lam) B m_hat`` (likewise ``v``, the same ``lam``) where the filter's
-    residual persists beyond the moments' noise ``v - m^2`` (docs/auto_sigma.md).
+    :class:`PostfilterState`, field ``sigma_state``).
 
     Attributes:
-      previous_guide: the guide the last update saw, with the guide's shape (the
-        parameter leaf's, or a callable guide's), or on a leaf of more than
-        ``MIN_TEXELS`` (16384) texels its sub-grid (every ``s``-th texel along each
-        spatial axis, :func:`stride`); None for ``guide="self"``.
+      previous_guide: the guide the last update saw, with the guide's shape, or on a leaf of
+        more than ``min_texels`` (16384) texels its sub-grid (every ``s``-th texel along each
+        spatial axis, :meth:`Auto.stride`); None for ``guide="self"``.
       residual: the exponential moving average (decay 0.97) of ``m_hat - B m_hat``, with
         the leaf's shape; None in a :func:`prefilter` or a memoryless postfilter (no
         moments).
@@ -91,19 +63,19 @@ class AutoState(NamedTuple):
         :func:`prefilter`.
       gate: how far the blend was open at the last step (a scalar in [0, 1]; 0 at a step
         that skipped the blend's statistics); None where ``residual`` is. While it is 0,
-        it is checked only every ``CHECK_PERIOD`` (8) steps, from a sub-grid of the leaf,
-        and a gate that opens there blends from the next step (:func:`stage`).
+        it is checked only every ``check_period`` (8) steps, from a sub-grid of the leaf,
+        and a gate that opens there blends from the next step (:func:`blend_phase`).
       correlated: 1 where the gradient's noise was spatially correlated at the last check
-        (:func:`correlated`; the second step and every ``CHECK_PERIOD``-th), else 0 (a
-        scalar): until the next check the postfilter filters at ``HEAVY_FACTOR`` times sigma_d with
-        :func:`extra_levels` more levels and without the blend. None where ``residual``
-        is.
+        (:meth:`Auto.correlated`; the second step and every ``check_period``-th), else 0
+        (a scalar): until the next check the postfilter filters at ``heavy_factor`` times
+        sigma_d with :func:`extra_levels` more levels and without the blend. None where
+        ``residual`` is.
 
     Example::
 
         >>> import jax.numpy as jnp, optax_bilateral as ob
         >>> state = ob.postfilter().init({"tex": jnp.ones((16, 16, 3))})   # sigma_d="auto"
-        >>> auto = state.auto["tex"]
+        >>> auto = state.sigma_state["tex"]
         >>> type(auto).__name__, auto.previous_guide.shape, auto.residual.shape
         ('AutoState', (16, 16, 3), (16, 16, 3))
         >>> float(auto.direction), float(auto.gate), float(auto.correlated)
@@ -117,8 +89,325 @@ class AutoState(NamedTuple):
     correlated: jax.Array | None = None
 
 
-def is_auto(sigma_d: Any) -> bool:
-    return isinstance(sigma_d, str) and sigma_d == AUTO
+@jax.tree_util.register_static
+@dataclasses.dataclass(frozen=True)
+class Auto(SigmaRule):
+    """``sigma_d="auto"`` with its constants as fields (``"auto"`` is ``Auto()``, which
+    :func:`optax_bilateral.auto_sigma` builds with other values; docs/auto_sigma.md derives
+    each and measures it).
+
+    Attributes:
+      rate_factor: postfilter: sigma_d per learning rate (in guide units) per sqrt(channel).
+      step_factor: prefilter (and ``"sure"``'s scale): sigma_d per mean guide step.
+      contrast_factor: sigma_d per mean deviation of the guide from its local average (the
+        first step, or a guide at rest).
+      residual_decay: the residual's moving average (~33 steps: a bias below one step's
+        noise shows).
+      gain: ``lam = 0`` until the persistent residual exceeds ``1 / gain`` times its noise.
+      power: ``lam``'s exponent.
+      gate: a leaf's mean ``lam`` below ``gate[0]``: no blend; above ``gate[1]``: full blend.
+      check_period: a closed gate (and the correlation) is checked every this many steps.
+      min_texels: a larger leaf's statistics run over a strided sub-grid of at least this
+        many texels.
+      correlated: the lag-1 correlation of the noise between neighbours at and above which it
+        counts as spatially correlated (exp(-1/4): Gaussian noise one texel wide).
+      noisy: ``g - m_hat_{t-1}`` must carry at least this share of ``m_hat``'s energy for
+        the correlation to be the noise's, not the signal's.
+      heavy_factor: sigma_d per learning rate where the gradient's noise is correlated.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax_bilateral as ob
+        >>> rule = ob.auto_sigma(check_period=4)         # the gate's check every 4th step
+        >>> rule.stride((512, 512, 3), (0, 1))   # a 512x512 leaf's statistics: every 4th texel
+        4
+        >>> opt = ob.bilateral_adam(0.02, sigma_d=rule)
+    """
+
+    rate_factor: float = 1.0
+    step_factor: float = 3.0
+    contrast_factor: float = 1.5
+    residual_decay: float = 0.97
+    gain: float = 0.25
+    power: float = 2.0
+    gate: tuple[float, float] = (0.5, 0.65)
+    check_period: int = 8
+    min_texels: int = 16384
+    correlated: float = math.exp(-0.25)
+    noisy: float = 0.25
+    heavy_factor: float = 3.0
+
+    def __post_init__(self):
+        for name in ("rate_factor", "step_factor", "contrast_factor", "gain", "power"):
+            check_number(self, name, low=0, low_open=True)
+        check_number(self, "heavy_factor", low=0, low_open=True)
+        check_number(self, "residual_decay", low=0, high=1, high_open=True)
+        check_number(self, "correlated", low=0, high=1, low_open=True)
+        check_number(self, "noisy", low=0)
+        check_integer(self, "check_period", low=1)
+        check_integer(self, "min_texels", low=1)
+        gate = self.gate
+        if not (
+            isinstance(gate, tuple)
+            and len(gate) == 2
+            and all(isinstance(x, Real) for x in gate)
+            and 0 <= gate[0] < gate[1] <= 1
+        ):
+            raise ValueError(
+                "gate must be a tuple (low, high) of numbers with 0 <= low < high <= 1, "
+                f"got {gate!r}"
+            )
+
+    # ------------------------------------------------------------------ the rule's steps
+
+    def init(self, leaf, guide, plan, kind):
+        dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
+        previous_guide = None
+        if guide is not None:
+            previous_guide = numerics.zeros(self.kept_guide(jnp.asarray(guide), plan.axes))
+        # Every field its own buffer: a state that holds one twice cannot be donated.
+        scalar = functools.partial(jnp.zeros, [], dtype)
+        direction = None if kind == "prefilter" else scalar()
+        if kind != "postfilter":
+            return AutoState(previous_guide, None, direction, None, None)
+        residual = jnp.zeros(jnp.shape(leaf), dtype)
+        return AutoState(previous_guide, residual, direction, scalar(), scalar())
+
+    def sigma(self, guide, plan, state, ctx):
+        if guide is None:  # self-guided: each field's own contrast
+            return functools.partial(self._own_contrast, plan=plan), state
+        sigma = self.scale(guide, state.previous_guide, ctx.count, plan.axes, state.direction)
+        keep = self.kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
+        return sigma, state._replace(previous_guide=keep)
+
+    def combine(self, moments, op, sigma, state, ctx):
+        if state.residual is None or not (op.plan.filter_m and op.plan.filter_v):
+            return super().combine(moments, op, sigma, state, ctx)
+        axes = op.plan.axes
+        phase = self.blend_phase(state.gate, ctx.count)
+        heavy, learned = jnp.zeros([], bool), {}
+        if op.plan.one_operator:  # self-guided: each field's own sigma_d, never heavier
+            learned["correlated"] = self._check_correlation(moments, axes, state, ctx)
+            heavy = state.correlated > 0
+            sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
+        # One cascade for both ways: the ways differ only in the blend after it.
+        m_f, v_f = self._cascade(op, moments, sigma, heavy)
+        learned["residual"] = residual = self.update_residual(
+            moments.m, m_f, state.residual, ctx.c1, moments.observed
+        )
+        statistics = dict(b1=ctx.b1, c1=ctx.c1, c2=ctx.c2, count=ctx.count, axes=axes)
+        weights = functools.partial(self.weights, moments.m, moments.v, residual, **statistics)
+        zero = functools.partial(jnp.zeros, [], moments.m.dtype)
+
+        def plain():  # no blend; at a CHECK step the gate's check alone
+            check = (phase == CHECK) & ~heavy
+            gate = lax.cond(check, lambda: weights()[1], zero)
+            return Filtered(m_f, v_f, None, _replace_cast(state, dict(learned, gate=gate)))
+
+        def blended():
+            lam, gate = weights()
+            lam = self.upsample(lam, moments.m.shape, axes)
+            return Filtered(m_f, v_f, lam, _replace_cast(state, dict(learned, gate=gate)))
+
+        return ((phase == BLEND) & ~heavy).astype(jnp.int32), (plain, blended)
+
+    def _cascade(self, op, moments, sigma, heavy):
+        """``(B m, B v)`` at ``sigma``; where the noise is correlated (``heavy``, a traced
+        bool), :func:`extra_levels` more levels after the plan's F."""
+        out = op.apply((moments.m, moments.v), sigma)
+        extra = extra_levels(op.plan.axes) if op.plan.one_operator else 0
+        if not extra:
+            return out
+        levels = op.plan.levels
+        more = lambda: op.apply(out, sigma, levels=levels + extra, first_level=levels)
+        return lax.cond(heavy, more, lambda: out)
+
+    def after_step(self, d, state, plan):
+        if state is None or state.direction is None:
+            return state
+        return _replace_cast(state, {"direction": direction_norm(d, plan.axes, self)})
+
+    # ------------------------------------------------------------------ the parts
+
+    def _own_contrast(self, field, plan):
+        guide = log_transform(field) if plan.log_guide else field
+        return self.contrast_factor * self.contrast(guide, plan.axes)
+
+    def contrast(self, guide, axes):
+        """:func:`contrast` over the sub-grid of a large leaf (:meth:`stride`)."""
+        stride = self.stride(guide.shape, _guide_axes(guide, axes))
+        return contrast(guide, axes, stride)
+
+    def _check_correlation(self, moments, axes, state, ctx):
+        """The new :attr:`AutoState.correlated`: :meth:`correlated` at the second step (the
+        first with a noise estimate) and every ``check_period``-th, else the stored one."""
+        m = moments.m
+
+        def check():
+            now = self.correlated_noise(
+                moments.g, m, b1=ctx.b1, c1=ctx.c1, axes=axes, observed=moments.observed
+            )
+            return now.astype(m.dtype)
+
+        stored = lambda: state.correlated.astype(m.dtype)
+        count = ctx.count
+        return lax.cond((count == 2) | (count % self.check_period == 0), check, stored)
+
+    # ------------------------------------------------------------------ statistics
+
+    def stride(self, shape: tuple[int, ...], axes: tuple[int, ...]) -> int:
+        """The sub-grid's stride along every spatial axis: the largest power of two that
+        leaves at least ``min_texels`` texels (1 for a leaf with fewer)."""
+        s = 1
+        while math.prod(-(-shape[a] // (2 * s)) for a in axes) >= self.min_texels:
+            s *= 2
+        return s
+
+    def subgrid(self, x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+        """Every ``stride``-th texel of ``x`` along each of its spatial ``axes``."""
+        s = self.stride(x.shape, axes)
+        if s == 1:
+            return x
+        return x[tuple(slice(None, None, s) if a in axes else slice(None) for a in range(x.ndim))]
+
+    def kept_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+        """What :attr:`AutoState.previous_guide` keeps of a guide: its sub-grid."""
+        return self.subgrid(guide, _guide_axes(guide, axes))
+
+    def scale(self, guide, previous, count, axes, direction=None) -> jax.Array:
+        """The leaf's sigma_d at step ``count`` (1 = first); ``direction`` (a postfilter's
+        :attr:`AutoState.direction`) or None for the prefilter's and ``"sure"``'s step scale."""
+        if previous is None:
+            return self.contrast_factor * self.contrast(guide, axes)
+        guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
+        guide_axes = _guide_axes(guide, axes)
+        now = self.subgrid(guide, guide_axes)
+        step = _finite_mean(_texel_norm(now - previous.astype(guide.dtype), guide_axes))
+        moved = (count > 1) & (step > 0)
+        if direction is None:
+            scale = self.step_factor * step
+        else:
+            channels = math.prod(n for a, n in enumerate(guide.shape) if a not in guide_axes)
+            rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
+            scale = self.rate_factor * math.sqrt(channels) * rate
+            moved = moved & (direction > 0)
+        # The contrast costs a filter pass; only the first step (or a guide at rest) needs it.
+        return lax.cond(
+            moved,
+            lambda: scale,
+            lambda: (self.contrast_factor * self.contrast(guide, axes)).astype(step.dtype),
+        )
+
+    def correlated_noise(self, g, m, *, b1, c1, axes, observed=None) -> jax.Array:
+        """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
+        between neighbours of ``z = g - m_hat`` (``m`` the updated first moment, ``c1`` its
+        bias correction), averaged over the spatial ``axes``, is at least ``correlated``, and
+        ``z`` is noise: ``z = (1 - (1 - b1) / c1) (g - m_hat_{t-1})``, whose energy is at
+        least ``noisy`` times ``m_hat``'s. Sums run over the sub-grid and the ``observed``
+        entries (a leaf-shaped mask); False at the first step or with ``b1 = 0``."""
+        dtype = jnp.promote_types(m.dtype, jnp.float32)
+        c1 = jnp.asarray(c1, dtype)
+        m_hat = m.astype(dtype) / c1
+        z = g.astype(dtype) - m_hat
+        if observed is not None:
+            z, m_hat = jnp.where(observed, z, 0), jnp.where(observed, m_hat, 0)
+        corr = [_lag_correlation(*self._neighbours(z, axes, a)) for a in axes if g.shape[a] > 1]
+        if not corr:
+            return jnp.zeros([], bool)
+        lag = 1 - (1 - jnp.asarray(b1, dtype)) / c1
+        noise = jnp.sum(jnp.square(self.subgrid(z, axes)))
+        signal = jnp.sum(jnp.square(self.subgrid(m_hat, axes)))
+        return (jnp.mean(jnp.stack(corr)) >= self.correlated) & (
+            noise > self.noisy * lag * lag * signal
+        )
+
+    def _neighbours(self, x, axes, axis) -> tuple[jax.Array, jax.Array]:
+        """``x[p]`` and ``x[p + 1 along axis]`` for every ``p`` on the sub-grid (every even
+        ``p`` along ``axis`` where the stride is 1). Pairs from a reshape, not shifted
+        slices, which a grid sharded along ``axis`` cannot take."""
+        s = self.stride(x.shape, axes)
+        x = x[
+            tuple(
+                slice(None, None, s) if a in axes and a != axis else slice(None)
+                for a in range(x.ndim)
+            )
+        ]
+        q = max(s, 2)
+        n = x.shape[axis] // q
+        x = lax.slice_in_dim(x, 0, n * q, axis=axis)
+        blocks = x.reshape(x.shape[:axis] + (n, q) + x.shape[axis + 1 :])
+        return jnp.take(blocks, 0, axis=axis + 1), jnp.take(blocks, 1, axis=axis + 1)
+
+    def update_residual(self, m, bm, residual, c1, observed=None):
+        """The residual's EMA with this step's ``m_hat - B m_hat`` (kept where ``observed``,
+        a leaf-shaped mask, is False)."""
+        decay = jnp.asarray(self.residual_decay, m.dtype)
+        residual = residual.astype(m.dtype)
+        new = decay * residual + (1 - decay) * (m - bm) / jnp.asarray(c1, m.dtype)
+        return new if observed is None else jnp.where(observed, new, residual)
+
+    def _blend_weight(self, m, v, residual, smooth, *, b1, c1, c2, count):
+        """The blend's weight of the unfiltered moments per entry, before the gate; ``smooth``
+        takes the local averages (:func:`smooth`, or the sub-grid's)."""
+        dtype = m.dtype
+        b1 = jnp.asarray(b1, dtype)
+        c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
+        t = count.astype(dtype)
+        decay = jnp.asarray(self.residual_decay, dtype)
+        residual_hat = residual / (1 - decay**t)
+        # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
+        ratio, usable = noise_ratio(b1, c1, count)
+        k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
+        noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
+        residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)
+        residual_noise = residual_noise * (1 + b1 * decay) / (1 - b1 * decay)  # m_hat correlates
+        floor, signal = smooth((residual_noise, residual_hat**2))
+        lam = 1 - floor / (self.gain * jnp.where(signal > 0, signal, 1))
+        return jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** self.power
+
+    def _gate(self, lam: jax.Array) -> jax.Array:
+        low, high = self.gate
+        return jnp.clip((jnp.mean(lam) - low) / (high - low), 0, 1)
+
+    def weights(self, m, v, residual, *, b1, c1, c2, count, axes) -> tuple[jax.Array, jax.Array]:
+        """``(lam, gate)``: the blend's weight of the unfiltered moments (the gate applied) at
+        every entry of the sub-grid (:meth:`stride`; every entry on a leaf of at most
+        ``min_texels`` texels; :meth:`upsample` spreads it over the leaf), and how far the
+        leaf's blend is open (a scalar in [0, 1], ``gate``).
+
+        ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``residual`` is the
+        residual's EMA with this step's (:meth:`update_residual`). The local averages are
+        taken at the sub-grid's entries only, over the B-spline's taps at its stride: the
+        weight is a smooth field, which a large leaf's sub-grid samples finely enough.
+        """
+        stride = self.stride(m.shape, axes)
+        sub = functools.partial(smooth_subgrid, axes=axes, stride=stride)
+        lam = self._blend_weight(m, v, residual, sub, b1=b1, c1=c1, c2=c2, count=count)
+        gate = self._gate(lam)
+        return lam * gate, gate
+
+    def upsample(self, lam: jax.Array, shape: tuple[int, ...], axes) -> jax.Array:
+        """The sub-grid's ``lam`` (:meth:`weights`) over the whole leaf of ``shape``: each
+        entry repeated over the ``stride`` x ... block it samples (fused into the step)."""
+        s = self.stride(shape, axes)
+        for a in axes if s > 1 else ():
+            lam = lax.slice_in_dim(jnp.repeat(lam, s, axis=a), 0, shape[a], axis=a)
+        return lam
+
+    def blend_phase(self, gate: jax.Array, count: jax.Array) -> jax.Array:
+        """What this step computes of the blend: ``BLEND`` (its statistics and the blend) if
+        the gate was open at the last step; else ``CHECK`` (the gate alone,
+        :meth:`gate_of`) at a multiple of ``check_period``; else ``SKIP`` (nothing)."""
+        check = jnp.where(count % self.check_period == 0, CHECK, SKIP)
+        return jnp.where(gate > 0, BLEND, check).astype(jnp.int32)
+
+
+# ---------------------------------------------------------------------- shared statistics
+
+
+def _replace_cast(state, new: dict):
+    """``state`` with the fields in ``new``, each cast to the state's dtype for it."""
+    return state._replace(**{k: x.astype(getattr(state, k).dtype) for k, x in new.items()})
 
 
 def _guide_axes(guide: jax.Array, axes: tuple[int, ...]) -> tuple[int, ...]:
@@ -132,138 +421,37 @@ def _texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
 
 
 def _finite_mean(x: jax.Array) -> jax.Array:
-    """Mean over the entries that are not NaN (a masked guide holds NaN at unobserved
-    texels); 0 if none."""
+    """Mean over the entries that are not NaN; 0 if none."""
     ok = ~jnp.isnan(x)
     return jnp.sum(jnp.where(ok, x, 0)) / jnp.maximum(jnp.sum(ok), 1)
 
 
-def contrast(guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
-    """The guide's mean distance from its local average (one low-pass level of the filter,
-    which runs sharded like the leaf): the scale of its texel-to-texel variation."""
+def _lag_correlation(x0: jax.Array, x1: jax.Array) -> jax.Array:
+    den = jnp.sqrt(jnp.sum(x0 * x0) * jnp.sum(x1 * x1))
+    return jnp.where(den > 0, jnp.sum(x0 * x1) / jnp.where(den > 0, den, 1), 0)
+
+
+def contrast(guide: jax.Array, axes: tuple[int, ...], stride: int = 1) -> jax.Array:
+    """The guide's mean distance from its local average (one low-pass level of the filter):
+    the scale of its texel-to-texel variation; over every ``stride``-th texel along each
+    spatial axis (the local averages computed there only, so a large leaf's first step holds
+    no full-size temporaries)."""
     guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
     axes = _guide_axes(guide, axes)
-    (local,) = _smooth((jnp.nan_to_num(guide),), axes)
-    return _finite_mean(_texel_norm(guide - local, axes))
+    (local,) = smooth_subgrid((jnp.nan_to_num(guide),), axes, stride)
+    return _finite_mean(_texel_norm(_every(guide, axes, stride) - local, axes))
 
 
-def stride(shape: tuple[int, ...], axes: tuple[int, ...]) -> int:
-    """The sub-grid's stride along every spatial axis: the largest power of two that leaves
-    at least ``MIN_TEXELS`` texels (1 for a leaf with fewer)."""
-    s = 1
-    while math.prod(-(-shape[a] // (2 * s)) for a in axes) >= MIN_TEXELS:
-        s *= 2
-    return s
-
-
-def subgrid(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
-    """Every ``stride``-th texel of ``x`` along each of its spatial ``axes`` (all channels)."""
-    s = stride(x.shape, axes)
-    if s == 1:
-        return x
-    return x[tuple(slice(None, None, s) if a in axes else slice(None) for a in range(x.ndim))]
-
-
-def kept_guide(guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
-    """What :attr:`AutoState.previous_guide` keeps of a guide: its sub-grid."""
-    return subgrid(guide, _guide_axes(guide, axes))
-
-
-def direction_norm(d: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+def direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
     """The mean norm per texel of a step's direction (:attr:`AutoState.direction`), over the
-    same sub-grid as the guide's step; ``d`` is finite (unobserved entries step by 0), so a
-    plain mean: one reduction, not two."""
-    return jnp.mean(_texel_norm(subgrid(d, axes), axes))
-
-
-def sigma(
-    guide: jax.Array,
-    previous: jax.Array | None,
-    count: jax.Array,
-    axes: tuple[int, ...],
-    direction: jax.Array | None = None,
-) -> jax.Array:
-    """The leaf's sigma_d at step ``count`` (1 = first); ``direction`` (a postfilter's
-    :attr:`AutoState.direction`) or None for the prefilter's and ``"sure"``'s step scale."""
-    if previous is None:
-        return CONTRAST_FACTOR * contrast(guide, axes)
-    guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
-    guide_axes = _guide_axes(guide, axes)
-    now = subgrid(guide, guide_axes)
-    step = _finite_mean(_texel_norm(now - previous.astype(guide.dtype), guide_axes))
-    moved = (count > 1) & (step > 0)
-    if direction is None:
-        scale = STEP_FACTOR * step
-    else:
-        channels = math.prod(n for a, n in enumerate(guide.shape) if a not in guide_axes)
-        rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
-        scale = RATE_FACTOR * math.sqrt(channels) * rate
-        moved = moved & (direction > 0)
-    # The contrast costs a filter pass; only the first step (or a guide at rest) needs it.
-    return jax.lax.cond(
-        moved,
-        lambda: scale,
-        lambda: (CONTRAST_FACTOR * contrast(guide, axes)).astype(step.dtype),
-    )
+    same sub-grid as the guide's step; ``d`` is finite (unobserved entries step by 0)."""
+    return jnp.mean(_texel_norm(rule.subgrid(d, axes), axes))
 
 
 def extra_levels(axes: tuple[int, ...]) -> int:
     """The levels added where the noise is correlated: 2 on a 1-D grid, 1 on a 2-D one, none
-    on 3-D (there the compiled extra level slows every update, also where it does not run;
-    docs/auto_sigma.md, "Correlated noise")."""
+    on 3-D (there the compiled extra level slows every update; docs/auto_sigma.md)."""
     return {1: 2, 2: 1}.get(len(axes), 0)
-
-
-def _neighbours(x: jax.Array, axes: tuple[int, ...], axis: int) -> tuple[jax.Array, jax.Array]:
-    """``x[p]`` and ``x[p + 1 along axis]`` for every ``p`` on the sub-grid (:func:`stride`;
-    every even ``p`` along ``axis`` where the stride is 1). Pairs from a reshape, not
-    shifted slices, which a grid sharded along ``axis`` cannot take."""
-    s = stride(x.shape, axes)
-    x = x[
-        tuple(
-            slice(None, None, s) if a in axes and a != axis else slice(None) for a in range(x.ndim)
-        )
-    ]
-    q = max(s, 2)
-    n = x.shape[axis] // q
-    x = jax.lax.slice_in_dim(x, 0, n * q, axis=axis)
-    blocks = x.reshape(x.shape[:axis] + (n, q) + x.shape[axis + 1 :])
-    return jnp.take(blocks, 0, axis=axis + 1), jnp.take(blocks, 1, axis=axis + 1)
-
-
-def correlated(
-    g: jax.Array,
-    m: jax.Array,
-    *,
-    b1: Any,
-    c1: jax.Array,
-    axes: tuple[int, ...],
-    observed: jax.Array | None = None,
-) -> jax.Array:
-    """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
-    between neighbours of ``z = g - m_hat`` (``m`` the updated first moment, ``c1`` its bias
-    correction), averaged over the spatial ``axes``, is at least ``CORRELATED``, and ``z``
-    is noise: ``z = (1 - (1 - b1) / c1) (g - m_hat_{t-1})``, whose energy is at least
-    ``NOISY`` times ``m_hat``'s. Sums run over the sub-grid (:func:`stride`) and the
-    ``observed`` entries (a leaf-shaped mask); False at the first step or with ``b1 = 0``."""
-    dtype = jnp.promote_types(m.dtype, jnp.float32)
-    c1 = jnp.asarray(c1, dtype)
-    m_hat = m.astype(dtype) / c1
-    z = g.astype(dtype) - m_hat
-    if observed is not None:
-        z, m_hat = jnp.where(observed, z, 0), jnp.where(observed, m_hat, 0)
-    corr = []
-    for a in axes:
-        if g.shape[a] > 1:
-            x0, x1 = _neighbours(z, axes, a)
-            den = jnp.sqrt(jnp.sum(x0 * x0) * jnp.sum(x1 * x1))
-            corr.append(jnp.where(den > 0, jnp.sum(x0 * x1) / jnp.where(den > 0, den, 1), 0))
-    if not corr:
-        return jnp.zeros([], bool)
-    lag = 1 - (1 - jnp.asarray(b1, dtype)) / c1
-    noise = jnp.sum(jnp.square(subgrid(z, axes)))
-    signal = jnp.sum(jnp.square(subgrid(m_hat, axes)))
-    return (jnp.mean(jnp.stack(corr)) >= CORRELATED) & (noise > NOISY * lag * lag * signal)
 
 
 def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:
@@ -279,9 +467,11 @@ def noise_ratio(b1: jax.Array, c1: jax.Array, count: jax.Array) -> tuple[jax.Arr
     return ratio, (count > 1) & (ratio < 1 - 1e-6)
 
 
-def _smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
+def smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
     """Local averages of the statistics: one level of the filter's 5-tap B-spline with
-    every weight 1 (sigma_d = inf), on one device or sharded like the leaf."""
+    every weight 1 (sigma_d = inf), on one device or sharded like the leaf. (The filter's
+    kernel, not five shifted slices: inside the blend's branch, those hold several full-size
+    temporaries.)"""
     # The guide is unused at sigma_d = inf: a grid of zeros, sharded like the leaf.
     channels = tuple(a for a in range(fields[0].ndim) if a not in axes)
     guide = jnp.zeros_like(jnp.sum(fields[0], axis=channels))
@@ -293,21 +483,26 @@ def _smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.A
 _TAPS = np.array([1, 4, 6, 4, 1]) / 16  # the filter's first level: the B-spline at stride 1
 
 
-def _smooth_subgrid(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
-    """:func:`_smooth`'s local averages at the sub-grid's entries (:func:`subgrid`) only:
-    per spatial axis, the 5 taps read at every ``stride``-th texel, normalised over those
-    inside the grid (the filter's weight off the grid is 0). Without a sub-grid, or on a
-    grid split over devices in its type (whose axes take no slice of uneven length), the
-    full local averages' sub-grid."""
-    s = stride(fields[0].shape, axes)
-    if s == 1 or sharded.is_split(fields[0]):
-        return tuple(subgrid(f, axes) for f in _smooth(fields, axes))
+def smooth_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
+    """:func:`smooth`'s local averages at every ``stride``-th entry along the spatial axes
+    only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
+    (the filter's weight off the grid is 0). Without a sub-grid, or on a grid split over
+    devices in its type (whose axes take no slice of uneven length), the full local
+    averages' sub-grid."""
+    if sharded.is_split(fields[0]):
+        return tuple(_every(f, axes, stride) for f in smooth(fields, axes))
     out = []
     for x in fields:
         for a in axes:
-            x = _taps_at_stride(x, a, s)
+            x = _taps_at_stride(x, a, stride)
         out.append(x)
     return tuple(out)
+
+
+def _every(x: jax.Array, axes: tuple[int, ...], s: int) -> jax.Array:
+    if s == 1:
+        return x
+    return x[tuple(slice(None, None, s) if a in axes else slice(None) for a in range(x.ndim))]
 
 
 def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
@@ -322,7 +517,7 @@ def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
         if hi <= lo:
             continue
         start = s * lo + k - r
-        taps = jax.lax.slice_in_dim(x, start, start + s * (hi - lo - 1) + 1, stride=s, axis=axis)
+        taps = lax.slice_in_dim(x, start, start + s * (hi - lo - 1) + 1, stride=s, axis=axis)
         # Padded after the slice: only the sub-grid's rows are copied.
         pad = [(0, 0)] * x.ndim
         pad[axis] = (lo, kept - hi)
@@ -333,86 +528,9 @@ def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
     return total / jnp.asarray(norm.reshape(shape), x.dtype)
 
 
-def _blend_weight(m, v, residual, smooth, *, b1, c1, c2, count):
-    """The blend's weight of the unfiltered moments per entry, before the gate; ``smooth``
-    takes the local averages (:func:`_smooth`, or :func:`_smooth_subgrid` at the sub-grid's
-    entries only)."""
-    dtype = m.dtype
-    b1 = jnp.asarray(b1, dtype)
-    c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
-    t = count.astype(dtype)
-    decay = jnp.asarray(RESIDUAL_DECAY, dtype)
-    residual_hat = residual / (1 - decay**t)
-    # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
-    ratio, usable = noise_ratio(b1, c1, count)
-    k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
-    noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
-    residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)
-    residual_noise = residual_noise * (1 + b1 * decay) / (1 - b1 * decay)  # m_hat is correlated
-    floor, signal = smooth((residual_noise, residual_hat**2))
-    lam = 1 - floor / (GAIN * jnp.where(signal > 0, signal, 1))
-    return jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** POWER
-
-
-def _gate(lam: jax.Array) -> jax.Array:
-    return jnp.clip((jnp.mean(lam) - GATE[0]) / (GATE[1] - GATE[0]), 0, 1)
-
-
-def weights(
-    m: jax.Array,
-    v: jax.Array,
-    residual: jax.Array,
-    *,
-    b1: Any,
-    c1: jax.Array,
-    c2: jax.Array,
-    count: jax.Array,
-    axes: tuple[int, ...],
-) -> tuple[jax.Array, jax.Array]:
-    """``(lam, gate)``: the blend's weight of the unfiltered moments per entry (the gate
-    applied) and how far the leaf's blend is open (a scalar in [0, 1], ``GATE``).
-
-    ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``residual`` is the
-    residual's EMA with this step's (:func:`update_residual`).
-    """
-    smooth = functools.partial(_smooth, axes=axes)
-    lam = _blend_weight(m, v, residual, smooth, b1=b1, c1=c1, c2=c2, count=count)
-    gate = _gate(lam)
-    return lam * gate, gate
-
-
-def gate(m: jax.Array, v: jax.Array, residual: jax.Array, *, axes, **statistics) -> jax.Array:
-    """:func:`weights`' gate (the same arguments: ``b1``, ``c1``, ``c2``, ``count``) from the
-    sub-grid's entries (:func:`stride`) alone: a closed gate's check, which blends nothing
-    (the blend, if the gate opens, starts at the next step) and so needs no weight per
-    entry."""
-    smooth = functools.partial(_smooth_subgrid, axes=axes)
-    return _gate(_blend_weight(m, v, residual, smooth, **statistics))
-
-
-def mix(lam: jax.Array, x: jax.Array, bx: jax.Array) -> jax.Array:
-    """``lam x + (1 - lam) B x``: with one ``lam`` for ``m`` and ``v``, one non-negative,
-    row-stochastic operator for both."""
-    return lam * x + (1 - lam) * bx
-
-
-SKIP, CHECK, BLEND = 0, 1, 2  # what a step computes of the blend (:func:`stage`), in order
-
-
-def stage(gate: jax.Array, count: jax.Array) -> jax.Array:
-    """What this step computes of the blend: ``BLEND`` (its statistics and the blend) if the
-    gate was open at the last step; else ``CHECK`` (the gate alone, :func:`gate`) at a
-    multiple of ``CHECK_PERIOD``; else ``SKIP`` (nothing)."""
-    check = jnp.where(count % CHECK_PERIOD == 0, CHECK, SKIP)
-    return jnp.where(gate > 0, BLEND, check).astype(jnp.int32)
-
-
-def update_residual(m, bm, residual, c1, observed):
-    """The residual's EMA with this step's ``m_hat - B m_hat`` (kept where unobserved)."""
-    decay = jnp.asarray(RESIDUAL_DECAY, m.dtype)
-    new = decay * residual + (1 - decay) * (m - bm) / jnp.asarray(c1, m.dtype)
-    return new if observed is None else jnp.where(observed, new, residual)
-
-
 def full_mask(observed: jax.Array | None, ndim: int, axes: tuple[int, ...]) -> jax.Array | None:
     return None if observed is None else layout.expand_mask(observed, ndim, axes)
+
+
+def is_auto(sigma_d: Any) -> bool:
+    return isinstance(sigma_d, Auto) or (isinstance(sigma_d, str) and sigma_d == "auto")

@@ -27,6 +27,15 @@ TAPS = (3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0)
 # An offset and its tap product; one entry stands for the pair +offset / -offset.
 Pair = tuple[tuple[int, ...], float]
 
+LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
+
+
+def log_transform(x):
+    """log(|x| + 1e-8): the log-domain guide of the paper's texture runs."""
+    x = jnp.asarray(x)
+    x = x.astype(jnp.promote_types(x.dtype, jnp.float32))
+    return jnp.log(jnp.abs(x) + LOG_GUIDE_EPS)
+
 
 def weight(
     d2: jax.Array, sigma_d: jax.Array, keep: jax.Array | None = None, *, is_dist: bool = False

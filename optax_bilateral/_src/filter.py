@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from optax_bilateral._src import atrous, layout, plain, sharded
-from optax_bilateral._src.leaves import log_transform
+from optax_bilateral._src.bilateral import log_transform
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 if TYPE_CHECKING:
@@ -187,19 +187,15 @@ def atrous_bilateral(
         guide_axes = tuple(guide_axes)
     if levels == first_level and mask is None:
         return fields  # the identity, without a copy
+    run = _Run(levels, first_level, bool(separable), self_guided, bool(log_guide), kernel)
     return _filter_jit(
         fields,
         None if self_guided else guide,
         sigma_d,
         mask,
-        levels=levels,
         spatial_axes=spatial_axes,
-        separable=bool(separable),
         guide_axes=guide_axes,
-        self_guided=self_guided,
-        log_guide=bool(log_guide),
-        kernel=kernel,
-        start=first_level,
+        run=run,
     )
 
 
@@ -279,98 +275,51 @@ def _check_mask(mask, shape):
     return mask
 
 
-@functools.partial(
-    jax.jit,
-    static_argnames=(
-        "levels",
-        "spatial_axes",
-        "separable",
-        "guide_axes",
-        "self_guided",
-        "log_guide",
-        "kernel",
-        "start",
-    ),
-)
-def _filter_jit(
-    fields,
-    guide,
-    sigma_d,
-    mask,
-    *,
-    levels,
-    spatial_axes,
-    separable,
-    guide_axes,
-    self_guided=False,
-    log_guide=False,
-    kernel="xla_cpu",
-    start=0,
-):
+class _Run(NamedTuple):
+    """The static settings of a cascade: levels ``start .. levels - 1``, which kernel, and
+    what guides it."""
+
+    levels: int
+    start: int
+    separable: bool
+    self_guided: bool  # each field guides itself, every level by its own input
+    log_guide: bool
+    kernel: str
+
+
+@functools.partial(jax.jit, static_argnames=("spatial_axes", "guide_axes", "run"))
+def _filter_jit(fields, guide, sigma_d, mask, *, spatial_axes, guide_axes, run: _Run):
     """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
     traced."""
     plan = _plan(fields, guide, mask, spatial_axes, guide_axes)
-    if levels == start:  # only a mask to apply (the front door returns early without one)
+    if run.levels == run.start:  # only a mask to apply (the front door returns early without one)
         mask = plan.mask
         assert mask is not None
         out = tuple(
             jnp.where(layout.expand_mask(mask, f.ndim, ax), f, 0).astype(f.dtype)
             for f, ax in zip(plan.fields, plan.field_axes)
         )
-    elif self_guided:
+    elif run.self_guided:
         # Each field guides itself: its own weights, its own guide read at every level.
         out = tuple(
-            _filter_route(
-                (f,), (ax,), f, ax, plan, sigma_d, levels, separable, True, log_guide, kernel, start
-            )[0]
+            _filter_route((f,), (ax,), f, ax, plan, sigma_d, run)[0]
             for f, ax in zip(plan.fields, plan.field_axes)
         )
     else:
         out = _filter_route(
-            plan.fields,
-            plan.field_axes,
-            plan.guide,
-            plan.guide_axes,
-            plan,
-            sigma_d,
-            levels,
-            separable,
-            False,
-            log_guide,
-            kernel,
-            start,
+            plan.fields, plan.field_axes, plan.guide, plan.guide_axes, plan, sigma_d, run
         )
     return out[0] if plan.single else out
 
 
-def _filter_route(
-    fields,
-    field_axes,
-    guide,
-    guide_axes,
-    plan,
-    sigma_d,
-    levels,
-    separable,
-    self_guided,
-    log_guide,
-    kernel,
-    start,
-):
+def _filter_route(fields, field_axes, guide, guide_axes, plan, sigma_d, run: _Run):
     """The single-device kernel, or the sharded one when the fields' type says so."""
     filter_blocks = functools.partial(
-        _filter_blocks,
-        field_axes=field_axes,
-        guide_axes=guide_axes,
-        levels=levels,
-        separable=separable,
-        self_guided=self_guided,
-        log_guide=log_guide,
-        start=start,
+        _filter_blocks, field_axes=field_axes, guide_axes=guide_axes, run=run
     )
     partition = sharded.spatial_partition(fields[0], field_axes[0])
     if partition is None:
-        return filter_blocks(fields, guide, plan.mask, sigma_d, KERNELS[kernel])
+        return filter_blocks(fields, guide, plan.mask, sigma_d, KERNELS[run.kernel])
     return sharded.filter_sharded(
         filter_blocks,
         partition,
@@ -381,30 +330,18 @@ def _filter_route(
         guide_axes,
         plan.mask,
         sigma_d,
-        gather_channels=self_guided,
+        gather_channels=run.self_guided,
     )
 
 
 def _filter_blocks(
-    fields,
-    guide,
-    mask,
-    sigma_d,
-    kernel: Kernel,
-    *,
-    field_axes,
-    guide_axes,
-    levels: int,
-    separable: bool,
-    self_guided: bool = False,
-    log_guide: bool = False,
-    start: int = 0,
+    fields, guide, mask, sigma_d, kernel: Kernel, *, field_axes, guide_axes, run: _Run
 ) -> tuple[jax.Array, ...]:
     """Planar layout in, ``kernel``, layout out: on the whole grid, or on one device's block.
 
-    Levels ``start .. levels - 1``. ``self_guided``: ``fields`` is one field, and level
-    ``i`` is guided by its input (the field after levels ``0 .. i-1``); ``guide`` is then
-    not read."""
+    Levels ``run.start .. run.levels - 1``. ``run.self_guided``: ``fields`` is one field, and
+    level ``i`` is guided by its input (the field after levels ``0 .. i-1``); ``guide`` is
+    then not read."""
     compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
     shape = tuple(fields[0].shape[a] for a in field_axes[0])
     # In the kernel's plane shape already: a reshape between the concatenation and the
@@ -412,24 +349,24 @@ def _filter_blocks(
     planes = kernel.plane_shape(shape)
     x, restore = layout.to_planes(fields, field_axes, compute, planes)
     g = None
-    if not self_guided:
+    if not run.self_guided:
         g = layout.guide_planes(guide, guide_axes, compute, shape)
-        g = log_transform(g) if log_guide else g
+        g = log_transform(g) if run.log_guide else g
     sigma = jnp.asarray(sigma_d, dtype=compute)
     valid = None
     if mask is not None:
         valid = mask.astype(compute)
         x = jnp.where(mask.reshape(x.shape[1:]), x, 0)  # also drops NaN/Inf at masked entries
-    if self_guided:
-        for i in range(start, levels):
+    if run.self_guided:
+        for i in range(run.start, run.levels):
             g = x.reshape(x.shape[:1] + shape)
-            g = log_transform(g) if log_guide else g
-            x = kernel.filter_planes(x, g, valid, sigma, i + 1, separable, start=i)
+            g = log_transform(g) if run.log_guide else g
+            x = kernel.filter_planes(x, g, valid, sigma, i + 1, run.separable, start=i)
             x = x.reshape(x.shape[:1] + planes)
         x = x.reshape(x.shape[:1] + shape)
     else:
         assert g is not None
-        x = kernel.filter_planes(x, g, valid, sigma, levels, separable, start=start)
+        x = kernel.filter_planes(x, g, valid, sigma, run.levels, run.separable, start=run.start)
     if mask is not None:
         x = jnp.where(mask, x, 0)
     return layout.from_planes(x, restore, shape)

@@ -83,3 +83,26 @@ def expand_mask(mask: jax.Array, ndim: int, axes: tuple[int, ...]) -> jax.Array:
     for k, a in enumerate(srt):
         shape[a] = m.shape[k]
     return m.reshape(shape)
+
+
+# Complex leaves: their real view, the real and imaginary parts as a last axis of 2 (two
+# channels of one texel, which one set of weights filters alike).
+
+
+def real_view(x: Any) -> Any:
+    """``x``'s real view ``(..., 2)`` if complex, else ``x`` (None stays None)."""
+    if x is None or not jnp.iscomplexobj(x):
+        return x
+    return jnp.stack([jnp.real(x), jnp.imag(x)], axis=-1)
+
+
+def from_real_view(x: jax.Array, dtype: Any) -> jax.Array:
+    """The complex array of ``dtype`` whose real view is ``x``."""
+    return jax.lax.complex(x[..., 0], x[..., 1]).astype(dtype)
+
+
+def norm_view(v: jax.Array) -> jax.Array:
+    """A complex leaf's second moment (real values, stored in the leaf's dtype as optax.adam
+    does) as its real view: the same ``|g|^2`` average for both parts."""
+    real = jnp.real(v)
+    return jnp.broadcast_to(real[..., None], real.shape + (2,))

@@ -7,6 +7,8 @@ A setting is given once for all leaves, or as a pytree *prefix* of the parameter
 from __future__ import annotations
 
 import numbers
+import os
+import sys
 import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -14,8 +16,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from optax_bilateral._src import sure
+from optax_bilateral._src.bilateral import log_transform
+from optax_bilateral._src.sigma import SigmaRule
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 # F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.
@@ -33,8 +38,6 @@ def default_levels(sigma_d: Any) -> int:
     """A leaf's ``levels`` when the transform's ``levels`` is None (the default)."""
     return SURE_LEVELS if sure.is_sure(sigma_d) else DEFAULT_LEVELS
 
-
-LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
 
 # "params" | "self" | a callable params -> guide pytree (a prefix of the parameters).
 GuideSetting = str | Callable[[Any], Any]
@@ -72,24 +75,25 @@ class LeafRuleWarning(UserWarning):
 def default_spatial_axes(leaf: Any) -> tuple[int, ...]:
     """The default leaf rule: the spatial axes of a leaf when ``spatial_axes=None``.
 
-    Only layouts that read one way only are filtered silently:
+    Conservative: a leaf is filtered only where its shape reads one way,
 
-    * 0-D and 1-D leaves (scalars, vectors): ``()``, not filtered (plain Adam);
-    * ``(H, W, C)`` with ``C <= 4`` and ``H, W > 4``: ``(0, 1)`` (a texture).
+    * ``(H, W, C)`` with ``C <= 4`` and ``H, W > 4``: ``(0, 1)`` (a texture);
+    * ``(D, H, W, C)`` with ``C <= 4`` and ``D, H, W > 4``: ``(0, 1, 2)`` (a volume);
 
-    Every other leaf with two or more axes could be more than one thing; the rule
-    decides as below, and the transforms' ``init`` warns once per such leaf
-    (:class:`LeafRuleWarning`), naming it and the ``spatial_axes`` to pass:
+    and every other leaf gets Adam's update, unfiltered. Where that may be wrong (the leaf
+    could be a grid), the transforms' ``init`` warns once per leaf
+    (:class:`LeafRuleWarning`), naming it and the ``spatial_axes`` that filters it:
 
-    * ``(H, W)``, both > 4: ``(0, 1)`` (a one-channel grid, or a weight matrix?);
-      a side <= 4: ``()``;
-    * ``(D, H, W, C)`` and beyond, ``C <= 4``, every other side > 4: all but the last
-      axis (a volume, or a batch of textures?);
-    * ``(C, H, W)`` with ``C <= 4``: ``()`` (channels-first: pass ``(1, 2)``);
-    * every side > 4, last > 4: ``()`` (a scalar volume ``(D, H, W)``, or many channels?);
-    * anything else: ``()``.
+    * ``()``, and leaves with fewer than 16 entries along every axis and a side of at most
+      4 (``(3,)``, ``(4, 8)``, ``(3, 3, 3)``): silent;
+    * ``(N,)`` with ``N >= 16`` (a 1-D signal, or weights?): warns, ``(0,)`` filters it;
+    * ``(H, W)`` with both sides > 4 (a one-channel image, or a weight matrix?), or a side
+      of 16 or more (a signal with channels, or vertex positions?): warns;
+    * 3-D and beyond, any other layout (a scalar volume ``(D, H, W)``, channels first
+      ``(C, H, W)``, five axes): warns.
 
-    :func:`optax_bilateral.filtered_axes` lists what the rule gives for every leaf.
+    docs/leaves.md has this rule as a table; :func:`optax_bilateral.filtered_axes` lists
+    what it gives for every leaf.
 
     Args:
       leaf: an array or anything with a shape (only ``np.shape(leaf)`` is read).
@@ -105,67 +109,89 @@ def default_spatial_axes(leaf: Any) -> tuple[int, ...]:
         (0, 1)
         >>> ob.default_spatial_axes(jnp.zeros((16, 16, 16, 1)))   # a volume (D, H, W, C)
         (0, 1, 2)
-        >>> ob.default_spatial_axes(jnp.zeros(10))                # a vector: plain Adam
+        >>> ob.default_spatial_axes(jnp.zeros((784, 128)))        # a weight matrix: Adam
         ()
     """
     return _default_rule(np.shape(leaf))[0]
 
 
+# A leaf with this many entries along an axis may be a grid along it (the rule warns).
+MIN_GRID = 16
+
+
 def _default_rule(shape: tuple[int, ...]) -> tuple[tuple[int, ...], str | None]:
-    """(spatial axes, why it is a guess) for a leaf of ``shape``; None when it is not one."""
+    """(spatial axes, why the leaf may be something else) for a leaf of ``shape``; None when
+    it reads one way only. :func:`default_spatial_axes` and docs/leaves.md are its table."""
     nd = len(shape)
-    if nd <= 1:
-        return (), None
     long = [n > MAX_CHANNELS for n in shape]
-    if nd >= 3 and shape[-1] <= MAX_CHANNELS and all(long[:-1]):
-        axes = tuple(range(nd - 1))
-        if nd == 3:
-            return axes, None
-        return axes, (
-            f"filtered along {axes} as a volume with {shape[-1]} channel(s); if axis 0 "
-            f"is a batch of separate problems, pass spatial_axes={axes[1:]} or vmap "
-            "the optimizer"
+    if nd in (3, 4) and shape[-1] <= MAX_CHANNELS and all(long[:-1]):
+        return tuple(range(nd - 1)), None  # a texture (H, W, C), a volume (D, H, W, C)
+    if nd == 0 or (max(shape) < MIN_GRID and (nd == 1 or not all(long))):
+        return (), None
+    if nd == 1:
+        return (), (
+            f"not filtered: a vector of {shape[0]} entries (weights, a curve?); if it is a "
+            "1-D signal on a grid, pass spatial_axes=(0,)"
+        )
+    if nd == 2 and all(long):
+        return (), (
+            "not filtered: a weight matrix, or a one-channel image? to filter it as an "
+            "image, pass spatial_axes=(0, 1)"
         )
     if nd == 2:
-        if all(long):
-            return (0, 1), (
-                "filtered along (0, 1) as a one-channel grid; if it is a weight "
-                "matrix, pass spatial_axes=() for it"
-            )
+        axis = 0 if long[0] else 1
         return (), (
-            "not filtered: a side of at most 4 makes no grid; pass spatial_axes=(0, 1) to filter it"
+            f"not filtered: {shape[axis]} points of {shape[1 - axis]} values (vertex "
+            f"positions?), or a 1-D signal with {shape[1 - axis]} channel(s)? to filter it "
+            f"as a signal, pass spatial_axes=({axis},)"
         )
     if shape[0] <= MAX_CHANNELS and all(long[1:]):
         return (), (
-            f"not filtered: it looks channels-first (C, H, W); pass "
+            f"not filtered: it looks channels-first (C, ...); pass "
             f"spatial_axes={tuple(range(1, nd))} to filter it"
         )
     if all(long):
         return (), (
-            f"not filtered: its last axis is too long for channels; pass "
-            f"spatial_axes={tuple(range(nd))} for a one-channel grid (a scalar volume) "
-            f"or {tuple(range(nd - 1))} for a channels-last grid"
+            f"not filtered: a one-channel grid, or a grid of {shape[-1]} channels? pass "
+            f"spatial_axes={tuple(range(nd))} for a one-channel grid, "
+            f"{tuple(range(nd - 1))} for a channels-last one"
         )
     return (), (
-        "not filtered: no layout with at most 4 channels and longer sides; pass "
-        "spatial_axes for it to filter it"
+        "not filtered: no layout of at most 4 channels last and longer sides; pass "
+        "spatial_axes to filter it"
     )
 
 
 _WARNED: set = set()
+# Frames in these packages are not the user's: a warning points past them.
+_LIBRARIES = tuple(
+    os.path.dirname(m.__file__) + os.sep
+    for m in (sys.modules[__name__.split(".")[0]], jax, optax)
+    if m.__file__
+)
+
+
+def _user_stacklevel() -> int:
+    """The ``stacklevel`` of the first caller outside this library, optax and JAX (so that a
+    warning names the user's line, however deep the optax wrappers around the call)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARIES):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _warn_guess(name: str, shape: tuple[int, ...], note: str) -> None:
-    """Warns once per process for each (leaf, shape)."""
+    """Warns once per process for each (leaf, shape), at the user's line."""
     if (name, shape) in _WARNED:
         return
     _WARNED.add((name, shape))
     warnings.warn(
-        f"optax_bilateral's default leaf rule guessed for params leaf {name} of shape {shape}: "
-        f"{note}. Passing spatial_axes explicitly (a tuple, a pytree prefix of tuples or a "
-        "callable) silences this; optax_bilateral.filtered_axes(params) lists every leaf's axes.",
+        f"optax_bilateral's default leaf rule decided for params leaf {name} of shape "
+        f"{shape}: {note}. Passing spatial_axes explicitly (a tuple, a pytree prefix of "
+        "tuples or a callable) silences this; optax_bilateral.filtered_axes(params) lists "
+        "every leaf's axes.",
         LeafRuleWarning,
-        stacklevel=6,
+        stacklevel=_user_stacklevel(),
     )
 
 
@@ -196,6 +222,12 @@ def _is_scalar_atom(x) -> bool:
         or isinstance(x, (numbers.Number, np.ndarray, jax.Array, np.generic))
         or hasattr(x, "dtype")
     )
+
+
+def is_sigma_atom(x) -> bool:
+    """One leaf's ``sigma_d`` inside a pytree prefix: a number, an array, None, a name or a
+    rule object."""
+    return _is_scalar_atom(x) or isinstance(x, (str, SigmaRule))
 
 
 def broadcast_prefix(prefix, tree, is_atom: Callable[[Any], bool], name: str) -> list:
@@ -230,6 +262,29 @@ def leaf_names(tree) -> list[str]:
     """A readable path per leaf (``['tex']``, ``[0].albedo``) for error messages."""
     paths = jax.tree_util.tree_flatten_with_path(tree)[0]
     return [jax.tree_util.keystr(p) or "(the root)" for p, _ in paths]
+
+
+def check_update_shapes(updates, reference, transform: str, what: str = "params") -> None:
+    """Raises naming the leaf and both shapes where an update's shape is not its parameter's
+    (``reference``: the parameters, or moments shaped like them; None checks nothing), so
+    that a gradient is never broadcast against its moments."""
+    if reference is None:
+        return
+    got = jax.tree.leaves(updates)
+    try:
+        want = jax.tree.structure(updates).flatten_up_to(reference)
+    except (TypeError, ValueError) as e:
+        raise ValueError(
+            f"{transform}: the updates' structure {jax.tree.structure(updates)} is not the "
+            f"{what}' {jax.tree.structure(reference)}"
+        ) from e
+    for g, p, name in zip(got, want, leaf_names(updates)):
+        if p is not None and np.shape(g) != np.shape(p):
+            raise ValueError(
+                f"{transform}: the update for leaf {name} has shape {np.shape(g)}, but its "
+                f"{what} have shape {np.shape(p)}; the gradient of each parameter must have "
+                "the parameter's shape"
+            )
 
 
 def check_spatial_axes_setting(spatial_axes) -> None:
@@ -273,7 +328,7 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
     leaves = jax.tree.leaves(tree)
     names = leaf_names(tree)
     axes_list = broadcast_prefix(spatial_axes, tree, _is_axes_atom, "spatial_axes")
-    sigma_list = broadcast_prefix(sigma_d, tree, _is_scalar_atom, "sigma_d")
+    sigma_list = broadcast_prefix(sigma_d, tree, is_sigma_atom, "sigma_d")
     if levels is None:
         levels_list = [None] * len(leaves)
     else:
@@ -285,32 +340,26 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
         ax = _resolve_axes(leaf, ax, name, warn and lev > 0)
         if sig is None:
             raise ValueError(
-                f"sigma_d is None for leaf {name}; "
-                "pass a number (inf for a low-pass), 'auto' or 'sure'"
+                f"sigma_d is None for leaf {name}; pass a number >= 0 (inf for a low-pass), "
+                "'auto', 'sure' or a sigma_d rule (ob.auto_sigma(), ob.sure_sigma())"
             )
-        check_sigma_d(sig, name=f"sigma_d (for leaf {name})", allow_auto=True)
+        if not isinstance(sig, SigmaRule):
+            check_sigma_d(sig, name=f"sigma_d (for leaf {name})", allow_auto=True)
         if ax and lev > 0:
-            check_real_floating(
+            check_floating(
                 leaf,
                 name,
-                "filtered leaves must be real floating point (integer parameters have no gradient)",
+                "filtered leaves must be floating point, real or complex (integer parameters "
+                "have no gradient)",
             )
         specs.append(LeafSpec(ax if lev > 0 else (), lev, sig))
     return specs
 
 
-def check_real_floating(leaf: Any, name: str, why: str) -> None:
-    """Raises for a leaf that is not real floating point; a complex one is named as such."""
+def check_floating(leaf: Any, name: str, why: str) -> None:
+    """Raises for a leaf that is not floating point, real or complex."""
     dt = jnp.result_type(leaf)
-    if jnp.issubdtype(dt, jnp.complexfloating):
-        raise TypeError(
-            f"params leaf {name} is complex ({dt}); optax_bilateral's transforms take real "
-            "parameters only (the filter's weights and the bounded step are defined for real "
-            "fields). Optimise its real and imaginary parts as channels (e.g. "
-            "jnp.stack([z.real, z.imag], axis=-1), so that one set of weights filters both), "
-            "or give it to another optimizer with optax.multi_transform"
-        )
-    if not jnp.issubdtype(dt, jnp.floating):
+    if not jnp.issubdtype(dt, jnp.inexact):
         raise TypeError(f"params leaf {name} has dtype {dt}; {why}")
 
 
@@ -355,24 +404,24 @@ def _guide_spatial_shape(guide_shape, leaf_shape, axes, name):
     return tuple(guide_shape[a] for a in axes)
 
 
-def check_params(
-    params, *, spatial_axes, sigma_d, levels, guide, transform: str, all_leaves: bool
-) -> list[LeafSpec]:
+def check_params(params, settings, *, transform: str, all_leaves: bool) -> list[LeafSpec]:
     """Init-time checks: leaf dtypes and dimensions, the settings per leaf, the guide's shapes.
 
+    ``settings`` has the transform's ``spatial_axes``, ``sigma_d``, ``levels`` and ``guide``;
     ``all_leaves``: every leaf must be floating point (it has moments), not only the
     filtered ones.
     """
-    specs = leaf_specs(params, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels, warn=True)
+    guide = settings.guide
+    specs = settings.specs(params, warn=True)
     names = leaf_names(params)
     leaves = jax.tree.leaves(params)
     if all_leaves:
         for leaf, name in zip(leaves, names):
-            check_real_floating(
+            check_floating(
                 leaf,
                 name,
                 f"{transform} keeps Adam moments for every leaf, which "
-                "needs real floating point parameters (exclude other leaves with "
+                "needs floating point parameters (real or complex) (exclude other leaves with "
                 "optax.multi_transform)",
             )
     if callable(guide) and guide not in ("params", "self") and any(s.axes for s in specs):
@@ -442,10 +491,3 @@ def guide_leaves(
                     "an array for it or give it spatial_axes=()"
                 )
     return [log_transform(x) if (log_guide and x is not None) else x for x in g]
-
-
-def log_transform(x):
-    """log(|x| + 1e-8): the log-domain guide of the paper's texture runs."""
-    x = jnp.asarray(x)
-    x = x.astype(jnp.promote_types(x.dtype, jnp.float32))
-    return jnp.log(jnp.abs(x) + LOG_GUIDE_EPS)

@@ -25,6 +25,13 @@ from optax_bilateral._src.validation import is_concrete
 NEAR_ONE = 2.0**-14
 
 
+def zeros(x: Any, dtype: Any = None) -> jax.Array:
+    """Zeros like ``x`` (its shape and sharding) in ``dtype`` (``x``'s by default), never
+    weakly typed: a state made of them keeps its types through the first update (one
+    compile, not two)."""
+    return jnp.zeros_like(x, dtype=dtype or jnp.result_type(x))
+
+
 def one_minus(b: Any) -> Any:
     """``1 - b``, in float64 when ``b`` is a concrete number (keeps its digits for b near 1)."""
     if is_concrete(b):
@@ -98,12 +105,14 @@ def safe_step(
     derivative 0 at 0: ``B v = 0`` means no gradient reached the footprint, which
     stays so under small changes of the hyperparameters (true derivative 0),
     and ``sqrt'(0) = inf`` times a zero cotangent would make meta-gradients NaN.
+    The bias corrections divide as a multiplication by their reciprocals, written out:
+    left to XLA, the rounding of ``m / c1 / den`` depends on the program around it.
     """
-    v_hat = v_f / c2.astype(v_f.dtype) + eps_root
+    v_hat = v_f * (1 / c2).astype(v_f.dtype) + eps_root
     pos = v_hat > 0
     den = jnp.where(pos, jnp.sqrt(jnp.where(pos, v_hat, 1)), 0) + eps
     ok = den > 0
-    return jnp.where(ok, (m_f / c1.astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
+    return jnp.where(ok, (m_f * (1 / c1).astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
 
 
 def sigma_guard(sigma_d: Any) -> jax.Array:

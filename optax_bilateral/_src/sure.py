@@ -1,5 +1,5 @@
-"""``sigma_d="sure"``: the step scale (3x the guide's mean change per step, a prefilter's
-``"auto"`` scale) times one of a few factors, at one of the levels ``F = 2 .. levels``,
+"""``sigma_d="sure"``: the step scale (``"auto"``'s prefilter scale, 3x the guide's mean change
+per step) times one of a few factors, at one of the levels ``F = min_levels .. levels``,
 chosen per leaf and step by Stein's unbiased risk estimate.
 
 Derived and measured in docs/auto_sigma.md (section ``sigma_d="sure"``). For a fixed guide the
@@ -10,46 +10,35 @@ of a candidate ``B`` is estimated without the true moments:
 
 (the bias's square, unbiased, then the filtered noise's variance, weighted by ``W``:
 ``W = 1`` is SURE, ``W < 1`` discounts the noise the optimiser averages out over steps).
-One step's estimate is noisy, and a choice that flips from step to step blurs more than a
-steady one; so each step's risks, over their largest magnitude (every step one vote),
-enter an exponential moving average over steps, and its least entry is chosen.
-No filter is not a candidate: with ``W < 1`` it wins on a noisy risk estimate late in a
-run, and one unfiltered Adam step then moves every entry by a learning rate. The noise
-sample is the difference of successive gradients, ``sqrt(rho / 2) (g_t - g_{t-1})`` (``rho``: the
-variance ratio of Adam's bias-corrected EMA), which keeps the noise's correlation between
-neighbours (a renderer's splats, a transposed blur). The candidates of one factor are one
-cascade, read after each F (``atrous_bilateral``'s ``first_level``). The chosen ``B``
-filters both ``m`` and ``v`` (``v`` only once chosen: the risks need ``B m`` and
-``B zeta``), then ``"auto"``'s blend follows: one non-negative, row-stochastic operator,
-so the step stays bounded (supplement §1.3).
-
-Once the blend's gate has been fully open on a leaf (the filter's residual persisted over
-most of it: its guide does not predict its gradient, as on an i.i.d. target), the leaf takes
-the mildest candidate, ``FACTORS[0]`` at the least F, for the rest of the run: that bias is
-small against one step's noise, so the per-step risk cannot see it, and late in a run, once
-the gate has closed again, it would choose a deeper filter.
+Each step's risks, over their largest magnitude (every step one vote), enter an exponential
+moving average over steps, and its least entry is chosen. The noise sample is the
+difference of successive gradients, ``sqrt(rho / 2) (g_t - g_{t-1})``. The candidates of one
+factor are one cascade, read after each F. The chosen ``B`` filters both ``m`` and ``v``, then
+``"auto"``'s blend follows: one non-negative, row-stochastic operator, so the step stays
+bounded (supplement §1.3). Once the blend's gate has been fully open on a leaf, the leaf takes
+the mildest candidate for the rest of the run.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+from numbers import Real
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src import sharded
-
-SURE = "sure"
-FACTORS = (1.0, 3.0, 10.0)  # the candidates' sigma_d, times the step scale
-MIN_LEVELS = 2  # the candidates' F: MIN_LEVELS .. the leaf's levels
-VARIANCE_WEIGHT = 0.1  # W
-RISK_DECAY = 0.9  # the risks' moving average over steps (~10 steps)
-FIRST_FACTOR = 3.0  # before the noise is known (t = 1, or b1 = 0): this factor, the middle F
+from optax_bilateral._src import numerics, sharded
+from optax_bilateral._src.auto import Auto, noise_ratio
+from optax_bilateral._src.sigma import Filtered, SigmaRule
+from optax_bilateral._src.validation import check_integer, check_number
 
 
 class SureState(NamedTuple):
-    """One leaf's state for ``sigma_d="sure"`` (in :class:`PostfilterState`).
+    """One leaf's state for ``sigma_d="sure"`` (in :class:`PostfilterState`, field
+    ``sigma_state``).
 
     Attributes:
       previous_guide: the guide the last update saw (the step scale; on a large leaf its
@@ -61,7 +50,7 @@ class SureState(NamedTuple):
         where the guide is constant, which every sigma_d filters alike).
       levels: the F the last update chose (int32 scalar; 0 before the first update).
       risks: the moving average of every candidate's estimated risk, each step's over its
-        largest magnitude, in :func:`labels`' order (0 before the noise is known).
+        largest magnitude, in :meth:`Sure.labels`' order (0 before the noise is known).
       opened: 1 once the blend's gate has been fully open at a step, else 0 (a scalar); from
         then on the leaf takes the mildest candidate.
 
@@ -69,7 +58,7 @@ class SureState(NamedTuple):
 
         >>> import jax.numpy as jnp, optax_bilateral as ob
         >>> state = ob.postfilter(sigma_d="sure").init({"tex": jnp.ones((16, 16, 3))})
-        >>> sure = state.auto["tex"]
+        >>> sure = state.sigma_state["tex"]
         >>> type(sure).__name__, sure.previous_gradient.shape, float(sure.sigma_d)
         ('SureState', (16, 16, 3), 0.0)
         >>> int(sure.levels), sure.risks.shape   # 3 factors at F = 2 .. 5 (SURE_LEVELS)
@@ -87,45 +76,176 @@ class SureState(NamedTuple):
     opened: jax.Array
 
 
-def is_sure(sigma_d) -> bool:
-    return isinstance(sigma_d, str) and sigma_d == SURE
+@jax.tree_util.register_static
+@dataclasses.dataclass(frozen=True)
+class Sure(SigmaRule):
+    """``sigma_d="sure"`` with its constants as fields (``"sure"`` is ``Sure()``, which
+    :func:`optax_bilateral.sure_sigma` builds with other values).
 
+    Attributes:
+      factors: the candidates' sigma_d, times the step scale.
+      min_levels: the candidates' F run from this to the leaf's ``levels``.
+      variance_weight: ``W``, the weight of the filtered noise's variance in the risk.
+      risk_decay: the risks' moving average over steps (~10 steps).
+      first_factor: the factor taken (at the middle F) before the noise is known.
+      auto: ``"auto"``'s constants, for the step scale, the sub-grid and the blend.
 
-def level_choices(levels: int) -> tuple[int, ...]:
-    """The candidates' F for a leaf filtered with ``levels`` levels at most."""
-    return tuple(range(min(MIN_LEVELS, levels), levels + 1))
+    Example::
 
+        >>> import optax_bilateral as ob
+        >>> rule = ob.sure_sigma(factors=(1.0, 3.0), first_factor=3.0)
+        >>> rule.count(5)               # candidates at F = 2 .. 5, two factors each
+        8
+        >>> opt = ob.postfilter(sigma_d=rule)
+    """
 
-def count(levels: int) -> int:
-    """How many candidates a leaf filtered with ``levels`` levels at most has."""
-    return len(FACTORS) * len(level_choices(levels))
+    factors: tuple[float, ...] = (1.0, 3.0, 10.0)
+    min_levels: int = 2
+    variance_weight: float = 0.1
+    risk_decay: float = 0.9
+    first_factor: float = 3.0
+    auto: Auto = dataclasses.field(default_factory=Auto)
 
+    def __post_init__(self):
+        factors = self.factors
+        if not (
+            isinstance(factors, tuple)
+            and factors
+            and all(isinstance(f, Real) and f > 0 for f in factors)
+        ):
+            raise ValueError(f"factors must be a non-empty tuple of numbers > 0, got {factors!r}")
+        if self.first_factor not in factors:
+            raise ValueError(
+                f"first_factor must be one of factors {factors}, got {self.first_factor!r}"
+            )
+        check_integer(self, "min_levels", low=1)
+        check_number(self, "variance_weight", low=0)
+        check_number(self, "risk_decay", low=0, high=1, high_open=True)
+        if not isinstance(self.auto, Auto):
+            raise TypeError(f"auto must be an auto_sigma() rule, got {self.auto!r}")
 
-def labels(levels: int, scale: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``(sigma_d, F)`` of every candidate, in :func:`choose`'s order (factor-major)."""
-    choices = level_choices(levels)
-    sigma_d = jnp.stack([f * scale for f in FACTORS for _ in choices])
-    return sigma_d, jnp.asarray([n for _ in FACTORS for n in choices], jnp.int32)
+    def init(self, leaf, guide, plan, kind):
+        dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
+        zeros = lambda shape, dt=dtype: jnp.zeros(shape, dt)  # every field its own buffer
+        return SureState(
+            numerics.zeros(self.auto.kept_guide(jnp.asarray(guide), plan.axes)),
+            zeros(jnp.shape(leaf)),
+            zeros(jnp.shape(leaf)),
+            zeros([]),
+            zeros([], jnp.int32),
+            zeros([self.count(plan.levels)]),
+            zeros([]),
+        )
 
+    def sigma(self, guide, plan, state, ctx):
+        scale = self.auto.scale(guide, state.previous_guide, ctx.count, plan.axes)
+        keep = self.auto.kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
+        return scale, state._replace(previous_guide=keep)
 
-def first(levels: int) -> int:
-    """The candidate taken before the noise can be estimated: ``FIRST_FACTOR`` at the middle F."""
-    choices = level_choices(levels)
-    return FACTORS.index(FIRST_FACTOR) * len(choices) + len(choices) // 2
+    def combine(self, moments, op, sigma, state, ctx):
+        return None, (functools.partial(self._filtered, moments, op, sigma, state, ctx),)
 
+    def _filtered(self, moments, op, sigma, state, ctx):
+        """The chosen candidate's ``B m``, ``B v``, then ``"auto"``'s blend (:class:`Filtered`)."""
+        m, v = moments.m, moments.v
+        m_f, v_f, new = self._choose(moments, op, sigma, state, ctx)
+        new["residual"] = residual = self.auto.update_residual(
+            m, m_f, state.residual, ctx.c1, moments.observed
+        )
+        statistics = dict(b1=ctx.b1, c1=ctx.c1, c2=ctx.c2, count=ctx.count, axes=op.plan.axes)
+        lam, gate = self.auto.weights(m, v, residual, **statistics)
+        lam = self.auto.upsample(lam, m.shape, op.plan.axes)
+        # Sticky: the bias it saw persists, the gate's view of it does not.
+        new["opened"] = jnp.maximum(state.opened, (gate >= 1).astype(m.dtype))
+        new = {k: x.astype(getattr(state, k).dtype) for k, x in new.items()}
+        return Filtered(m_f, v_f, lam, state._replace(**new))
 
-def candidates(fields, levels: int, scale, filter_at) -> list:
-    """Every candidate's filter of ``fields``, in :func:`choose`'s order: per factor one
-    cascade, read after each F. ``filter_at(fields, sigma_d, levels, first_level)`` runs
-    levels ``first_level .. levels - 1`` of the leaf's filter."""
-    out = []
-    for factor in FACTORS:
-        x, done = fields, 0
-        for n in level_choices(levels):
-            x = filter_at(x, factor * scale, n, done)
-            out.append(x)
-            done = n
-    return out
+    def _choose(self, moments, op, scale, state, ctx):
+        """Per candidate sigma_d one cascade of (m, noise sample), read after each candidate
+        F; the candidate of least moving-average risk; then v filtered with the chosen
+        operator. Returns ``(B m, B v, what the state learned)``."""
+        m, v = moments.m, moments.v
+        b1 = jnp.asarray(ctx.b1, m.dtype)
+        ratio, usable = noise_ratio(b1, ctx.c1, ctx.count)
+        previous = state.previous_gradient.astype(m.dtype)
+        # An unobserved texel's last gradient waits for its next one.
+        g = jnp.where(moments.observed, moments.g.astype(m.dtype), previous)
+        zeta = noise_sample(g, previous, ratio, usable)
+        cascades = self.candidates((m, zeta), op.plan.levels, scale, op.apply)
+        c1 = jnp.asarray(ctx.c1, m.dtype)
+        first = self.first(op.plan.levels)
+        m_f, pick, risks = self.choose(
+            m, zeta, cascades, c1, usable, moments.observed, first, state.risks, state.opened
+        )
+        sigmas, levels = self.labels(op.plan.levels, scale)
+        sigma_d, chosen = sigmas[pick], levels[pick]
+        choices = self.level_choices(op.plan.levels)
+        # Only the chosen F's branch runs.
+        v_f = lax.switch(
+            chosen - choices[0], [lambda n=n: op.apply(v, sigma_d, levels=n) for n in choices]
+        )
+        new = {"previous_gradient": g, "sigma_d": sigma_d, "levels": chosen, "risks": risks}
+        return m_f, v_f, new
+
+    # ------------------------------------------------------------------ candidates
+
+    def level_choices(self, levels: int) -> tuple[int, ...]:
+        """The candidates' F for a leaf filtered with ``levels`` levels at most."""
+        return tuple(range(min(self.min_levels, levels), levels + 1))
+
+    def count(self, levels: int) -> int:
+        """How many candidates a leaf filtered with ``levels`` levels at most has."""
+        return len(self.factors) * len(self.level_choices(levels))
+
+    def labels(self, levels: int, scale) -> tuple[jax.Array, jax.Array]:
+        """``(sigma_d, F)`` of every candidate, in :meth:`choose`'s order (factor-major)."""
+        choices = self.level_choices(levels)
+        sigma_d = jnp.stack([f * scale for f in self.factors for _ in choices])
+        return sigma_d, jnp.asarray([n for _ in self.factors for n in choices], jnp.int32)
+
+    def first(self, levels: int) -> int:
+        """The candidate taken before the noise can be estimated: ``first_factor`` at the
+        middle F."""
+        choices = self.level_choices(levels)
+        return self.factors.index(self.first_factor) * len(choices) + len(choices) // 2
+
+    def candidates(self, fields, levels: int, scale, apply) -> list:
+        """Every candidate's filter of ``fields``, in :meth:`choose`'s order: per factor one
+        cascade, read after each F. ``apply(fields, sigma_d, levels, first_level)`` runs levels
+        ``first_level .. levels - 1`` of the leaf's filter."""
+        out = []
+        for factor in self.factors:
+            x, done = fields, 0
+            for n in self.level_choices(levels):
+                x = apply(x, factor * scale, n, done)
+                out.append(x)
+                done = n
+        return out
+
+    def choose(
+        self, m, zeta, candidates, c1, usable, observed, first_pick, risks=None, opened=None
+    ):
+        """``(B m, pick, risks)``: the candidate ``(B m, B zeta)`` of least moving-average risk
+        (``first_pick`` until ``usable``) and the new average.
+
+        ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``observed`` (full shape) or
+        None leaves unobserved entries out of the sums; ``risks`` is the average so far (None:
+        none); ``opened`` (a scalar, :attr:`SureState.opened`) > 0 takes the mildest candidate
+        once usable. The caller filters ``v`` with the chosen operator.
+        """
+        keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
+        step = []
+        for bm, bz in candidates:
+            bias = _norm2(keep(m - bm)) / c1**2 - _norm2(keep(zeta - bz))
+            step.append(bias + self.variance_weight * _norm2(keep(bz)))
+        step = _votes(jnp.stack(step))
+        previous = jnp.zeros_like(step) if risks is None else risks.astype(step.dtype)
+        new = jnp.where(usable, self.risk_decay * previous + (1 - self.risk_decay) * step, previous)
+        best = jnp.argmin(new)
+        if opened is not None:  # the mildest candidate, the first: factors[0] at the least F
+            best = jnp.where(opened > 0, 0, best)
+        pick = jnp.where(usable, best, first_pick).astype(jnp.int32)
+        return lax.select_n(pick, *(c[0] for c in candidates)), pick, new
 
 
 def noise_sample(g, previous, ratio, usable):
@@ -134,36 +254,10 @@ def noise_sample(g, previous, ratio, usable):
     return jnp.where(usable, jnp.sqrt(ratio / 2) * (g - previous), 0).astype(g.dtype)
 
 
-def choose(m, zeta, candidates, c1, usable, observed, first_pick, previous_risks=None, opened=None):
-    """``(B m, pick, risks)``: the candidate ``(B m, B zeta)`` of least moving-average risk
-    (``first_pick`` until ``usable``) and the new average.
-
-    ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``observed`` (full shape) or
-    None leaves unobserved entries out of the sums; ``previous_risks`` is the average so
-    far (None: none, so this step's estimate alone decides); ``opened`` (a scalar, see
-    :attr:`SureState.opened`) > 0 takes the mildest candidate once usable. The caller
-    filters ``v`` with the chosen operator, so both moments get it.
-    """
-    keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
-    risks = []
-    for bm, bz in candidates:
-        bias = _norm2(keep(m - bm)) / c1**2 - _norm2(keep(zeta - bz))
-        risks.append(bias + VARIANCE_WEIGHT * _norm2(keep(bz)))
-    risks = _votes(jnp.stack(risks))
-    previous = jnp.zeros_like(risks) if previous_risks is None else previous_risks
-    previous = previous.astype(risks.dtype)
-    risks = jnp.where(usable, RISK_DECAY * previous + (1 - RISK_DECAY) * risks, previous)
-    best = jnp.argmin(risks)
-    if opened is not None:  # the mildest candidate, the first: FACTORS[0] at the least F
-        best = jnp.where(opened > 0, 0, best)
-    pick = jnp.where(usable, best, first_pick).astype(jnp.int32)
-    return lax.select_n(pick, *(c[0] for c in candidates)), pick, risks
-
-
 def _votes(risks):
     """One step's risks over their largest finite magnitude, so each step weighs the same in
-    the average (the risks shrink as the optimiser converges); an overflowing risk is no
-    evidence for its candidate: 2, worse than any finite one."""
+    the average; an overflowing risk is no evidence for its candidate: 2, worse than any
+    finite one."""
     finite = jnp.isfinite(risks)
     largest = jnp.max(jnp.where(finite, jnp.abs(risks), 0))
     scaled = risks / jnp.maximum(largest, jnp.finfo(risks.dtype).tiny)
@@ -177,3 +271,7 @@ def _norm2(x):
     if sharded.is_split(x):
         return jnp.sum(x * x)
     return jnp.tensordot(x, x, axes=x.ndim)
+
+
+def is_sure(sigma_d) -> bool:
+    return isinstance(sigma_d, Sure) or (isinstance(sigma_d, str) and sigma_d == "sure")

@@ -16,8 +16,9 @@ applied afresh each step and never accumulates). A transform placed after
 into ``B m / sqrt(B v)``; so the postfilter is Adam with a filter between the
 moment update and the step.
 
-Every leaf goes through one step shared by both filters
-(:func:`optax_bilateral._src.step.leaf_step`).
+Every leaf goes through one straight step (``_src/step.py``: ``postfilter_leaf``,
+``prefilter_leaf``); what the transform decides once per leaf (axes, F, dtypes, the sigma_d
+rule) is its ``LeafPlan``.
 
 Non-finite gradients: a texel whose gradient has a NaN or Inf in any channel is
 treated as *unobserved* for that step, as ``mask_unobserved`` treats all-zero
@@ -49,15 +50,16 @@ them, docs/robustness.md has the full table):
 
 from __future__ import annotations
 
-import functools
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import optax
 
-from optax_bilateral._src import auto, leaves, numerics, sure
-from optax_bilateral._src.step import LeafRule, leaf_step, split_numbers
+from optax_bilateral._src import layout, leaves, numerics, rules, sure
+from optax_bilateral._src.operators import FilterPlan
+from optax_bilateral._src.sigma import Kind, SigmaRule
+from optax_bilateral._src.step import AdamHyper, Clock, LeafPlan, postfilter_leaf, prefilter_leaf
 from optax_bilateral._src.validation import (
     check_bool,
     check_decay,
@@ -72,6 +74,7 @@ from optax_bilateral._src.validation import (
 
 if TYPE_CHECKING:
     from optax_bilateral._src.leaves import GuideSetting, SpatialAxesSetting
+    from optax_bilateral._src.rules import LevelsSetting, SigmaSetting
 
 SecondMoment = Literal["elementwise", "uniform"]
 
@@ -155,20 +158,22 @@ def scale_by_adam(
 
     def init_fn(params):
         for leaf, name in zip(jax.tree.leaves(params), leaves.leaf_names(params)):
-            leaves.check_real_floating(
+            leaves.check_floating(
                 leaf,
                 name,
                 "scale_by_adam keeps Adam moments for every "
-                "leaf, which needs real floating point parameters",
+                "leaf, which needs floating point parameters (real or complex)",
             )
-        mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
-        nu = jax.tree.map(jnp.zeros_like, params)
+        mu = jax.tree.map(lambda p: numerics.zeros(p, mu_dtype), params)
+        nu = jax.tree.map(numerics.zeros, params)
         return ScaleByAdamState(count=jnp.zeros([], jnp.int32), mu=mu, nu=nu)
 
     def update_fn(updates, state, params=None, **extra_args):
         del params, extra_args
+        leaves.check_update_shapes(updates, state.mu, "scale_by_adam", "moments")
         mu = jax.tree.map(lambda g, m: (1 - b1) * g + b1 * m, updates, state.mu)
-        nu = jax.tree.map(lambda g, v: (1 - b2) * (g**2) + b2 * v, updates, state.nu)
+        # |g|^2: a complex leaf's second moment is real, as in optax.adam.
+        nu = jax.tree.map(lambda g, v: (1 - b2) * _abs_sq(g) + b2 * v, updates, state.nu)
         count_inc = jnp.asarray(optax.safe_increment(state.count))
         c1 = jnp.asarray(1 - b1**count_inc)
         c2 = jnp.asarray(1 - b2**count_inc)
@@ -186,37 +191,128 @@ def scale_by_adam(
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
+def _abs_sq(g: jax.Array) -> jax.Array:
+    return jnp.real(g) ** 2 + jnp.imag(g) ** 2 if jnp.iscomplexobj(g) else g**2
+
+
+# ----------------------------------------------------------------------------------------
+# What a filtering transform decides per leaf
+
+
+class _Filtering(NamedTuple):
+    """A filtering transform's settings, resolved per leaf into plans, rules and guides."""
+
+    sigma_d: Any
+    levels: Any
+    separable: bool
+    guide: Any
+    log_guide: bool
+    spatial_axes: Any
+    filter_m: bool = True
+    filter_v: bool = True
+
+    def check(self) -> None:
+        """Construction-time checks of the settings that need no parameters (what depends on
+        the leaves, axis ranges and dimensions, is checked by ``init``)."""
+        leaves.check_guide(self.guide)
+        for sig in jax.tree.leaves(self.sigma_d, is_leaf=leaves.is_sigma_atom):
+            if isinstance(sig, SigmaRule):
+                continue
+            if sig is None:
+                raise ValueError(
+                    "sigma_d must be a number >= 0 (inf for a low-pass), 'auto', 'sure' or a "
+                    "sigma_d rule (ob.auto_sigma(), ob.sure_sigma()), got None"
+                )
+            check_sigma_d(sig, allow_auto=True)
+        for lev in jax.tree.leaves(self.levels):
+            if not (hasattr(lev, "shape") and not is_concrete(lev)):
+                check_levels(lev)  # a traced one: update says how
+        leaves.check_spatial_axes_setting(self.spatial_axes)
+
+    def specs(self, tree, warn: bool = False) -> list[leaves.LeafSpec]:
+        return leaves.leaf_specs(
+            tree,
+            spatial_axes=self.spatial_axes,
+            sigma_d=self.sigma_d,
+            levels=self.levels,
+            warn=warn,
+        )
+
+    def filter_plan(self, spec: leaves.LeafSpec) -> FilterPlan | None:
+        if not spec.axes:
+            return None
+        return FilterPlan(
+            spec.axes,
+            spec.levels,
+            self.separable,
+            self.guide == "self",
+            self.log_guide,
+            self.filter_m,
+            self.filter_v,
+        )
+
+    def guides(self, params, tree, specs, transform: str) -> list:
+        return leaves.guide_leaves(self.guide, params, tree, specs, self.log_guide, transform)
+
+    def init_states(self, params, specs, transform: str, kind: Kind):
+        """Per leaf, its sigma_d rule's state (None for an unfiltered leaf or a rule that keeps
+        none); None if no leaf has one."""
+        plans = [self.filter_plan(spec) for spec in specs]
+        if not any(plans):
+            return None
+        guides = self.guides(params, params, specs, transform)
+        states = [
+            None
+            if plan is None
+            else rules.resolve(spec.sigma_d).init(
+                layout.real_view(leaf), layout.real_view(guide), plan, kind
+            )
+            for leaf, guide, spec, plan in zip(jax.tree.leaves(params), guides, specs, plans)
+        ]
+        if all(s is None for s in states):
+            return None
+        return jax.tree.unflatten(jax.tree.structure(params), states)
+
+
+def _per_leaf(tree, treedef) -> list:
+    """The entries of a per-leaf state tree (None everywhere if there is none)."""
+    if tree is None:
+        return [None] * treedef.num_leaves
+    return treedef.flatten_up_to(tree)
+
+
 # ----------------------------------------------------------------------------------------
 # prefilter
 
 
 class PrefilterState(NamedTuple):
-    """State of :func:`prefilter`: none, unless a leaf has ``sigma_d="auto"``.
+    """State of :func:`prefilter`: none, unless a leaf's sigma_d rule keeps one (``"auto"``).
 
     Attributes:
-      count: the number of updates so far (int32 scalar), or None when no leaf has
-        ``sigma_d="auto"``.
-      auto: None when no leaf has ``sigma_d="auto"``; else a pytree with the parameters'
-        structure holding, per leaf, its :class:`AutoState` (the guide of the last
-        update), or None for leaves with a numeric ``sigma_d`` or not filtered.
+      count: the number of updates so far (int32 scalar), or None when no leaf's rule
+        keeps a state.
+      sigma_state: None when no leaf's rule keeps a state; else a pytree with the
+        parameters' structure holding, per leaf, its rule's state (an :class:`AutoState`:
+        the guide of the last update), or None for leaves with a numeric ``sigma_d`` or
+        not filtered.
 
     Example::
 
         >>> import jax.numpy as jnp, optax_bilateral as ob
         >>> ob.prefilter(sigma_d=0.1).init(jnp.ones((16, 16, 3)))
-        PrefilterState(count=None, auto=None)
+        PrefilterState(count=None, sigma_state=None)
         >>> state = ob.prefilter().init(jnp.ones((16, 16, 3)))       # sigma_d="auto"
-        >>> int(state.count), state.auto.previous_guide.shape
+        >>> int(state.count), state.sigma_state.previous_guide.shape
         (0, (16, 16, 3))
     """
 
     count: Any = None  # shape=(), int32, or None
-    auto: Any = None
+    sigma_state: Any = None
 
 
 def prefilter(
-    sigma_d: Any = DEFAULT_SIGMA_D,
-    levels: Any = None,
+    sigma_d: SigmaSetting = DEFAULT_SIGMA_D,
+    levels: LevelsSetting = None,
     *,
     separable: bool = True,
     guide: GuideSetting = "params",
@@ -237,9 +333,9 @@ def prefilter(
     Args:
       sigma_d: data-term scale (>= 0; ``inf`` = low-pass) or ``"auto"`` (the
         default: 3x the guide's mean change per step, per leaf, since a prefilter does
-        not see the step it leads to; docs/auto_sigma.md),
-        a value or a pytree prefix of the parameters. A number is traceable.
-        (``"sure"`` needs Adam's moments: :func:`postfilter` only.)
+        not see the step it leads to; docs/auto_sigma.md), or a rule object
+        (:func:`auto_sigma`); a value or a pytree prefix of the parameters. A number is
+        traceable. (``"sure"`` needs Adam's moments: :func:`postfilter` only.)
       levels: F, number of a-trous levels (static), a number or a prefix; None (the
         default): :data:`DEFAULT_LEVELS` = 3. The authors' ``stride_levels = L`` is
         ``levels = L - 1`` (their strides are 0, 1, 2, 4, ...; the stride-0 level is
@@ -282,91 +378,60 @@ def prefilter(
         >>> print(updates[8, 10])                # -lr sign(A g): step 1 of Adam is a sign step
         [-0.01 -0.01 -0.01]
     """
-    leaves.check_guide(guide)
-    _static_checks(sigma_d, levels, spatial_axes)
+    settings = _Filtering(sigma_d, levels, separable, guide, log_guide, spatial_axes)
+    settings.check()
     _check_sure(sigma_d, "a prefilter has no moments; use a number or 'auto'")
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        specs = leaves.check_params(
-            params,
-            spatial_axes=spatial_axes,
-            sigma_d=sigma_d,
-            levels=levels,
-            guide=guide,
-            transform="prefilter",
-            all_leaves=False,
-        )
-        auto_state = _auto_init(params, specs, guide, log_guide, "prefilter", with_residual=False)
-        if auto_state is None:
+        specs = leaves.check_params(params, settings, transform="prefilter", all_leaves=False)
+        sigma_state = settings.init_states(params, specs, "prefilter", "prefilter")
+        if sigma_state is None:
             return PrefilterState()
-        return PrefilterState(count=jnp.zeros([], jnp.int32), auto=auto_state)
+        return PrefilterState(count=jnp.zeros([], jnp.int32), sigma_state=sigma_state)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
-        specs = leaves.leaf_specs(
-            updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels
-        )
-        guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "prefilter")
+        leaves.check_update_shapes(updates, params, "prefilter")
+        specs = settings.specs(updates)
+        guides = settings.guides(params, updates, specs, "prefilter")
         flat, treedef = jax.tree.flatten(updates)
         # A stateless prefilter's state may also be passed as () (it was an empty tuple).
-        auto_tree = state.auto if isinstance(state, PrefilterState) else None
-        count = None if auto_tree is None else optax.safe_increment(cast(Any, state).count)
-        autos = _auto_leaves(auto_tree, treedef)
-        out, new_autos = [], []
-        for g, leaf_guide, spec, auto_state in zip(flat, guides, specs, autos):
-            if not spec.axes:
-                out.append(g)
-                new_autos.append(auto_state)
-                continue
-            constants, traced = split_numbers(**_sigma_setting(spec.sigma_d))
-            if auto.is_auto(spec.sigma_d):
-                traced["count"] = count
-            rule = LeafRule(
-                stage="prefilter",
-                axes=spec.axes,
-                levels=spec.levels,
-                separable=separable,
-                self_guided=guide == "self",
-                log_guide=log_guide,
-                mask_unobserved=mask_unobserved,
-                limit=numerics.prefilter_limit(g.dtype),
-                guard_sigma=not is_concrete(spec.sigma_d),
-                constants=constants,
-                auto_sigma=auto.is_auto(spec.sigma_d),
+        tree = state.sigma_state if isinstance(state, PrefilterState) else None
+        count = None if tree is None else optax.safe_increment(state.count)
+        out, new_states = [], []
+        for g, leaf_guide, spec, leaf_state in zip(flat, guides, specs, _per_leaf(tree, treedef)):
+            plan = LeafPlan(
+                settings.filter_plan(spec),
+                mask_unobserved,
+                numerics.prefilter_limit(jnp.finfo(g.dtype).dtype),
+                complex_view=jnp.iscomplexobj(g),
             )
-            d, _, new_auto = leaf_step(g, leaf_guide, None, traced, auto_state, rule=rule)
-            out.append(d)
-            new_autos.append(new_auto)
-        if auto_tree is None:
+            if plan.filter is not None:
+                rule = rules.resolve(spec.sigma_d)
+                a_g, leaf_state = prefilter_leaf(
+                    layout.real_view(g),
+                    layout.real_view(leaf_guide),
+                    leaf_state,
+                    rule,
+                    count,
+                    plan=plan,
+                )
+                g = layout.from_real_view(a_g, g.dtype) if plan.complex_view else a_g
+            out.append(g)
+            new_states.append(leaf_state)
+        if tree is None:
             return jax.tree.unflatten(treedef, out), state
-        new_state = PrefilterState(count=count, auto=jax.tree.unflatten(treedef, new_autos))
+        new_state = PrefilterState(count, jax.tree.unflatten(treedef, new_states))
         return jax.tree.unflatten(treedef, out), new_state
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def _static_checks(sigma_d, levels, spatial_axes) -> None:
-    """Construction-time checks of the settings that need no parameters.
-
-    Plain values and the values inside a pytree prefix are checked here; what
-    depends on the leaves (axis ranges, dimensions) is checked by ``init``.
-    """
-    for sig in jax.tree.leaves(sigma_d, is_leaf=lambda x: x is None):
-        if sig is None:
-            raise ValueError(
-                "sigma_d must be a number >= 0 (inf for a low-pass) or 'auto', got None"
-            )
-        check_sigma_d(sig, allow_auto=True)
-    for lev in jax.tree.leaves(levels):
-        if not (hasattr(lev, "shape") and not is_concrete(lev)):  # traced: update says how
-            check_levels(lev)
-    leaves.check_spatial_axes_setting(spatial_axes)
-
-
 def _check_sure(sigma_d, why: str | None) -> None:
     """Raises if some leaf's ``sigma_d`` is "sure" where it cannot work (``why``: the reason)."""
-    if why is not None and any(map(sure.is_sure, jax.tree.leaves(sigma_d))):
+    atoms = jax.tree.leaves(sigma_d, is_leaf=leaves.is_sigma_atom)
+    if why is not None and any(map(sure.is_sure, atoms)):
         raise ValueError(
             "sigma_d='sure' chooses among filters of Adam's moments m and v by their "
             f"estimated risk: {why}"
@@ -386,15 +451,20 @@ class PostfilterState(NamedTuple):
         memoryless case ``b1 = b2 = 0``.
       nu: the second moment ``v_t`` (unfiltered), like the parameters; None when
         ``b1 = b2 = 0``.
-      auto: None unless a leaf has ``sigma_d="auto"``; then a pytree with the
-        parameters' structure holding, per leaf, its :class:`AutoState` (None for leaves
-        with a numeric ``sigma_d`` or not filtered).
+      sigma_state: None unless a leaf's sigma_d rule keeps a state; then a pytree with the
+        parameters' structure holding, per leaf, its rule's state (an :class:`AutoState`
+        for ``"auto"``, a :class:`SureState` for ``"sure"``; None for leaves with a numeric
+        ``sigma_d`` or not filtered).
+      nonfinite_count: per leaf (a pytree like the parameters), how many gradient entries
+        were not finite (NaN or infinite) since ``init``, an int32 scalar that saturates at
+        its maximum. Those entries are dropped from the moments and the filter, and their
+        step is 0; a count that grows is a renderer or a loss to look at.
 
     Example::
 
         >>> import jax.numpy as jnp, optax_bilateral as ob
         >>> state = ob.postfilter(sigma_d=0.1).init(jnp.ones((16, 16, 3)))
-        >>> int(state.count), state.mu.shape, state.auto
+        >>> int(state.count), state.mu.shape, state.sigma_state
         (0, (16, 16, 3), None)
         >>> ob.postfilter(b1=0.0, b2=0.0, sigma_d=0.1).init(jnp.ones((16, 16, 3))).mu is None
         True
@@ -403,7 +473,8 @@ class PostfilterState(NamedTuple):
     count: jax.Array  # shape=(), int32
     mu: optax.Updates | None
     nu: optax.Updates | None
-    auto: Any = None
+    sigma_state: Any = None
+    nonfinite_count: Any = None
 
 
 def postfilter(
@@ -411,8 +482,8 @@ def postfilter(
     b2: jax.typing.ArrayLike | None = None,
     eps: jax.typing.ArrayLike = 1e-8,
     *,
-    sigma_d: Any = DEFAULT_SIGMA_D,
-    levels: Any = None,
+    sigma_d: SigmaSetting = DEFAULT_SIGMA_D,
+    levels: LevelsSetting = None,
     separable: bool = True,
     guide: GuideSetting = "params",
     log_guide: bool = False,
@@ -423,6 +494,7 @@ def postfilter(
     filter_m: bool = True,
     filter_v: bool = True,
     second_moment: SecondMoment = "elementwise",
+    unfiltered_betas: tuple[jax.typing.ArrayLike, jax.typing.ArrayLike] | None = None,
 ) -> optax.GradientTransformationExtraArgs:
     r"""Adam whose moments are filtered in space after the temporal averages.
 
@@ -460,8 +532,9 @@ def postfilter(
         steps, then the same blend, and the mildest candidate once that blend has been
         fully open on the leaf; per
         step three cascades of m and a noise sample and one of v; a guide and moments
-        needed; :class:`SureState`); a value or a pytree prefix of the parameters. A
-        number is traceable.
+        needed; :class:`SureState`), or a rule object (:func:`auto_sigma`,
+        :func:`sure_sigma`, or a :class:`SigmaRule` of one's own); a value or a pytree
+        prefix of the parameters. A number is traceable.
       levels: F, number of a-trous levels (static), a number or a prefix; the
         authors' ``stride_levels`` - 1. With ``sigma_d="sure"``, the most it may use.
         None (the default): :data:`DEFAULT_LEVELS` = 3, and :data:`SURE_LEVELS` = 5
@@ -491,6 +564,9 @@ def postfilter(
         (Large Steps' ``AdamUniform``; the Dr.Jit port's ``uniform``, which puts
         ``eps`` on the uncorrected root, is this one with ``eps / sqrt(1 - b2^t)``).
         Unobserved texels enter the max with the moments they keep.
+      unfiltered_betas: ``(b1, b2)`` of the leaves this postfilter does not filter (its
+        leaf rule gives them no spatial axes, or ``levels=0``); None (the default): ``b1``
+        and ``b2`` for every leaf. :func:`bilateral_adam` passes Adam's own ``(0.9, 0.999)``.
 
     Finite gradients are clipped to the largest magnitude whose square fits the
     second moment's dtype (1.3e19 for float32, 181 for float16), and a zero
@@ -515,194 +591,161 @@ def postfilter(
         >>> bool(jnp.all(state.mu == 0.8 * grads))   # the state keeps the unfiltered m_t
         True
     """
-    if b2 is None:
-        b2 = 1 - (1 - b1) ** 2
-    check_decay(b1, "b1")
-    check_decay(b2, "b2")
-    check_nonnegative(eps, "eps")
-    check_nonnegative(eps_root, "eps_root")
-    leaves.check_guide(guide)
-    _static_checks(sigma_d, levels, spatial_axes)
+    b2 = _check_adam(b1, b2, eps, eps_root)
+    unfiltered_betas = _check_betas(unfiltered_betas, (b1, b2))
+    filter_m, filter_v = check_bool(filter_m, "filter_m"), check_bool(filter_v, "filter_v")
+    settings = _Filtering(
+        sigma_d, levels, separable, guide, log_guide, spatial_axes, filter_m, filter_v
+    )
+    settings.check()
     mu_dtype = check_mu_dtype(mu_dtype)
     check_second_moment(second_moment)
-    filter_m, filter_v = check_bool(filter_m, "filter_m"), check_bool(filter_v, "filter_v")
-    _check_sure(sigma_d, _sure_unusable(b1, b2, guide, filter_m, filter_v))
+    memoryless = all(map(is_zero, (b1, b2, *unfiltered_betas)))
+    _check_sure(sigma_d, _sure_unusable(memoryless, guide, filter_m, filter_v))
 
     def init_fn(params):
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        specs = leaves.check_params(
-            params,
-            spatial_axes=spatial_axes,
-            sigma_d=sigma_d,
-            levels=levels,
-            guide=guide,
-            transform="postfilter",
-            all_leaves=True,
-        )
+        specs = leaves.check_params(params, settings, transform="postfilter", all_leaves=True)
+        kind = "memoryless" if memoryless else "postfilter"
+        sigma_state = settings.init_states(params, specs, "postfilter", kind)
         count = jnp.zeros([], jnp.int32)
-        memoryless = is_zero(b1) and is_zero(b2)
-        auto_state = _auto_init(
-            params, specs, guide, log_guide, "postfilter", with_residual=not memoryless
-        )
+        nonfinite = jax.tree.map(lambda _: jnp.zeros([], jnp.int32), params)
         if memoryless:
-            return PostfilterState(count=count, mu=None, nu=None, auto=auto_state)
-        mu = jax.tree.map(lambda p: jnp.zeros_like(p, dtype=mu_dtype or jnp.result_type(p)), params)
-        nu = jax.tree.map(jnp.zeros_like, params)
-        return PostfilterState(count=count, mu=mu, nu=nu, auto=auto_state)
+            return PostfilterState(count, None, None, sigma_state, nonfinite)
+        mu = jax.tree.map(lambda p: numerics.zeros(p, mu_dtype), params)
+        nu = jax.tree.map(numerics.zeros, params)
+        return PostfilterState(count, mu, nu, sigma_state, nonfinite)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
-        memoryless = state.mu is None
-        count_inc = jnp.asarray(optax.safe_increment(state.count))
-        specs = leaves.leaf_specs(
-            updates, spatial_axes=spatial_axes, sigma_d=sigma_d, levels=levels
-        )
-        guides = leaves.guide_leaves(guide, params, updates, specs, log_guide, "postfilter")
+        leaves.check_update_shapes(updates, params, "postfilter")
+        leaves.check_update_shapes(updates, state.mu, "postfilter", "moments")
+        count = jnp.asarray(optax.safe_increment(state.count))
+        adams = _adams((b1, b2), unfiltered_betas, eps, eps_root, count)
+        specs = settings.specs(updates)
+        guides = settings.guides(params, updates, specs, "postfilter")
         flat, treedef = jax.tree.flatten(updates)
-        if memoryless:
-            mus = nus = [None] * len(flat)
-        else:
-            mus = treedef.flatten_up_to(state.mu)
-            nus = treedef.flatten_up_to(state.nu)
-        c1 = numerics.bias_correction(b1, count_inc)
-        c2 = numerics.bias_correction(b2, count_inc)
-        one_minus_b1, one_minus_b2 = numerics.one_minus(b1), numerics.one_minus(b2)
-        autos = _auto_leaves(state.auto, treedef)
-
-        outs, new_mu, new_nu, new_autos = [], [], [], []
-        for g, leaf_guide, spec, m_old, v_old, auto_state in zip(
-            flat, guides, specs, mus, nus, autos
+        moments = _moments(state, treedef)
+        outs = []
+        for g, leaf_guide, spec, leaf_moments, leaf_state in zip(
+            flat, guides, specs, moments, _per_leaf(state.sigma_state, treedef)
         ):
-            moments = None if m_old is None or v_old is None else (m_old, v_old)
-            # Moments are updated in at least float32 and stored back in their own dtype.
-            stored = [] if moments is None else list(moments)
-            compute_dtype = jnp.promote_types(jnp.result_type(g, *stored), jnp.float32)
-            if moments is None:
-                limit = numerics.moment_limit(g.dtype, compute_dtype)
-            else:
-                limit = numerics.moment_limit(
-                    g.dtype, compute_dtype, moments[0].dtype, moments[1].dtype
+            plan = _post_plan(settings, spec, g, leaf_moments, mask_unobserved, second_moment)
+            rule = rules.resolve(spec.sigma_d)
+            adam, clock = adams[plan.filter is not None]
+            outs.append(
+                _postfilter_leaf(
+                    g, leaf_guide, leaf_moments, leaf_state, rule, adam, clock, plan=plan
                 )
-            constants, traced = split_numbers(
-                **_sigma_setting(spec.sigma_d),
-                b1=b1,
-                b2=b2,
-                one_minus_b1=one_minus_b1,
-                one_minus_b2=one_minus_b2,
-                eps=eps,
-                eps_root=eps_root,
             )
-            rule = LeafRule(
-                stage="postfilter",
-                axes=spec.axes,
-                levels=spec.levels,
-                separable=separable,
-                self_guided=guide == "self",
-                log_guide=log_guide,
-                mask_unobserved=mask_unobserved,
-                limit=limit,
-                guard_sigma=not is_concrete(spec.sigma_d),
-                compute_dtype=compute_dtype,
-                constants=constants,
-                filter_m=filter_m,
-                filter_v=filter_v,
-                second_moment=second_moment,
-                auto_sigma=bool(spec.axes) and _from_data(spec.sigma_d),
-                sure_sigma=bool(spec.axes) and sure.is_sure(spec.sigma_d),
-            )
-            hyper = dict(traced, c1=c1, c2=c2, count=count_inc)
-            d, new, new_auto = leaf_step(g, leaf_guide, moments, hyper, auto_state, rule=rule)
-            outs.append(d)
-            new_autos.append(new_auto if rule.auto_sigma else auto_state)
-            if new is not None:
-                new_mu.append(new[0])
-                new_nu.append(new[1])
-
-        new_state = PostfilterState(
-            count=count_inc,
-            mu=None if memoryless else jax.tree.unflatten(treedef, new_mu),
-            nu=None if memoryless else jax.tree.unflatten(treedef, new_nu),
-            auto=None if state.auto is None else jax.tree.unflatten(treedef, new_autos),
+        d, new_moments, new_states = zip(*outs) if outs else ((), (), ())
+        unflatten = lambda xs: jax.tree.unflatten(treedef, list(xs))
+        return unflatten(d), PostfilterState(
+            count=count,
+            mu=None if state.mu is None else unflatten(m for m, _ in new_moments),
+            nu=None if state.nu is None else unflatten(v for _, v in new_moments),
+            sigma_state=None if state.sigma_state is None else unflatten(new_states),
+            nonfinite_count=_count_nonfinite(state.nonfinite_count, updates),
         )
-        return jax.tree.unflatten(treedef, outs), new_state
 
     # optax's OptState alias admits no None fields (the memoryless state has them).
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)  # pyright: ignore[reportArgumentType]
 
 
-# ----------------------------------------------------------------------------------------
-# sigma_d="auto"
+def _count_nonfinite(counts, updates):
+    """The per-leaf counts of non-finite gradient entries, with this step's added (saturating
+    at int32's maximum); None stays None (a state from before the field existed)."""
+    if counts is None:
+        return None
+    top = jnp.iinfo(jnp.int32).max
 
-AutoState = auto.AutoState
-SureState = sure.SureState
+    def add(total, g):
+        new = jnp.sum(~jnp.isfinite(g), dtype=jnp.int32)
+        return jnp.where(total > top - new, top, total + new)
+
+    return jax.tree.map(add, counts, updates)
 
 
-def _from_data(sigma_d) -> bool:
-    """sigma_d is chosen from the data ("auto" or "sure")."""
-    return auto.is_auto(sigma_d) or sure.is_sure(sigma_d)
+def _check_betas(betas, default) -> tuple:
+    """``unfiltered_betas`` checked (``default`` if None)."""
+    if betas is None:
+        return tuple(default)
+    if not (isinstance(betas, (tuple, list)) and len(betas) == 2):
+        raise TypeError(f"unfiltered_betas must be a pair (b1, b2) or None, got {betas!r}")
+    check_decay(betas[0], "unfiltered_betas[0] (b1)")
+    check_decay(betas[1], "unfiltered_betas[1] (b2)")
+    return tuple(betas)
 
 
-def _sure_unusable(b1, b2, guide, filter_m, filter_v) -> str | None:
+def _adams(filtered, unfiltered, eps, eps_root, count) -> dict:
+    """``{is the leaf filtered: (AdamHyper, Clock)}``: each kind of leaf's decay rates and
+    bias corrections at step ``count``."""
+    out = {}
+    for key, (b1, b2) in ((True, filtered), (False, unfiltered)):
+        clock = Clock(
+            count, numerics.bias_correction(b1, count), numerics.bias_correction(b2, count)
+        )
+        out[key] = (AdamHyper.of(b1, b2, eps, eps_root), clock)
+    return out
+
+
+def _check_adam(b1, b2, eps, eps_root):
+    """Adam's hyperparameters checked; ``b2``, with None as ``1 - (1 - b1)^2``."""
+    b2 = 1 - (1 - b1) ** 2 if b2 is None else b2
+    check_decay(b1, "b1")
+    check_decay(b2, "b2")
+    check_nonnegative(eps, "eps")
+    check_nonnegative(eps_root, "eps_root")
+    return b2
+
+
+def _moments(state: PostfilterState, treedef) -> list:
+    """The stored ``(m, v)`` per leaf, or None per leaf (memoryless)."""
+    if state.mu is None or state.nu is None:
+        return [None] * treedef.num_leaves
+    return list(zip(treedef.flatten_up_to(state.mu), treedef.flatten_up_to(state.nu)))
+
+
+def _post_plan(settings, spec, g, moments, mask_unobserved, second_moment) -> LeafPlan:
+    """A postfilter leaf's plan: moments updated in at least float32 (stored back in their own
+    dtypes), gradients clipped where ``m``, ``v = g^2`` and ``g`` itself stay finite; a
+    complex leaf's in its real parts' dtypes (it is updated through its real view)."""
+    real = lambda x: jnp.finfo(jnp.result_type(x)).dtype
+    stored = [] if moments is None else [real(x) for x in moments]
+    compute_dtype = jnp.promote_types(jnp.result_type(real(g), *stored), jnp.float32)
+    return LeafPlan(
+        settings.filter_plan(spec),
+        mask_unobserved,
+        numerics.moment_limit(real(g), compute_dtype, *stored),
+        compute_dtype,
+        second_moment == "uniform",
+        jnp.iscomplexobj(g),
+    )
+
+
+def _postfilter_leaf(g, guide, moments, state, rule, adam, clock, *, plan: LeafPlan):
+    """:func:`postfilter_leaf`; a complex leaf through its real view (its parts as a last axis
+    of 2, one ``|g|^2`` second moment for both: optax.adam's rule), its moments stored
+    complex like the leaf, as optax.adam stores them."""
+    if not plan.complex_view:
+        return postfilter_leaf(g, guide, moments, state, rule, adam, clock, plan=plan)
+    view = None if moments is None else (layout.real_view(moments[0]), layout.norm_view(moments[1]))
+    guide = layout.real_view(guide)
+    d, new, state = postfilter_leaf(
+        layout.real_view(g), guide, view, state, rule, adam, clock, plan=plan
+    )
+    if new is not None and moments is not None:
+        m, v = new
+        new = (layout.from_real_view(m, moments[0].dtype), v[..., 0].astype(moments[1].dtype))
+    return layout.from_real_view(d, g.dtype), new, state
+
+
+def _sure_unusable(memoryless: bool, guide, filter_m: bool, filter_v: bool) -> str | None:
     """Why a postfilter with these settings cannot take sigma_d="sure" (None: it can)."""
-    if is_zero(b1) and is_zero(b2):
+    if memoryless:
         return "b1 = b2 = 0 keeps no moments; use a number or 'auto'"
     if guide == "self":
         return "guide='self' gives m and v their own weights; use a number or 'auto'"
     if not (filter_m and filter_v):
         return "it needs filter_m=True and filter_v=True (one operator for both)"
     return None
-
-
-def _sigma_setting(sigma_d) -> dict:
-    """The ``sigma_d`` hyperparameter of a leaf's step: none for "auto" or "sure" (computed
-    inside)."""
-    return {} if _from_data(sigma_d) else {"sigma_d": sigma_d}
-
-
-def _auto_init(params, specs, guide, log_guide: bool, transform: str, *, with_residual: bool):
-    """Per leaf, an :class:`AutoState` where sigma_d is "auto" (a :class:`SureState` where it
-    is "sure") and the leaf is filtered (None elsewhere); None if no leaf is."""
-    wanted = [bool(spec.axes) and _from_data(spec.sigma_d) for spec in specs]
-    if not any(wanted):
-        return None
-    guides = leaves.guide_leaves(guide, params, params, specs, log_guide, transform)
-    states = []
-    for leaf, leaf_guide, spec, want in zip(jax.tree.leaves(params), guides, specs, wanted):
-        if not want:
-            states.append(None)
-            continue
-        dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
-        previous_guide = None
-        if leaf_guide is not None:
-            previous_guide = jnp.zeros_like(auto.kept_guide(jnp.asarray(leaf_guide), spec.axes))
-        # Every field its own buffer: a state that holds one twice cannot be donated.
-        zeros = functools.partial(jnp.zeros, jnp.shape(leaf), dtype)
-        if sure.is_sure(spec.sigma_d):  # a guide and moments: checked at construction
-            guide_zeros = cast(jax.Array, previous_guide)
-            states.append(
-                SureState(
-                    guide_zeros,
-                    zeros(),
-                    zeros(),
-                    jnp.zeros([], dtype),
-                    jnp.zeros([], jnp.int32),
-                    jnp.zeros([sure.count(spec.levels)], dtype),
-                    jnp.zeros([], dtype),
-                )
-            )
-        else:
-            direction = jnp.zeros([], dtype) if transform == "postfilter" else None
-            residual, gate, correlated = (
-                (zeros(), jnp.zeros([], dtype), jnp.zeros([], dtype))
-                if with_residual
-                else (None, None, None)
-            )
-            states.append(AutoState(previous_guide, residual, direction, gate, correlated))
-    return jax.tree.unflatten(jax.tree.structure(params), states)
-
-
-def _auto_leaves(tree, treedef) -> list:
-    """The per-leaf auto states (None where there are none)."""
-    if tree is None:
-        return [None] * treedef.num_leaves
-    return treedef.flatten_up_to(tree)

@@ -631,25 +631,21 @@ def _vmf(n, s, sigma):
     return jnp.exp((jnp.maximum(n @ s.T, -1.0) - 1.0) / sigma)
 
 
-def _bilateral(host, neighbors, degree, x, n, s, lambda_, sigma_d, sigma_phi, tol, maxiter, x0):
-    """Splat (w_k * x, w_k), diffuse with one solve, slice with phi_k, divide.
+def _bilateral(host, graph, x, n, s, widths, solve, x0):
+    """Splat (w_k * x, w_k), diffuse with one solve, slice with phi_k, divide. ``graph`` is
+    ``(neighbors, degree)``, ``widths`` ``(sigma_d, sigma_phi)``, ``solve`` ``(lambda_, tol,
+    maxiter)``.
 
     Returns the filtered ``(U, C)`` field and the diffused ``(U, K (C + 1))`` columns.
     """
+    sigma_d, sigma_phi = widths
     w = _vmf(n, s, sigma_d)  # (U, K)
     phi = _vmf(n, s, sigma_phi)
     num_v, num_dirs, channels = x.shape[0], w.shape[1], x.shape[1]
     splat = jnp.concatenate([w[:, :, None] * x[:, None, :], w[:, :, None]], axis=2)
-    flat = _solve(
-        host,
-        neighbors,
-        degree,
-        splat.reshape(num_v, num_dirs * (channels + 1)),
-        lambda_,
-        tol,
-        maxiter,
-        x0,
-    )
+    rhs = splat.reshape(num_v, num_dirs * (channels + 1))
+    (neighbors, degree), (lambda_, tol, maxiter) = graph, solve
+    flat = _solve(host, neighbors, degree, rhs, lambda_, tol, maxiter, x0)
     sliced = jnp.einsum("vk,vkc->vc", phi, flat.reshape(num_v, num_dirs, channels + 1))
     num, den = sliced[:, :channels], sliced[:, channels:]
     ok = den > jnp.finfo(x.dtype).tiny
@@ -659,31 +655,40 @@ def _bilateral(host, neighbors, degree, x, n, s, lambda_, sigma_d, sigma_phi, to
 _bilateral_jit = jax.jit(_bilateral, static_argnums=0)
 
 
-def _bilateral_fields(
-    fields, normals, mesh, host, directions, lambda_, sigma_d, sigma_phi, tol, maxiter, x0
-):
+class _Operator(NamedTuple):
+    """What the mesh operator ``B`` needs besides its fields and its guide (the normals)."""
+
+    mesh: MeshLaplacian
+    host: Any  # the factorised solver, or None for CG
+    directions: Any  # (K, 3) unit vectors, or None where sigma_d is inf (B = M^-1)
+    lambda_: Any
+    sigma_d: Any
+    sigma_phi: Any
+    tol: float
+    maxiter: int
+
+
+def _bilateral_fields(fields, normals, op: _Operator, x0=None):
     """The operator B on a list of ``(V, C_i)`` fields; returns (fields, diffused columns)."""
+    mesh = op.mesh
     widths = [x.shape[1] for x in fields]
     splits = np.cumsum(widths)[:-1].tolist()
     x = _merge(mesh, jnp.concatenate(fields, axis=1))
     dtype = x.dtype
-    if _is_concrete_inf(sigma_d):
+    if _is_concrete_inf(op.sigma_d):
         # Every splat weight is 1: the slice weights cancel and B = M^-1.
-        out = _solve_merged(mesh, host, x, lambda_, tol, maxiter, x0)
+        out = _solve_merged(mesh, op.host, x, op.lambda_, op.tol, op.maxiter, x0)
         flat = out
     else:
+        as_dtype = lambda a: jnp.asarray(a, dtype)
         out, flat = _bilateral_jit(
-            host,
-            mesh.neighbors,
-            mesh.degree,
+            op.host,
+            (mesh.neighbors, mesh.degree),
             x,
-            jnp.asarray(_merge(mesh, jnp.asarray(normals)), dtype),
-            jnp.asarray(directions, dtype),
-            jnp.asarray(lambda_, dtype),
-            jnp.asarray(sigma_d, dtype),
-            jnp.asarray(sigma_phi, dtype),
-            jnp.asarray(tol, dtype),
-            jnp.asarray(maxiter, jnp.int32),
+            as_dtype(_merge(mesh, jnp.asarray(normals))),
+            as_dtype(op.directions),
+            (as_dtype(op.sigma_d), as_dtype(op.sigma_phi)),
+            (as_dtype(op.lambda_), as_dtype(op.tol), jnp.asarray(op.maxiter, jnp.int32)),
             x0,
         )
     return jnp.split(_spread(mesh, out), splits, axis=1), flat
@@ -757,9 +762,8 @@ def bilateral_normal_filter(
                 f"every field must have shape (V, C) with V = {mesh.num_vertices}, got {x.shape}"
             )
     s = None if _is_concrete_inf(sigma_d) else _as_directions(directions)
-    out, _ = _bilateral_fields(
-        fields, normals, mesh, host, s, lambda_, sigma_d, sigma_phi, tol, maxiter, None
-    )
+    op = _Operator(mesh, host, s, lambda_, sigma_d, sigma_phi, tol, maxiter)
+    out, _ = _bilateral_fields(fields, normals, op)
     return out
 
 
@@ -1084,9 +1088,8 @@ def bilateral_smoothing(
         for g, x, x0 in zip(leaves, xs, starts):
             _check_leaf(x, mesh, "bilateral_smoothing params", channels=3)
             _check_leaf(g, mesh, "bilateral_smoothing updates")
-            (gf,), flat = _bilateral_fields(
-                [g], normals_of(x), mesh, host, dirs, lambda_, sigma_d, sigma_phi, tol, maxiter, x0
-            )
+            op = _Operator(mesh, host, dirs, lambda_, sigma_d, sigma_phi, tol, maxiter)
+            (gf,), flat = _bilateral_fields([g], normals_of(x), op, x0)
             sols.append(flat)
             out.append(gf.astype(g.dtype))
         new = SmoothingState(
@@ -1315,6 +1318,7 @@ def mesh_postfilter(
     normals_of = _normals_fn(normals, mesh)
     warm_start = bool(warm_start)
     k = 1 if dirs is None else len(dirs)
+    op = _Operator(mesh, host, dirs, lambda_, sigma_d, sigma_phi, tol, maxiter)
 
     def widths(p):
         """Columns of the solves that a leaf needs: B on m (and v), then M^-1 v."""
@@ -1351,47 +1355,43 @@ def mesh_postfilter(
             _check_leaf(x, mesh, "mesh_postfilter params", channels=3)
             _check_leaf(m, mesh, "mesh_postfilter updates")
             c1, c2 = _bias_correction(b1, count, m.dtype), _bias_correction(b2, count, v.dtype)
-            m_hat, v_hat = m / c1, v / c2
-            normals_x = normals_of(x)
-            kw = dict(
-                mesh=mesh,
-                host=host,
-                directions=dirs,
-                lambda_=lambda_,
-                sigma_d=sigma_d,
-                sigma_phi=sigma_phi,
-                tol=tol,
-                maxiter=maxiter,
+            out, leaf_sols = _postfilter_step(
+                m / c1, v / c2, normals_of(x), op, postfilter_v, eps, x0
             )
-            first = None if x0 is None else x0[0]
-            if postfilter_v == "bilateral":
-                (m_f, v_f), flat = _bilateral_fields([m_hat, v_hat], normals_x, x0=first, **kw)
-                leaf_sols = (flat,)
-            else:
-                (m_f,), flat = _bilateral_fields([m_hat], normals_x, x0=first, **kw)
-                leaf_sols = (flat,)
-                if postfilter_v == "uniform":
-                    v_f = jnp.max(v_hat)
-                else:
-                    v_s = _solve_merged(
-                        mesh,
-                        host,
-                        _merge(mesh, v_hat),
-                        lambda_,
-                        tol,
-                        maxiter,
-                        None if x0 is None else x0[1],
-                    )
-                    leaf_sols += (v_s,)
-                    v_f = _spread(mesh, v_s)
-            # B and M^-1 are non-negative, so v_f >= 0 up to the solver; clip its round-off.
-            denom = jnp.sqrt(jnp.maximum(v_f, 0.0)) + eps
-            outs.append((m_f / denom).astype(m.dtype))
+            outs.append(out.astype(m.dtype))
             sols.append(leaf_sols)
         x0_new = jax.tree.unflatten(treedef, sols) if warm_start else None
         return (jax.tree.unflatten(treedef, outs), MeshPostfilterState(count, mu, nu, x0_new))
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
+
+
+def _postfilter_step(m_hat, v_hat, normals, op: _Operator, postfilter_v, eps, x0):
+    """``B m^ / (sqrt(v~) + eps)``, ``v~`` as ``postfilter_v`` says, and the solutions (the
+    next warm start): ``B`` on both moments, their max, or ``M^-1 v^``."""
+    first = None if x0 is None else x0[0]
+    if postfilter_v == "bilateral":
+        (m_f, v_f), flat = _bilateral_fields([m_hat, v_hat], normals, op, first)
+        sols = (flat,)
+    else:
+        (m_f,), flat = _bilateral_fields([m_hat], normals, op, first)
+        sols = (flat,)
+        if postfilter_v == "uniform":
+            v_f = jnp.max(v_hat)
+        else:
+            v_s = _solve_merged(
+                op.mesh,
+                op.host,
+                _merge(op.mesh, v_hat),
+                op.lambda_,
+                op.tol,
+                op.maxiter,
+                None if x0 is None else x0[1],
+            )
+            sols += (v_s,)
+            v_f = _spread(op.mesh, v_s)
+    # B and M^-1 are non-negative, so v_f >= 0 up to the solver; clip its round-off.
+    return m_f / (jnp.sqrt(jnp.maximum(v_f, 0.0)) + eps), sols
 
 
 def large_steps(

@@ -150,3 +150,47 @@ def check_bool(x: Any, name: str) -> bool:
     if not isinstance(x, (bool, np.bool_)):
         raise TypeError(f"{name} must be True or False, got {x!r}")
     return bool(x)
+
+
+def check_number(owner: Any, name: str, *, low=None, high=None, low_open=False, high_open=False):
+    """Raises unless ``owner.name`` is a real number in the range (``*_open``: excluded)."""
+    x = getattr(owner, name)
+    if isinstance(x, bool) or not isinstance(x, numbers.Real) or math.isnan(x):
+        raise TypeError(f"{name} must be a real number, got {x!r}")
+    too_low = low is not None and (x <= low if low_open else x < low)
+    too_high = high is not None and (x >= high if high_open else x > high)
+    if too_low or too_high:
+        lo = "" if low is None else f"{'>' if low_open else '>='} {low}"
+        hi = "" if high is None else f"{'<' if high_open else '<='} {high}"
+        raise ValueError(f"{name} must be {' and '.join(p for p in (lo, hi) if p)}, got {x}")
+
+
+def check_integer(owner: Any, name: str, *, low: int):
+    """Raises unless ``owner.name`` is an int >= ``low``."""
+    x = getattr(owner, name)
+    if isinstance(x, bool) or not isinstance(x, numbers.Integral):
+        raise TypeError(f"{name} must be an int, got {x!r}")
+    if x < low:
+        raise ValueError(f"{name} must be >= {low}, got {x}")
+
+
+def check_learning_rate(learning_rate: Any) -> None:
+    """Raises unless ``learning_rate`` is a schedule (a callable of the step count) or a real
+    scalar >= 0 (a traced one is taken as it is)."""
+    if callable(learning_rate):
+        return
+    if isinstance(learning_rate, (bool, str, bytes)) or not (
+        isinstance(learning_rate, numbers.Real) or hasattr(learning_rate, "dtype")
+    ):
+        raise TypeError(
+            "learning_rate must be a number >= 0 or an optax schedule (a callable of the step "
+            f"count), got {learning_rate!r}"
+        )
+    shape = np.shape(cast(Any, learning_rate))
+    if shape != ():
+        raise ValueError(f"learning_rate must be a scalar, got an array of shape {shape}")
+    if not jnp.issubdtype(jnp.result_type(learning_rate), jnp.number) or jnp.issubdtype(
+        jnp.result_type(learning_rate), jnp.complexfloating
+    ):
+        raise TypeError(f"learning_rate must be a real number, got {learning_rate!r}")
+    check_nonnegative(learning_rate, "learning_rate")

@@ -1,9 +1,9 @@
 """Where an update's time goes: its compiled kernels, timed by JAX's profiler.
 
-    python -m experiments.profile_update --shape 512x512 --log-guide
-    python -m experiments.profile_update --shape 512x512x3 --full --calls 20
+    python -m tools.profile_update --shape 512x512 --log-guide
+    python -m tools.profile_update --shape 512x512x3 --full --calls 20
 
-Compiles ``bilateral_adam``'s update (the optimizer of ``experiments.ab_update``: the
+Compiles ``bilateral_adam``'s update (the optimizer of ``tools.ab_update``: the
 texture experiment's, with ``--log-guide`` its log guide) and ``optax.adam``'s on the same
 arrays, times both untraced (``benchmark.interleaved``), then runs each ``--calls`` times
 under ``jax.profiler.trace`` and adds up, per call, the time of every compiled kernel
@@ -32,8 +32,9 @@ import jax
 import optax
 
 import optax_bilateral as ob
-from experiments import ab_update, common
 from experiments import benchmark as bm
+from experiments import common
+from tools import ab_update
 
 _FUSION = re.compile(r"%([\w.\-]+) = [^=]*? fusion\(")
 

@@ -1,7 +1,7 @@
 """A/B of ``bilateral_adam``'s update against another revision of the library, in one process.
 
-    python -m experiments.ab_update --rev HEAD --shape 512x512x1 --levels 5
-    python -m experiments.ab_update --rev HEAD~3 --shape 64x64x64x1 --full --repeats 4
+    python -m tools.ab_update --rev HEAD --shape 512x512x1 --levels 5
+    python -m tools.ab_update --rev HEAD~3 --shape 64x64x64x1 --full --repeats 4
 
 The working tree's library (``new``) and the library at ``--rev`` (``old``, exported with
 ``git archive`` into a temporary folder as the package ``optax_bilateral_ab``) build the
@@ -78,23 +78,22 @@ def parse_shape(text: str) -> tuple[int, ...]:
 
 
 def optimizer(lib, levels: int, separable: bool, log_guide: bool):
-    return optax.inject_hyperparams(
-        lib.bilateral_adam, static_args=("levels", "b1", "separable", "log_guide")
-    )(
-        learning_rate=0.02,
-        sigma_d=0.1,
-        levels=levels,
-        b1=0.2,
-        separable=separable,
-        log_guide=log_guide,
-    )
+    """The texture experiment's postfilter from ``lib`` (either revision has ``postfilter``),
+    its learning rate and sigma_d injectable."""
+
+    def factory(learning_rate, sigma_d):
+        post = lib.postfilter(
+            0.2, sigma_d=sigma_d, levels=levels, separable=separable, log_guide=log_guide
+        )
+        return optax.chain(post, optax.scale_by_learning_rate(learning_rate))
+
+    return optax.inject_hyperparams(factory)(learning_rate=0.02, sigma_d=0.1)
 
 
 def arrays(shape):
-    """(params, grad) of ``shape`` (``HxW``: one 2-D leaf) with positive params."""
+    """(params, grad) of ``shape`` with positive params; ``HxW`` is one channel, ``(H, W, 1)``
+    (a layout every revision's default leaf rule filters)."""
     params, grad = bm.update_arrays(shape if len(shape) > 2 else shape + (1,))
-    if len(shape) == 2:
-        params, grad = params[..., 0], grad[..., 0]
     return abs(params) + 0.05, grad  # positive: the log guide is defined
 
 

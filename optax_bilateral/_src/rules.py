@@ -1,0 +1,96 @@
+"""The ``sigma_d`` settings a transform takes, and the rule each one names.
+
+``sigma_d`` is a number (:class:`~optax_bilateral._src.fixed.Fixed`), ``"auto"`` or
+``"sure"`` (the rules with their default constants), a rule object
+(:func:`auto_sigma`, :func:`sure_sigma`, or a :class:`SigmaRule` of one's own), or a pytree
+prefix of the parameters holding one of those per subtree.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Literal, TypeAlias
+
+import jax
+
+from optax_bilateral._src.auto import Auto
+from optax_bilateral._src.fixed import Fixed
+from optax_bilateral._src.sigma import SigmaRule
+from optax_bilateral._src.sure import Sure
+
+SigmaD: TypeAlias = float | jax.Array | Literal["auto", "sure"] | SigmaRule
+"""One leaf's ``sigma_d``: a number (>= 0, in the guide's units; ``inf`` is a low-pass),
+``"auto"``, ``"sure"`` or a rule object."""
+SigmaSetting: TypeAlias = "SigmaD | Mapping[str, SigmaSetting] | Sequence[SigmaSetting]"
+"""A transform's ``sigma_d``: one :data:`SigmaD` for every leaf, or a pytree prefix of the
+parameters (``{"density": "auto", "albedo": 0.1}``)."""
+LevelsSetting: TypeAlias = "int | Mapping[str, LevelsSetting] | Sequence[LevelsSetting] | None"
+"""A transform's ``levels``: F (a non-negative int) for every leaf, None (the default), or a
+pytree prefix of the parameters."""
+
+NAMED = {"auto": Auto(), "sure": Sure()}
+
+
+def resolve(sigma_d: SigmaD) -> SigmaRule:
+    """The rule a leaf's ``sigma_d`` names."""
+    if isinstance(sigma_d, SigmaRule):
+        return sigma_d
+    if isinstance(sigma_d, str):
+        return NAMED[sigma_d]
+    return Fixed(sigma_d)
+
+
+def auto_sigma(**constants) -> Auto:
+    """``sigma_d="auto"`` with other constants: ``auto_sigma()`` is ``"auto"``.
+
+    Each keyword is a field of :class:`Auto` (``rate_factor``, ``step_factor``,
+    ``contrast_factor``, ``residual_decay``, ``gain``, ``power``, ``gate``,
+    ``check_period``, ``min_texels``, ``correlated``, ``noisy``, ``heavy_factor``);
+    docs/auto_sigma.md derives the defaults. The result is frozen and hashable: a setting is
+    a constant of the compiled update, and another setting is another program.
+
+    Args:
+      **constants: the fields to change.
+
+    Returns:
+      An :class:`Auto` rule, to pass as ``sigma_d`` (or in a pytree prefix of them).
+
+    Raises:
+      TypeError: for a keyword that is not a field.
+      ValueError: naming the field, for a value out of its range.
+
+    Example::
+
+        >>> import optax_bilateral as ob
+        >>> rule = ob.auto_sigma(check_period=4)
+        >>> rule == ob.auto_sigma(check_period=4), rule.rate_factor
+        (True, 1.0)
+        >>> opt = ob.bilateral_adam(0.02, sigma_d=rule)
+    """
+    return Auto(**constants)
+
+
+def sure_sigma(**constants) -> Sure:
+    """``sigma_d="sure"`` with other constants: ``sure_sigma()`` is ``"sure"``.
+
+    Each keyword is a field of :class:`Sure` (``factors``, ``min_levels``,
+    ``variance_weight``, ``risk_decay``, ``first_factor``, and ``auto``: the
+    :func:`auto_sigma` rule whose scale, sub-grid and blend it uses).
+
+    Args:
+      **constants: the fields to change.
+
+    Returns:
+      A :class:`Sure` rule, to pass as a postfilter's ``sigma_d``.
+
+    Raises:
+      TypeError: for a keyword that is not a field.
+      ValueError: naming the field, for a value out of its range.
+
+    Example::
+
+        >>> import optax_bilateral as ob
+        >>> ob.sure_sigma(factors=(1.0, 3.0)).factors
+        (1.0, 3.0)
+    """
+    return Sure(**constants)

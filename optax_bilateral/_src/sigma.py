@@ -1,0 +1,129 @@
+"""How a leaf chooses its ``sigma_d``: the :class:`SigmaRule` interface.
+
+A rule is a small frozen object. The per-leaf step (:mod:`optax_bilateral._src.step`) asks it,
+in this order, for
+
+* ``init``: the leaf's state (a ``NamedTuple`` of arrays the rule owns, or None);
+* ``sigma``: this step's ``sigma_d`` (and the state with what it learned from the guide);
+* ``prefilter`` (a prefilter) or ``combine`` (a postfilter): the filtered gradient, or the
+  ways this step may filter the moments (:class:`Filtered`: ``B m``, ``B v``, the weight
+  ``lam`` of a per-entry blend with the unfiltered ones, :func:`blend`) and which one it
+  takes; the step compiles each way with its own bounded step (so the filter's last pass
+  fuses into it) and runs the one chosen;
+* ``after_step``: the state with what the step taught it (a postfilter).
+
+Three rules exist, each in its own module with its state and its constants: :class:`Fixed`
+(a number, :mod:`~optax_bilateral._src.fixed`), :class:`~optax_bilateral._src.auto.Auto`
+(``sigma_d="auto"``, the default) and :class:`~optax_bilateral._src.sure.Sure`
+(``sigma_d="sure"``). A rule's tunables are its fields, hashable, so that another setting is
+another object (and another compiled step), never a module global. A new rule subclasses
+:class:`SigmaRule` and is passed as ``sigma_d``; docs/design.md says where it plugs in.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, NamedTuple
+
+import jax
+
+from optax_bilateral._src import operators
+
+# Which transform a leaf's state belongs to: what it can learn from.
+Kind = Literal["prefilter", "postfilter", "memoryless"]
+
+
+class StepContext(NamedTuple):
+    """What every leaf's step shares: the step count (1 at the first update) and, in a
+    postfilter, the first moment's decay ``b1`` and the bias corrections ``1 - b^t``."""
+
+    count: jax.Array
+    b1: Any = None
+    c1: Any = None
+    c2: Any = None
+
+
+class Moments(NamedTuple):
+    """A postfilter leaf's fields at this step, in the arithmetic dtype: the updated moments
+    (kept at unobserved entries), the observed gradient (0 where unobserved), and the
+    observed entries (broadcastable against the leaf)."""
+
+    m: jax.Array
+    v: jax.Array
+    g: jax.Array
+    observed: jax.Array
+
+
+class Filtered(NamedTuple):
+    """One way a postfilter step filters the moments: ``B m``, ``B v``, the blend's weight of
+    the unfiltered moments (an array like ``m``, or None for no blend; :func:`blend`), and
+    the rule's state after it."""
+
+    m: jax.Array
+    v: jax.Array
+    lam: jax.Array | None
+    state: Any
+
+
+class SigmaRule:
+    """The interface of a ``sigma_d`` rule; the defaults are those of a rule that keeps no
+    state and filters both moments with one operator.
+
+    A rule is a frozen dataclass, registered as a static pytree (or a pytree, if it holds
+    an array), and passed as ``sigma_d``; docs/design.md says where its methods are called.
+
+    Example::
+
+        >>> import dataclasses, jax, jax.numpy as jnp, optax_bilateral as ob
+        >>> @jax.tree_util.register_static
+        ... @dataclasses.dataclass(frozen=True)
+        ... class Halved(ob.SigmaRule):
+        ...     value: float = 0.2
+        ...     def sigma(self, guide, plan, state, ctx):
+        ...         return self.value / 2, state
+        >>> params = jnp.full((8, 8, 3), 0.5)
+        >>> opt = ob.postfilter(sigma_d=Halved(0.2))      # the same as sigma_d=0.1
+        >>> step, _ = opt.update(jnp.ones_like(params), opt.init(params), params)
+    """
+
+    def init(self, leaf: jax.Array, guide: jax.Array | None, plan, kind: Kind) -> Any:
+        """The leaf's state (``guide``: its guide at ``init``, None if self-guided)."""
+        del leaf, guide, plan, kind
+        return None
+
+    def sigma(self, guide, plan, state, ctx: StepContext) -> tuple[operators.Sigma, Any]:
+        """This step's ``sigma_d`` (``guide``: the leaf's guide, None if self-guided), and the
+        state with what the rule learned from the guide."""
+        raise NotImplementedError
+
+    def prefilter(self, g, op, sigma, state, ctx: StepContext) -> tuple[jax.Array, Any]:
+        """``A g``, and the new state."""
+        del ctx
+        return op.apply(g, sigma), state
+
+    def combine(self, moments: Moments, op, sigma, state, ctx: StepContext):
+        """``(index, ways)``: the ways this step may filter the moments (functions of no
+        argument returning a :class:`Filtered`, traced inside a ``lax.switch`` when there are
+        several) and the traced index of the one to take (None with one way). The step
+        divides ``blend(lam, m, B m)`` by the root of ``blend(lam, v, B v)`` in each."""
+        del ctx
+
+        def filtered():
+            return Filtered(*operators.moments(op, moments.m, moments.v, sigma), None, state)
+
+        return None, (filtered,)
+
+    def after_step(self, d: jax.Array, state, plan) -> Any:
+        """The state with what the step ``d`` (its direction, before the learning rate) taught."""
+        del d, plan
+        return state
+
+    def guard(self, out: jax.Array, sigma) -> jax.Array:
+        """The leaf's output, NaN where ``sigma`` is invalid (a traced value cannot raise)."""
+        del sigma
+        return out
+
+
+def blend(lam: jax.Array | None, x: jax.Array, bx: jax.Array) -> jax.Array:
+    """``lam x + (1 - lam) B x`` (``B x`` where ``lam`` is None): with one ``lam`` for ``m`` and
+    ``v``, one non-negative, row-stochastic operator for both (supplement §1.3)."""
+    return bx if lam is None else lam * x + (1 - lam) * bx

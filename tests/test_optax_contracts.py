@@ -1,0 +1,173 @@
+"""optax's contracts for its contributed optimizers, checked on ``bilateral_adam``.
+
+The same targets and properties as ``optax/contrib/_common_test.py`` of the installed optax
+(written here, not copied): the parabola, Rosenbrock's function, a matrix parabola and a
+mixed 1-D + 2-D target; ``optax.tree.map_params``, extra keyword arguments, no
+recompilation, ``inject_hyperparams``, dtype preservation, ``MultiSteps``, a state whose
+shapes and dtypes survive a ``lax.cond``, and learning-rate schedules. Three settings:
+the defaults (these small leaves are not filtered: Adam's own rule), a numeric ``sigma_d``,
+and ``spatial_axes`` forcing the filter onto every leaf.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import optax_bilateral as ob
+from tools.compiles import CompileCounter
+
+# (name, factory of learning_rate -> optimizer)
+SETTINGS = {
+    "defaults": ob.bilateral_adam,
+    "sigma_d=0.1": functools.partial(ob.bilateral_adam, sigma_d=0.1),
+    "filtered": functools.partial(
+        ob.bilateral_adam, sigma_d=0.1, levels=1, spatial_axes=lambda x: tuple(range(x.ndim))
+    ),
+}
+
+
+def _parabola(dtype):
+    final = jnp.array([1.0, -1.0, 1.0], dtype)
+    return jnp.array([-1.0, 10.0, 1.0], dtype), final, lambda p: jnp.sum((p - final) ** 2)
+
+
+def _rosenbrock(dtype):
+    f = lambda p: (1.0 - p[0]) ** 2 + 100.0 * (p[1] - p[0] ** 2) ** 2
+    return jnp.zeros((2,), dtype), jnp.array([1.0, 1.0], dtype), f
+
+
+def _matrix_parabola(dtype):
+    final = jnp.array([[3.0, -2.0], [1.0, 4.0]], dtype)
+    return jnp.zeros((2, 2), dtype), final, lambda p: jnp.sum((p - final) ** 2)
+
+
+def _mixed(dtype):
+    final = (jnp.array([1.0, -1.0, 2.0], dtype), jnp.array([[1.0, 0.0], [-1.0, 1.0]], dtype))
+    init = (jnp.zeros((3,), dtype), jnp.zeros((2, 2), dtype))
+    f = lambda p: jnp.sum((p[0] - final[0]) ** 2) + jnp.sum((p[1] - final[1]) ** 2)
+    return init, final, f
+
+
+TARGETS = {
+    "parabola": _parabola,
+    "rosenbrock": _rosenbrock,
+    "matrix": _matrix_parabola,
+    "mixed": _mixed,
+}
+
+
+def _run(opt, target, steps, dtype=jnp.float32):
+    params, final, f = target(dtype)
+
+    def body(carry, _):
+        p, s = carry
+        u, s = opt.update(jax.grad(f)(p), s, p)
+        return (optax.apply_updates(p, u), s), None
+
+    (params, _), _ = jax.lax.scan(body, (params, opt.init(params)), None, length=steps)
+    return params, final
+
+
+@pytest.mark.parametrize("target", list(TARGETS))
+@pytest.mark.parametrize("setting", list(SETTINGS))
+def test_converges_and_tree_map_params_works(setting, target):
+    """Each target's minimum to 3e-2 after 30,000 steps at lr 1e-2 (optax's criterion). A
+    filtered leaf averages its entries with neighbours whose guide (the parameters) is near:
+    still a descent to the same fixed point (``|B m| <= c sqrt(B v)``, and ``m = 0`` there),
+    which the assertion checks too."""
+    opt = SETTINGS[setting](1e-2)
+    params, _, _ = TARGETS[target](jnp.float32)
+    state = opt.init(params)
+    mapped = optax.tree_utils.tree_map_params(opt, lambda v: v, state)
+    assert jax.tree.structure(mapped) == jax.tree.structure(state)
+    params, final = jax.jit(functools.partial(_run, opt, TARGETS[target], 30_000))()
+    for got, want in zip(jax.tree.leaves(params), jax.tree.leaves(final)):
+        np.testing.assert_allclose(got, want, rtol=3e-2, atol=3e-2)
+
+
+@pytest.mark.parametrize("setting", list(SETTINGS))
+def test_extra_args_are_accepted_and_nothing_recompiles(setting):
+    opt = SETTINGS[setting](1e-2)
+    params, _, f = _rosenbrock(jnp.float32)
+
+    @jax.jit
+    def step(p, s):
+        value, g = jax.value_and_grad(f)(p)
+        u, s = opt.update(g, s, p, value=value, unexpected_extra_arg=1)
+        return optax.apply_updates(p, u), s
+
+    state = opt.init(params)
+    params, state = step(params, state)
+    with CompileCounter() as compiles:
+        step(params, state)
+    assert compiles.count == 0
+
+
+@pytest.mark.parametrize("setting", list(SETTINGS))
+def test_inject_hyperparams_gives_the_same_updates_and_states(setting):
+    factory = SETTINGS[setting]
+    hparams = {"learning_rate": 1e-3}
+    params = [-jnp.ones((2, 3)), jnp.ones((2, 5, 2))]
+    grads = [jnp.ones((2, 3)), -jnp.ones((2, 5, 2))]
+    opt = factory(**hparams)
+    # levels (how many passes are compiled) and spatial_axes (a callable here, which
+    # inject_hyperparams would take for a schedule) are static, as optax's own test makes
+    # its optimizers' structural arguments.
+    static = ("levels", "spatial_axes")
+    injected = optax.inject_hyperparams(factory, static_args=static)(**hparams)
+    u, s = jax.jit(opt.update)(grads, jax.jit(opt.init)(params), params)
+    ui, si = jax.jit(injected.update)(grads, jax.jit(injected.init)(params), params)
+    for a, b in zip(jax.tree.leaves((u, s)), jax.tree.leaves((ui, si.inner_state))):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", ["bfloat16", "float32"])
+@pytest.mark.parametrize("setting", list(SETTINGS))
+def test_updates_keep_the_params_dtype_also_under_multisteps(setting, dtype):
+    opt = SETTINGS[setting](1e-2)
+    params = jnp.array([1.0, 2.0], dtype)
+    grads = jax.grad(lambda x: jnp.sum(x**2))(params)
+    updates, _ = jax.jit(opt.update)(grads, jax.jit(opt.init)(params), params)
+    assert updates.dtype == params.dtype
+    acc = optax.MultiSteps(opt, every_k_schedule=4)
+    updates, _ = jax.jit(acc.update)(grads, jax.jit(acc.init)(params), params)
+    np.testing.assert_array_equal(updates, jnp.zeros_like(grads))  # accumulating: no step yet
+
+
+@pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32", "float64"])
+@pytest.mark.parametrize("setting", list(SETTINGS))
+def test_state_shapes_and_dtypes_survive_a_cond(setting, dtype):
+    """The state after an update has the shapes and dtypes (weak types included) of the one
+    before: ``lax.cond`` between them compiles."""
+    with jax.enable_x64(dtype == "float64"):
+        opt = SETTINGS[setting](1e-2)
+        params, _, f = _parabola(jnp.dtype(dtype))
+        state = opt.init(params)
+
+        @jax.jit
+        def step(p, s):
+            g = jax.grad(f)(p)
+            take = jax.random.randint(jax.random.key(0), (), 0, 2) == 0
+            u, s = jax.lax.cond(take, lambda: opt.update(g, s, p), lambda: (p, s))
+            return optax.apply_updates(p, u), s
+
+        for _ in range(2):
+            params, new_state = step(params, state)
+            assert params.dtype == jnp.dtype(dtype)
+            take = jax.random.randint(jax.random.key(0), (), 0, 2) == 0
+            state = jax.lax.cond(take, lambda s=state: s, lambda n=new_state: n)
+
+
+@pytest.mark.parametrize("setting", list(SETTINGS))
+def test_a_constant_schedule_is_the_constant_learning_rate(setting):
+    with_schedule = SETTINGS[setting](optax.constant_schedule(1e-3))
+    with_number = SETTINGS[setting](1e-3)
+    a, _ = _run(with_schedule, _parabola, 10)
+    b, _ = _run(with_number, _parabola, 10)
+    np.testing.assert_allclose(a, b, rtol=1e-6)

@@ -1,0 +1,109 @@
+"""The library's shape, as docs/design.md promises it: small functions, typed settings, one way
+for imports to run, and no tunable changed behind the code's back."""
+
+from __future__ import annotations
+
+import ast
+import inspect
+import pathlib
+import re
+
+import optax_bilateral as ob
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SRC = ROOT / "optax_bilateral" / "_src"
+MAX_LINES, MAX_PRIVATE_PARAMS = 60, 8
+
+# Tests of the experiments, the notebooks, the docs and the benchmarks may import experiments;
+# the library's own tests may not (they must survive any change of the experiments).
+EXPERIMENT_TESTS = re.compile(
+    r"(test_(experiment_\w+|benchmarks|mitsuba\w*|notebook\w*|docs_\w+|readme)|mitsuba_env)\.py$"
+)
+
+
+def _functions():
+    for path in sorted(SRC.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                yield path.relative_to(ROOT), node
+
+
+def _body_lines(node) -> int:
+    """Lines of a function's body, its docstring left out."""
+    body = node.body
+    docstring = (
+        isinstance(body[0], ast.Expr)
+        and isinstance(body[0].value, ast.Constant)
+        and isinstance(body[0].value.value, str)
+    )
+    start = (body[1].lineno if len(body) > 1 else node.end_lineno) if docstring else body[0].lineno
+    return node.end_lineno - start + 1
+
+
+def _arity(node) -> int:
+    a = node.args
+    n = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs)
+    return n - (1 if a.args and a.args[0].arg in ("self", "cls") else 0)
+
+
+def test_no_library_function_is_longer_than_60_lines():
+    long = [
+        f"{path}:{node.lineno} {node.name} ({_body_lines(node)} lines)"
+        for path, node in _functions()
+        if _body_lines(node) > MAX_LINES
+    ]
+    assert not long, long
+
+
+def test_no_private_library_function_takes_more_than_8_parameters():
+    wide = [
+        f"{path}:{node.lineno} {node.name} ({_arity(node)} parameters)"
+        for path, node in _functions()
+        if node.name.startswith("_") and not node.name.startswith("__")
+        if _arity(node) > MAX_PRIVATE_PARAMS
+    ]
+    assert not wide, wide
+
+
+def test_bilateral_adam_takes_at_most_ten_parameters_with_precise_types():
+    sig = inspect.signature(ob.bilateral_adam)
+    named = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    assert len(named) <= 10, [p.name for p in named]
+    for fn in (ob.bilateral_adam, ob.postfilter, ob.prefilter):
+        params = inspect.signature(fn).parameters
+        for name in ("sigma_d", "levels"):
+            annotation = str(params[name].annotation)
+            assert annotation in ("SigmaSetting", "LevelsSetting"), (fn.__name__, annotation)
+
+
+def test_no_test_or_experiment_changes_a_library_constant():
+    """Tunables are fields of rule objects (``ob.auto_sigma(check_period=4)``); assigning a
+    module attribute of the library (``auto.CHECK_PERIOD = 1``) would change every optimizer
+    built afterwards, and a compiled program would not see it."""
+    assignment = re.compile(r"^\s*(auto|sure|step|transforms|leaves|numerics)\.\w+\s*=[^=]", re.M)
+    setter = re.compile(r"(monkeypatch\.setattr|setattr)\((auto|sure|step|optax_bilateral\._src)")
+    found = []
+    for folder in ("tests", "experiments", "tools", "notebooks"):
+        for path in (ROOT / folder).rglob("*.py"):
+            text = path.read_text()
+            if assignment.search(text) or setter.search(text):
+                found.append(str(path.relative_to(ROOT)))
+    assert not found, found
+
+
+def test_library_tests_do_not_import_the_experiments():
+    imports = re.compile(r"^\s*(from experiments\b|import experiments\b)", re.M)
+    found = [
+        path.name
+        for path in (ROOT / "tests").glob("*.py")
+        if not EXPERIMENT_TESTS.search(path.name) and imports.search(path.read_text())
+    ]
+    assert not found, found
+
+
+def test_the_library_imports_neither_experiments_nor_tools():
+    imports = re.compile(r"^\s*(from|import) (experiments|tools|tests)\b", re.M)
+    found = [
+        str(p) for p in (ROOT / "optax_bilateral").rglob("*.py") if imports.search(p.read_text())
+    ]
+    assert not found, found
