@@ -866,7 +866,7 @@ def step(x, state, key):
     g = jax.grad(loss)(x) + jax.random.normal(key, x.shape)
     updates, state = opt.update(g, state, x)
     return optax.apply_updates(x, updates), state
-x = jnp.full_like(target, 0.5)
+x = jnp.full(target.shape, 0.5, jnp.float32)  # as the README: compiles once
 state = opt.init(x)
 keys = jax.random.split(jax.random.key(0), 3)
 t = time.perf_counter(); x, state = step(x, state, keys[0]); jax.block_until_ready(x)
