@@ -48,6 +48,9 @@ PLANE_SIDE = 2.0
 FOV = 40.0
 #: Texels per pixel of the named cameras.
 CAMERAS = {"close": 0.5, "mid": 2.0, "far": 12.0}
+#: The middle of each camera's first learning-rate grid (a scene takes its cameras' largest):
+#: a far camera's texels see a pixel's gradient rarely, and want larger steps.
+LEARNING_RATES = {"close": 0.02, "mid": 0.02, "far": 0.08}
 KEY = "plane.bsdf.reflectance.data"
 REFERENCE_SEED = 1 << 20  # render seeds of the runs are drawn from their keys below 2^20
 
@@ -201,7 +204,7 @@ def scene(quick: bool, cameras: Sequence[str], name: str) -> sc.Scene:
         project=lambda data, x: jnp.clip(x, 0.0, 1.0),
         error=error,
         iterations=cfg["iterations"],
-        learning_rates=sc.around(0.02),
+        learning_rates=sc.around(max(LEARNING_RATES[c] for c in cameras)),
         error_name="mean |albedo - target| at the resolution each camera resolves",
         config=dict(kind="mitsuba_plane", cameras=list(cameras), tpp=tpps, fov=FOV, **cfg),
         batch=8,

@@ -42,7 +42,7 @@ Scenes (:data:`SCENES`; ``quick`` is the test-suite size):
 ``mitsuba_far``          error at the resolution the camera resolves)
 ``mitsuba_two_cameras``  the same plane from the close and the far camera in turn
 ``absorption_mc``        a 64^2 piecewise-constant absorption map with sharp edges in [0, 1],
-                         256 random rays per step, the unbiased gradient of the squared error of
+                         1024 random rays per step, the unbiased gradient of the squared error of
                          ratio-tracking transmittance estimates (two independent estimates)
 =======================  ========================================================================
 
@@ -505,7 +505,7 @@ def absorption_grad(sigma, target_t, rays, key, density: float, length: float, m
 
 def absorption(quick: bool) -> Scene:
     """A piecewise-constant absorption map with sharp edges from Monte Carlo transmittances."""
-    size, iterations, rays = (16, 30, 64) if quick else (64, 150, 256)
+    size, iterations, rays = (16, 30, 64) if quick else (64, 150, 1024)
     cfg = dict(
         size=size,
         iterations=iterations,
@@ -539,7 +539,8 @@ def absorption(quick: bool) -> Scene:
         project=lambda data, s: jnp.clip(s, 0.0, 1.0),
         error=lambda data, s: jnp.mean(jnp.abs(s - data["target"])),
         iterations=iterations,
-        learning_rates=around(0.02),
+        # Wide: the best rates of Adam, the filter and the pyramid spread over 20x here.
+        learning_rates=(0.0125, 0.025, 0.05, 0.1, 0.2),
         error_name="mean |sigma - sigma_target|",
         config=dict(kind="absorption_mc", **cfg),
     )

@@ -61,12 +61,14 @@ def test_two_cameras_alternate(two_cameras):
 
 
 def test_rendered_scene_is_reproducible_and_adam_reduces_its_error(two_cameras):
-    """The runner's Adam on rendered gradients: a seed's run repeats exactly (the render seeds
-    come from the keys), two seeds differ, and 12 steps cut the error by a quarter."""
+    """The runner's Adam on rendered gradients: a seed's run repeats (the render seeds come from
+    the keys; up to float rounding, as Mitsuba sums a texel's gradients with atomics in a
+    varying order: 1e-7 relative seen), two seeds differ (by 3%), and 12 steps cut the error by
+    a quarter."""
     scene = two_cameras
     grid = {"learning_rate": [0.05], "b1": [0.9]}
     first = T.evaluate(scene, T.adam_factory, grid, seeds=(0, 1))
     again = T.evaluate(scene, T.adam_factory, grid, seeds=(0, 1))
-    np.testing.assert_array_equal(first, again)
-    assert first[0, 0] != first[0, 1]
+    np.testing.assert_allclose(first, again, rtol=1e-5)
+    assert abs(first[0, 0] - first[0, 1]) > 1e-3 * first[0, 0]
     assert np.all(first < 0.75 * scene.initial_error()), (first, scene.initial_error())
