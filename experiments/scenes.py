@@ -8,6 +8,7 @@ seeds at once:
 * ``grad(data, params, key)``: an unbiased, noisy gradient of the scene's loss at
   ``params``; all randomness comes from ``key`` (iteration ``i`` of seed ``s`` uses
   ``fold_in(key(s), i)``, so every method sees the same noise at the same iteration);
+  a ``grad`` with a ``step`` parameter also receives ``i`` (cameras taken in turn);
 * ``project(data, params)``: the parameters clipped to the valid domain (after every step);
 * ``error(data, params)``: the parameter error against the target (the benchmark's metric);
 * ``data``: the arrays these functions read (passed to the compiled program as arguments,
@@ -32,6 +33,18 @@ Scenes (:data:`SCENES`; ``quick`` is the test-suite size):
                        problem, so a scale-invariant method gives the same error; its error is
                        reported in the units of ``deblur`` (divided by 100)
 =====================  ==========================================================================
+
+:data:`RENDERED` holds the problems of issue #47, outside the default run:
+
+=======================  ========================================================================
+``mitsuba_close``        a Mitsuba 3 diffuse plane, 192^2 RGB albedo, 96^2 film, spp 1, seen at
+``mitsuba_mid``          0.5, 2 and 12 texels per pixel (:mod:`experiments.camera_distance`;
+``mitsuba_far``          error at the resolution the camera resolves)
+``mitsuba_two_cameras``  the same plane from the close and the far camera in turn
+``absorption_mc``        a 64^2 piecewise-constant absorption map with sharp edges in [0, 1],
+                         1024 random rays per step, the unbiased gradient of the squared error of
+                         ratio-tracking transmittance estimates (two independent estimates)
+=======================  ========================================================================
 
 :data:`HELD_OUT` holds ``signal1d`` at 256 and 4096 samples and ``deblur`` at 64x64 and 96x96
 (the shapes scale with the image), and ``texture_mixed50`` / ``texture_mixed75`` (the camera
@@ -104,7 +117,7 @@ class Scene:
         return float(self.error(self.data, self.init))
 
 
-def _around(lr: float) -> tuple[float, ...]:
+def around(lr: float) -> tuple[float, ...]:
     """The first learning-rate grid: ``lr`` and a factor of 2 either side (the benchmark
     extends it by factors of 2 where the best value lies at an edge)."""
     return (lr / 2, lr, 2 * lr)
@@ -157,7 +170,7 @@ def texture(
         project=lambda data, a: jnp.clip(a, tex.ALPHA_MIN, tex.ALPHA_MAX),
         error=lambda data, a: jnp.mean(jnp.abs(a - data["target"])),
         iterations=iterations,
-        learning_rates=_around(0.02),
+        learning_rates=around(0.02),
         log_guide=True,
         error_name="mean |alpha - alpha_target| (roughness)",
         config=dict(
@@ -239,7 +252,7 @@ def volume(quick: bool) -> Scene:
         project=lambda data, p: vol.project(p, scene),
         error=lambda data, p: vol.param_errors(p, data["target"])["param_error"],
         iterations=cfg["iterations"],
-        learning_rates=_around(0.05),
+        learning_rates=around(0.05),
         error_name="(density MAE + density-weighted albedo MAE) / 2",
         config=dict(kind="volume", **cfg),
     )
@@ -320,7 +333,7 @@ def signal1d(quick: bool, n: int | None = None, name: str = "signal1d") -> Scene
         project=lambda data, x: jnp.clip(x, 0.0, 1.0),
         error=lambda data, x: jnp.mean(jnp.abs(x - data["target"])),
         iterations=iterations,
-        learning_rates=_around(0.02),
+        learning_rates=around(0.02),
         spatial_axes=(0,),
         config=dict(
             kind="signal1d",
@@ -399,7 +412,7 @@ def deblur(
         project=_clip_to_scale,
         error=_scaled_error,
         iterations=iterations,
-        learning_rates=tuple(scale * lr for lr in _around(0.02)),
+        learning_rates=tuple(scale * lr for lr in around(0.02)),
         scale=scale,
         error_name="mean |x - x_target|" + ("" if scale == 1.0 else f" / {scale:g}"),
         config=dict(
@@ -412,6 +425,124 @@ def deblur(
             iterations=iterations,
             init=0.5,
         ),
+    )
+
+
+# ----------------------------------------------------------------------------- absorption
+
+
+def ray_points(rays, t):
+    """Points ``(R, K, 2)`` at abscissae ``t`` ``(R, K)`` of rays ``(R, 2)`` (angle, offset): the
+    line through the unit square's centre at offset ``offset`` along its normal, in (x, y)."""
+    theta, offset = rays[:, 0:1], rays[:, 1:2]
+    x = 0.5 - offset * jnp.sin(theta) + t * jnp.cos(theta)
+    y = 0.5 + offset * jnp.cos(theta) + t * jnp.sin(theta)
+    return jnp.stack([x, y], -1)
+
+
+def lookup(grid, points):
+    """Nearest-texel values of ``grid`` (N, N) over the unit square at ``points`` (..., 2);
+    0 outside the square (a piecewise-constant field)."""
+    n = grid.shape[0]
+    ij = jnp.floor(points[..., ::-1] * n).astype(jnp.int32)  # (row, column) = (y, x)
+    inside = jnp.all((ij >= 0) & (ij < n), axis=-1)
+    ij = jnp.clip(ij, 0, n - 1)
+    return jnp.where(inside, grid[ij[..., 0], ij[..., 1]], 0.0)
+
+
+def transmittance_mc(sigma, rays, key, density: float, length: float, max_points: int):
+    """Ratio-tracking estimates ``(R,)`` of ``exp(-density * integral of sigma)`` along the rays'
+    chords of ``length`` (centred on the square's centre).
+
+    With the majorant ``density`` (``sigma`` in [0, 1]): ``n ~ Poisson(density * length)``
+    points uniform on the chord, ``prod_k (1 - sigma(x_k))``, whose mean is the transmittance
+    (Novak et al. 2014) and whose derivative in ``sigma`` is unbiased too (the points do not
+    depend on ``sigma``). ``n`` is cut at ``max_points`` (a Poisson tail below 1e-10 here).
+    """
+    k_n, k_t = jax.random.split(key)
+    r = rays.shape[0]
+    n = _poisson(k_n, density * length, max_points, (r, 1))
+    t = (jax.random.uniform(k_t, (r, max_points)) - 0.5) * length
+    used = jnp.arange(max_points)[None, :] < n
+    factors = jnp.where(used, 1.0 - lookup(sigma, ray_points(rays, t)), 1.0)
+    return jnp.prod(factors, axis=-1)
+
+
+def _poisson(key, mean: float, most: int, shape):
+    """Poisson(``mean``) counts cut at ``most``, by inverting the CDF (one comparison per
+    count: ``jax.random.poisson``'s loop took seconds to compile)."""
+    k = np.arange(most)
+    cdf = np.cumsum(np.exp(k * math.log(mean) - mean - np.array([math.lgamma(i + 1) for i in k])))
+    u = jax.random.uniform(key, shape)
+    return jnp.sum(u[..., None] > jnp.asarray(cdf, jnp.float32), axis=-1)
+
+
+def transmittance_quadrature(sigma, rays, density: float, length: float, points: int):
+    """``exp(-density * integral of sigma)`` by the midpoint rule with ``points`` points a chord."""
+    t = ((jnp.arange(points) + 0.5) / points - 0.5) * length
+    values = lookup(sigma, ray_points(rays, jnp.broadcast_to(t, (rays.shape[0], points))))
+    return jnp.exp(-density * length * jnp.mean(values, axis=-1))
+
+
+def random_rays(key, count: int, reach: float):
+    """``count`` rays (angle uniform in [0, pi), offset uniform in [-reach, reach])."""
+    k_a, k_o = jax.random.split(key)
+    theta = jax.random.uniform(k_a, (count,), maxval=jnp.pi)
+    offset = jax.random.uniform(k_o, (count,), minval=-reach, maxval=reach)
+    return jnp.stack([theta, offset], -1)
+
+
+def absorption_grad(sigma, target_t, rays, key, density: float, length: float, max_points: int):
+    """Unbiased gradient of ``mean_rays (T(sigma) - target_t)^2`` from two independent
+    transmittance estimates: ``2 (T_a - target_t) dT_b / dsigma`` (one estimate in both
+    factors would add the gradient of its variance)."""
+    k_a, k_b = jax.random.split(key)
+    estimate = lambda s, k: transmittance_mc(s, rays, k, density, length, max_points)
+    t_a = estimate(sigma, k_a)
+    _, vjp = jax.vjp(lambda s: estimate(s, k_b), sigma)
+    return vjp(2.0 * (t_a - target_t) / rays.shape[0])[0]
+
+
+def absorption(quick: bool) -> Scene:
+    """A piecewise-constant absorption map with sharp edges from Monte Carlo transmittances."""
+    size, iterations, rays = (16, 30, 64) if quick else (64, 150, 1024)
+    cfg = dict(
+        size=size,
+        iterations=iterations,
+        rays=rays,
+        density=4.0,  # optical depth of a unit chord through sigma = 1 (the majorant)
+        length=1.5,  # chords cover the square: its half-diagonal is 0.71
+        max_points=32,  # P(Poisson(6) > 32) < 1e-10
+        reference_points=8 * size,  # midpoint rule of the measured transmittances
+        init=0.5,
+    )
+    reach = 0.5 * math.sqrt(2.0)
+    target = jnp.asarray(shapes_image(size, seed=3))
+    mc = dict(density=cfg["density"], length=cfg["length"])
+
+    def grad(data, sigma, key):
+        k_rays, k_mc = jax.random.split(key)
+        r = random_rays(k_rays, rays, reach)
+        measured = transmittance_quadrature(data["target"], r, points=cfg["reference_points"], **mc)
+        return absorption_grad(sigma, measured, r, k_mc, max_points=cfg["max_points"], **mc)
+
+    return Scene(
+        name="absorption_mc",
+        description=(
+            f"absorption {size}^2 (piecewise constant, sharp edges), {rays} random rays per step, "
+            f"ratio-tracking transmittance, optical depth up to {cfg['density']:g} a unit chord"
+        ),
+        init=jnp.full((size, size), cfg["init"], jnp.float32),
+        spatial_axes=(0, 1),  # a one-channel image (the leaf rule leaves square 2-D to Adam)
+        data={"target": target},
+        grad=grad,
+        project=lambda data, s: jnp.clip(s, 0.0, 1.0),
+        error=lambda data, s: jnp.mean(jnp.abs(s - data["target"])),
+        iterations=iterations,
+        # Wide: the best rates of Adam, the filter and the pyramid spread over 20x here.
+        learning_rates=(0.0125, 0.025, 0.05, 0.1, 0.2),
+        error_name="mean |sigma - sigma_target|",
+        config=dict(kind="absorption_mc", **cfg),
     )
 
 
@@ -438,11 +569,33 @@ HELD_OUT: dict[str, Callable[[bool], Scene]] = {
     "texture_mixed50": lambda q: texture(q, noise_fraction=0.5, name="texture_mixed50"),
     "texture_mixed75": lambda q: texture(q, noise_fraction=0.75, name="texture_mixed75"),
 }
-ALL: dict[str, Callable[[bool], Scene]] = {**SCENES, **HELD_OUT}
+
+
+def _camera_distance(cameras: tuple[str, ...], name: str) -> Callable[[bool], Scene]:
+    def make(quick: bool) -> Scene:
+        from experiments import camera_distance
+
+        return camera_distance.scene(quick, cameras, name)
+
+    return make
+
+
+#: Problems whose gradients are a renderer's Monte Carlo estimates (issue #47): a Mitsuba 3
+#: texture seen from three camera distances and from two cameras in turn
+#: (:mod:`experiments.camera_distance`; Mitsuba required), and a sharp-edged absorption map
+#: from ratio-tracking transmittances; outside the default run (``--only-scenes``).
+RENDERED: dict[str, Callable[[bool], Scene]] = {
+    "mitsuba_close": _camera_distance(("close",), "mitsuba_close"),
+    "mitsuba_mid": _camera_distance(("mid",), "mitsuba_mid"),
+    "mitsuba_far": _camera_distance(("far",), "mitsuba_far"),
+    "mitsuba_two_cameras": _camera_distance(("close", "far"), "mitsuba_two_cameras"),
+    "absorption_mc": absorption,
+}
+ALL: dict[str, Callable[[bool], Scene]] = {**SCENES, **HELD_OUT, **RENDERED}
 
 
 def make(name: str, quick: bool = False) -> Scene:
-    """The scene ``name`` (one of :data:`SCENES` or :data:`HELD_OUT`)."""
+    """The scene ``name`` (one of :data:`SCENES`, :data:`HELD_OUT` or :data:`RENDERED`)."""
     if name not in ALL:
         raise ValueError(f"unknown scene {name!r}; choose from {sorted(ALL)}")
     return ALL[name](quick)

@@ -140,7 +140,25 @@ class Settings:
     lr_points: int | None = None  # keep only this many of each scene's learning rates (quick)
 
 
-def settings(quick: bool) -> Settings:
+#: A smaller grid for costly scenes (``--grid reduced``; the Mitsuba scenes spend ~0.1 s a
+#: render): one seed, four ``sigma_d``, ``levels`` 3 and 5, Adam's ``b1`` 0.9, the pyramid at
+#: 3 and 5 levels, one learning-rate extension.
+REDUCED = Settings(
+    sigma_grid=(0.01, 0.03, 0.1, 0.3),
+    levels_grid=(3, 5),
+    adam_b1=(0.9,),
+    pyramid_levels=(3, 5),
+    seeds=(0,),
+    max_extend=1,
+)
+
+
+def settings(quick: bool, grid: str | None = None) -> Settings:
+    """The grid of a run: :data:`REDUCED` for ``grid="reduced"``, else the full or quick one."""
+    if grid == "reduced":
+        return REDUCED
+    if grid is not None:
+        raise ValueError(f"grid must be None or 'reduced', got {grid!r}")
     if quick:
         return Settings(
             sigma_grid=(0.0, 0.1, math.inf),
@@ -163,9 +181,13 @@ _GRAD_PROGRAMS: dict = {}
 def _grad_program(scene: sc.Scene):
     """The scene's vmapped noisy gradient, compiled once per scene (shared by every family)."""
     if scene not in _GRAD_PROGRAMS:
+        takes_step = "step" in inspect.signature(scene.grad).parameters
 
         def one(data, params, seed, i):
-            return scene.grad(data, params, jax.random.fold_in(jax.random.key(seed), i))
+            key = jax.random.fold_in(jax.random.key(seed), i)
+            if takes_step:  # e.g. cameras taken in turn
+                return scene.grad(data, params, key, step=i)
+            return scene.grad(data, params, key)
 
         _GRAD_PROGRAMS[scene] = (
             jax.jit(jax.vmap(one, in_axes=(None, 0, 0, None))),
@@ -1267,7 +1289,7 @@ _COST_RANK = {
 
 def _scene_job(args) -> dict:
     """One scene, end to end (a worker process's unit of work)."""
-    name, quick, cache, candidates, recompute, with_auto, progress, xla_cache, reference = args
+    name, quick, s, cache, candidates, recompute, with_auto, progress, xla_cache, reference = args
     _use_xla_cache(xla_cache)
     t0 = time.perf_counter()
     scene = sc.make(name, quick)
@@ -1275,7 +1297,7 @@ def _scene_job(args) -> dict:
     build = time.perf_counter() - t0
     entry = run_scene(
         scene,
-        settings(quick),
+        s,
         pathlib.Path(cache),
         candidates=candidates,
         recompute=recompute,
@@ -1324,12 +1346,14 @@ def run_benchmark(
     jobs: int = 1,
     xla_cache: str | None = "default",
     reference: str | pathlib.Path | None = None,
+    grid: str | None = None,
 ) -> dict:
     """Runs (or loads from ``out/cache``) every scene; writes ``summary.json``, ``table.md``,
     ``reference.json`` and one PNG per scene to ``out``; returns the summary.
 
     ``reference``: a run's ``reference.json``; its best-tuned, Adam and pyramid grids are
     used instead of running them (they must be of the same scenes and settings).
+    ``grid``: ``"reduced"`` for :data:`REDUCED` instead of the full (or quick) grid.
 
     ``jobs > 1`` runs scenes in that many worker processes (candidates must then be
     importable module-level functions, as ``--candidates`` gives). ``xla_cache``: JAX's
@@ -1342,7 +1366,7 @@ def run_benchmark(
             raise ValueError(f"unknown scene {n!r}; choose from {sorted(sc.ALL)}")
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    s = settings(quick)
+    s = settings(quick, grid)
     ref = None if reference is None else load_reference(reference, names, quick)
     with_auto = auto_available()
     cache = out / "cache"
@@ -1354,6 +1378,7 @@ def run_benchmark(
         (
             n,
             quick,
+            s,
             str(cache),
             candidates,
             recompute,
@@ -1421,8 +1446,9 @@ def main(argv=None) -> dict:
         parser.add_argument(
             "--only-scenes",
             default="",
-            help=f"comma-separated subset of {','.join(sc.SCENES)} (default: all) "
-            f"or of the held-out {','.join(sc.HELD_OUT)}",
+            help=f"comma-separated subset of {','.join(sc.SCENES)} (default: all), "
+            f"of the held-out {','.join(sc.HELD_OUT)} or of the rendered "
+            f"{','.join(sc.RENDERED)}",
         )
         parser.add_argument(
             "--candidates",
@@ -1435,6 +1461,13 @@ def main(argv=None) -> dict:
             default=None,
             help="a run's reference.json (e.g. experiments/tuning_reference.json): take the "
             "best-tuned, Adam and pyramid grids from it instead of running them",
+        )
+        parser.add_argument(
+            "--grid",
+            choices=("reduced",),
+            default=None,
+            help="'reduced': a smaller grid for costly scenes (tuning.REDUCED); "
+            "default: the full grid (--quick: the quick one)",
         )
         parser.add_argument(
             "--recompute",
@@ -1472,6 +1505,7 @@ def main(argv=None) -> dict:
         jobs=args.jobs,
         xla_cache=None if args.xla_cache == "none" else args.xla_cache,
         reference=args.reference,
+        grid=args.grid,
     )
     print(summary["table"])
     print(
