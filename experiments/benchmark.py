@@ -921,8 +921,9 @@ SCALE_COLUMNS = (
 )
 
 
-def scale(out: pathlib.Path, quick: bool) -> dict:
-    budget = SCALE_QUICK_BUDGET_BYTES if quick else SCALE_BUDGET_BYTES
+def scale(out: pathlib.Path, quick: bool, budget: int | None = None) -> dict:
+    if budget is None:
+        budget = SCALE_QUICK_BUDGET_BYTES if quick else SCALE_BUDGET_BYTES
     rows = scale_rows(quick, budget)
     big = 2**18  # fits from 512^2x3 and 64^3 up: below, fixed per-call costs dominate
     slopes = {"all timed grids": loglog_slopes(rows)}
@@ -1366,6 +1367,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
             "section",
         )
         p.add_argument(
+            "--scale-budget-gib",
+            type=float,
+            default=None,
+            help="scale: time only the grids whose timing holds at most this much memory "
+            f"(default {SCALE_BUDGET_BYTES / 2**30:g}; --quick: "
+            f"{SCALE_QUICK_BUDGET_BYTES / 2**10:g} KiB)",
+        )
+        p.add_argument(
             "--worker",
             action="store_true",
             help="internal: measure the targets' inputs once, write "
@@ -1395,7 +1404,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "accuracy": accuracy,
         "scaling": scaling,
         "compile": compile_times,
-        "scale": scale,
+        "scale": functools.partial(
+            scale,
+            budget=None if args.scale_budget_gib is None else int(args.scale_budget_gib * 2**30),
+        ),
     }
     results = {}
     for s in sorted(only, key=_ORDER.index):
@@ -1407,6 +1419,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         + (" --quick" if quick else "")
         + (f" --only {args.only}" if args.only != ",".join(SECTIONS) else "")
         + (f" --processes {args.processes}" if args.processes > 1 else "")
+        + (f" --scale-budget-gib {args.scale_budget_gib:g}" if args.scale_budget_gib else "")
     )
     md = [
         f"# Benchmarks ({'quick: not meaningful' if quick else 'full'})",
