@@ -1,8 +1,8 @@
 """Benchmarks: what the filter costs, what it buys, and how it scales.
 
-    python -m experiments.benchmark [--quick] [--out DIR] [--only overhead,accuracy,scaling,compile]
+    python -m experiments.benchmark [--quick] [--out DIR] [--only SECTION,...]
 
-Four sections, each written to ``DIR`` (default ``results/bench``) as ``<section>.json``
+Five sections, each written to ``DIR`` (default ``results/bench``) as ``<section>.json``
 and ``<section>.md`` (plus PNG plots), and summarised in ``summary.md``:
 
 * ``overhead`` (supplement Table 1): the update alone, ``bilateral_adam`` against
@@ -17,6 +17,12 @@ and ``<section>.md`` (plus PNG plots), and summarised in ``summary.md``:
 * ``scaling``: time and XLA's planned peak memory of one separable F = 5 update
   against the grid size (128^2..2048^2 x3, 32^3..128^3 x1) and against F; the
   log-log slope against the number of elements (1 = linear, no hidden quadratic cost).
+* ``scale``: memory and growth from 64^2 to 8192^2 (x3) and 16^3 to 384^3 (x1):
+  XLA's planned temporaries of one jitted update and the state's size, as multiples
+  of the parameter's size, and the time per update against ``optax.adam`` side by
+  side, for ``bilateral_adam``'s defaults and a fixed ``sigma_d`` at F = 5; the
+  log-log slope of time against the number of elements. Grids too large to time in
+  ``SCALE_BUDGET_BYTES`` are planned only.
 * ``compile``: compile time of one ``bilateral_adam`` step, and a check that new
   step counts and a ``sigma_d`` schedule (``optax.inject_hyperparams(bilateral_adam,
   static_args=("levels",))``) reuse the compiled program.
@@ -50,10 +56,10 @@ import optax_bilateral as ob
 from experiments import common
 from tools.compiles import CompileCounter
 
-SECTIONS = ("overhead", "accuracy", "scaling", "compile")
+SECTIONS = ("overhead", "accuracy", "scaling", "compile", "scale")
 # Run order: compile first, so that its cold compile times cannot profit from anything
 # the other sections compiled in this process.
-_ORDER = ("compile", "overhead", "accuracy", "scaling")
+_ORDER = ("compile", "overhead", "accuracy", "scaling", "scale")
 
 
 # --------------------------------------------------------------------------- timing
@@ -783,6 +789,202 @@ def _plot_scaling(rows, path, ours):
     plt.close(fig)
 
 
+# --------------------------------------------------------------------------- (e) scale
+
+SCALE_METHODS = ("adam", "defaults", "sigma_d=0.1, F=5")
+# What one grid's timing may hold at once (parameters, gradient, the three states, the
+# largest update's temporaries and outputs): the CI machine's 24 GiB less the system's and
+# a neighbour's share. Larger grids get their memory from XLA's plan only.
+SCALE_BUDGET_BYTES = 14 * 2**30
+SCALE_QUICK_BUDGET_BYTES = 256 * 2**10  # --quick: exercises the skip too
+
+
+def scale_optimizers(learning_rate: float = 0.02) -> dict[str, optax.GradientTransformation]:
+    """optax.adam, bilateral_adam's defaults and a fixed sigma_d at F = 5."""
+    return {
+        "adam": optax.adam(learning_rate),
+        "defaults": ob.bilateral_adam(learning_rate),
+        "sigma_d=0.1, F=5": ob.bilateral_adam(learning_rate, sigma_d=0.1, levels=5),
+    }
+
+
+def scale_grids(quick: bool) -> dict[str, list[tuple[int, ...]]]:
+    if quick:  # 16^3 exceeds the quick budget: planned, not timed
+        return {"2d": [(16, 16, 3)], "3d": [(16, 16, 16, 1)]}
+    return {
+        "2d": [(n, n, 3) for n in (64, 128, 256, 512, 1024, 2048, 4096, 8192)],
+        "3d": [(n, n, n, 1) for n in (16, 32, 64, 128, 256, 384)],
+    }
+
+
+def tree_bytes(tree) -> int:
+    """Bytes of a pytree of arrays or ``jax.ShapeDtypeStruct``s."""
+    return sum(int(np.prod(x.shape)) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree))
+
+
+def planned_update(opt: optax.GradientTransformation, shape: tuple[int, ...]) -> dict:
+    """One jitted update of a float32 grid ``shape`` compiled from shapes alone (nothing is
+    allocated), with XLA's plan of its memory."""
+    p = jax.ShapeDtypeStruct(shape, jnp.float32)
+    state = jax.eval_shape(opt.init, p)
+    compiled = jax.jit(opt.update).lower(p, state, p).compile()
+    ma = compiled.memory_analysis()
+    return {
+        "compiled": compiled,
+        "temp": int(ma.temp_size_in_bytes),
+        "output": int(ma.output_size_in_bytes),
+        "state": tree_bytes(state),
+        "params": tree_bytes(p),
+    }
+
+
+def scale_rows(quick: bool, budget: int = SCALE_BUDGET_BYTES) -> list[dict]:
+    """Memory (XLA's plan) of every method on every grid; time per update against
+    optax.adam, side by side, where the grid's timing fits ``budget``."""
+    opts = scale_optimizers()
+    grids = [(dim, shape) for dim, shapes in scale_grids(quick).items() for shape in shapes]
+    rows = []
+    for dim, shape in tqdm(grids, desc="scale"):
+        plans = {m: planned_update(opt, shape) for m, opt in opts.items()}
+        pbytes = plans["adam"]["params"]
+        # Held during the timing: params, grad, every state, then one update at a time.
+        held = 2 * pbytes + sum(p["state"] for p in plans.values())
+        held += max(p["temp"] + p["output"] for p in plans.values())
+        timed = held <= budget
+        res = {}
+        if timed:
+            params, grad = update_arrays(shape)
+            fns = {}
+            for m, opt in opts.items():
+                state = opt.init(params)
+                for _ in range(2):  # count 2: the next step is one of auto's between-checks
+                    _, state = plans[m]["compiled"](grad, state, params)
+                fns[m] = (plans[m]["compiled"], (grad, state, params))
+            n = int(np.prod(shape))
+            rounds = 3 if quick else (7 if n <= 2**22 else 3)
+            res = interleaved(fns, rounds, desc=f"scale {shape}")
+            del fns, params, grad, state
+        for m, plan in plans.items():
+            row = {
+                "grid": f"{dim} " + "x".join(map(str, shape)),
+                "dim": dim,
+                "elements": int(np.prod(shape)),
+                "method": m,
+                "temp / params": plan["temp"] / pbytes,
+                "state / params": plan["state"] / pbytes,
+                "temp MB": plan["temp"] / 1e6,
+                "state MB": plan["state"] / 1e6,
+                "timing held GB": held / 1e9,
+                "timed": timed,
+            }
+            if timed:
+                samples = {k: v["samples"] for k, v in res.items()}
+                row["ms (median)"] = 1e3 * res[m]["median"]
+                row["ns per element"] = 1e9 * res[m]["median"] / row["elements"]
+                row["x adam (paired)"] = common.paired_ratio(samples, m, "adam")
+            else:
+                row["skipped"] = f"timing holds {held / 2**30:.3g} GiB > {budget / 2**30:.3g} GiB"
+            rows.append(row)
+    return rows
+
+
+def loglog_slopes(rows: Sequence[Mapping], min_elements: int = 0) -> dict[str, float]:
+    """Fitted slope of log(time) against log(elements) per dimension and method (1: a flat
+    cost per element), over the timed grids with at least ``min_elements`` elements."""
+    slopes = {}
+    for dim in sorted({r["dim"] for r in rows}):
+        for m in dict.fromkeys(r["method"] for r in rows):
+            sel = [
+                r
+                for r in rows
+                if r["dim"] == dim
+                and r["method"] == m
+                and r["timed"]
+                and r["elements"] >= min_elements
+            ]
+            if len(sel) >= 2:
+                x = np.log([r["elements"] for r in sel])
+                y = np.log([r["ms (median)"] for r in sel])
+                slopes[f"{dim} {m}"] = float(np.polyfit(x, y, 1)[0])
+    return slopes
+
+
+SCALE_COLUMNS = (
+    "grid",
+    "method",
+    "temp / params",
+    "state / params",
+    "ms (median)",
+    "ns per element",
+    "x adam (paired)",
+    "skipped",
+)
+
+
+def scale(out: pathlib.Path, quick: bool, budget: int | None = None) -> dict:
+    if budget is None:
+        budget = SCALE_QUICK_BUDGET_BYTES if quick else SCALE_BUDGET_BYTES
+    rows = scale_rows(quick, budget)
+    big = 2**18  # fits from 512^2x3 and 64^3 up: below, fixed per-call costs dominate
+    slopes = {"all timed grids": loglog_slopes(rows)}
+    if not quick:
+        slopes[f">= {big} elements"] = loglog_slopes(rows, big)
+    _plot_scale(rows, out / "scale.png")
+    data = {"rows": rows, "loglog_slopes": slopes, "budget_bytes": budget}
+    table = [{c: common.fmt(r.get(c, "")) for c in SCALE_COLUMNS} for r in rows]
+    slope_rows = [
+        {"fit": f"{k}: {name}", "slope": common.fmt(v)}
+        for k, fits in slopes.items()
+        for name, v in fits.items()
+    ]
+    md = "\n".join(
+        [
+            "### Memory and time per update against the grid size",
+            "",
+            "temp: XLA's planned temporaries of one jitted update "
+            "(`compiled.memory_analysis().temp_size_in_bytes`); state: the optimizer "
+            "state's bytes; both as multiples of the parameter's bytes (float32). ms: median "
+            "over interleaved rounds, state after 2 updates (auto's between-check step); "
+            "x adam: median of per-round ratios. Grids whose timing would hold more than "
+            f"{budget / 2**30:.3g} GiB are planned, not timed.",
+            "",
+            common.markdown_table(table, list(SCALE_COLUMNS)),
+            "",
+            "Log-log slope of time against the number of elements (1 = a flat cost per element):",
+            "",
+            common.markdown_table(slope_rows),
+        ]
+    )
+    common.write_results(out, "scale", data, md)
+    return {"data": data, "md": md}
+
+
+def _plot_scale(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), dpi=110)
+    keys = ("temp / params", "state / params", "ns per element")
+    for dim, mk in (("2d", "o"), ("3d", "s")):
+        for m, ls in zip(SCALE_METHODS, ("--", "-", ":")):
+            sel = [r for r in rows if r["dim"] == dim and r["method"] == m]
+            for ax, key in zip(axes, keys):
+                pts = [(r["elements"], r[key]) for r in sel if key in r]
+                if pts:
+                    ax.plot(*zip(*pts), ls, marker=mk, label=f"{dim} {m}")
+    for ax, key in zip(axes, keys):
+        ax.set_xscale("log")
+        ax.set_xlabel("elements (grid points x channels)")
+        ax.set_ylabel(key)
+        ax.legend(fontsize=6)
+    axes[2].set_yscale("log")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 # --------------------------------------------------------------------------- (d) compile
 
 
@@ -1165,6 +1367,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
             "section",
         )
         p.add_argument(
+            "--scale-budget-gib",
+            type=float,
+            default=None,
+            help="scale: time only the grids whose timing holds at most this much memory "
+            f"(default {SCALE_BUDGET_BYTES / 2**30:g}; --quick: "
+            f"{SCALE_QUICK_BUDGET_BYTES / 2**10:g} KiB)",
+        )
+        p.add_argument(
             "--worker",
             action="store_true",
             help="internal: measure the targets' inputs once, write "
@@ -1194,6 +1404,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "accuracy": accuracy,
         "scaling": scaling,
         "compile": compile_times,
+        "scale": functools.partial(
+            scale,
+            budget=None if args.scale_budget_gib is None else int(args.scale_budget_gib * 2**30),
+        ),
     }
     results = {}
     for s in sorted(only, key=_ORDER.index):
@@ -1205,6 +1419,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         + (" --quick" if quick else "")
         + (f" --only {args.only}" if args.only != ",".join(SECTIONS) else "")
         + (f" --processes {args.processes}" if args.processes > 1 else "")
+        + (f" --scale-budget-gib {args.scale_budget_gib:g}" if args.scale_budget_gib else "")
     )
     md = [
         f"# Benchmarks ({'quick: not meaningful' if quick else 'full'})",

@@ -66,6 +66,21 @@ def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
     }
     assert all(r["compilations"] == 0 and r["eager ms (median)"] > 0 for r in eager.values())
 
+    # (e) scale: XLA's plan for every method and grid; time where the budget allows.
+    scale = result["scale"]["rows"]
+    assert {r["method"] for r in scale} == set(benchmark.SCALE_METHODS)
+    assert (tmp_path / "scale.png").stat().st_size > 0
+    for r in scale:
+        # Adam's state is its two moments (and a counter); its update needs no full-size
+        # temporary. The filter's does, and the defaults' state keeps more than Adam's.
+        want_state = {"adam": (2, 2.01), "sigma_d=0.1, F=5": (2, 2.01), "defaults": (2.5, 6)}
+        lo, hi = want_state[r["method"]]
+        assert lo <= r["state / params"] <= hi, r
+        assert (r["temp / params"] < 1) == (r["method"] == "adam"), r
+        timed = r["timed"] and r["ms (median)"] > 0 and r["x adam (paired)"] > 0
+        assert timed != ("skipped" in r), r
+    assert {r["grid"] for r in scale if not r["timed"]} == {"3d 16x16x16x1"}  # over budget
+
 
 def test_unknown_section_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="--only"):
@@ -330,3 +345,35 @@ def test_eager_wrappers_quick_counts_compilations_per_call(tmp_path):
         for wrapper in ("MultiSteps", "apply_if_finite"):
             assert rows[inner, wrapper]["compilations per call"][1:] == [1]
     assert (tmp_path / "eager_wrappers.json").exists()
+
+
+def test_scale_slopes_fit_time_against_elements():
+    def rows(dim, times):
+        return [
+            {"dim": dim, "method": "m", "elements": n, "timed": True, "ms (median)": t}
+            for n, t in times.items()
+        ]
+
+    linear = rows("2d", {10**3: 1.0, 10**4: 10.0, 10**5: 100.0})
+    quadratic = rows("3d", {10**3: 1.0, 10**4: 100.0, 10**6: 1e6})
+    untimed = [{"dim": "3d", "method": "m", "elements": 10**7, "timed": False}]
+    slopes = benchmark.loglog_slopes(linear + quadratic + untimed)
+    assert slopes == pytest.approx({"2d m": 1.0, "3d m": 2.0})
+    assert benchmark.loglog_slopes(linear, min_elements=10**4) == pytest.approx({"2d m": 1.0})
+    assert benchmark.loglog_slopes(linear, min_elements=10**5) == {}  # one grid: no fit
+
+
+def test_largest_grid_is_the_largest_whose_planned_step_fits():
+    import optax
+
+    from experiments import largest_grid
+
+    opt = optax.adam(0.1)  # compiles in a blink; the search is the same for any optimizer
+    budget = 2**20
+    best = largest_grid.largest_n(opt, "texture", budget, multiple=16, probes=(32, 64))
+    n = best["n"]
+    assert best["fits"] and best["shape"] == f"{n}x{n}x3" and n % 16 == 0
+    assert largest_grid.planned_bytes(opt, (n, n, 3)) <= budget
+    assert largest_grid.planned_bytes(opt, (n + 16, n + 16, 3)) > budget  # the next one won't
+    ran = largest_grid.run_steps(opt, (16, 16, 3), steps=2)
+    assert ran["finite"] and ran["s per step (median)"] > 0 and ran["peak RSS GiB"] > 0

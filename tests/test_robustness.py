@@ -5,6 +5,7 @@ most tests share one compiled update whose hyperparameters (learning rate, b1, b
 eps, sigma_d) are traced through ``optax.inject_hyperparams`` and set per call.
 """
 
+import contextlib
 import functools
 import math
 
@@ -528,6 +529,72 @@ def test_save_load_keeps_special_bits(tmp_path):
         np.testing.assert_array_equal(
             np.asarray(a).reshape(-1).view(np.uint8), np.asarray(b).reshape(-1).view(np.uint8)
         )
+
+
+def test_load_state_assembles_the_parts_of_a_multiprocess_checkpoint(tmp_path, monkeypatch):
+    """Parts as 2 processes write them (tests/test_multiprocess.py runs real ones): each holds
+    its row blocks of the grid leaves and a copy of the replicated ones; load_state puts
+    the blocks together, and refuses incomplete or mixed sets of parts."""
+    from jax.experimental import multihost_utils
+
+    from optax_bilateral._src import state_io
+
+    tree = {
+        "m": jnp.arange(8 * 6 * 2, dtype=jnp.float32).reshape(8, 6, 2),
+        "bf16": jnp.linspace(-1, 1, 8 * 3).reshape(8, 3).astype(jnp.bfloat16),
+        "count": jnp.asarray(7, jnp.int32),
+    }
+    rows = {0: [slice(0, 3), slice(3, 5)], 1: [slice(4, 8)]}  # process 0: two blocks; overlap
+    process = [0]
+
+    def blocks_of(x):
+        if x.ndim == 0:
+            return [((), x)]
+        return [((r,), x[r]) for r in rows[process[0]]]
+
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    monkeypatch.setattr(jax, "process_index", lambda: process[0])
+    monkeypatch.setattr(state_io, "_blocks_of", blocks_of)
+    monkeypatch.setattr(multihost_utils, "sync_global_devices", lambda name: None)
+    path = tmp_path / "state.npz"
+    for i in (0, 1):
+        process[0] = i
+        ob.save_state(path, tree)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.npz.0-of-2", "state.npz.1-of-2"]
+
+    back = ob.load_state(path, jax.eval_shape(lambda: tree))
+    for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(tree)):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(
+            np.asarray(a).reshape(-1).view(np.uint8), np.asarray(b).reshape(-1).view(np.uint8)
+        )
+    # A block is read from the pieces it overlaps, across parts.
+    ckpt = state_io._open_checkpoint(str(path), contextlib.ExitStack())
+    m = 2  # leaves in key order: bf16, count, m
+    np.testing.assert_array_equal(ckpt.read(m, (slice(2, 7),), "m"), np.asarray(tree["m"][2:7]))
+
+    # A part missing, a stale part of another run, a gap in the blocks, no checkpoint.
+    (tmp_path / "state.npz.1-of-2").rename(tmp_path / "moved")
+    with pytest.raises(ValueError, match=r"lacks the parts of processes \[1\]"):
+        ob.load_state(path, tree)
+    (tmp_path / "moved").rename(tmp_path / "state.npz.1-of-2")
+    (tmp_path / "state.npz.2-of-3").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"from \[2, 3\] processes"):
+        ob.load_state(path, tree)
+    (tmp_path / "state.npz.2-of-3").unlink()
+    rows[1] = [slice(6, 8)]  # row 5 was process 1's alone: now nobody's
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    monkeypatch.setattr(jax, "process_index", lambda: 1)
+    monkeypatch.setattr(state_io, "_blocks_of", blocks_of)
+    monkeypatch.setattr(multihost_utils, "sync_global_devices", lambda name: None)
+    process[0] = 1
+    ob.save_state(path, tree)
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="lacks part of state leaf"):
+        ob.load_state(path, tree)
+    with pytest.raises(FileNotFoundError, match="no optimizer state"):
+        ob.load_state(tmp_path / "nothing.npz", tree)
 
 
 def test_mu_dtype_sets_the_first_moment_precision_only():

@@ -299,6 +299,26 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     ]
     emit(check="subgrid_gate", gates=gates)
 
+    # --- save_state / load_state: each device's block restored, under another mesh too.
+    import tempfile
+
+    grids = ("tex", "vol")
+    saved = put(params, device_mesh_of((4, 2), AxisType.Explicit), grids)
+    path = os.path.join(tempfile.mkdtemp(), "state.npz")
+    ob.save_state(path, saved)
+    likes = {"4x2": saved, "8x1": put(params, device_mesh_of((8, 1), AxisType.Explicit), grids)}
+    for mesh_name, like in likes.items():
+        back = ob.load_state(path, like)
+        emit(
+            check="checkpoint",
+            mesh=mesh_name,
+            max_diff=max_diff(back, subset(params, grids)),
+            sharding_kept=all(
+                b.sharding.is_equivalent_to(x.sharding, x.ndim)
+                for b, x in zip(jax.tree.leaves(back), jax.tree.leaves(like))
+            ),
+        )
+
 
 # ----------------------------------------------------------------------------------------
 # The tests (parent process, one device).
@@ -402,6 +422,13 @@ def test_auto_and_sure_sigma_equal_single_device():
     assert abs(gate_sharded - gate) <= TOL and 0 < gate < 1, (gate, gate_sharded)
     (sure,) = [r for r in recs if r["sigma_d"] == "sure"]
     assert sure["sigma_diff"] <= TOL * max(sure["sigma"]) and len(sure["sigma"]) == 1, sure
+
+
+def test_sharded_checkpoint_restores_each_device_block():
+    recs = _checks("checkpoint")
+    assert [r["mesh"] for r in recs] == ["4x2", "8x1"]
+    for r in recs:
+        assert r["max_diff"] == 0 and r["sharding_kept"], r
 
 
 if __name__ == "__main__":
