@@ -267,6 +267,13 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         state = optax.tree.get(jax.eval_shape(tx.init, p), "PostfilterState")
         return list(state.sigma_state["tex"].previous_guide.shape)
 
+    def init_sharding_kept(tx, p):
+        # A full-size state array (auto's residual) starts split like its leaf, not whole
+        # on one device.
+        state = optax.tree.get(tx.init(p), "PostfilterState").sigma_state["tex"]
+        full = [a for a in jax.tree.leaves(state) if a.shape == p["tex"].shape]
+        return all(a.sharding.is_equivalent_to(p["tex"].sharding, 3) for a in full)
+
     device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
     keys = ("tex", "bias")
     subgrid = ob.auto_sigma(min_texels=16)  # the 16x16 texture as a large leaf: stride 4
@@ -285,6 +292,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             sigma=[float(x) for x in out[1]],
             sharding_kept=out[0]["tex"].sharding.is_equivalent_to(p_s["tex"].sharding, 3),
             kept_shape=kept_guide(tx, p_s),
+            init_sharding_kept=init_sharding_kept(tx, p_s),
         )
 
     # A closed gate's check on the sub-grid (stride 4 here), sharded and on one device.
@@ -416,7 +424,7 @@ def test_auto_and_sure_sigma_equal_single_device():
     recs = _checks("sigma_from_data")
     assert [r["sigma_d"] for r in recs] == ["auto", "sure", "auto, sub-grid"]
     for r in recs:
-        assert r["max_diff"] <= TOL and r["sharding_kept"], r
+        assert r["max_diff"] <= TOL and r["sharding_kept"] and r["init_sharding_kept"], r
     assert [r["kept_shape"] for r in recs] == [[16, 16, 3], [16, 16, 3], [4, 4, 3]]
     ((gate, gate_sharded),) = [r["gates"] for r in _checks("subgrid_gate")]
     assert abs(gate_sharded - gate) <= TOL and 0 < gate < 1, (gate, gate_sharded)

@@ -164,13 +164,13 @@ class Auto(SigmaRule):
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         previous_guide = None
         if guide is not None:
-            previous_guide = numerics.zeros(self.kept_guide(jnp.asarray(guide), plan.axes))
+            previous_guide = self.zero_guide(guide, plan.axes)
         # Every field its own buffer: a state that holds one twice cannot be donated.
         scalar = functools.partial(jnp.zeros, [], dtype)
         direction = None if kind == "prefilter" else scalar()
         if kind != "postfilter":
             return AutoState(previous_guide, None, direction, None, None)
-        residual = jnp.zeros(jnp.shape(leaf), dtype)
+        residual = numerics.zeros(leaf, dtype)  # the leaf's sharding too
         return AutoState(previous_guide, residual, direction, scalar(), scalar())
 
     def sigma(self, guide, plan, state, ctx):
@@ -268,11 +268,17 @@ class Auto(SigmaRule):
         s = self.stride(x.shape, axes)
         if s == 1:
             return x
-        return x[tuple(slice(None, None, s) if a in axes else slice(None) for a in range(x.ndim))]
+        # A strided slice, not indexing (a gather): it keeps a grid split over devices split.
+        strides = tuple(s if a in axes else 1 for a in range(x.ndim))
+        return lax.slice(x, (0,) * x.ndim, x.shape, strides)
 
     def kept_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
         """What :attr:`AutoState.previous_guide` keeps of a guide: its sub-grid."""
         return self.subgrid(guide, _guide_axes(guide, axes))
+
+    def zero_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+        """Zeros shaped (and sharded) like :meth:`kept_guide`: the first ``previous_guide``."""
+        return numerics.zeros(self.kept_guide(jnp.asarray(guide), axes))
 
     def scale(self, guide, previous, count, axes, direction=None) -> jax.Array:
         """The leaf's sigma_d at step ``count`` (1 = first); ``direction`` (a postfilter's

@@ -128,9 +128,9 @@ class Sure(SigmaRule):
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         zeros = lambda shape, dt=dtype: jnp.zeros(shape, dt)  # every field its own buffer
         return SureState(
-            numerics.zeros(self.auto.kept_guide(jnp.asarray(guide), plan.axes)),
-            zeros(jnp.shape(leaf)),
-            zeros(jnp.shape(leaf)),
+            self.auto.zero_guide(guide, plan.axes),
+            numerics.zeros(leaf, dtype),  # the leaf's sharding too
+            numerics.zeros(leaf, dtype),
             zeros([]),
             zeros([], jnp.int32),
             zeros([self.count(plan.levels)]),
