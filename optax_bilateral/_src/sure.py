@@ -128,7 +128,7 @@ class Sure(SigmaRule):
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         zeros = lambda shape, dt=dtype: jnp.zeros(shape, dt)  # every field its own buffer
         return SureState(
-            self.auto.zero_guide(guide, plan.axes),
+            self.auto.zero_guide(jnp.asarray(guide), plan.axes),
             numerics.zeros(leaf, dtype),  # the leaf's sharding too
             numerics.zeros(leaf, dtype),
             zeros([]),
