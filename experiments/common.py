@@ -520,3 +520,16 @@ def write_results(out: pathlib.Path, name: str, data: Mapping, md: str) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(json.dumps(jsonable(data), indent=1) + "\n")
     (out / f"{name}.md").write_text(md + "\n")
+
+
+def save_figure(fig, path: pathlib.Path) -> pathlib.Path:
+    """Saves an image grid (no ticks), closes it and returns ``path``."""
+    import matplotlib.pyplot as plt
+
+    for ax in fig.axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -445,7 +445,7 @@ def plot_views(problem: Problem, best: dict, path: pathlib.Path, views: int = 4)
             else f"{name}: Hausdorff {best[name].final_metric('hausdorff'):.4f}"
         )
         axes[r, 0].set_title(title, fontsize=9)
-    return runner.save_figure(fig, path)
+    return common.save_figure(fig, path)
 
 
 def table2(results: dict) -> list[dict]:

@@ -426,19 +426,6 @@ def write_report(
     return {"table": table, "total_seconds": total, "pngs": pngs, "methods": methods}
 
 
-def save_figure(fig, path: pathlib.Path) -> pathlib.Path:
-    """Saves an image grid (no ticks), closes it and returns ``path``."""
-    import matplotlib.pyplot as plt
-
-    for ax in fig.axes:
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
-
-
 def main(
     description: str,
     default_out: str,

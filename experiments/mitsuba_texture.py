@@ -47,6 +47,7 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import common
 from experiments import mitsuba_common as mc
 from experiments import mitsuba_runner as runner
 from optax_bilateral.toy import texture as tex
@@ -395,7 +396,7 @@ def plot_images(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
         axes[r, 2].set_title(f"roughness, err {tr.final_metric('param_error'):.4f}")
         axes[r, 3].imshow(np.abs(alpha - prob.target_alpha), cmap="magma", vmin=0, vmax=0.1)
         axes[r, 3].set_title("|alpha - target| (0..0.1)")
-    return runner.save_figure(fig, path)
+    return common.save_figure(fig, path)
 
 
 def main(argv=None) -> dict:

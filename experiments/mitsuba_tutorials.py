@@ -507,7 +507,7 @@ def plot_images(problem, best: dict, path: pathlib.Path) -> pathlib.Path:
             texels = problem.target if name == "reference" else best[name].final[problem.key]
             axes[r, 1].imshow(np.clip(texels, 0, 1))
             axes[r, 1].set_title("target texture" if name == "reference" else "texture", fontsize=9)
-    return runner.save_figure(fig, path)
+    return common.save_figure(fig, path)
 
 
 def main(argv=None) -> dict:

@@ -47,6 +47,7 @@ import time
 
 import numpy as np
 
+from experiments import common
 from experiments import mitsuba_common as mc
 from experiments import mitsuba_runner as runner
 from optax_bilateral.toy import volume as toy
@@ -402,7 +403,7 @@ def plot_views(prob: Problem, best: dict, path: pathlib.Path, max_views: int = 4
     fig.suptitle(
         f"renders ({cfg.eval_spp} spp) and |render - reference| (0..{0.25 * hi:.2g})", fontsize=9
     )
-    return runner.save_figure(fig, path)
+    return common.save_figure(fig, path)
 
 
 def plot_slices(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
@@ -432,7 +433,7 @@ def plot_slices(prob: Problem, best: dict, path: pathlib.Path) -> pathlib.Path:
                 axes[r, 2 * j].set_title(f"density, slice {z}", fontsize=8)
                 axes[r, 2 * j + 1].set_title(f"albedo, slice {z}", fontsize=8)
         axes[r, 0].set_ylabel(name, fontsize=8)
-    return runner.save_figure(fig, path)
+    return common.save_figure(fig, path)
 
 
 def main(argv=None) -> dict:

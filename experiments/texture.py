@@ -560,13 +560,7 @@ def _plot_images(prob: Problem, best: dict, adam_long, path: pathlib.Path) -> pa
         axes[r, 2].set_title(f"roughness, err {tr.final_metric('param_error'):.4f}")
         axes[r, 3].imshow(np.abs(alpha - tgt), cmap="magma", vmin=0, vmax=0.1)
         axes[r, 3].set_title("|alpha - target| (0..0.1)")
-    for ax in axes.ravel():
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return common.save_figure(fig, path)
 
 
 def main(argv=None) -> dict:
