@@ -43,9 +43,9 @@ SCENES = ("mitsuba_close", "mitsuba_mid", "mitsuba_far", "mitsuba_two_cameras")
 LRS = (0.004, 0.008, 0.016, 0.032)
 
 
-def filtered_adam(learning_rate, sigma_d="auto", guide="params", b1=0.9):
+def filtered_adam(learning_rate, sigma_d="auto", guide="params", b1=0.9, spatial_axes=None):
     return optax.chain(
-        ob.postfilter(b1=b1, sigma_d=sigma_d, guide=guide),
+        ob.postfilter(b1=b1, sigma_d=sigma_d, guide=guide, spatial_axes=spatial_axes),
         optax.scale_by_learning_rate(learning_rate),
     )
 
@@ -73,33 +73,43 @@ def pyramid_finest_self(learning_rate, levels=5, filtered=1):
     return ob.laplacian_pyramid(inner, levels)
 
 
-def pyramid_finest_cross(learning_rate, levels=5):
-    """The finest level filtered and guided by the parameters (the defaults' filter), Adam on
-    the coarser levels."""
-    fine, coarse = filtered_adam(learning_rate), optax.adam(learning_rate)
+def pyramid_finest_cross(learning_rate, levels=5, coarse_factor=1.0, b1=0.9, spatial_axes=None):
+    """The finest level filtered and guided by the parameters (the defaults' filter; ``b1``,
+    and ``b2 = 1 - (1 - b1)^2``), Adam on the coarser levels at ``coarse_factor`` times the
+    learning rate."""
+    fine = filtered_adam(learning_rate, b1=b1, spatial_axes=spatial_axes)
+    coarse = optax.adam(coarse_factor * learning_rate)
 
     def init(params):
         leaves = jax.tree.leaves(params)
         zeros = [
-            tuple(jnp.zeros(s, x.dtype) for s in level_shapes(x.shape, levels, ax)[1:])
-            for x, ax in zip(leaves, _leaf_axes(params, None))
+            tuple(jnp.zeros(s, x.dtype) for s in level_shapes(x.shape, levels, ax)[1:] if ax)
+            for x, ax in zip(leaves, _leaf_axes(params, spatial_axes))
         ]
         return fine.init(params), coarse.init(zeros)
 
     def update(grads, state, params=None):
         leaves, treedef = jax.tree.flatten(grads)
-        axes = _leaf_axes(grads, None)
-        coeffs = [pyramid_transpose(g, levels, ax) for g, ax in zip(leaves, axes)]
+        axes = _leaf_axes(grads, spatial_axes)
+        coeffs = [pyramid_transpose(g, levels, ax) if ax else (g,) for g, ax in zip(leaves, axes)]
         finest = jax.tree.unflatten(treedef, [c[0] for c in coeffs])
         d_fine, s_fine = fine.update(finest, state[0], params)
         d_coarse, s_coarse = coarse.update([c[1:] for c in coeffs], state[1])
         out = [
-            pyramid_reconstruct((a, *b), ax)
+            pyramid_reconstruct((a, *b), ax) if ax else a
             for a, b, ax in zip(jax.tree.leaves(d_fine), d_coarse, axes)
         ]
         return jax.tree.unflatten(treedef, out), (s_fine, s_coarse)
 
     return optax.GradientTransformation(init, update)
+
+
+def candidate(learning_rate, spatial_axes=None):
+    """The best variant on the rendered scenes, as a tuning-benchmark candidate
+    (``--candidates pyramid3_c0=experiments.pyramid_variants:candidate``): the defaults'
+    filter (``b1 = 0.2``) on the finest of 3 pyramid levels, Adam on the coarser two at a
+    quarter of the learning rate."""
+    return pyramid_finest_cross(learning_rate, 3, 0.25, b1=0.2, spatial_axes=spatial_axes)
 
 
 def variants() -> dict[str, tuple[Callable[..., optax.GradientTransformation], Sequence[float]]]:
@@ -129,6 +139,30 @@ def variants() -> dict[str, tuple[Callable[..., optax.GradientTransformation], S
             lambda learning_rate: pyramid_finest_cross(learning_rate, levels=3),
             LRS,
         ),
+        "pyramid (5) + postfilter(c0, params), auto, coarse lr x0.25": (
+            lambda learning_rate: pyramid_finest_cross(learning_rate, coarse_factor=0.25),
+            (0.01, 0.02, 0.04, 0.08),
+        ),
+        "pyramid (3) + postfilter(c0, params), auto, coarse lr x0.25": (
+            lambda learning_rate: pyramid_finest_cross(learning_rate, 3, coarse_factor=0.25),
+            (0.01, 0.02, 0.04, 0.08),
+        ),
+        "pyramid (3) + postfilter(c0, params), auto, coarse lr x0.1": (
+            lambda learning_rate: pyramid_finest_cross(learning_rate, 3, coarse_factor=0.1),
+            (0.01, 0.02, 0.04, 0.08),
+        ),
+        "pyramid (5) + postfilter(c0, params), auto, coarse lr x0.1": (
+            lambda learning_rate: pyramid_finest_cross(learning_rate, coarse_factor=0.1),
+            (0.01, 0.02, 0.04, 0.08),
+        ),
+        "pyramid (3) + postfilter(c0, params, b1 0.2), auto, coarse lr x0.1": (
+            lambda learning_rate: pyramid_finest_cross(learning_rate, 3, 0.1, b1=0.2),
+            (0.01, 0.02, 0.04, 0.08, 0.16),
+        ),
+        "pyramid (3) + postfilter(c0, params, b1 0.2), auto, coarse lr x0.25": (
+            lambda learning_rate: pyramid_finest_cross(learning_rate, 3, 0.25, b1=0.2),
+            (0.01, 0.02, 0.04, 0.08, 0.16),
+        ),
     }
 
 
@@ -136,10 +170,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("results/pyramid_variants"))
     p.add_argument("--scenes", default=",".join(SCENES))
-    p.add_argument("--only", default=None, help="comma-separated variant names")
+    p.add_argument("--only", default=None, help="variant names separated by semicolons")
     a = p.parse_args(argv)
     table = variants()
-    names = a.only.split(",") if a.only else list(table)
+    names = a.only.split(";") if a.only else list(table)
     results: dict[str, dict[str, dict[str, float]]] = {}
     for scene_name in a.scenes.split(","):
         scene = sc.RENDERED[scene_name](False)
