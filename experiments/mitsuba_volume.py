@@ -25,7 +25,7 @@ Methods (as experiments/volume.py; both grids, ``sigma_d`` given per key):
 * ``bilateral``: ``guide="self"`` with a log guide (m guided by m, v by v, every
   level by its own partially filtered input: the authors' ``cross_term_off``).
 * ``cross-bilateral``: ``guide="params"`` (linear guide), the paper's method.
-* ``auto``: cross-bilateral with ``sigma_d="auto"`` once the library has it.
+* ``auto``: cross-bilateral with ``sigma_d="auto"`` (the library's default).
 
 Filtered methods: ``b1 = 0.2, b2 = 1 - (1 - b1)^2``, ``levels = 3``. The learning-rate
 ``decay`` (:func:`experiments.mitsuba_common.learning_rate`) is part of the sweeps.
