@@ -265,12 +265,7 @@ class Auto(SigmaRule):
 
     def subgrid(self, x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
         """Every ``stride``-th texel of ``x`` along each of its spatial ``axes``."""
-        s = self.stride(x.shape, axes)
-        if s == 1:
-            return x
-        # A strided slice, not indexing (a gather): it keeps a grid split over devices split.
-        strides = tuple(s if a in axes else 1 for a in range(x.ndim))
-        return lax.slice(x, (0,) * x.ndim, x.shape, strides)
+        return _every(x, axes, self.stride(x.shape, axes))
 
     def kept_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
         """What :attr:`AutoState.previous_guide` keeps of a guide: its sub-grid."""
@@ -506,9 +501,12 @@ def smooth_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
 
 
 def _every(x: jax.Array, axes: tuple[int, ...], s: int) -> jax.Array:
+    """Every ``s``-th entry of ``x`` along its ``axes``."""
     if s == 1:
         return x
-    return x[tuple(slice(None, None, s) if a in axes else slice(None) for a in range(x.ndim))]
+    # A strided lax.slice, not indexing: an eager init of a grid on an explicit mesh keeps it split.
+    strides = tuple(s if a in axes else 1 for a in range(x.ndim))
+    return lax.slice(x, (0,) * x.ndim, x.shape, strides)
 
 
 def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
