@@ -4,19 +4,23 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: demo test test-min lint docs dist install install-dev clean
+.PHONY: demo test test-min lint docs dist install install-dev sanitize clean
+
+# The native kernel (csrc/, built by setup.py inside every install below): a change to its
+# sources reinstalls the package, which rebuilds it.
+NATIVE_SOURCES := setup.py $(wildcard csrc/*.cc csrc/*.h)
 
 # `make lint`: ruff (lint and format) on every Python source of the repository, pyright on
 # the library (its settings in pyproject.toml).
-LINT_PATHS := optax_bilateral tests experiments tools notebooks docs
+LINT_PATHS := optax_bilateral tests experiments tools notebooks docs setup.py
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml $(NATIVE_SOURCES)
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[experiments]"
 	touch $@
 
-$(VENV)/.installed-dev: pyproject.toml
+$(VENV)/.installed-dev: pyproject.toml $(NATIVE_SOURCES)
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dev]"
@@ -40,14 +44,17 @@ test: $(VENV)/.installed-dev
 # default profile: this run checks compatibility; `make test` explores.
 PYTHON_MIN ?= python3.11
 VENV_MIN := .venv-min
-CORE_TESTS := tests/test_atrous.py tests/test_kernels.py tests/test_transforms.py tests/test_rules.py \
-	tests/test_robustness.py tests/test_goldens.py
+CORE_TESTS := tests/test_atrous.py tests/test_kernels.py tests/test_native.py tests/test_transforms.py \
+	tests/test_rules.py tests/test_robustness.py tests/test_goldens.py
 
-$(VENV_MIN)/.installed: pyproject.toml constraints-min.txt
+# The native kernel is compiled against the pinned jaxlib's own FFI headers: the build runs
+# in this venv (--no-build-isolation), not in an isolated one with the newest jaxlib.
+$(VENV_MIN)/.installed: pyproject.toml constraints-min.txt $(NATIVE_SOURCES)
 	rm -rf $(VENV_MIN)
 	$(PYTHON_MIN) -m venv $(VENV_MIN)
 	$(VENV_MIN)/bin/python -m pip install --quiet --upgrade pip
-	$(VENV_MIN)/bin/python -m pip install --quiet -c constraints-min.txt -e . \
+	$(VENV_MIN)/bin/python -m pip install --quiet -c constraints-min.txt "setuptools>=77" jax jaxlib
+	$(VENV_MIN)/bin/python -m pip install --quiet --no-build-isolation -c constraints-min.txt -e . \
 		pytest pytest-xdist hypothesis optimistix
 	touch $@
 
@@ -72,6 +79,19 @@ dist: $(VENV)/.installed-dev
 	cd $(DIST_VENV) && bin/python $(CURDIR)/tests/check_dist.py base
 	$(DIST_VENV)/bin/python -m pip install --quiet "$$(ls dist/*.whl)[dev]"
 	cd $(DIST_VENV) && bin/python $(CURDIR)/tests/check_dist.py extras
+
+# `make sanitize`: the native kernel's C++ test (csrc/test_atrous.cc: every grid rank, mode,
+# mask and extreme against a float64 loop) built with AddressSanitizer and
+# UndefinedBehaviorSanitizer, any finding fatal, then run once per instruction set.
+SANITIZE := -fsanitize=address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer
+sanitize:
+	mkdir -p build
+	$(CXX) -std=c++17 -O1 -g $(SANITIZE) -fno-math-errno -fno-trapping-math -Wall -Wextra \
+		-Werror -Icsrc csrc/test_atrous.cc csrc/atrous.cc csrc/passes.cc csrc/kernel_baseline.cc \
+		csrc/kernel_avx2.cc csrc/kernel_avx512.cc -pthread -o build/test_atrous_sanitized
+	for isa in baseline avx2 avx512; do \
+		OPTAX_BILATERAL_ISA=$$isa ASAN_OPTIONS=detect_leaks=1 build/test_atrous_sanitized || exit 1; \
+	done
 
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check $(LINT_PATHS)

@@ -43,7 +43,7 @@ def _reference_case(shape, channels, gch, levels, sigma_d, separable):
     return x, g, atrous_reference(x, g, sigma_d, levels, separable)
 
 
-@pytest.mark.parametrize("kernel", ["xla_cpu", "plain"])
+@pytest.mark.parametrize("kernel", ["native", "xla_cpu", "plain"])
 @pytest.mark.parametrize("separable", [True, False])
 @pytest.mark.parametrize("sigma_d", [0.0, 0.35, 2.0, np.inf])
 @pytest.mark.parametrize("shape,channels,gch,levels", CASES)
@@ -61,7 +61,7 @@ def test_matches_float64_reference(shape, channels, gch, levels, sigma_d, separa
     np.testing.assert_allclose(np.asarray(out), ref, rtol=RTOL, atol=RTOL * np.abs(ref).max())
 
 
-@pytest.mark.parametrize("kernel", ["xla_cpu", "plain"])
+@pytest.mark.parametrize("kernel", ["native", "xla_cpu", "plain"])
 @pytest.mark.parametrize("separable", [True, False])
 def test_mask_matches_reference(separable, kernel):
     rng = np.random.default_rng(1)

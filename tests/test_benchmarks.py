@@ -377,3 +377,17 @@ def test_largest_grid_is_the_largest_whose_planned_step_fits():
     assert largest_grid.planned_bytes(opt, (n + 16, n + 16, 3)) > budget  # the next one won't
     ran = largest_grid.run_steps(opt, (16, 16, 3), steps=2)
     assert ran["finite"] and ran["s per step (median)"] > 0 and ran["peak RSS GiB"] > 0
+
+
+def test_bench_native_quick_compares_the_kernels_inside_an_update(tmp_path):
+    # Checks the script and its outputs, not the numbers (benchmarks are not timed tests).
+    from experiments import bench_native
+
+    data = bench_native.main(["--quick", "--out", str(tmp_path)])
+    assert {(r["kernel"], r["update"]) for r in data["rows"]} == {
+        (k, u) for k in bench_native.KERNELS for u in ("defaults", "fixed sigma_d F=5")
+    }
+    for r in data["rows"]:
+        for key in ("compile x adam", "update x adam", "temporaries / parameter"):
+            assert np.isfinite(r[key]) and r[key] > 0, (r, key)
+    assert (tmp_path / "bench_native.json").exists() and (tmp_path / "bench_native.md").exists()

@@ -1,6 +1,6 @@
-"""The single-device kernels: the plain kernel decides every extreme as the CPU kernel does,
-and ``kernel="auto"`` / ``$OPTAX_BILATERAL_KERNEL`` choose between them. (Both kernels are
-checked against the float64 reference in test_atrous.py.)"""
+"""The single-device kernels: the plain and native kernels decide every extreme as the CPU
+kernel does, and ``kernel="auto"`` / ``$OPTAX_BILATERAL_KERNEL`` choose between them. (All three
+are checked against the float64 reference in test_atrous.py.)"""
 
 import jax
 import jax.numpy as jnp
@@ -40,9 +40,10 @@ def test_plain_kernel_equals_the_cpu_kernel_at_extremes(shape, separable):
                 guide_axes=None if isinstance(guide, str) else axes,
                 kernel=k,
             )
-            for k in ("xla_cpu", "plain")
+            for k in ("native", "xla_cpu", "plain")
         }
         np.testing.assert_allclose(out["plain"], out["xla_cpu"], rtol=RTOL, atol=1e-6)
+        np.testing.assert_allclose(out["native"], out["xla_cpu"], rtol=RTOL, atol=1e-6)
 
 
 def test_kernel_choice(monkeypatch):
@@ -54,6 +55,7 @@ def test_kernel_choice(monkeypatch):
     monkeypatch.setenv(KERNEL_ENV, "plain")
     assert resolve_kernel("auto") == "plain"
     assert resolve_kernel("xla_cpu") == "xla_cpu"  # an explicit choice wins
+    assert resolve_kernel("native") == "native"
     monkeypatch.setenv(KERNEL_ENV, "cuda")
     with pytest.raises(ValueError, match=KERNEL_ENV):
         resolve_kernel("auto")

@@ -1,7 +1,8 @@
 """The filter's front door: :func:`atrous_bilateral`.
 
 Checks the arguments and sets up the planar layout once, then hands the planes
-to a kernel: the single-device XLA-CPU kernel (:mod:`optax_bilateral._src.atrous`),
+to a kernel: the native C++ kernel on the CPU (:mod:`optax_bilateral._src.native`, one XLA
+FFI call per cascade), the pure-JAX XLA-CPU kernel (:mod:`optax_bilateral._src.atrous`),
 the plain kernel for other backends (:mod:`optax_bilateral._src.plain`), or, when
 the fields' spatial axes are split over explicit mesh axes, the same per-block code
 run on every device with halo exchange (:mod:`optax_bilateral._src.sharded`).
@@ -20,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Protocol
 import jax
 import jax.numpy as jnp
 
-from optax_bilateral._src import atrous, layout, plain, sharded
+from optax_bilateral._src import atrous, layout, native, plain, sharded
 from optax_bilateral._src.bilateral import log_transform
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
@@ -57,14 +58,15 @@ class Kernel(Protocol):
 
 
 # The single-device kernels, by the name `atrous_bilateral(kernel=...)` takes.
-KERNELS: dict[str, Kernel] = {"xla_cpu": atrous, "plain": plain}  # type: ignore[dict-item]
+KERNELS: dict[str, Kernel] = {"native": native, "xla_cpu": atrous, "plain": plain}  # type: ignore[dict-item]
 # Overrides kernel="auto" (for benchmarks and debugging); read when a program is traced.
 KERNEL_ENV = "OPTAX_BILATERAL_KERNEL"
 
 
 def resolve_kernel(kernel: str) -> str:
     """The single-device kernel ``kernel`` names: ``"auto"`` is ``$OPTAX_BILATERAL_KERNEL``
-    if set, else ``"xla_cpu"`` on JAX's CPU backend and ``"plain"`` on any other."""
+    if set, else ``"xla_cpu"`` on JAX's CPU backend and ``"plain"`` on any other.
+    ``"native"`` raises, saying why, where the extension cannot run."""
     if kernel == "auto":
         env = os.environ.get(KERNEL_ENV, "")
         if env and env not in KERNELS:
@@ -72,6 +74,8 @@ def resolve_kernel(kernel: str) -> str:
         kernel = env or ("xla_cpu" if jax.default_backend() == "cpu" else "plain")
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be 'auto' or one of {sorted(KERNELS)}, got {kernel!r}")
+    if kernel == "native" and not native.available():
+        raise ValueError(f"kernel='native' cannot run here: {native.status().reason}")
     return kernel
 
 
@@ -86,7 +90,7 @@ def atrous_bilateral(
     mask: Mask | None = None,
     guide_axes: Sequence[int] | None = None,
     log_guide: bool = False,
-    kernel: Literal["auto", "xla_cpu", "plain"] = "auto",
+    kernel: Literal["auto", "native", "xla_cpu", "plain"] = "auto",
     first_level: int = 0,
 ) -> Fields:
     r"""A-trous cross-bilateral filter of one or more fields with one set of weights.
@@ -140,12 +144,17 @@ def atrous_bilateral(
       log_guide: guide by ``log(|gamma| + 1e-8)`` (with ``"self"``: of each level's
         input; the authors' ``log_primal``).
       kernel: how the single-device filter is computed; every kernel gives the same
-        result up to float rounding. ``"xla_cpu"`` is shaped for XLA's CPU backend
-        (chunked, ordered by optimisation barriers); ``"plain"`` is one shifted slice
-        per neighbour, which XLA's GPU backend fuses by itself. ``"auto"`` (default):
-        the environment variable ``OPTAX_BILATERAL_KERNEL`` if set, else ``"xla_cpu"``
-        on the CPU backend and ``"plain"`` on any other (BENCHMARKS.md, "GPU"). The
-        sharded filter has its own kernel.
+        result up to float rounding. ``"native"``: the C++ kernel (CPU), one XLA FFI call
+        for the whole cascade, on ``$OPTAX_BILATERAL_THREADS`` threads (default: every
+        usable CPU); it compiles in a fraction of the others' time, but its update is
+        not yet as fast as ``"xla_cpu"``'s (docs/performance.md, "The native kernel");
+        derivatives through it are the ``"plain"`` kernel's. ``"xla_cpu"`` is the
+        pure-JAX kernel shaped for XLA's CPU backend (chunked, ordered by optimisation
+        barriers); ``"plain"`` is one shifted slice per neighbour, which XLA's GPU
+        backend fuses by itself. ``"auto"`` (default): the environment variable
+        ``OPTAX_BILATERAL_KERNEL`` if set, else ``"xla_cpu"`` on the CPU backend and
+        ``"plain"`` on any other (BENCHMARKS.md, "GPU"). The sharded filter has its own
+        kernel.
       first_level: run levels ``first_level .. levels - 1`` only (static int, default 0):
         continues a cascade whose first ``first_level`` levels made ``fields``, so the
         outputs after each of several levels cost one cascade, e.g.

@@ -1,0 +1,261 @@
+// The cascade's driver: passes, the ping-pong between the output and one working copy,
+// threads, and the choice of instruction set.
+#include "atrous.h"
+
+#include <algorithm>
+#include <cmath>
+#include <condition_variable>
+#include <cstdlib>
+#include <limits>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <type_traits>
+
+#include "kernel_isa.h"
+#include "passes.h"
+
+namespace optax_bilateral {
+namespace {
+
+// The bytes a block's sums (its fields and normaliser) should take: within L2.
+constexpr int64_t kBlockBytes = 256 * 1024;
+// Below this many point-channels a cascade runs on the calling thread alone: starting
+// threads costs more than they save.
+constexpr int64_t kMinParallelWork = 1 << 15;
+
+enum class Isa { kBaseline, kAvx2, kAvx512 };
+
+// The widest instruction set the CPU has, or a narrower one that $OPTAX_BILATERAL_ISA names
+// ("baseline", "avx2"; for tests and benchmarks).
+Isa detect_isa() {
+  const char* env = std::getenv("OPTAX_BILATERAL_ISA");
+  const std::string cap = env ? env : "";
+  if (cap == "baseline") return Isa::kBaseline;
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+  __builtin_cpu_init();
+  const bool avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  if (cap == "avx2") return avx2 ? Isa::kAvx2 : Isa::kBaseline;
+  if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
+      __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512bw"))
+    return Isa::kAvx512;
+  if (avx2) return Isa::kAvx2;
+#endif
+  return Isa::kBaseline;
+}
+
+const Isa kIsa = detect_isa();
+
+// The instruction set's build of one block (kernel.h, run_block) or of one level's slabs.
+template <typename T>
+void block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t c1, Scratch<T>& s) {
+  constexpr bool f32 = std::is_same_v<T, float>;
+  switch (kIsa) {
+#if defined(__x86_64__)
+    case Isa::kAvx512:
+      if constexpr (f32) return avx512::block32(a, r0, r1, c0, c1, s);
+      else return avx512::block64(a, r0, r1, c0, c1, s);
+    case Isa::kAvx2:
+      if constexpr (f32) return avx2::block32(a, r0, r1, c0, c1, s);
+      else return avx2::block64(a, r0, r1, c0, c1, s);
+#endif
+    default:
+      if constexpr (f32) return baseline::block32(a, r0, r1, c0, c1, s);
+      else return baseline::block64(a, r0, r1, c0, c1, s);
+  }
+}
+
+template <typename T>
+void slabs(const PassArgs<T>& a, const SlabLevel<T>& l, int64_t i0, int64_t i1, Scratch<T>& s) {
+  switch (kIsa) {
+#if defined(__x86_64__)
+    case Isa::kAvx512:
+      if constexpr (std::is_same_v<T, float>) return avx512::slabs32(a, l, i0, i1, s);
+      else return avx512::slabs64(a, l, i0, i1, s);
+    case Isa::kAvx2:
+      if constexpr (std::is_same_v<T, float>) return avx2::slabs32(a, l, i0, i1, s);
+      else return avx2::slabs64(a, l, i0, i1, s);
+#endif
+    default:
+      if constexpr (std::is_same_v<T, float>) return baseline::slabs32(a, l, i0, i1, s);
+      else return baseline::slabs64(a, l, i0, i1, s);
+  }
+}
+
+// A block of a pass: rows [r0, r1), columns [c0, c1) of its view.
+struct Block {
+  int64_t r0, r1, c0, c1;
+};
+
+template <typename T>
+std::vector<Block> cut_blocks(const Pass& pass, int64_t channels) {
+  const int64_t rows = pass.rows(), L = pass.row_length;
+  int64_t reach = 0;  // the most rows a pair spans: a block recomputes that many rows' weights
+  for (const Pair& p : pass.pairs) reach = std::max(reach, p.flat_rows);
+  const int64_t per_point = (channels + 1) * static_cast<int64_t>(sizeof(T));
+  int64_t width = L;
+  int64_t height = std::max<int64_t>(1, kBlockBytes / (per_point * L));
+  if (reach > 0) height = std::max(height, 4 * reach);  // recompute at most 1/4 of the rows
+  if (pass.column_tiles) {
+    width = std::clamp<int64_t>(kBlockBytes / (per_point * height) / 16 * 16, 16, L);
+  }
+  height = std::min(height, rows);
+  std::vector<Block> blocks;
+  for (int64_t r0 = 0; r0 < rows; r0 += height)
+    for (int64_t c0 = 0; c0 < L; c0 += width)
+      blocks.push_back({r0, std::min(rows, r0 + height), c0, std::min(L, c0 + width)});
+  return blocks;
+}
+
+// A reusable barrier for a fixed number of threads (C++17 has none).
+class Barrier {
+ public:
+  explicit Barrier(int count) : count_(count) {}
+  void wait() {
+    std::unique_lock<std::mutex> lock(mutex_);
+    const int64_t generation = generation_;
+    if (++arrived_ == count_) {
+      arrived_ = 0;
+      ++generation_;
+      cv_.notify_all();
+    } else {
+      cv_.wait(lock, [&] { return generation != generation_; });
+    }
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  int count_, arrived_ = 0;
+  int64_t generation_ = 0;
+};
+
+// (guide scale, sigma_d scaled alike) as bilateral.rescale_guide and the one-channel halving.
+template <typename T>
+std::pair<T, T> guide_scale(const Cascade<T>& c, int64_t points) {
+  if (c.guide_channels == 1) return {T(0.5), c.sigma_d * T(0.5)};
+  T m = 0;
+  const int64_t total = c.guide_channels * points;
+  for (int64_t i = 0; i < total; ++i) {
+    const T a = std::fabs(c.guide[i]);
+    if (std::isfinite(a) && a > m) m = a;
+  }
+  int e = 0;
+  std::frexp(m, &e);  // m < 2^e
+  const int limit = std::numeric_limits<T>::max_exponent / 2 - 8;
+  const int k = std::max(e - limit, 0);
+  const T inv = std::ldexp(T(1), -k);
+  return {inv, c.sigma_d * inv};
+}
+
+// One step of a cascade: a pass cut into blocks, or a separable level swept by slabs.
+template <typename T>
+struct Step {
+  const Pass* pass = nullptr;
+  std::vector<Block> blocks;
+  SlabLevel<T> level;  // used when pass is null
+};
+
+template <typename T>
+std::vector<Step<T>> plan_steps(const Cascade<T>& c, const std::vector<Pass>& passes) {
+  std::vector<Step<T>> steps;
+  const size_t n = c.shape.size();
+  if (c.separable && n >= 2) {
+    const std::vector<int64_t> inner_shape(c.shape.begin() + 1, c.shape.end());
+    for (int i = c.start; i < c.levels; ++i) {
+      Step<T> step;
+      step.level.slabs = c.shape[0];
+      step.level.slab = 1;
+      for (int64_t k : inner_shape) step.level.slab *= k;
+      step.level.stride = int64_t{1} << i;
+      step.level.inner = make_passes(inner_shape, i + 1, i, true);
+      if (step.level.stride < c.shape[0] || !step.level.inner.empty())
+        steps.push_back(std::move(step));
+    }
+    return steps;
+  }
+  for (const Pass& p : passes) {
+    Step<T> step;
+    step.pass = &p;
+    step.blocks = cut_blocks<T>(p, c.channels);
+    steps.push_back(std::move(step));
+  }
+  return steps;
+}
+
+template <typename T>
+void run(const Cascade<T>& c) {
+  int64_t points = 1;
+  for (int64_t n : c.shape) points *= n;
+  const std::vector<Pass> passes = make_passes(c.shape, c.levels, c.start, c.separable);
+  const int64_t size = c.channels * points;
+  if (passes.empty() || points == 0) {
+    std::copy(c.x, c.x + size, c.out);
+    return;
+  }
+  const auto [scale, sigma] = guide_scale(c, points);
+  PassArgs<T> args{};
+  args.guide = c.guide;
+  args.valid = c.valid;
+  args.channels = c.channels;
+  args.guide_channels = c.guide_channels;
+  args.x_stride = args.y_stride = args.guide_stride = points;
+  args.guide_scale = scale;
+  args.sigma_inf = std::isinf(sigma);
+  args.neg_inv_sigma = sigma > 0 ? T(-1) / sigma : -std::numeric_limits<T>::infinity();
+  const std::vector<Step<T>> steps = plan_steps(c, passes);
+  // Step i writes `out` when the steps left after it are even in number, so the last step
+  // writes `out` and the first reads the input.
+  const size_t ns = steps.size();
+  size_t most = 1;
+  for (const auto& s : steps)
+    most = std::max(most, s.pass ? s.blocks.size() : static_cast<size_t>(s.level.slabs));
+  int threads = std::max(1, c.threads);
+  if (size < kMinParallelWork) threads = 1;
+  threads = static_cast<int>(std::min<size_t>(static_cast<size_t>(threads), most));
+  Barrier barrier(threads);
+  auto worker = [&](int t) {
+    Scratch<T> scratch;
+    for (size_t i = 0; i < ns; ++i) {
+      PassArgs<T> a = args;
+      const bool to_out = (ns - 1 - i) % 2 == 0;
+      a.y = to_out ? c.out : c.work;
+      a.x = i == 0 ? c.x : (to_out ? c.work : c.out);
+      const Step<T>& step = steps[i];
+      if (step.pass) {
+        a.pass = step.pass;
+        const auto& bs = step.blocks;
+        const size_t lo = bs.size() * t / threads, hi = bs.size() * (t + 1) / threads;
+        for (size_t b = lo; b < hi; ++b)
+          block(a, bs[b].r0, bs[b].r1, bs[b].c0, bs[b].c1, scratch);
+      } else {
+        const int64_t n0 = step.level.slabs;
+        const int64_t lo = n0 * t / threads, hi = n0 * (t + 1) / threads;
+        if (lo < hi) slabs(a, step.level, lo, hi, scratch);
+      }
+      if (threads > 1 && i + 1 < ns) barrier.wait();
+    }
+  };
+  std::vector<std::thread> pool;
+  for (int t = 1; t < threads; ++t) pool.emplace_back(worker, t);
+  worker(0);
+  for (auto& th : pool) th.join();
+}
+
+}  // namespace
+
+void run_cascade(const Cascade<float>& c) { run(c); }
+void run_cascade(const Cascade<double>& c) { run(c); }
+
+std::string instruction_set() {
+  switch (kIsa) {
+    case Isa::kAvx512:
+      return "avx512";
+    case Isa::kAvx2:
+      return "avx2";
+    default:
+      return "baseline";
+  }
+}
+
+}  // namespace optax_bilateral

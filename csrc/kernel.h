@@ -1,0 +1,462 @@
+// One pass of the cascade over one block of a view's rows and columns: the loops every
+// instruction-set build compiles (kernel_*.cc include this file under their own target).
+// Written as plain loops over contiguous points, which the compiler vectorises.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+#include "passes.h"
+
+namespace optax_bilateral {
+
+// What one pass reads and writes; the geometry is the pass's view of the grid.
+template <typename T>
+struct PassArgs {
+  const T* x;      // (C, .) input fields, channel c at x + c * x_stride
+  T* y;            // (C, .) output fields, channel c at y + c * y_stride
+  const T* guide;  // (G, .), channel c at guide + c * guide_stride
+  const T* valid;  // (.) or nullptr
+  int64_t channels, guide_channels, x_stride, y_stride, guide_stride;
+  T guide_scale;    // the guide's multiplier: 1/2 with one channel, else a power of two
+  T neg_inv_sigma;  // -1 / sigma_d (scaled like the guide); -inf for sigma_d = 0
+  bool sigma_inf;   // sigma_d = inf: every kept pair weighs 1
+  const Pass* pass;
+};
+
+// Per-thread buffers, reused across passes.
+// One term of a row's sums: weights w, read against x from flat index `from`, added at
+// column `at` of the row's block, for n columns.
+template <typename T>
+struct Term {
+  const T* w;
+  int64_t from, at, n;
+};
+
+template <typename T>
+struct Scratch {
+  std::vector<T> den, weights, dist;
+  std::vector<int64_t> offsets;
+  std::vector<char> on;
+  std::vector<Term<T>> terms;
+  std::vector<T> slabs, ring;  // run_slabs: two slabs of the fields, the axis-0 weights
+};
+
+// One separable level of a grid of rank >= 2 run as one sweep over slabs of axis 0: the
+// pass along axis 0 (if the stride fits), then the passes along the other axes, which stay
+// within a slab, while the slab is in cache. One read and one write of the fields per
+// level instead of one per axis.
+template <typename T>
+struct SlabLevel {
+  int64_t slabs = 0, slab = 0;   // n0, and the points of one slab (n1 * ... * n_{d-1})
+  int64_t stride = 0;            // 2^level
+  std::vector<Pass> inner;       // the passes along axes 1.., on one slab's grid
+};
+
+}  // namespace optax_bilateral
+
+// Everything below is compiled once per instruction set, in namespace OB_ISA.
+#if defined(OB_ISA)
+namespace optax_bilateral {
+namespace OB_ISA {
+
+// exp(a) for a <= 0 (or -inf): Cody-Waite reduction and a degree-5 minimax polynomial
+// (float32: ~1 ulp); exp(0) = 1 exactly, results below FLT_MIN flush to 0. Branch-free, so
+// that the loops calling it vectorise.
+inline float exp_nonpositive(float a) {
+  const bool under = a < -87.33654f;
+  const float x = under ? 0.0f : a;
+  // n = round(x / ln 2) in the low bits of k (1.5 * 2^23 + n); no float-to-int conversion.
+  const float k = x * 1.44269504088896341f + 12582912.0f;
+  const int32_t i = __builtin_bit_cast(int32_t, k) - 0x4B400000;
+  const float n = k - 12582912.0f;
+  float r = x - n * 0.693359375f;
+  r = r - n * -2.12194440e-4f;
+  float p = 1.9875691500e-4f;
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  const float e = p * r * r + r + 1.0f;
+  const float scale = __builtin_bit_cast(float, (i + 127) * (1 << 23));  // 2^n, n >= -126
+  return under ? 0.0f : e * scale;
+}
+
+inline double exp_nonpositive(double a) { return std::exp(a); }
+
+// The data weight of a guide distance `d` (one channel: |a - b|; several: the squared
+// norm), as bilateral.weight: equal guides weigh 1, a NaN distance or a dropped pair 0.
+template <typename T, bool kSquared>
+inline T data_weight(T d, bool keep, T neg_inv_sigma, bool sigma_inf) {
+  const bool pos = d > 0;
+  // Both forms select before they compute, as bilateral.weight does (and GCC's vectoriser
+  // then takes the one-channel loop as it takes the other).
+  T dist = pos ? d : T(1);
+  if constexpr (kSquared) dist = std::sqrt(dist);
+  T arg = sigma_inf ? T(0) : dist * neg_inv_sigma;
+  arg = pos ? arg : T(0);
+  const bool drop = (d != d) | !keep;  // bitwise: no branch, so the loop vectorises
+  return drop ? T(0) : exp_nonpositive(arg);
+}
+
+// tap * w(p, p + o) for kG guide channels, the squared distance summed in registers.
+template <typename T, int kG, bool kMasked>
+void few_channel_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap,
+                         T* __restrict__ w) {
+  const T gs = a.guide_scale;
+  const T nis = a.neg_inv_sigma;
+  const bool sinf = a.sigma_inf;
+  const T* __restrict__ ga[kG];
+  const T* __restrict__ gb[kG];
+  for (int c = 0; c < kG; ++c) {
+    ga[c] = a.guide + c * a.guide_stride + pa;
+    gb[c] = a.guide + c * a.guide_stride + pb;
+  }
+  const T* __restrict__ va = kMasked ? a.valid + pa : nullptr;
+  const T* __restrict__ vb = kMasked ? a.valid + pb : nullptr;
+  for (int64_t j = 0; j < n; ++j) {
+    T t = ga[0][j] * gs - gb[0][j] * gs;
+    T d2 = t * t;
+    for (int c = 1; c < kG; ++c) {
+      t = ga[c][j] * gs - gb[c][j] * gs;
+      d2 += t * t;
+    }
+    bool keep = true;
+    if constexpr (kMasked) keep = (va[j] > 0) & (vb[j] > 0);
+    w[j] = tap * data_weight<T, true>(d2, keep, nis, sinf);
+  }
+}
+
+// tap * w(p, p + o) for the points p = row_a[j], j in [0, n), whose partner is row_b[j].
+template <typename T>
+void pair_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap,
+                  T* __restrict__ w, T* __restrict__ d2) {
+  const T gs = a.guide_scale;
+  const T nis = a.neg_inv_sigma;
+  const bool sinf = a.sigma_inf;
+  const T* __restrict__ va = a.valid ? a.valid + pa : nullptr;
+  const T* __restrict__ vb = a.valid ? a.valid + pb : nullptr;
+  if (a.guide_channels == 1) {
+    const T* __restrict__ ga = a.guide + pa;
+    const T* __restrict__ gb = a.guide + pb;
+    if (va) {
+      for (int64_t j = 0; j < n; ++j) {
+        const T d = std::fabs(ga[j] * gs - gb[j] * gs);
+        w[j] = tap * data_weight<T, false>(d, (va[j] > 0) & (vb[j] > 0), nis, sinf);
+      }
+    } else {
+      for (int64_t j = 0; j < n; ++j) {
+        const T d = std::fabs(ga[j] * gs - gb[j] * gs);
+        w[j] = tap * data_weight<T, false>(d, true, nis, sinf);
+      }
+    }
+    return;
+  }
+  switch (a.guide_channels) {  // two to four channels: the distance in registers
+    case 2:
+      return va ? few_channel_weights<T, 2, true>(a, pa, pb, n, tap, w)
+                : few_channel_weights<T, 2, false>(a, pa, pb, n, tap, w);
+    case 3:
+      return va ? few_channel_weights<T, 3, true>(a, pa, pb, n, tap, w)
+                : few_channel_weights<T, 3, false>(a, pa, pb, n, tap, w);
+    case 4:
+      return va ? few_channel_weights<T, 4, true>(a, pa, pb, n, tap, w)
+                : few_channel_weights<T, 4, false>(a, pa, pb, n, tap, w);
+    default:
+      break;
+  }
+  for (int64_t c = 0; c < a.guide_channels; ++c) {
+    const T* __restrict__ ga = a.guide + c * a.guide_stride + pa;
+    const T* __restrict__ gb = a.guide + c * a.guide_stride + pb;
+    if (c == 0) {
+      for (int64_t j = 0; j < n; ++j) {
+        const T t = ga[j] * gs - gb[j] * gs;
+        d2[j] = t * t;
+      }
+    } else {
+      for (int64_t j = 0; j < n; ++j) {
+        const T t = ga[j] * gs - gb[j] * gs;
+        d2[j] += t * t;
+      }
+    }
+  }
+  if (va) {
+    for (int64_t j = 0; j < n; ++j)
+      w[j] = tap * data_weight<T, true>(d2[j], (va[j] > 0) & (vb[j] > 0), nis, sinf);
+  } else {
+    for (int64_t j = 0; j < n; ++j) w[j] = tap * data_weight<T, true>(d2[j], true, nis, sinf);
+  }
+}
+
+// Whether row `r` of the view moved by `pair` stays on the grid.
+inline bool partner_row_on_grid(const Pass& pass, int64_t r, const Pair& pair) {
+  for (size_t k = pass.row_shape.size(); k-- > 0;) {
+    const int64_t n = pass.row_shape[k];
+    const int64_t i = r % n + pair.row_offset[k];
+    if (i < 0 || i >= n) return false;
+    r /= n;
+  }
+  return true;
+}
+
+// acc[j] += w[j] (x null: the normaliser) or w[j] x[from + j] for every term, outside the
+// columns [jl, jh) that add_interior covers; terms in order, so sums run as in the JAX kernels.
+template <typename T>
+void add_edges(const Term<T>* terms, size_t nt, int64_t jl, int64_t jh, T* __restrict__ acc,
+               const T* x) {
+  for (size_t t = 0; t < nt; ++t) {
+    const Term<T>& u = terms[t];
+    const int64_t ranges[2][2] = {{u.at, jl < u.at + u.n ? jl : u.at + u.n},
+                                  {jh > u.at ? jh : u.at, u.at + u.n}};
+    for (const auto& r : ranges) {
+      const int64_t n = r[1] - r[0];
+      if (n <= 0) continue;
+      T* __restrict__ o = acc + r[0];
+      const T* __restrict__ w = u.w + (r[0] - u.at);
+      if (x) {
+        const T* __restrict__ xs = x + u.from + (r[0] - u.at);
+        for (int64_t j = 0; j < n; ++j) o[j] += w[j] * xs[j];
+      } else {
+        for (int64_t j = 0; j < n; ++j) o[j] += w[j];
+      }
+    }
+  }
+}
+
+// The same sums over columns [jl, jh), where every term has a value: one loop for the
+// separable passes' two or four terms, term by term otherwise.
+template <typename T>
+void add_interior(const Term<T>* terms, size_t nt, int64_t jl, int64_t jh, T* __restrict__ acc,
+                  const T* x) {
+  const int64_t n = jh - jl;
+  if (n <= 0) return;
+  const T* w[4];
+  const T* xs[4];
+  if (nt == 2 || nt == 4) {
+    for (size_t t = 0; t < nt; ++t) {
+      w[t] = terms[t].w + (jl - terms[t].at);
+      xs[t] = x ? x + terms[t].from + (jl - terms[t].at) : nullptr;
+    }
+  }
+  T* __restrict__ o = acc + jl;
+  if (nt == 4 && x) {
+    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1], *__restrict__ w2 = w[2],
+            *__restrict__ w3 = w[3];
+    const T *__restrict__ x0 = xs[0], *__restrict__ x1 = xs[1], *__restrict__ x2 = xs[2],
+            *__restrict__ x3 = xs[3];
+    for (int64_t j = 0; j < n; ++j)
+      o[j] = o[j] + w0[j] * x0[j] + w1[j] * x1[j] + w2[j] * x2[j] + w3[j] * x3[j];
+  } else if (nt == 4) {
+    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1], *__restrict__ w2 = w[2],
+            *__restrict__ w3 = w[3];
+    for (int64_t j = 0; j < n; ++j) o[j] = o[j] + w0[j] + w1[j] + w2[j] + w3[j];
+  } else if (nt == 2 && x) {
+    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1];
+    const T *__restrict__ x0 = xs[0], *__restrict__ x1 = xs[1];
+    for (int64_t j = 0; j < n; ++j) o[j] = o[j] + w0[j] * x0[j] + w1[j] * x1[j];
+  } else if (nt == 2) {
+    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1];
+    for (int64_t j = 0; j < n; ++j) o[j] = o[j] + w0[j] + w1[j];
+  } else {
+    for (size_t t = 0; t < nt; ++t) {
+      const T* __restrict__ wt = terms[t].w + (jl - terms[t].at);
+      if (x) {
+        const T* __restrict__ xt = x + terms[t].from + (jl - terms[t].at);
+        for (int64_t j = 0; j < n; ++j) o[j] += wt[j] * xt[j];
+      } else {
+        for (int64_t j = 0; j < n; ++j) o[j] += wt[j];
+      }
+    }
+  }
+}
+
+// Rows [r0, r1) and columns [c0, c1) of one pass: y = normalised sums of x's neighbours.
+// First every pair's weights over the block's rows and the rows above it that its pairs
+// reach (each weight computed once, for both of its points), then the sums row by row, so
+// that a row's sums stay in L1 while every pair adds to them.
+template <typename T>
+void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t c1,
+               Scratch<T>& s) {
+  const Pass& pass = *a.pass;
+  const int64_t L = pass.row_length;
+  const int64_t width = c1 - c0;
+  const T h0 = static_cast<T>(pass.centre);
+  const size_t np = pass.pairs.size();
+  // Pair k's weight rows: rows [r0 - fo_k, r1), at offset[k] in s.weights; `on` says which
+  // rows have their partner on the grid (the others are never read).
+  std::vector<int64_t>& offset = s.offsets;
+  std::vector<char>& on = s.on;
+  offset.assign(np + 1, 0);
+  for (size_t k = 0; k < np; ++k) {
+    const int64_t fo = pass.pairs[k].flat_rows;
+    const int64_t first = r0 - fo > 0 ? r0 - fo : 0;
+    offset[k + 1] = offset[k] + (r1 - first) * width;
+  }
+  s.weights.resize(static_cast<size_t>(offset[np]));
+  s.on.assign(static_cast<size_t>(offset[np] / (width > 0 ? width : 1)), 0);
+  s.den.resize(static_cast<size_t>(width));
+  s.dist.resize(static_cast<size_t>(width));
+  int64_t row_index = 0;
+  for (size_t k = 0; k < np; ++k) {
+    const Pair& pair = pass.pairs[k];
+    const int64_t fo = pair.flat_rows, ol = pair.column_offset;
+    const int64_t jlo = c0 > -ol ? c0 : -ol, jhi = c1 < L - ol ? c1 : L - ol;
+    const int64_t first = r0 - fo > 0 ? r0 - fo : 0;
+    for (int64_t rho = first; rho < r1; ++rho, ++row_index) {
+      if (jlo >= jhi || !partner_row_on_grid(pass, rho, pair)) continue;
+      on[static_cast<size_t>(row_index)] = 1;
+      T* w = s.weights.data() + offset[k] + (rho - first) * width + (jlo - c0);
+      pair_weights(a, rho * L + jlo, (rho + fo) * L + jlo + ol, jhi - jlo, static_cast<T>(pair.tap),
+                   w, s.dist.data());
+    }
+  }
+  for (int64_t r = r0; r < r1; ++r) {
+    T* __restrict__ den = s.den.data();
+    const int64_t p = r * L + c0;
+    if (a.valid) {
+      for (int64_t j = 0; j < width; ++j) den[j] = h0 * a.valid[p + j];
+    } else {
+      for (int64_t j = 0; j < width; ++j) den[j] = h0;
+    }
+    // The terms this row gets, in the pure-JAX kernels' order: per pair, +o then -o.
+    // (weights, the neighbour's flat index, the first column, count)
+    s.terms.resize(2 * np);
+    Term<T>* terms = s.terms.data();
+    size_t nt = 0;
+    for (size_t k = 0; k < np; ++k) {
+      const Pair& pair = pass.pairs[k];
+      const int64_t fo = pair.flat_rows, ol = pair.column_offset;
+      const int64_t jlo = c0 > -ol ? c0 : -ol, jhi = c1 < L - ol ? c1 : L - ol;
+      if (jlo >= jhi) continue;
+      const int64_t first = r0 - fo > 0 ? r0 - fo : 0;
+      const int64_t base = offset[k] / width;
+      if (on[static_cast<size_t>(base + r - first)]) {  // +o: w(p, p + o) x[p + o]
+        const T* w = s.weights.data() + offset[k] + (r - first) * width + (jlo - c0);
+        terms[nt++] = {w, (r + fo) * L + jlo + ol, jlo - c0, jhi - jlo};
+      }
+      const int64_t rm = r - fo;  // -o: w(p - o, p) x[p - o], for columns jlo + ol ..
+      if (rm >= first && on[static_cast<size_t>(base + rm - first)]) {
+        const T* w = s.weights.data() + offset[k] + (rm - first) * width + (jlo - c0);
+        terms[nt++] = {w, rm * L + jlo, jlo + ol - c0, jhi - jlo};
+      }
+    }
+    // Columns [jl, jh) get every term: there the sums run in one loop (and the quotient
+    // with them); the few columns at the row's ends, with fewer terms, term by term.
+    int64_t jl = 0, jh = width;
+    for (size_t t = 0; t < nt; ++t) {
+      jl = terms[t].at > jl ? terms[t].at : jl;
+      jh = terms[t].at + terms[t].n < jh ? terms[t].at + terms[t].n : jh;
+    }
+    if (jh < jl) jh = jl;
+    add_edges(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
+    add_interior(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
+    for (int64_t c = 0; c < a.channels; ++c) {
+      T* __restrict__ y = a.y + c * a.y_stride + p;
+      const T* __restrict__ xc = a.x + c * a.x_stride;
+      for (int64_t j = 0; j < width; ++j) y[j] = h0 * xc[p + j];
+      add_edges(terms, nt, jl, jh, y, xc);
+      add_interior(terms, nt, jl, jh, y, xc);
+      if (a.valid) {
+        for (int64_t j = 0; j < width; ++j) {
+          const bool some = den[j] > 0;
+          y[j] = some ? y[j] / (some ? den[j] : T(1)) : T(0);
+        }
+      } else {
+        for (int64_t j = 0; j < width; ++j) y[j] = y[j] / den[j];
+      }
+    }
+  }
+}
+
+// Slabs [i0, i1) of one separable level (SlabLevel): x, y are the whole grid's fields.
+template <typename T>
+void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int64_t i1,
+               Scratch<T>& s) {
+  constexpr double kTaps[3] = {3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0};
+  const int64_t n0 = level.slabs, M = level.slab, C = a.channels;
+  const int64_t st = level.stride;
+  const T h0 = static_cast<T>(kTaps[0]);
+  // Axis-0 weights w(slab j, slab j + d st), d = 1, 2, for the slabs a sweep still needs:
+  // a ring of d st + 1 slabs per d (slab j in slot j mod (d st + 1)).
+  int64_t depth[3] = {0, st + 1, 2 * st + 1};
+  const bool axis0 = st < n0;
+  s.slabs.resize(static_cast<size_t>(2 * C * M));
+  if (axis0) s.ring.resize(static_cast<size_t>((depth[1] + depth[2]) * M));
+  s.dist.resize(static_cast<size_t>(M));
+  s.den.resize(static_cast<size_t>(M));
+  T* ring[3] = {nullptr, s.ring.data(), s.ring.data() + depth[1] * M};
+  auto weights_of = [&](int d, int64_t j) { return ring[d] + (j % depth[d]) * M; };
+  auto compute = [&](int d, int64_t j) {  // w(j, j + d st), if that slab exists
+    if (j < 0 || j + d * st >= n0) return;
+    pair_weights(a, j * M, (j + d * st) * M, M, static_cast<T>(kTaps[d]), weights_of(d, j),
+                 s.dist.data());
+  };
+  if (axis0) {
+    for (int d = 1; d <= 2; ++d)
+      for (int64_t j = i0 - d * st; j < i0; ++j) compute(d, j);
+  }
+  T* cur = s.slabs.data();
+  T* other = cur + C * M;
+  for (int64_t i = i0; i < i1; ++i) {
+    const T* in = a.x + i * M;  // the slab's input, channel stride x_stride
+    int64_t in_stride = a.x_stride;
+    if (axis0) {
+      for (int d = 1; d <= 2; ++d) compute(d, i);
+      s.terms.resize(4);
+      size_t nt = 0;
+      for (int d = 1; d <= 2; ++d) {
+        if (i + d * st < n0) s.terms[nt++] = {weights_of(d, i), (i + d * st) * M, 0, M};
+        if (i - d * st >= 0) s.terms[nt++] = {weights_of(d, i - d * st), (i - d * st) * M, 0, M};
+      }
+      T* __restrict__ den = s.den.data();
+      const T* v = a.valid ? a.valid + i * M : nullptr;
+      if (v) {
+        for (int64_t j = 0; j < M; ++j) den[j] = h0 * v[j];
+      } else {
+        for (int64_t j = 0; j < M; ++j) den[j] = h0;
+      }
+      add_interior(s.terms.data(), nt, 0, M, den, static_cast<const T*>(nullptr));
+      for (int64_t c = 0; c < C; ++c) {
+        T* __restrict__ y = cur + c * M;
+        const T* __restrict__ xc = a.x + c * a.x_stride;
+        for (int64_t j = 0; j < M; ++j) y[j] = h0 * xc[i * M + j];
+        add_interior(s.terms.data(), nt, 0, M, y, xc);
+        if (v) {
+          for (int64_t j = 0; j < M; ++j) {
+            const bool some = den[j] > 0;
+            y[j] = some ? y[j] / (some ? den[j] : T(1)) : T(0);
+          }
+        } else {
+          for (int64_t j = 0; j < M; ++j) y[j] = y[j] / den[j];
+        }
+      }
+      in = cur;
+      in_stride = M;
+    }
+    for (size_t k = 0; k < level.inner.size(); ++k) {
+      const bool last = k + 1 == level.inner.size();
+      PassArgs<T> b = a;
+      b.x = in;
+      b.x_stride = in_stride;
+      b.y = last ? a.y + i * M : (in == cur ? other : cur);
+      b.y_stride = last ? a.y_stride : M;
+      b.guide = a.guide + i * M;
+      b.valid = a.valid ? a.valid + i * M : nullptr;
+      b.pass = &level.inner[k];
+      run_block(b, 0, level.inner[k].rows(), 0, level.inner[k].row_length, s);
+      in = b.y;
+      in_stride = b.y_stride;
+    }
+    if (level.inner.empty()) {  // only the axis-0 pass ran: the slab is the output
+      for (int64_t c = 0; c < C; ++c)
+        std::memcpy(a.y + c * a.y_stride + i * M, in + c * in_stride, sizeof(T) * M);
+    }
+  }
+}
+
+}  // namespace OB_ISA
+}  // namespace optax_bilateral
+#endif  // OB_ISA

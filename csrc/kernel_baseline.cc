@@ -1,0 +1,4 @@
+// kernel.h for any CPU the compiler targets by default (x86-64: SSE2).
+#define OB_ISA baseline
+#include "kernel_isa.h"
+OB_DEFINE_ISA_ENTRIES

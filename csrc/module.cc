@@ -1,0 +1,142 @@
+// The Python extension optax_bilateral._native: the XLA FFI handler of the a-trous cascade
+// and the capsule that registers it (jax.ffi.register_ffi_target).
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "atrous.h"
+
+// The FFI headers' own warnings are not this project's (they are checked with -Wall -Wextra).
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wunused-parameter"
+#pragma GCC diagnostic ignored "-Wsign-compare"
+#pragma GCC diagnostic ignored "-Wreturn-type"
+#pragma GCC diagnostic ignored "-Wshadow"
+#pragma GCC diagnostic ignored "-Wconversion"
+#include "xla/ffi/api/ffi.h"
+#pragma GCC diagnostic pop
+
+namespace ffi = xla::ffi;
+namespace ob = optax_bilateral;
+
+namespace {
+
+ffi::Error invalid(const std::string& message) {
+  return ffi::Error(ffi::ErrorCode::kInvalidArgument, "optax_bilateral native kernel: " + message);
+}
+
+template <typename T>
+ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
+                     ffi::AnyBuffer sigma, ffi::AnyBuffer* out, ffi::AnyBuffer* work,
+                     int64_t levels, int64_t start, bool separable, bool has_valid,
+                     int64_t threads) {
+  const auto xd = x.dimensions(), gd = guide.dimensions();
+  if (xd.size() < 2 || gd.size() != xd.size())
+    return invalid("fields (C, *S) and guide (G, *S) must have the same rank >= 2");
+  ob::Cascade<T> c;
+  c.channels = xd[0];
+  c.guide_channels = gd[0];
+  for (size_t k = 1; k < xd.size(); ++k) {
+    if (xd[k] != gd[k]) return invalid("fields and guide must share their spatial shape");
+    c.shape.push_back(xd[k]);
+  }
+  if (c.guide_channels < 1) return invalid("the guide needs at least one channel");
+  if (has_valid && static_cast<int64_t>(valid.element_count()) * c.channels !=
+                       static_cast<int64_t>(x.element_count()))
+    return invalid("valid must have the spatial shape");
+  if (sigma.element_count() != 1) return invalid("sigma_d must be a scalar");
+  c.x = static_cast<const T*>(x.untyped_data());
+  c.guide = static_cast<const T*>(guide.untyped_data());
+  c.valid = has_valid ? static_cast<const T*>(valid.untyped_data()) : nullptr;
+  c.out = static_cast<T*>(out->untyped_data());
+  c.work = static_cast<T*>(work->untyped_data());
+  if (work->element_count() != x.element_count() &&
+      ob::count_steps(c.shape, static_cast<int>(levels), static_cast<int>(start), separable) > 1)
+    return invalid("a cascade of several steps needs a working copy of the fields' size");
+  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
+  c.levels = static_cast<int>(levels);
+  c.start = static_cast<int>(start);
+  c.separable = separable;
+  c.threads = static_cast<int>(threads);
+  ob::run_cascade(c);
+  return ffi::Error::Success();
+}
+
+ffi::Error atrous(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
+                  ffi::AnyBuffer sigma, ffi::Result<ffi::AnyBuffer> out,
+                  ffi::Result<ffi::AnyBuffer> work, int64_t levels, int64_t start, bool separable,
+                  bool has_valid, int64_t threads) {
+  const auto type = x.element_type();
+  if (guide.element_type() != type || out->element_type() != type ||
+      sigma.element_type() != type || (has_valid && valid.element_type() != type))
+    return invalid("fields, guide, valid, sigma_d and output must share one dtype");
+  if (levels < 0 || start < 0 || start > levels || levels > 62)
+    return invalid("need 0 <= start <= levels <= 62");
+  switch (type) {
+    case ffi::DataType::F32:
+      return run_typed<float>(x, guide, valid, sigma, &*out, &*work, levels, start, separable,
+                              has_valid, threads);
+    case ffi::DataType::F64:
+      return run_typed<double>(x, guide, valid, sigma, &*out, &*work, levels, start, separable,
+                               has_valid, threads);
+    default:
+      return invalid("fields must be float32 or float64");
+  }
+}
+
+}  // namespace
+
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wshadow"  // inside the FFI's macro
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrous, atrous,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // fields (C, *S)
+                                  .Arg<ffi::AnyBuffer>()  // guide (G, *S)
+                                  .Arg<ffi::AnyBuffer>()  // valid (*S), or (0,) without a mask
+                                  .Arg<ffi::AnyBuffer>()  // sigma_d, a scalar
+                                  .Ret<ffi::AnyBuffer>()  // the filtered fields
+                                  .Ret<ffi::AnyBuffer>()  // the working copy
+                                  .Attr<int64_t>("levels")
+                                  .Attr<int64_t>("start")
+                                  .Attr<bool>("separable")
+                                  .Attr<bool>("has_valid")
+                                  .Attr<int64_t>("threads"));
+#pragma GCC diagnostic pop
+
+namespace {
+
+PyObject* registrations(PyObject*, PyObject*) {
+  PyObject* dict = PyDict_New();
+  if (!dict) return nullptr;
+  PyObject* capsule =
+      PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralAtrous), nullptr, nullptr);
+  if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_atrous", capsule) < 0) {
+    Py_XDECREF(capsule);
+    Py_DECREF(dict);
+    return nullptr;
+  }
+  Py_DECREF(capsule);
+  return dict;
+}
+
+PyObject* instruction_set(PyObject*, PyObject*) {
+  return PyUnicode_FromString(ob::instruction_set().c_str());
+}
+
+PyMethodDef methods[] = {
+    {"registrations", registrations, METH_NOARGS,
+     "{target name: capsule} of the XLA FFI handlers this extension defines."},
+    {"instruction_set", instruction_set, METH_NOARGS,
+     "The instruction set the kernel runs with on this CPU."},
+    {nullptr, nullptr, 0, nullptr}};
+
+PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native",
+                      "The a-trous filter's native CPU kernel (XLA FFI).", -1, methods,
+                      nullptr, nullptr, nullptr, nullptr};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__native() { return PyModule_Create(&module); }

@@ -1,0 +1,137 @@
+"""The native kernel against the pure-JAX ``xla_cpu`` kernel, inside one ``bilateral_adam``
+update, each as a ratio to ``optax.adam`` measured side by side in this process.
+
+    python -m experiments.bench_native [--quick] [--out DIR] [--rounds N]
+
+Per grid and kernel: cold compile seconds of one update (defaults and a fixed sigma_d), the
+update's median time (interleaved rounds), and XLA's planned temporaries over the
+parameter's size. The kernel is chosen as a user would, with ``$OPTAX_BILATERAL_KERNEL``
+(read when the update is traced). Writes bench_native.json and bench_native.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+from collections.abc import Sequence
+
+import jax
+import optax
+
+import optax_bilateral as ob
+from experiments.benchmark import (
+    FIXED_SIGMA_D,
+    cold_compile_seconds,
+    interleaved,
+    temp_mb,
+    update_arrays,
+)
+from optax_bilateral._src import native
+from optax_bilateral._src.filter import KERNEL_ENV
+
+KERNELS = ("xla_cpu", "native")
+
+
+def optimizers() -> dict[str, optax.GradientTransformation]:
+    return {
+        "adam": optax.adam(0.02),
+        "defaults": ob.bilateral_adam(0.02),
+        "fixed sigma_d F=5": ob.bilateral_adam(0.02, sigma_d=FIXED_SIGMA_D, levels=5),
+    }
+
+
+def _with_kernel(kernel: str, fn):
+    old = os.environ.get(KERNEL_ENV)
+    os.environ[KERNEL_ENV] = kernel
+    try:
+        return fn()
+    finally:
+        if old is None:
+            os.environ.pop(KERNEL_ENV)
+        else:
+            os.environ[KERNEL_ENV] = old
+
+
+def measure(shape: tuple[int, ...], rounds: int) -> list[dict]:
+    params, grad = update_arrays(shape)
+    moved = params - 1e-2 * grad
+    opts = optimizers()
+    rows, fns, plans = [], {}, {}
+    compile_s = {("adam", ""): sum(cold_compile_seconds(opts["adam"], shape))}
+    for kernel in KERNELS:
+        for name, opt in opts.items():
+            if name == "adam":
+                continue
+
+            def build(opt=opt):
+                state = opt.init(params)
+                up = jax.jit(opt.update)
+                for _ in range(2):
+                    _, state = up(grad, state, params)
+                return up, state, up.lower(grad, state, moved).compile()
+
+            compile_s[(name, kernel)] = _with_kernel(
+                kernel, lambda opt=opt: sum(cold_compile_seconds(opt, shape))
+            )
+            _, state, compiled = _with_kernel(kernel, build)
+            fns[f"{name} {kernel}"] = (compiled, (grad, state, moved))
+            plans[f"{name} {kernel}"] = temp_mb(compiled)
+    adam_state = opts["adam"].init(params)
+    fns["adam"] = (jax.jit(opts["adam"].update), (grad, adam_state, moved))
+    res = interleaved(fns, rounds, desc=f"update {shape}")
+    param_mb = params.size * params.dtype.itemsize / 2**20
+    for kernel in KERNELS:
+        for name in opts:
+            if name == "adam":
+                continue
+            label = f"{name} {kernel}"
+            rows.append(
+                {
+                    "grid": "x".join(map(str, shape)),
+                    "update": name,
+                    "kernel": kernel,
+                    "compile x adam": compile_s[(name, kernel)] / compile_s[("adam", "")],
+                    "update ms": 1e3 * res[label]["median"],
+                    "update x adam": res[label]["median"] / res["adam"]["median"],
+                    "temporaries / parameter": plans[label] / param_mb,
+                }
+            )
+    return rows
+
+
+def table(rows: Sequence[dict]) -> str:
+    keys = list(rows[0])
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for r in rows:
+        cells = [f"{v:.3g}" if isinstance(v, float) else str(v) for v in r.values()]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="one small grid, few rounds (tests)")
+    p.add_argument("--out", default="results/bench_native")
+    p.add_argument("--rounds", type=int, default=None)
+    args = p.parse_args(argv)
+    if not native.available():
+        raise SystemExit(f"the native kernel cannot run here: {native.status().reason}")
+    grids = [(16, 16, 1)] if args.quick else [(64, 64, 1), (512, 512, 3), (128, 128, 128, 1)]
+    rounds = args.rounds or (3 if args.quick else 15)
+    rows = [r for shape in grids for r in measure(shape, rounds)]
+    status = native.status()
+    data = {"rows": rows, "instruction set": status.reason, "threads": status.threads}
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_native.json").write_text(json.dumps(data, indent=1))
+    md = table(rows)
+    (out / "bench_native.md").write_text(md)
+    print(md)
+    print(f"instruction set {status.reason}, {status.threads} threads; temporaries: XLA's plan")
+    return data
+
+
+if __name__ == "__main__":
+    main()

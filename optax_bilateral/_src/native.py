@@ -1,0 +1,167 @@
+"""The native kernel of the a-trous filter: one XLA FFI call runs the whole cascade.
+
+The same two functions as the pure-JAX kernels (:func:`plane_shape`, :func:`filter_planes`),
+computed by the C++ extension ``optax_bilateral._native`` (sources in ``csrc/``, built by
+``setup.py``): every level and pass in one call, each pair's weight computed once and used by
+both of its points, on several threads, with one working copy of the fields beside the
+output (a second output of the call, so that it is in XLA's buffer plan).
+
+Derivatives are the pure-JAX kernel's: :func:`filter_planes` is a ``jax.custom_jvp`` whose rule
+differentiates :mod:`optax_bilateral._src.plain`, so ``jax.grad`` / ``jax.jvp`` with respect to
+the fields, the guide and sigma_d work as with the other kernels. ``jax.vmap`` runs the call
+once per batch element (``vmap_method="sequential"``).
+
+Where the extension is missing or cannot load (no compiler at install time, another OS),
+the package still imports and the pure-JAX kernels run; :func:`status` says why, and asking
+for ``kernel="native"`` raises with that reason.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import importlib.machinery
+import importlib.util
+import os
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from optax_bilateral._src import plain
+from optax_bilateral._src.bilateral import level_passes
+
+TARGET = "optax_bilateral_atrous"
+# The threads one call uses (default: the CPUs this process may run on). Read when a program
+# is traced: a compiled program keeps the count it was traced with.
+THREADS_ENV = "OPTAX_BILATERAL_THREADS"
+# "0": do not load the extension (the pure-JAX kernels run); a file path: load the extension
+# from that file instead of the installed one (the sanitizer build, `make sanitize`).
+NATIVE_ENV = "OPTAX_BILATERAL_NATIVE"
+
+
+class Status(NamedTuple):
+    """Whether the native kernel runs, and why (or why not)."""
+
+    available: bool
+    reason: str  # "avx512", "avx2" or "baseline" when available, else the error met
+    threads: int
+
+
+def _load_module():
+    where = os.environ.get(NATIVE_ENV, "")
+    if where == "0":
+        raise ImportError(f"${NATIVE_ENV}=0")
+    if where:
+        loader = importlib.machinery.ExtensionFileLoader("optax_bilateral._native", where)
+        spec = importlib.util.spec_from_file_location(
+            "optax_bilateral._native", where, loader=loader
+        )
+        if spec is None:
+            raise ImportError(f"${NATIVE_ENV}: no extension at {where!r}")
+        module = importlib.util.module_from_spec(spec)
+        loader.exec_module(module)
+        return module
+    return importlib.import_module("optax_bilateral._native")
+
+
+@functools.cache
+def _registered() -> tuple[bool, str]:
+    """Loads the extension and registers its FFI target once per process."""
+    try:
+        module = _load_module()
+        for name, capsule in module.registrations().items():
+            jax.ffi.register_ffi_target(name, capsule, platform="cpu")
+        return True, module.instruction_set()
+    except Exception as e:  # any failure to load leaves the pure-JAX kernels
+        return False, f"{type(e).__name__}: {e}"
+
+
+def threads() -> int:
+    """The threads a call will use: ``$OPTAX_BILATERAL_THREADS``, else the usable CPUs."""
+    env = os.environ.get(THREADS_ENV, "")
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise ValueError(f"${THREADS_ENV} must be a positive integer, got {env!r}")
+        return n
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def status() -> Status:
+    """Whether the native kernel can run in this process, its instruction set or the reason
+    it cannot, and the threads it would use."""
+    ok, reason = _registered()
+    return Status(ok, reason, threads())
+
+
+def available() -> bool:
+    return _registered()[0]
+
+
+def plane_shape(spatial_shape: Sequence[int]) -> tuple[int, ...]:
+    """The spatial shape itself: the kernel reads the planes as row-major grids."""
+    return tuple(spatial_shape)
+
+
+def filter_planes(
+    x: jax.Array,
+    g: jax.Array,
+    valid: jax.Array | None,
+    sigma: jax.Array,
+    levels: int,
+    separable: bool,
+    start: int = 0,
+) -> jax.Array:
+    """Levels ``start .. levels - 1``: x (C, *S) zero where invalid, g (G, *S), valid (*S)
+    float 0/1 or None, sigma a scalar in x's dtype. Returns (C, *S)."""
+    ok, reason = _registered()
+    if not ok:
+        raise RuntimeError(f"the native filter kernel cannot run here: {reason}")
+    x = x.reshape(x.shape[:1] + g.shape[1:])
+    return _cascade(x, g, valid, sigma, levels, bool(separable), start)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6))
+def _cascade(x, g, valid, sigma, levels, separable, start):
+    work = x.shape if _steps(g.shape[1:], levels, start, separable) > 1 else (0,)
+    call = jax.ffi.ffi_call(
+        TARGET,
+        (jax.ShapeDtypeStruct(x.shape, x.dtype), jax.ShapeDtypeStruct(work, x.dtype)),
+        vmap_method="sequential",
+    )
+    out, _ = call(
+        x,
+        g,
+        jnp.zeros((0,), x.dtype) if valid is None else valid.astype(x.dtype),
+        jnp.asarray(sigma, x.dtype).reshape(()),
+        levels=np.int64(levels),
+        start=np.int64(start),
+        separable=bool(separable),
+        has_valid=valid is not None,
+        threads=np.int64(threads()),
+    )
+    return out
+
+
+def _steps(shape, levels, start, separable) -> int:
+    """The steps the kernel runs (csrc/passes.cc, count_steps): a separable level of a grid of
+    rank >= 2 is one sweep; any other pass one. Two or more need a working copy."""
+    per_level = [len(level_passes(shape, 2**i, separable)) for i in range(start, levels)]
+    if separable and len(shape) >= 2:
+        return sum(1 for n in per_level if n)
+    return sum(per_level)
+
+
+@_cascade.defjvp
+def _cascade_jvp(levels, separable, start, primals, tangents):
+    # The pure-JAX kernel's derivative (and its primal, equal up to float rounding).
+    def pure(x, g, valid, sigma):
+        return plain.filter_planes(x, g, valid, sigma, levels, separable, start)
+
+    return jax.jvp(pure, primals, tangents)

@@ -1,0 +1,184 @@
+"""The native kernel (csrc/, an XLA FFI call): built by the install, equal to the pure-JAX
+kernels on drawn grids and at the extremes, differentiable and batchable through them, and
+absent without harm. (Its float64-reference tests are test_atrous.py's, parametrised by kernel;
+`make sanitize` runs its C++ test under AddressSanitizer and UBSan.)"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import hypothesis.extra.numpy as hnp
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from optax_bilateral import atrous_bilateral
+from optax_bilateral._src import native
+
+# float32 sums of <= 125 taps over a few levels, in another order than the JAX kernels'.
+RTOL, ATOL = 1e-5, 1e-6
+F32 = dict(width=32, allow_subnormal=False)
+
+
+def test_the_install_built_the_extension():
+    status = native.status()
+    assert status.available, status.reason
+    assert status.reason in ("avx512", "avx2", "baseline")
+    assert status.threads >= 1
+
+
+def _both(x, g, **kw):
+    return [atrous_bilateral(x, g, kernel=k, **kw) for k in ("native", "plain")]
+
+
+# Shapes from a small set (each compiles a program), data drawn freely.
+SHAPES = [(23,), (6, 7), (17, 5), (4, 3, 5)]
+
+
+@given(
+    shape=st.sampled_from(SHAPES),
+    levels=st.integers(1, 4),
+    separable=st.booleans(),
+    sigma=st.sampled_from([0.0, 1e-3, 0.4, 3.0, np.inf]),
+    gch=st.sampled_from([1, 2]),
+    masked=st.booleans(),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_equals_the_plain_kernel_on_drawn_grids(shape, levels, separable, sigma, gch, masked, seed):
+    rng = np.random.default_rng(seed)
+    x = jnp.asarray(rng.normal(size=shape + (2,)), jnp.float32)
+    # Quantised guides: equal values exercise "equal guides weigh 1" (and sigma_d = 0).
+    g = jnp.asarray(rng.integers(0, 3, size=shape + (gch,)) * 0.5, jnp.float32)
+    mask = jnp.asarray(rng.random(shape) > 0.25) if masked else None
+    axes = tuple(range(len(shape)))
+    a, b = _both(
+        x, g, sigma_d=sigma, levels=levels, spatial_axes=axes, separable=separable, mask=mask
+    )
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=RTOL, atol=ATOL)
+
+
+@given(
+    x=hnp.arrays(
+        np.float32,
+        (9, 8, 2),
+        elements=st.floats(np.float32(-1e30), np.float32(1e30), **F32)
+        | st.sampled_from([np.nan, np.inf, -np.inf]),
+    ),
+    g=hnp.arrays(
+        np.float32,
+        (9, 8, 2),
+        elements=st.floats(np.float32(-3e38), np.float32(3e38), **F32) | st.just(np.nan),
+    ),
+)
+def test_extreme_values_decided_as_the_plain_kernel(x, g):
+    # Non-finite and huge fields, NaN and huge guides: same NaN places, same values.
+    a, b = _both(jnp.asarray(x), jnp.asarray(g), sigma_d=0.5, levels=2, spatial_axes=(0, 1))
+    a, b = np.asarray(a), np.asarray(b)
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    np.testing.assert_allclose(a, b, rtol=RTOL, atol=ATOL)
+
+
+@pytest.mark.parametrize("dtype", [jnp.bfloat16, jnp.float16])
+def test_half_precision_fields_filter_in_float32(dtype):
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(size=(12, 10, 3)), dtype)
+    g = jnp.asarray(rng.random((12, 10)), jnp.float32)
+    a, b = _both(x, g, sigma_d=0.2, levels=3, spatial_axes=(0, 1))
+    assert a.dtype == dtype
+    # Float32 results one rounding apart may round to neighbouring half-precision values.
+    eps = float(jnp.finfo(dtype).eps)
+    np.testing.assert_allclose(
+        np.asarray(a, np.float32), np.asarray(b, np.float32), rtol=eps, atol=eps
+    )
+
+
+def test_gradients_are_the_plain_kernels():
+    # With respect to the fields, the guide and sigma_d (the rule differentiates "plain").
+    rng = np.random.default_rng(1)
+    x = jnp.asarray(rng.normal(size=(10, 9, 2)), jnp.float32)
+    g = jnp.asarray(rng.random((10, 9, 2)), jnp.float32)
+
+    def loss(kernel):
+        def f(x, g, s):
+            y = atrous_bilateral(x, g, sigma_d=s, levels=2, spatial_axes=(0, 1), kernel=kernel)
+            return jnp.sum(y**2)
+
+        return jax.grad(f, argnums=(0, 1, 2))(x, g, jnp.float32(0.3))
+
+    for a, b in zip(loss("native"), loss("plain")):
+        assert np.all(np.isfinite(b)) and np.any(np.asarray(b) != 0)
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
+
+
+def test_vmap_filters_each_batch_element():
+    rng = np.random.default_rng(2)
+    xs = jnp.asarray(rng.normal(size=(3, 11, 7)), jnp.float32)
+    g = jnp.asarray(rng.random((11, 7)), jnp.float32)
+    f = lambda x: atrous_bilateral(
+        x, g, sigma_d=0.3, levels=3, spatial_axes=(0, 1), kernel="native"
+    )
+    batched = jax.vmap(f)(xs)
+    for i in range(3):
+        np.testing.assert_array_equal(np.asarray(batched[i]), np.asarray(f(xs[i])))
+
+
+def test_thread_count_does_not_change_the_result(monkeypatch):
+    # Each block's sums run in the same order whatever thread takes it: bit-equal outputs.
+    rng = np.random.default_rng(3)
+    x = jnp.asarray(rng.normal(size=(96, 80, 3)), jnp.float32)
+    g = jnp.asarray(rng.random((96, 80)), jnp.float32)
+    outs = []
+    for n in ("1", "3"):
+        monkeypatch.setenv(native.THREADS_ENV, n)
+        assert native.threads() == int(n)
+        outs.append(
+            atrous_bilateral(x, g, sigma_d=0.2, levels=4, spatial_axes=(0, 1), kernel="native")
+        )
+    np.testing.assert_array_equal(np.asarray(outs[0]), np.asarray(outs[1]))
+    monkeypatch.setenv(native.THREADS_ENV, "zero")
+    with pytest.raises(ValueError, match=native.THREADS_ENV):
+        native.threads()
+
+
+def test_without_the_extension_the_pure_jax_kernels_run():
+    # A process where the extension cannot load: the package imports, says why, filters on
+    # the pure-JAX kernel, and a request for the native one names the reason.
+    code = textwrap.dedent(
+        """
+        import jax.numpy as jnp, optax_bilateral as ob
+        from optax_bilateral._src import native
+        s = native.status()
+        assert not s.available and "OPTAX_BILATERAL_NATIVE=0" in s.reason, s
+        y = ob.atrous_bilateral(jnp.ones((8, 8)), jnp.ones((8, 8)), sigma_d=0.1, levels=2,
+                                spatial_axes=(0, 1))
+        assert float(y[3, 3]) == 1.0
+        try:
+            ob.atrous_bilateral(jnp.ones((8, 8)), jnp.ones((8, 8)), sigma_d=0.1, levels=2,
+                                spatial_axes=(0, 1), kernel="native")
+        except ValueError as e:
+            assert "OPTAX_BILATERAL_NATIVE=0" in str(e), e
+        else:
+            raise AssertionError("kernel='native' ran without the extension")
+        print("ok")
+        """
+    )
+    env = dict(os.environ, OPTAX_BILATERAL_NATIVE="0")
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+
+
+def test_compiles_one_custom_call_for_the_whole_cascade():
+    x = jnp.ones((32, 32, 2), jnp.float32)
+    f = jax.jit(
+        lambda x: atrous_bilateral(
+            x, x, sigma_d=0.1, levels=5, spatial_axes=(0, 1), kernel="native"
+        )
+    )
+    text = f.lower(x).as_text()
+    assert text.count(native.TARGET) == 1
