@@ -4,7 +4,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <atomic>
 #include <condition_variable>
+#include <memory>
 #include <cstdlib>
 #include <limits>
 #include <mutex>
@@ -107,27 +109,14 @@ std::vector<Block> cut_blocks(const Pass& pass, int64_t channels) {
   return blocks;
 }
 
-// A reusable barrier for a fixed number of threads (C++17 has none).
-class Barrier {
- public:
-  explicit Barrier(int count) : count_(count) {}
-  void wait() {
-    std::unique_lock<std::mutex> lock(mutex_);
-    const int64_t generation = generation_;
-    if (++arrived_ == count_) {
-      arrived_ = 0;
-      ++generation_;
-      cv_.notify_all();
-    } else {
-      cv_.wait(lock, [&] { return generation != generation_; });
-    }
-  }
-
- private:
-  std::mutex mutex_;
-  std::condition_variable cv_;
-  int count_, arrived_ = 0;
-  int64_t generation_ = 0;
+// One step's units of work, claimed one at a time by the caller and its helpers. Shared,
+// so that a helper that starts after the step ended only reads that nothing is left.
+struct Claims {
+  explicit Claims(size_t n) : total(n) {}
+  const size_t total;
+  std::atomic<size_t> next{0}, done{0};
+  std::mutex mutex;
+  std::condition_variable finished;
 };
 
 // (guide scale, sigma_d scaled alike) as bilateral.rescale_guide and the one-channel halving.
@@ -207,39 +196,54 @@ void run(const Cascade<T>& c) {
   // Step i writes `out` when the steps left after it are even in number, so the last step
   // writes `out` and the first reads the input.
   const size_t ns = steps.size();
-  size_t most = 1;
-  for (const auto& s : steps)
-    most = std::max(most, s.pass ? s.blocks.size() : static_cast<size_t>(s.level.slabs));
   int threads = std::max(1, c.threads);
   if (size < kMinParallelWork) threads = 1;
-  threads = static_cast<int>(std::min<size_t>(static_cast<size_t>(threads), most));
-  Barrier barrier(threads);
-  auto worker = [&](int t) {
-    Scratch<T> scratch;
-    for (size_t i = 0; i < ns; ++i) {
-      PassArgs<T> a = args;
-      const bool to_out = (ns - 1 - i) % 2 == 0;
-      a.y = to_out ? c.out : c.work;
-      a.x = i == 0 ? c.x : (to_out ? c.work : c.out);
-      const Step<T>& step = steps[i];
-      if (step.pass) {
-        a.pass = step.pass;
-        const auto& bs = step.blocks;
-        const size_t lo = bs.size() * t / threads, hi = bs.size() * (t + 1) / threads;
-        for (size_t b = lo; b < hi; ++b)
-          block(a, bs[b].r0, bs[b].r1, bs[b].c0, bs[b].c1, scratch);
-      } else {
-        const int64_t n0 = step.level.slabs;
-        const int64_t lo = n0 * t / threads, hi = n0 * (t + 1) / threads;
-        if (lo < hi) slabs(a, step.level, lo, hi, scratch);
+  for (size_t i = 0; i < ns; ++i) {
+    PassArgs<T> a = args;
+    const bool to_out = (ns - 1 - i) % 2 == 0;
+    a.y = to_out ? c.out : c.work;
+    a.x = i == 0 ? c.x : (to_out ? c.work : c.out);
+    const Step<T>& step = steps[i];
+    a.pass = step.pass;
+    // Units: a pass's blocks, or a level's slabs in one range per thread (each range
+    // recomputes the axis-0 weights of the slabs before it).
+    const int64_t n0 = step.pass ? 0 : step.level.slabs;
+    const size_t units = step.pass ? step.blocks.size()
+                                   : static_cast<size_t>(std::min<int64_t>(threads, n0));
+    auto claims = std::make_shared<Claims>(units);
+    auto work = [claims, a, &step, n0, units] {
+      Scratch<T> scratch;
+      for (size_t k; (k = claims->next.fetch_add(1)) < units;) {
+        if (step.pass) {
+          const Block& b = step.blocks[k];
+          block(a, b.r0, b.r1, b.c0, b.c1, scratch);
+        } else {
+          const int64_t lo = n0 * static_cast<int64_t>(k) / static_cast<int64_t>(units);
+          const int64_t hi = n0 * static_cast<int64_t>(k + 1) / static_cast<int64_t>(units);
+          slabs(a, step.level, lo, hi, scratch);
+        }
+        if (claims->done.fetch_add(1) + 1 == units) {
+          std::lock_guard<std::mutex> lock(claims->mutex);
+          claims->finished.notify_all();
+        }
       }
-      if (threads > 1 && i + 1 < ns) barrier.wait();
+    };
+    const int helpers = static_cast<int>(std::min<size_t>(static_cast<size_t>(threads), units)) - 1;
+    std::vector<std::thread> own;
+    for (int t = 0; t < helpers; ++t) {
+      if (c.schedule) {
+        c.schedule(work);
+      } else {
+        own.emplace_back(work);
+      }
     }
-  };
-  std::vector<std::thread> pool;
-  for (int t = 1; t < threads; ++t) pool.emplace_back(worker, t);
-  worker(0);
-  for (auto& th : pool) th.join();
+    work();
+    {
+      std::unique_lock<std::mutex> lock(claims->mutex);
+      claims->finished.wait(lock, [&] { return claims->done.load() == units; });
+    }
+    for (auto& th : own) th.join();
+  }
 }
 
 }  // namespace

@@ -11,6 +11,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -31,7 +32,11 @@ struct Cascade {
   int levels = 0;
   int start = 0;
   bool separable = true;
-  int threads = 1;
+  int threads = 1;  // the most threads that work on one step, the caller's included
+  // Starts a task on another thread (XLA's intra-op pool under the FFI), now or later; empty:
+  // a std::thread per task. The caller works too, so a task that starts late finds nothing
+  // left and a busy pool never stalls the call.
+  std::function<void(std::function<void()>)> schedule;
 };
 
 // The steps a cascade runs, each one read and one write of the fields: a separable level of a

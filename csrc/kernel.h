@@ -273,6 +273,22 @@ void add_interior(const Term<T>* terms, size_t nt, int64_t jl, int64_t jh, T* __
   }
 }
 
+// den[j] <- 1 / den[j], and 0 where den[j] is 0 (a point no weight reaches: masked).
+template <typename T>
+void reciprocal(T* __restrict__ den, int64_t n) {
+  for (int64_t j = 0; j < n; ++j) {
+    const bool some = den[j] > 0;
+    den[j] = some ? T(1) / (some ? den[j] : T(1)) : T(0);
+  }
+}
+
+// y[j] <- y[j] / den[j] from its reciprocal; 0 where no weight reaches (as the JAX kernels'
+// where(den > 0, ..., 0): a masked point's sum may hold 0 * inf).
+template <typename T>
+void normalise(T* __restrict__ y, const T* __restrict__ inv, int64_t n) {
+  for (int64_t j = 0; j < n; ++j) y[j] = inv[j] > 0 ? y[j] * inv[j] : T(0);
+}
+
 // Rows [r0, r1) and columns [c0, c1) of one pass: y = normalised sums of x's neighbours.
 // First every pair's weights over the block's rows and the rows above it that its pairs
 // reach (each weight computed once, for both of its points), then the sums row by row, so
@@ -353,20 +369,14 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
     if (jh < jl) jh = jl;
     add_edges(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
     add_interior(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
+    reciprocal(den, width);  // one divide per point, not per channel
     for (int64_t c = 0; c < a.channels; ++c) {
       T* __restrict__ y = a.y + c * a.y_stride + p;
       const T* __restrict__ xc = a.x + c * a.x_stride;
       for (int64_t j = 0; j < width; ++j) y[j] = h0 * xc[p + j];
       add_edges(terms, nt, jl, jh, y, xc);
       add_interior(terms, nt, jl, jh, y, xc);
-      if (a.valid) {
-        for (int64_t j = 0; j < width; ++j) {
-          const bool some = den[j] > 0;
-          y[j] = some ? y[j] / (some ? den[j] : T(1)) : T(0);
-        }
-      } else {
-        for (int64_t j = 0; j < width; ++j) y[j] = y[j] / den[j];
-      }
+      normalise(y, den, width);
     }
   }
 }
@@ -419,19 +429,13 @@ void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int6
         for (int64_t j = 0; j < M; ++j) den[j] = h0;
       }
       add_interior(s.terms.data(), nt, 0, M, den, static_cast<const T*>(nullptr));
+      reciprocal(den, M);
       for (int64_t c = 0; c < C; ++c) {
         T* __restrict__ y = cur + c * M;
         const T* __restrict__ xc = a.x + c * a.x_stride;
         for (int64_t j = 0; j < M; ++j) y[j] = h0 * xc[i * M + j];
         add_interior(s.terms.data(), nt, 0, M, y, xc);
-        if (v) {
-          for (int64_t j = 0; j < M; ++j) {
-            const bool some = den[j] > 0;
-            y[j] = some ? y[j] / (some ? den[j] : T(1)) : T(0);
-          }
-        } else {
-          for (int64_t j = 0; j < M; ++j) y[j] = y[j] / den[j];
-        }
+        normalise(y, den, M);
       }
       in = cur;
       in_stride = M;

@@ -4,6 +4,7 @@
 #include <Python.h>
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -32,7 +33,7 @@ template <typename T>
 ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
                      ffi::AnyBuffer sigma, ffi::AnyBuffer* out, ffi::AnyBuffer* work,
                      int64_t levels, int64_t start, bool separable, bool has_valid,
-                     int64_t threads) {
+                     int64_t threads, ffi::ThreadPool& pool) {
   const auto xd = x.dimensions(), gd = guide.dimensions();
   if (xd.size() < 2 || gd.size() != xd.size())
     return invalid("fields (C, *S) and guide (G, *S) must have the same rank >= 2");
@@ -61,12 +62,14 @@ ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer vali
   c.start = static_cast<int>(start);
   c.separable = separable;
   c.threads = static_cast<int>(threads);
+  // XLA's intra-op threads, which would otherwise spin beside threads of our own.
+  c.schedule = [&pool](std::function<void()> task) { pool.Schedule(std::move(task)); };
   ob::run_cascade(c);
   return ffi::Error::Success();
 }
 
-ffi::Error atrous(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
-                  ffi::AnyBuffer sigma, ffi::Result<ffi::AnyBuffer> out,
+ffi::Error atrous(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer guide,
+                  ffi::AnyBuffer valid, ffi::AnyBuffer sigma, ffi::Result<ffi::AnyBuffer> out,
                   ffi::Result<ffi::AnyBuffer> work, int64_t levels, int64_t start, bool separable,
                   bool has_valid, int64_t threads) {
   const auto type = x.element_type();
@@ -78,10 +81,10 @@ ffi::Error atrous(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
   switch (type) {
     case ffi::DataType::F32:
       return run_typed<float>(x, guide, valid, sigma, &*out, &*work, levels, start, separable,
-                              has_valid, threads);
+                              has_valid, threads, pool);
     case ffi::DataType::F64:
       return run_typed<double>(x, guide, valid, sigma, &*out, &*work, levels, start, separable,
-                               has_valid, threads);
+                               has_valid, threads, pool);
     default:
       return invalid("fields must be float32 or float64");
   }
@@ -93,6 +96,7 @@ ffi::Error atrous(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
 #pragma GCC diagnostic ignored "-Wshadow"  // inside the FFI's macro
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrous, atrous,
                               ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
                                   .Arg<ffi::AnyBuffer>()  // fields (C, *S)
                                   .Arg<ffi::AnyBuffer>()  // guide (G, *S)
                                   .Arg<ffi::AnyBuffer>()  // valid (*S), or (0,) without a mask
