@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <utility>
 #include <vector>
 
 #include "passes.h"
@@ -103,7 +104,7 @@ inline T data_weight(T d, bool keep, T neg_inv_sigma, bool sigma_inf) {
 }
 
 // tap * w(p, p + o) for kG guide channels, the squared distance summed in registers.
-template <typename T, int kG, bool kMasked>
+template <typename T, int kG, bool kMasked, bool kScaled>
 void few_channel_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap,
                          T* __restrict__ w) {
   const T gs = a.guide_scale;
@@ -118,10 +119,11 @@ void few_channel_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n
   const T* __restrict__ va = kMasked ? a.valid + pa : nullptr;
   const T* __restrict__ vb = kMasked ? a.valid + pb : nullptr;
   for (int64_t j = 0; j < n; ++j) {
-    T t = ga[0][j] * gs - gb[0][j] * gs;
+    // Scaled only where the guide is large enough to overflow (bilateral.rescale_guide).
+    T t = kScaled ? ga[0][j] * gs - gb[0][j] * gs : ga[0][j] - gb[0][j];
     T d2 = t * t;
     for (int c = 1; c < kG; ++c) {
-      t = ga[c][j] * gs - gb[c][j] * gs;
+      t = kScaled ? ga[c][j] * gs - gb[c][j] * gs : ga[c][j] - gb[c][j];
       d2 += t * t;
     }
     bool keep = true;
@@ -155,18 +157,19 @@ void pair_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap
     }
     return;
   }
-  switch (a.guide_channels) {  // two to four channels: the distance in registers
-    case 2:
-      return va ? few_channel_weights<T, 2, true>(a, pa, pb, n, tap, w)
-                : few_channel_weights<T, 2, false>(a, pa, pb, n, tap, w);
-    case 3:
-      return va ? few_channel_weights<T, 3, true>(a, pa, pb, n, tap, w)
-                : few_channel_weights<T, 3, false>(a, pa, pb, n, tap, w);
-    case 4:
-      return va ? few_channel_weights<T, 4, true>(a, pa, pb, n, tap, w)
-                : few_channel_weights<T, 4, false>(a, pa, pb, n, tap, w);
-    default:
-      break;
+  if (a.guide_channels >= 2 && a.guide_channels <= 4) {  // the distance in registers
+    const int key = a.guide_channels * 4 + (va ? 2 : 0) + (gs != T(1) ? 1 : 0);
+    switch (key) {
+#define OB_FEW(g, m, sc) \
+  case g * 4 + m * 2 + sc: \
+    return few_channel_weights<T, g, m, sc>(a, pa, pb, n, tap, w);
+      OB_FEW(2, 0, 0) OB_FEW(2, 0, 1) OB_FEW(2, 1, 0) OB_FEW(2, 1, 1)
+      OB_FEW(3, 0, 0) OB_FEW(3, 0, 1) OB_FEW(3, 1, 0) OB_FEW(3, 1, 1)
+      OB_FEW(4, 0, 0) OB_FEW(4, 0, 1) OB_FEW(4, 1, 0) OB_FEW(4, 1, 1)
+#undef OB_FEW
+      default:
+        break;
+    }
   }
   for (int64_t c = 0; c < a.guide_channels; ++c) {
     const T* __restrict__ ga = a.guide + c * a.guide_stride + pa;
@@ -289,6 +292,52 @@ void normalise(T* __restrict__ y, const T* __restrict__ inv, int64_t n) {
   for (int64_t j = 0; j < n; ++j) y[j] = inv[j] > 0 ? y[j] * inv[j] : T(0);
 }
 
+// One channel's output over columns [0, width): y = (h0 x + sum of the terms) * inv, with
+// the terms' x read from xc + from. Columns [jl, jh), where every term has a value, in one
+// loop for two or four terms; the rest term by term.
+template <typename T>
+void channel_sums(const Term<T>* terms, size_t nt, int64_t jl, int64_t jh, int64_t width, T h0,
+                  T* __restrict__ y, const T* __restrict__ centre, const T* xc,
+                  const T* __restrict__ inv) {
+  if (nt != 2 && nt != 4) {
+    for (int64_t j = 0; j < width; ++j) y[j] = h0 * centre[j];
+    add_edges(terms, nt, jl, jh, y, xc);
+    add_interior(terms, nt, jl, jh, y, xc);
+    normalise(y, inv, width);
+    return;
+  }
+  for (const auto& r : {std::pair<int64_t, int64_t>{0, jl}, {jh, width}})
+    for (int64_t j = r.first; j < r.second; ++j) y[j] = h0 * centre[j];
+  add_edges(terms, nt, jl, jh, y, xc);
+  normalise(y, inv, jl);
+  normalise(y + jh, inv + jh, width - jh);
+  const int64_t n = jh - jl;
+  const T* w[4] = {};
+  const T* x[4] = {};
+  for (size_t t = 0; t < nt; ++t) {
+    w[t] = terms[t].w + (jl - terms[t].at);
+    x[t] = xc + terms[t].from + (jl - terms[t].at);
+  }
+  T* __restrict__ o = y + jl;
+  const T* __restrict__ c0 = centre + jl;
+  const T* __restrict__ iv = inv + jl;
+  const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1];
+  const T *__restrict__ x0 = x[0], *__restrict__ x1 = x[1];
+  if (nt == 4) {
+    const T *__restrict__ w2 = w[2], *__restrict__ w3 = w[3];
+    const T *__restrict__ x2 = x[2], *__restrict__ x3 = x[3];
+    for (int64_t j = 0; j < n; ++j) {
+      const T sum = h0 * c0[j] + w0[j] * x0[j] + w1[j] * x1[j] + w2[j] * x2[j] + w3[j] * x3[j];
+      o[j] = iv[j] > 0 ? sum * iv[j] : T(0);
+    }
+  } else {
+    for (int64_t j = 0; j < n; ++j) {
+      const T sum = h0 * c0[j] + w0[j] * x0[j] + w1[j] * x1[j];
+      o[j] = iv[j] > 0 ? sum * iv[j] : T(0);
+    }
+  }
+}
+
 // Rows [r0, r1) and columns [c0, c1) of one pass: y = normalised sums of x's neighbours.
 // First every pair's weights over the block's rows and the rows above it that its pairs
 // reach (each weight computed once, for both of its points), then the sums row by row, so
@@ -371,12 +420,8 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
     add_interior(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
     reciprocal(den, width);  // one divide per point, not per channel
     for (int64_t c = 0; c < a.channels; ++c) {
-      T* __restrict__ y = a.y + c * a.y_stride + p;
-      const T* __restrict__ xc = a.x + c * a.x_stride;
-      for (int64_t j = 0; j < width; ++j) y[j] = h0 * xc[p + j];
-      add_edges(terms, nt, jl, jh, y, xc);
-      add_interior(terms, nt, jl, jh, y, xc);
-      normalise(y, den, width);
+      const T* xc = a.x + c * a.x_stride;
+      channel_sums(terms, nt, jl, jh, width, h0, a.y + c * a.y_stride + p, xc + p, xc, den);
     }
   }
 }
@@ -431,11 +476,8 @@ void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int6
       add_interior(s.terms.data(), nt, 0, M, den, static_cast<const T*>(nullptr));
       reciprocal(den, M);
       for (int64_t c = 0; c < C; ++c) {
-        T* __restrict__ y = cur + c * M;
-        const T* __restrict__ xc = a.x + c * a.x_stride;
-        for (int64_t j = 0; j < M; ++j) y[j] = h0 * xc[i * M + j];
-        add_interior(s.terms.data(), nt, 0, M, y, xc);
-        normalise(y, den, M);
+        const T* xc = a.x + c * a.x_stride;
+        channel_sums(s.terms.data(), nt, 0, M, M, h0, cur + c * M, xc + i * M, xc, den);
       }
       in = cur;
       in_stride = M;
