@@ -49,7 +49,15 @@ def check_base() -> None:
     namespace: dict = {}
     exec(docs_blocks.by("README.md", "compositions").code, namespace)
     assert {"pre", "post", "both", "opt"} <= set(namespace)
-    print(f"optax_bilateral {ob.__version__} from {where.parent}: the quick start runs")
+    # The wheel carries the native kernel, built for any CPU of its platform.
+    from optax_bilateral._src import native
+
+    status = native.status()
+    assert status.available, status.reason
+    print(
+        f"optax_bilateral {ob.__version__} from {where.parent}: the quick start runs; "
+        f"native kernel: {status.reason}"
+    )
 
 
 def _experiments() -> None:

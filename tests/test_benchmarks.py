@@ -385,7 +385,9 @@ def test_bench_native_quick_compares_the_kernels_inside_an_update(tmp_path):
 
     data = bench_native.main(["--quick", "--out", str(tmp_path)])
     assert {(r["kernel"], r["update"]) for r in data["rows"]} == {
-        (k, u) for k in bench_native.KERNELS for u in ("defaults", "fixed sigma_d F=5")
+        (k, u)
+        for k in bench_native.KERNELS
+        for u in ("defaults", "fixed sigma_d F=5", "fixed sigma_d F=5 full")
     }
     for r in data["rows"]:
         for key in ("compile x adam", "update x adam", "temporaries / parameter"):

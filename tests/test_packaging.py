@@ -47,6 +47,10 @@ def test_wheel_holds_only_the_library(tmp_path):
         "optax_bilateral/toy/texture.py",
     } <= set(names)
     assert any(n.startswith(dist_info) and n.endswith("LICENSE") for n in names)
+    # The native kernel: a platform wheel with the built extension, not its C++ sources.
+    assert any(re.fullmatch(r"optax_bilateral/_native\..*\.so", n) for n in names), names
+    assert not any(n.endswith((".cc", ".h")) for n in names)
+    assert not wheel.name.endswith("-none-any.whl"), wheel.name
     metadata = zipfile.ZipFile(wheel).read(f"{dist_info}/METADATA").decode()
     assert "License-Expression: Apache-2.0" in metadata
     requires = re.findall(r"^Requires-Dist: ([\w\-]+)[^;\n]*$", metadata, re.M)
