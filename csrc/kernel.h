@@ -435,8 +435,13 @@ void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int6
   const int64_t st = level.stride;
   const T h0 = static_cast<T>(kTaps[0]);
   // Axis-0 weights w(slab j, slab j + d st), d = 1, 2, for the slabs a sweep still needs:
-  // a ring of d st + 1 slabs per d (slab j in slot j mod (d st + 1)).
-  int64_t depth[3] = {0, st + 1, 2 * st + 1};
+  // a ring of d st + 1 slabs per d (slab j in slot j mod depth), or of the n0 - d st slabs
+  // that have a partner, if fewer (then no slot is reused).
+  int64_t depth[3] = {1, 1, 1};
+  for (int d = 1; d <= 2; ++d) {
+    const int64_t partnered = n0 - d * st;
+    depth[d] = partnered <= 0 ? 1 : (partnered < d * st + 1 ? partnered : d * st + 1);
+  }
   const bool axis0 = st < n0;
   s.slabs.resize(static_cast<size_t>(2 * C * M));
   if (axis0) s.ring.resize(static_cast<size_t>((depth[1] + depth[2]) * M));

@@ -136,6 +136,34 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             box=halo["box"],
         )
 
+    # --- The same cases with the native kernel on every block (each level on the block and
+    # its reach): equal to the single-device native filter, shardings kept.
+    for i, (shape, mesh_shape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
+        scale = scale[0] if scale else 1.0
+        device_mesh = device_mesh_of(mesh_shape, AxisType.Explicit)
+        k = jax.random.fold_in(key, i)
+        m = jax.random.normal(k, shape + (2,))
+        v = jax.random.uniform(jax.random.fold_in(k, 1), shape + (3,))
+        guide = jax.random.uniform(jax.random.fold_in(k, 2), shape + (3,)) * scale
+        mask = (jax.random.uniform(jax.random.fold_in(k, 3), shape) > 0.2) if use_mask else None
+        axes = tuple(range(len(shape)))
+        kw = dict(
+            sigma_d=0.3 * scale, levels=levels, spatial_axes=axes, separable=sep, kernel="native"
+        )
+        ref = ob.atrous_bilateral((m, v), guide, mask=mask, **kw)
+        sh = NamedSharding(device_mesh, spec)
+        args = [jax.device_put(a, sh) for a in (m, v, guide)]
+        mk = None
+        if use_mask:
+            mk = jax.device_put(mask, NamedSharding(device_mesh, P(*tuple(spec)[: len(shape)])))
+        out = jax.jit(functools.partial(filter_pair, **kw))(*args, mk)
+        emit(
+            check="filter_native",
+            case=f"{shape} {mesh_shape} {spec} F={levels} {'sep' if sep else 'full'}",
+            max_diff=max_diff(out, ref),
+            sharding_kept=all(o.sharding.is_equivalent_to(sh, len(shape) + 1) for o in out),
+        )
+
     # --- guide="self": every level guided by its own input; a field whose channels are split
     # too (they are gathered per block for the guide's norm, and split again after).
     device_mesh = device_mesh_of((4, 2), AxisType.Explicit)
@@ -366,6 +394,11 @@ def _checks(kind):
 def test_sharded_filter_equals_single_device():
     for r in _checks("filter"):
         assert r["max_diff"] <= TOL, r
+
+
+def test_sharded_native_filter_equals_single_device_and_keeps_sharding():
+    for r in _checks("filter_native"):
+        assert r["max_diff"] <= TOL and r["sharding_kept"], r
 
 
 def test_sharded_filter_keeps_sharding():

@@ -154,7 +154,8 @@ def atrous_bilateral(
         backend fuses by itself. ``"auto"`` (default): the environment variable
         ``OPTAX_BILATERAL_KERNEL`` if set, else ``"xla_cpu"`` on the CPU backend and
         ``"plain"`` on any other (BENCHMARKS.md, "GPU"). The sharded filter has its own
-        kernel.
+        kernel, which runs each device's block on the native kernel when ``"native"`` is
+        chosen.
       first_level: run levels ``first_level .. levels - 1`` only (static int, default 0):
         continues a cascade whose first ``first_level`` levels made ``fields``, so the
         outputs after each of several levels cost one cascade, e.g.
@@ -340,6 +341,7 @@ def _filter_route(fields, field_axes, guide, guide_axes, plan, sigma_d, run: _Ru
         plan.mask,
         sigma_d,
         gather_channels=run.self_guided,
+        native=run.kernel == "native",
     )
 
 

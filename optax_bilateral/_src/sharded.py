@@ -41,6 +41,7 @@ import numpy as np
 from jax import lax
 from jax.sharding import AbstractMesh, AxisType, Mesh, NamedSharding, PartitionSpec
 
+from optax_bilateral._src import native
 from optax_bilateral._src.bilateral import (
     channel_sq_dist,
     level_passes,
@@ -247,11 +248,17 @@ def _reshard(x, device_mesh, entries):
 
 class HaloKernel:
     """The per-block kernel, with the interface of :mod:`optax_bilateral._src.atrous`:
-    planes are the block's own spatial shape, and each pass first fetches its halo."""
+    planes are the block's own spatial shape, and each pass first fetches its halo.
 
-    def __init__(self, geo: Sequence[_Axis], shape: tuple[int, ...]):
+    ``native``: each level runs as one call of the native kernel
+    (:mod:`optax_bilateral._src.native`) on the block extended by the level's reach along every
+    axis (corners included, so a separable level's later passes read correct values in the
+    halo), and keeps the block's own points."""
+
+    def __init__(self, geo: Sequence[_Axis], shape: tuple[int, ...], native: bool = False):
         self.geo = tuple(geo)
         self.shape = shape  # the global spatial shape
+        self.native = native
 
     def plane_shape(self, spatial_shape: Sequence[int]) -> tuple[int, ...]:
         return tuple(spatial_shape)
@@ -275,6 +282,8 @@ class HaloKernel:
         ]
         if valid is not None:
             g = jnp.where(valid > 0, g, jnp.nan)  # masked points are nobody's neighbour
+        if self.native:
+            return self._native_levels(x, g, g_halo, sigma, levels, separable, start)
         # The guide with halos, fetched once per halo pattern (per axis when separable).
         cache = {}
 
@@ -300,6 +309,26 @@ class HaloKernel:
         # 2-D full passes on a block keep their weights materialised with one channel too.
         return run(x) if len(shape) == 2 and not separable else two_channels(run, x)
 
+    def _native_levels(self, x, g, g_halo, sigma, levels, separable, start):
+        """Each level: the block and its reach (off the grid: zero fields, NaN guide, so
+        weight 0), filtered by the native kernel; the block's points kept. The guide's halo
+        is fetched once, at the widest reach. Masked points need no mask here: their guide
+        is NaN and their fields zero, so their output is their own zero."""
+        geo, shape = self.geo, self.shape
+        inside = _inside(g_halo, geo)
+        g_ext = jnp.where(inside, _extend(g, g_halo, 1, geo), jnp.nan)
+        block = x.shape[1:]
+        for i in range(start, levels):
+            pairs = [off for ps, _ in level_passes(shape, 2**i, separable) for off, _ in ps]
+            if not pairs:
+                continue
+            reach = [max(abs(off[k]) for off in pairs) for k in range(len(shape))]
+            x_ext = _extend(x, reach, 1, geo)
+            g_lvl = _at(g_ext, [h - r for h, r in zip(g_halo, reach)], x_ext.shape[1:], 1)
+            y = native.filter_planes(x_ext, g_lvl, None, sigma, i + 1, separable, start=i)
+            x = _at(y, reach, block, 1)
+        return x
+
 
 BlockFn = Callable[..., tuple]
 
@@ -316,9 +345,11 @@ def filter_sharded(
     sigma_d: Any,
     *,
     gather_channels: bool = False,
+    native: bool = False,
 ) -> tuple[jax.Array, ...]:
     """``filter_blocks(fields, guide, mask, sigma_d, kernel)`` run per device on its block,
-    with a :class:`HaloKernel`; returns the fields with the input's shardings.
+    with a :class:`HaloKernel` (``native``: its levels on the native kernel); returns the
+    fields with the input's shardings.
 
     Every field gets the first field's spatial split, its channel axes keep their own
     (``gather_channels``: are gathered within each block, for a field that guides
@@ -355,7 +386,7 @@ def filter_sharded(
         _Axis(mesh_axes[k], partition.shards(k), shape[k] // partition.shards(k), shape[k])
         for k in range(len(shape))
     )
-    kernel = HaloKernel(geo, shape)
+    kernel = HaloKernel(geo, shape, native=native)
     n = len(fields)
 
     def body(sigma, *local):
