@@ -182,3 +182,23 @@ def test_compiles_one_custom_call_for_the_whole_cascade():
     )
     text = f.lower(x).as_text()
     assert text.count(native.TARGET) == 1
+
+
+@pytest.mark.parametrize("cid", __import__("goldens").covering_subset())
+def test_transforms_on_the_native_kernel_match_the_goldens(cid, monkeypatch):
+    # Every golden configuration (tests/goldens.py: the transforms' updates and states over
+    # steps, recorded with the pure-JAX kernel), run with the native kernel in every filter.
+    # Tolerance as across toolchains: kernels round differently, and a one-ulp change of a
+    # moment moves a step by about as much; bfloat16/float16 round to ~1e-3.
+    import goldens
+
+    data = np.load(goldens.PATH)
+    monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "native")
+    jax.clear_caches()  # the kernel is read when a program is traced
+    for variant, got in goldens.run(cid).items():
+        key = f"{cid}/{variant}"
+        if key not in data.files:
+            continue
+        want = data[key]
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want), err_msg=key)
+        np.testing.assert_allclose(got, want, rtol=2e-2, atol=1e-3, err_msg=key)
