@@ -202,3 +202,32 @@ def test_transforms_on_the_native_kernel_match_the_goldens(cid, monkeypatch):
         want = data[key]
         np.testing.assert_array_equal(np.isnan(got), np.isnan(want), err_msg=key)
         np.testing.assert_allclose(got, want, rtol=2e-2, atol=1e-3, err_msg=key)
+
+
+def test_float64_fields_match_the_float64_reference():
+    # With jax_enable_x64 the kernel runs its double build: equal to the float64 loop of
+    # tests/reference.py to double rounding. (A child process: x64 is set when jax starts.)
+    code = textwrap.dedent(
+        """
+        import numpy as np, jax.numpy as jnp
+        from optax_bilateral import atrous_bilateral
+        from reference import atrous_reference
+        rng = np.random.default_rng(5)
+        for shape, sep in (((9, 7), True), ((9, 7), False), ((5, 4, 6), True), ((13,), True)):
+            x = rng.normal(size=shape + (2,))
+            g = rng.integers(0, 3, size=shape + (2,)) * 0.5 + rng.normal(size=shape + (2,)) * 0.05
+            out = atrous_bilateral(jnp.asarray(x), jnp.asarray(g), sigma_d=0.3, levels=3,
+                                   spatial_axes=tuple(range(len(shape))), separable=sep,
+                                   kernel="native")
+            assert out.dtype == jnp.float64, out.dtype
+            np.testing.assert_allclose(np.asarray(out), atrous_reference(x, g, 0.3, 3, sep),
+                                       rtol=1e-12, atol=1e-13)
+        print("ok")
+        """
+    )
+    env = dict(os.environ, JAX_ENABLE_X64="1")
+    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(__file__), env.get("PYTHONPATH", "")])
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
