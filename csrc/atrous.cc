@@ -172,14 +172,72 @@ std::vector<Step<T>> plan_steps(const Cascade<T>& c, const std::vector<Pass>& pa
   return steps;
 }
 
+// Runs `units` units of work, unit k as do_unit(k, scratch), on the calling thread and on
+// up to threads - 1 helpers; returns when all are done.
+template <typename T, typename F>
+void parallel(const Cascade<T>& c, int threads, size_t units, const F& do_unit) {
+  auto claims = std::make_shared<Claims>(units);
+  auto work = [claims, &do_unit, units] {
+    Scratch<T> scratch;
+    for (size_t k; (k = claims->next.fetch_add(1)) < units;) {
+      do_unit(k, scratch);
+      if (claims->done.fetch_add(1) + 1 == units) {
+        std::lock_guard<std::mutex> lock(claims->mutex);
+        claims->finished.notify_all();
+      }
+    }
+  };
+  const int helpers = static_cast<int>(std::min<size_t>(static_cast<size_t>(threads), units)) - 1;
+  std::vector<std::thread> own;
+  for (int t = 0; t < helpers; ++t) {
+    if (c.schedule) {
+      c.schedule(work);
+    } else {
+      own.emplace_back(work);
+    }
+  }
+  work();
+  {
+    std::unique_lock<std::mutex> lock(claims->mutex);
+    claims->finished.wait(lock, [&] { return claims->done.load() == units; });
+  }
+  for (auto& th : own) th.join();
+}
+
+// The channels of `fields` ((points, c_k) each, interleaved) as planes `planes[c]`.
+template <typename T>
+void deinterleave(const Cascade<T>& c, int threads, int64_t points,
+                  const std::vector<T*>& planes) {
+  const int64_t chunk = 1 << 14;
+  const size_t units = static_cast<size_t>((points + chunk - 1) / chunk);
+  parallel(c, threads, units, [&](size_t k, Scratch<T>&) {
+    const int64_t lo = static_cast<int64_t>(k) * chunk;
+    const int64_t hi = std::min(points, lo + chunk);
+    size_t ch = 0;
+    for (const auto& [field, nc] : c.x_fields)
+      for (int64_t q = 0; q < nc; ++q, ++ch) {
+        T* __restrict__ dst = planes[ch];
+        const T* __restrict__ src = field;
+        for (int64_t p = lo; p < hi; ++p) dst[p] = src[p * nc + q];
+      }
+  });
+}
+
 template <typename T>
 void run(const Cascade<T>& c) {
   int64_t points = 1;
   for (int64_t n : c.shape) points *= n;
   const std::vector<Pass> passes = make_passes(c.shape, c.levels, c.start, c.separable);
   const int64_t size = c.channels * points;
+  const bool interleaved = !c.x_fields.empty();
   if (passes.empty() || points == 0) {
-    std::copy(c.x, c.x + size, c.out);
+    if (!interleaved) {
+      std::copy(c.x, c.x + size, c.out);
+      return;
+    }
+    for (size_t f = 0; f < c.x_fields.size(); ++f)
+      std::copy(c.x_fields[f].first, c.x_fields[f].first + points * c.x_fields[f].second,
+                c.out_fields[f].first);
     return;
   }
   const auto [scale, sigma] = guide_scale(c, points);
@@ -188,21 +246,49 @@ void run(const Cascade<T>& c) {
   args.valid = c.valid;
   args.channels = c.channels;
   args.guide_channels = c.guide_channels;
-  args.x_stride = args.y_stride = args.guide_stride = points;
+  args.guide_stride = points;
   args.guide_scale = scale;
   args.sigma_inf = std::isinf(sigma);
   args.neg_inv_sigma = sigma > 0 ? T(-1) / sigma : -std::numeric_limits<T>::infinity();
   const std::vector<Step<T>> steps = plan_steps(c, passes);
-  // Step i writes `out` when the steps left after it are even in number, so the last step
-  // writes `out` and the first reads the input.
   const size_t ns = steps.size();
   int threads = std::max(1, c.threads);
   if (size < kMinParallelWork) threads = 1;
+  // The channels of the buffers the steps read and write: the input, the working copy and
+  // the output (with interleaved outputs: their memory, as planes, for the steps before the
+  // last one).
+  std::vector<const T*> in_ch(static_cast<size_t>(c.channels));
+  std::vector<T*> work_ch(static_cast<size_t>(c.channels)), out_ch(work_ch.size());
+  for (int64_t ch = 0; ch < c.channels; ++ch) {
+    work_ch[ch] = c.work + ch * points;
+    if (!interleaved) {
+      in_ch[ch] = c.x + ch * points;
+      out_ch[ch] = c.out + ch * points;
+    }
+  }
+  if (interleaved) {
+    size_t ch = 0;
+    for (const auto& [field, nc] : c.out_fields)
+      for (int64_t q = 0; q < nc; ++q) out_ch[ch++] = field + q * points;
+  }
+  // Planar: step i writes `out` when the steps after it are even in number, so the last
+  // writes `out` and the first reads the input. Interleaved: the last step reads the working
+  // copy and writes the outputs; the planes of the input go first to whichever buffer the
+  // steps' alternation starts from.
+  auto writes_out = [&](size_t i) { return (ns - 1 - i) % 2 == 0; };
+  if (interleaved) {
+    const bool first_to_out = ns % 2 == 0;  // then step 0 reads out's memory
+    deinterleave(c, threads, points, first_to_out ? out_ch : work_ch);
+    for (int64_t ch = 0; ch < c.channels; ++ch)
+      in_ch[ch] = first_to_out ? out_ch[ch] : work_ch[ch];
+  }
   for (size_t i = 0; i < ns; ++i) {
     PassArgs<T> a = args;
-    const bool to_out = (ns - 1 - i) % 2 == 0;
-    a.y = to_out ? c.out : c.work;
-    a.x = i == 0 ? c.x : (to_out ? c.work : c.out);
+    const bool to_out = writes_out(i);
+    a.y = to_out ? out_ch.data() : work_ch.data();
+    const T* const* prev = to_out ? work_ch.data() : out_ch.data();
+    a.x = i == 0 ? in_ch.data() : prev;
+    if (interleaved && i + 1 == ns) a.interleaved = &c.out_fields;
     const Step<T>& step = steps[i];
     a.pass = step.pass;
     // Units: a pass's blocks, or a level's slabs in one range per thread (each range
@@ -210,39 +296,16 @@ void run(const Cascade<T>& c) {
     const int64_t n0 = step.pass ? 0 : step.level.slabs;
     const size_t units = step.pass ? step.blocks.size()
                                    : static_cast<size_t>(std::min<int64_t>(threads, n0));
-    auto claims = std::make_shared<Claims>(units);
-    auto work = [claims, a, &step, n0, units] {
-      Scratch<T> scratch;
-      for (size_t k; (k = claims->next.fetch_add(1)) < units;) {
-        if (step.pass) {
-          const Block& b = step.blocks[k];
-          block(a, b.r0, b.r1, b.c0, b.c1, scratch);
-        } else {
-          const int64_t lo = n0 * static_cast<int64_t>(k) / static_cast<int64_t>(units);
-          const int64_t hi = n0 * static_cast<int64_t>(k + 1) / static_cast<int64_t>(units);
-          slabs(a, step.level, lo, hi, scratch);
-        }
-        if (claims->done.fetch_add(1) + 1 == units) {
-          std::lock_guard<std::mutex> lock(claims->mutex);
-          claims->finished.notify_all();
-        }
-      }
-    };
-    const int helpers = static_cast<int>(std::min<size_t>(static_cast<size_t>(threads), units)) - 1;
-    std::vector<std::thread> own;
-    for (int t = 0; t < helpers; ++t) {
-      if (c.schedule) {
-        c.schedule(work);
+    parallel(c, threads, units, [&](size_t k, Scratch<T>& scratch) {
+      if (step.pass) {
+        const Block& b = step.blocks[k];
+        block(a, b.r0, b.r1, b.c0, b.c1, scratch);
       } else {
-        own.emplace_back(work);
+        const int64_t lo = n0 * static_cast<int64_t>(k) / static_cast<int64_t>(units);
+        const int64_t hi = n0 * static_cast<int64_t>(k + 1) / static_cast<int64_t>(units);
+        slabs(a, step.level, lo, hi, scratch);
       }
-    }
-    work();
-    {
-      std::unique_lock<std::mutex> lock(claims->mutex);
-      claims->finished.wait(lock, [&] { return claims->done.load() == units; });
-    }
-    for (auto& th : own) th.join();
+    });
   }
 }
 

@@ -13,6 +13,7 @@
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace optax_bilateral {
@@ -24,7 +25,12 @@ struct Cascade {
   const T* guide = nullptr;  // (guide_channels, *shape)
   const T* valid = nullptr;  // (*shape) 0/1, or nullptr: every point valid
   T* out = nullptr;          // (channels, *shape)
-  T* work = nullptr;         // (channels, *shape) scratch, needed when the cascade has > 1 pass
+  T* work = nullptr;         // (channels, *shape) scratch, needed when the cascade has > 1 step
+  // Instead of x and out: fields and outputs of shape (*shape, c_k), their channels
+  // interleaved ({pointer, c_k}, the c_k adding up to `channels`). Only for a separable
+  // cascade of rank >= 2; `work` is then always needed.
+  std::vector<std::pair<const T*, int64_t>> x_fields;
+  std::vector<std::pair<T*, int64_t>> out_fields;
   int64_t channels = 1;
   int64_t guide_channels = 1;
   std::vector<int64_t> shape;

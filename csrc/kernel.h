@@ -16,11 +16,16 @@ namespace optax_bilateral {
 // What one pass reads and writes; the geometry is the pass's view of the grid.
 template <typename T>
 struct PassArgs {
-  const T* x;      // (C, .) input fields, channel c at x + c * x_stride
-  T* y;            // (C, .) output fields, channel c at y + c * y_stride
+  const T* const* x;  // channel c of the input at x[c] + x_at
+  int64_t x_at;
+  T* const* y;  // channel c of the output at y[c] + y_at
+  int64_t y_at;
   const T* guide;  // (G, .), channel c at guide + c * guide_stride
   const T* valid;  // (.) or nullptr
-  int64_t channels, guide_channels, x_stride, y_stride, guide_stride;
+  int64_t channels, guide_channels, guide_stride;
+  // run_slabs only: write the result into these fields, each (points, channels) with its
+  // channels interleaved, instead of y.
+  const std::vector<std::pair<T*, int64_t>>* interleaved = nullptr;
   T guide_scale;    // the guide's multiplier: 1/2 with one channel, else a power of two
   T neg_inv_sigma;  // -1 / sigma_d (scaled like the guide); -inf for sigma_d = 0
   bool sigma_inf;   // sigma_d = inf: every kept pair weighs 1
@@ -43,6 +48,7 @@ struct Scratch {
   std::vector<char> on;
   std::vector<Term<T>> terms;
   std::vector<T> slabs, ring;  // run_slabs: two slabs of the fields, the axis-0 weights
+  std::vector<T*> cur, other;   // their channels
 };
 
 // One separable level of a grid of rank >= 2 run as one sweep over slabs of axis 0: the
@@ -158,7 +164,7 @@ void pair_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap
     return;
   }
   if (a.guide_channels >= 2 && a.guide_channels <= 4) {  // the distance in registers
-    const int key = a.guide_channels * 4 + (va ? 2 : 0) + (gs != T(1) ? 1 : 0);
+    const int64_t key = a.guide_channels * 4 + (va ? 2 : 0) + (gs != T(1) ? 1 : 0);
     switch (key) {
 #define OB_FEW(g, m, sc) \
   case g * 4 + m * 2 + sc: \
@@ -420,8 +426,8 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
     add_interior(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
     reciprocal(den, width);  // one divide per point, not per channel
     for (int64_t c = 0; c < a.channels; ++c) {
-      const T* xc = a.x + c * a.x_stride;
-      channel_sums(terms, nt, jl, jh, width, h0, a.y + c * a.y_stride + p, xc + p, xc, den);
+      const T* xc = a.x[c] + a.x_at;
+      channel_sums(terms, nt, jl, jh, width, h0, a.y[c] + a.y_at + p, xc + p, xc, den);
     }
   }
 }
@@ -458,11 +464,15 @@ void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int6
     for (int d = 1; d <= 2; ++d)
       for (int64_t j = i0 - d * st; j < i0; ++j) compute(d, j);
   }
-  T* cur = s.slabs.data();
-  T* other = cur + C * M;
+  s.cur.resize(static_cast<size_t>(C));
+  s.other.resize(static_cast<size_t>(C));
+  for (int64_t c = 0; c < C; ++c) {
+    s.cur[c] = s.slabs.data() + c * M;
+    s.other[c] = s.slabs.data() + (C + c) * M;
+  }
   for (int64_t i = i0; i < i1; ++i) {
-    const T* in = a.x + i * M;  // the slab's input, channel stride x_stride
-    int64_t in_stride = a.x_stride;
+    const T* const* in = a.x;  // the slab's input: channel c at in[c] + in_at
+    int64_t in_at = a.x_at + i * M;
     if (axis0) {
       for (int d = 1; d <= 2; ++d) compute(d, i);
       s.terms.resize(4);
@@ -481,29 +491,40 @@ void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int6
       add_interior(s.terms.data(), nt, 0, M, den, static_cast<const T*>(nullptr));
       reciprocal(den, M);
       for (int64_t c = 0; c < C; ++c) {
-        const T* xc = a.x + c * a.x_stride;
-        channel_sums(s.terms.data(), nt, 0, M, M, h0, cur + c * M, xc + i * M, xc, den);
+        const T* xc = a.x[c] + a.x_at;
+        channel_sums(s.terms.data(), nt, 0, M, M, h0, s.cur[c], xc + i * M, xc, den);
       }
-      in = cur;
-      in_stride = M;
+      in = s.cur.data();
+      in_at = 0;
     }
     for (size_t k = 0; k < level.inner.size(); ++k) {
       const bool last = k + 1 == level.inner.size();
+      T* const* spare = in == s.cur.data() ? s.other.data() : s.cur.data();
+      const bool to_y = last && !a.interleaved;
       PassArgs<T> b = a;
       b.x = in;
-      b.x_stride = in_stride;
-      b.y = last ? a.y + i * M : (in == cur ? other : cur);
-      b.y_stride = last ? a.y_stride : M;
+      b.x_at = in_at;
+      b.y = to_y ? a.y : spare;
+      b.y_at = to_y ? a.y_at + i * M : 0;
       b.guide = a.guide + i * M;
       b.valid = a.valid ? a.valid + i * M : nullptr;
       b.pass = &level.inner[k];
       run_block(b, 0, level.inner[k].rows(), 0, level.inner[k].row_length, s);
       in = b.y;
-      in_stride = b.y_stride;
+      in_at = b.y_at;
     }
-    if (level.inner.empty()) {  // only the axis-0 pass ran: the slab is the output
+    if (a.interleaved) {  // the slab's result into the fields, channels interleaved
+      int64_t c = 0;
+      for (const auto& [field, nc] : *a.interleaved) {
+        T* __restrict__ out = field + i * M * nc;
+        for (int64_t k = 0; k < nc; ++k, ++c) {
+          const T* __restrict__ src = in[c] + in_at;
+          for (int64_t j = 0; j < M; ++j) out[j * nc + k] = src[j];
+        }
+      }
+    } else if (level.inner.empty()) {  // only the axis-0 pass ran: the slab is the output
       for (int64_t c = 0; c < C; ++c)
-        std::memcpy(a.y + c * a.y_stride + i * M, in + c * in_stride, sizeof(T) * M);
+        std::memcpy(a.y[c] + a.y_at + i * M, in[c] + in_at, sizeof(T) * M);
     }
   }
 }

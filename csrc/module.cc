@@ -90,6 +90,77 @@ ffi::Error atrous(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer guide,
   }
 }
 
+template <typename T>
+ffi::Error run_fields_typed(ffi::ThreadPool& pool, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
+                            ffi::AnyBuffer sigma, ffi::RemainingArgs fields,
+                            ffi::RemainingRets outs, int64_t levels, int64_t start,
+                            bool has_valid, int64_t threads) {
+  const auto gd = guide.dimensions();
+  ob::Cascade<T> c;
+  c.guide_channels = gd[0];
+  c.shape.assign(gd.begin() + 1, gd.end());
+  int64_t points = 1;
+  for (int64_t n : c.shape) points *= n;
+  if (c.shape.size() < 2) return invalid("interleaved fields need a grid of rank >= 2");
+  if (outs.size() != fields.size() + 1)
+    return invalid("one output per field, and the working copy last");
+  c.channels = 0;
+  for (size_t k = 0; k < fields.size(); ++k) {
+    auto in = fields.get<ffi::AnyBuffer>(k);
+    auto out = outs.get<ffi::AnyBuffer>(k);
+    if (!in.has_value() || !out.has_value()) return invalid("fields and outputs are buffers");
+    if (in->element_type() != guide.element_type() || (*out)->element_type() != guide.element_type())
+      return invalid("fields, outputs and guide must share one dtype");
+    const int64_t n = static_cast<int64_t>(in->element_count());
+    if (n % points != 0 || static_cast<int64_t>((*out)->element_count()) != n)
+      return invalid("each field and its output must be (points, channels)");
+    c.x_fields.push_back({static_cast<const T*>(in->untyped_data()), n / points});
+    c.out_fields.push_back({static_cast<T*>((*out)->untyped_data()), n / points});
+    c.channels += n / points;
+  }
+  auto work = outs.get<ffi::AnyBuffer>(fields.size());
+  if (!work.has_value() || static_cast<int64_t>((*work)->element_count()) != c.channels * points)
+    return invalid("the working copy must hold every channel of every point");
+  if (has_valid && static_cast<int64_t>(valid.element_count()) != points)
+    return invalid("valid must have the spatial shape");
+  if (sigma.element_count() != 1) return invalid("sigma_d must be a scalar");
+  c.work = static_cast<T*>((*work)->untyped_data());
+  c.guide = static_cast<const T*>(guide.untyped_data());
+  c.valid = has_valid ? static_cast<const T*>(valid.untyped_data()) : nullptr;
+  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
+  c.levels = static_cast<int>(levels);
+  c.start = static_cast<int>(start);
+  c.separable = true;
+  c.threads = static_cast<int>(threads);
+  c.schedule = [&pool](std::function<void()> task) { pool.Schedule(std::move(task)); };
+  ob::run_cascade(c);
+  return ffi::Error::Success();
+}
+
+// The separable cascade on fields whose channels are interleaved, (points, c_k) each:
+// their planes are taken apart inside the call, and the outputs written interleaved.
+ffi::Error atrous_fields(ffi::ThreadPool pool, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
+                         ffi::AnyBuffer sigma, ffi::RemainingArgs fields,
+                         ffi::RemainingRets outs, int64_t levels, int64_t start,
+                         bool has_valid, int64_t threads) {
+  if (levels < 0 || start < 0 || start > levels || levels > 62)
+    return invalid("need 0 <= start <= levels <= 62");
+  if (guide.dimensions().size() < 2) return invalid("guide must be (G, *S)");
+  if (sigma.element_type() != guide.element_type() ||
+      (has_valid && valid.element_type() != guide.element_type()))
+    return invalid("guide, valid and sigma_d must share one dtype");
+  switch (guide.element_type()) {
+    case ffi::DataType::F32:
+      return run_fields_typed<float>(pool, guide, valid, sigma, fields, outs, levels, start,
+                                     has_valid, threads);
+    case ffi::DataType::F64:
+      return run_fields_typed<double>(pool, guide, valid, sigma, fields, outs, levels, start,
+                                      has_valid, threads);
+    default:
+      return invalid("fields must be float32 or float64");
+  }
+}
+
 }  // namespace
 
 #pragma GCC diagnostic push
@@ -108,6 +179,18 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrous, atrous,
                                   .Attr<bool>("separable")
                                   .Attr<bool>("has_valid")
                                   .Attr<int64_t>("threads"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrousFields, atrous_fields,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::AnyBuffer>()  // guide (G, *S)
+                                  .Arg<ffi::AnyBuffer>()  // valid (*S), or (0,)
+                                  .Arg<ffi::AnyBuffer>()  // sigma_d, a scalar
+                                  .RemainingArgs()        // the fields, (points, c_k)
+                                  .RemainingRets()        // their outputs, the working copy
+                                  .Attr<int64_t>("levels")
+                                  .Attr<int64_t>("start")
+                                  .Attr<bool>("has_valid")
+                                  .Attr<int64_t>("threads"));
 #pragma GCC diagnostic pop
 
 namespace {
@@ -118,6 +201,13 @@ PyObject* registrations(PyObject*, PyObject*) {
   PyObject* capsule =
       PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralAtrous), nullptr, nullptr);
   if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_atrous", capsule) < 0) {
+    Py_XDECREF(capsule);
+    Py_DECREF(dict);
+    return nullptr;
+  }
+  Py_DECREF(capsule);
+  capsule = PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralAtrousFields), nullptr, nullptr);
+  if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_atrous_fields", capsule) < 0) {
     Py_XDECREF(capsule);
     Py_DECREF(dict);
     return nullptr;

@@ -79,7 +79,8 @@ std::vector<double> reference(std::vector<double> x, const std::vector<double>& 
 }
 
 int check(std::vector<int64_t> shape, int64_t C, int64_t G, double sigma, int levels,
-          bool separable, bool masked, bool nan_guide, int threads, unsigned seed) {
+          bool separable, bool masked, bool nan_guide, int threads, unsigned seed,
+          bool interleaved = false) {
   std::mt19937 rng(seed);
   std::normal_distribution<double> normal;
   int64_t N = 1;
@@ -112,15 +113,34 @@ int check(std::vector<int64_t> shape, int64_t C, int64_t G, double sigma, int le
   c.levels = levels;
   c.separable = separable;
   c.threads = threads;
+  // Interleaved: the channels as two fields (1 and C - 1 channels), each (N, c_k).
+  std::vector<float> f0(N), f1((C - 1) * N), o0(N, -1.0f), o1((C - 1) * N, -1.0f);
+  if (interleaved) {
+    for (int64_t p = 0; p < N; ++p) {
+      f0[p] = xf[p];
+      for (int64_t k = 1; k < C; ++k) f1[p * (C - 1) + k - 1] = xf[k * N + p];
+    }
+    c.x = nullptr;
+    c.out = nullptr;
+    c.levels = levels;
+    c.x_fields = {{f0.data(), 1}, {f1.data(), C - 1}};
+    c.out_fields = {{o0.data(), 1}, {o1.data(), C - 1}};
+  }
   ob::run_cascade(c);
+  if (interleaved) {
+    for (int64_t p = 0; p < N; ++p) {
+      out[p] = o0[p];
+      for (int64_t k = 1; k < C; ++k) out[k * N + p] = o1[p * (C - 1) + k - 1];
+    }
+  }
   for (int64_t i = 0; i < C * N; ++i) {
     // float32 sums of unit-scale terms: 1e-5 relative, 1e-6 absolute where they cancel.
     const double err = std::fabs(out[i] - want[i]);
     if (!(err <= 1e-6 + 1e-5 * std::fabs(want[i]))) {
       std::printf("FAIL shape[0]=%lld rank=%zu C=%lld G=%lld sigma=%g F=%d sep=%d mask=%d "
-                  "nan=%d threads=%d: [%lld] %g vs %g\n",
+                  "nan=%d threads=%d interleaved=%d: [%lld] %g vs %g\n",
                   (long long)shape[0], shape.size(), (long long)C, (long long)G, sigma, levels,
-                  separable, masked, nan_guide, threads, (long long)i, out[i], want[i]);
+                  separable, masked, nan_guide, threads, interleaved, (long long)i, out[i], want[i]);
       return 1;
     }
   }
@@ -145,6 +165,11 @@ int main() {
             failures += check(shape, 2, G, sigma, levels, separable, masked, nan_guide, threads,
                               seed++);
             ++cases;
+            if (separable && shape.size() >= 2) {  // fields with their channels interleaved
+              failures += check(shape, 3, G, sigma, levels, true, masked, nan_guide, threads,
+                                seed++, true);
+              ++cases;
+            }
           }
   std::printf("%d passed, %d failed (instruction set %s)\n", cases - failures, failures,
               ob::instruction_set().c_str());

@@ -355,6 +355,12 @@ def _filter_blocks(
     then not read."""
     compute = jnp.promote_types(jnp.result_type(*fields), jnp.float32)
     shape = tuple(fields[0].shape[a] for a in field_axes[0])
+    if (
+        not run.self_guided
+        and hasattr(kernel, "filter_fields")
+        and native.takes_fields(shape, run.separable, field_axes)
+    ):
+        return _filter_fields(fields, guide, mask, sigma_d, kernel, guide_axes, compute, run)
     # In the kernel's plane shape already: a reshape between the concatenation and the
     # first pass would stop XLA fusing them.
     planes = kernel.plane_shape(shape)
@@ -381,3 +387,22 @@ def _filter_blocks(
     if mask is not None:
         x = jnp.where(mask, x, 0)
     return layout.from_planes(x, restore, shape)
+
+
+def _filter_fields(fields, guide, mask, sigma_d, kernel, guide_axes, compute, run: _Run):
+    """The native kernel on fields in their own layout (spatial axes first): no planar copy
+    of the fields, which the kernel takes apart and puts back itself."""
+    shape = tuple(guide.shape[a] for a in guide_axes)
+    g = layout.guide_planes(guide, guide_axes, compute, shape)
+    g = log_transform(g) if run.log_guide else g
+    sigma = jnp.asarray(sigma_d, dtype=compute)
+    n = len(shape)
+    xs = [f.astype(compute) for f in fields]
+    valid = None
+    if mask is not None:
+        valid = mask.astype(compute)
+        xs = [jnp.where(mask.reshape(shape + (1,) * (x.ndim - n)), x, 0) for x in xs]
+    ys = kernel.filter_fields(xs, g, valid, sigma, run.levels, start=run.start)
+    if mask is not None:
+        ys = [jnp.where(mask.reshape(shape + (1,) * (y.ndim - n)), y, 0) for y in ys]
+    return tuple(y.astype(f.dtype) for y, f in zip(ys, fields))

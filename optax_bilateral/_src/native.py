@@ -22,6 +22,7 @@ import functools
 import importlib
 import importlib.machinery
 import importlib.util
+import math
 import os
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -34,6 +35,7 @@ from optax_bilateral._src import plain
 from optax_bilateral._src.bilateral import level_passes
 
 TARGET = "optax_bilateral_atrous"
+FIELDS_TARGET = "optax_bilateral_atrous_fields"
 # The threads one call uses (default: the CPUs this process may run on). Read when a program
 # is traced: a compiled program keeps the count it was traced with.
 THREADS_ENV = "OPTAX_BILATERAL_THREADS"
@@ -156,6 +158,73 @@ def _steps(shape, levels, start, separable) -> int:
     if separable and len(shape) >= 2:
         return sum(1 for n in per_level if n)
     return sum(per_level)
+
+
+def takes_fields(shape: Sequence[int], separable: bool, field_axes) -> bool:
+    """Whether :func:`filter_fields` applies: a separable cascade on a grid of rank >= 2 whose
+    fields hold their spatial axes first, in order (channels last, as textures and volumes)."""
+    lead = tuple(range(len(shape)))
+    return separable and len(shape) >= 2 and all(tuple(a) == lead for a in field_axes)
+
+
+def filter_fields(
+    fields: Sequence[jax.Array],
+    g: jax.Array,
+    valid: jax.Array | None,
+    sigma: jax.Array,
+    levels: int,
+    start: int = 0,
+) -> tuple[jax.Array, ...]:
+    """The separable cascade on fields in their own layout, ``(*S, ...)`` with the spatial
+    axes first (zero where invalid, in the compute dtype), with guide planes ``g`` (G, *S):
+    their channels are taken apart and put back inside the call, so no planar copy of the
+    fields is made. Returns the fields' shapes."""
+    ok, reason = _registered()
+    if not ok:
+        raise RuntimeError(f"the native filter kernel cannot run here: {reason}")
+    return _fields_cascade(tuple(fields), g, valid, sigma, levels, start)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5))
+def _fields_cascade(fields, g, valid, sigma, levels, start):
+    shape = g.shape[1:]
+    points = math.prod(shape)
+    flat = [f.reshape(points, -1) for f in fields]
+    channels = sum(f.shape[1] for f in flat)
+    dtype = g.dtype
+    call = jax.ffi.ffi_call(
+        FIELDS_TARGET,
+        tuple(jax.ShapeDtypeStruct(f.shape, dtype) for f in flat)
+        + (jax.ShapeDtypeStruct((channels, points), dtype),),
+        vmap_method="sequential",
+    )
+    outs = call(
+        g,
+        jnp.zeros((0,), dtype) if valid is None else valid.astype(dtype),
+        jnp.asarray(sigma, dtype).reshape(()),
+        *flat,
+        levels=np.int64(levels),
+        start=np.int64(start),
+        has_valid=valid is not None,
+        threads=np.int64(threads()),
+    )
+    return tuple(o.reshape(f.shape) for o, f in zip(outs[:-1], fields))
+
+
+@_fields_cascade.defjvp
+def _fields_cascade_jvp(levels, start, primals, tangents):
+    # The plain kernel's derivative, on the fields' planes.
+    def pure(fields, g, valid, sigma):
+        n = g.ndim - 1
+        planes = [jnp.moveaxis(f.reshape(f.shape[:n] + (-1,)), -1, 0) for f in fields]
+        y = plain.filter_planes(jnp.concatenate(planes), g, valid, sigma, levels, True, start)
+        out, at = [], 0
+        for f, p in zip(fields, planes):
+            out.append(jnp.moveaxis(y[at : at + p.shape[0]], 0, -1).reshape(f.shape))
+            at += p.shape[0]
+        return tuple(out)
+
+    return jax.jvp(pure, primals, tangents)
 
 
 @_cascade.defjvp
