@@ -223,6 +223,24 @@ void deinterleave(const Cascade<T>& c, int threads, int64_t points,
   });
 }
 
+// Bounds of `threads` slab ranges of about equal cost: a range that does not start at slab 0
+// first recomputes the axis-0 weights of the 3 st slabs before it (one pair each, about a
+// quarter of a slab's work), so it gets fewer slabs.
+template <typename T>
+std::vector<int64_t> slab_ranges(const SlabLevel<T>& level, int threads) {
+  const int64_t n0 = level.slabs, st = level.stride;
+  const int64_t t = std::max<int64_t>(1, std::min<int64_t>(threads, n0));
+  const int64_t halo = st < n0 ? (std::min(st, n0) + std::min(2 * st, n0)) / 4 : 0;
+  const int64_t share = (n0 + (t - 1) * halo + t - 1) / t;  // cost per range, rounded up
+  std::vector<int64_t> bounds = {0};
+  for (int64_t k = 1; k < t; ++k) {
+    const int64_t next = bounds.back() + share - (k > 1 ? halo : 0);
+    bounds.push_back(std::clamp<int64_t>(next, bounds.back() + 1, n0 - (t - k)));
+  }
+  bounds.push_back(n0);
+  return bounds;
+}
+
 template <typename T>
 void run(const Cascade<T>& c) {
   int64_t points = 1;
@@ -291,19 +309,16 @@ void run(const Cascade<T>& c) {
     if (interleaved && i + 1 == ns) a.interleaved = &c.out_fields;
     const Step<T>& step = steps[i];
     a.pass = step.pass;
-    // Units: a pass's blocks, or a level's slabs in one range per thread (each range
-    // recomputes the axis-0 weights of the slabs before it).
-    const int64_t n0 = step.pass ? 0 : step.level.slabs;
-    const size_t units = step.pass ? step.blocks.size()
-                                   : static_cast<size_t>(std::min<int64_t>(threads, n0));
+    // Units: a pass's blocks, or a level's slabs in one range per thread.
+    const std::vector<int64_t> bounds = step.pass ? std::vector<int64_t>{}
+                                                  : slab_ranges(step.level, threads);
+    const size_t units = step.pass ? step.blocks.size() : bounds.size() - 1;
     parallel(c, threads, units, [&](size_t k, Scratch<T>& scratch) {
       if (step.pass) {
         const Block& b = step.blocks[k];
         block(a, b.r0, b.r1, b.c0, b.c1, scratch);
       } else {
-        const int64_t lo = n0 * static_cast<int64_t>(k) / static_cast<int64_t>(units);
-        const int64_t hi = n0 * static_cast<int64_t>(k + 1) / static_cast<int64_t>(units);
-        slabs(a, step.level, lo, hi, scratch);
+        slabs(a, step.level, bounds[k], bounds[k + 1], scratch);
       }
     });
   }
