@@ -62,3 +62,14 @@ def test_kernel_choice(monkeypatch):
     x = jnp.ones((4, 4))
     with pytest.raises(ValueError, match="kernel must be"):
         atrous_bilateral(x, x, sigma_d=1.0, levels=1, spatial_axes=(0, 1), kernel="gpu")
+
+
+@pytest.mark.parametrize("kernel", ["native", "xla_cpu", "plain"])
+def test_an_empty_grid_is_returned_as_it_is(kernel):
+    # No point to filter: every kernel returns the (empty) fields, with their shapes and dtypes
+    # (the planar layout divided by the empty spatial size before).
+    x = jnp.zeros((0, 5, 2), jnp.bfloat16)
+    y = atrous_bilateral(
+        x, jnp.zeros((0, 5)), sigma_d=0.5, levels=3, spatial_axes=(0, 1), kernel=kernel
+    )
+    assert y.shape == x.shape and y.dtype == x.dtype

@@ -302,6 +302,8 @@ def _filter_jit(fields, guide, sigma_d, mask, *, spatial_axes, guide_axes, run: 
     """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
     traced."""
     plan = _plan(fields, guide, mask, spatial_axes, guide_axes)
+    if 0 in plan.shape:  # an empty grid: no point to filter, no neighbour to read
+        return plan.fields[0] if plan.single else plan.fields
     if run.levels == run.start:  # only a mask to apply (the front door returns early without one)
         mask = plan.mask
         assert mask is not None
