@@ -51,8 +51,12 @@ def optimizers(full: bool) -> dict[str, optax.GradientTransformation]:
 
 
 def _with_kernel(kernel: str, fn):
+    """``fn()`` with every filter traced on ``kernel``: the variable is read when a program is
+    traced, so traces cached before (the library's jitted per-leaf steps) are dropped, and so
+    are this kernel's after."""
     old = os.environ.get(KERNEL_ENV)
     os.environ[KERNEL_ENV] = kernel
+    jax.clear_caches()
     try:
         return fn()
     finally:
@@ -60,6 +64,7 @@ def _with_kernel(kernel: str, fn):
             os.environ.pop(KERNEL_ENV)
         else:
             os.environ[KERNEL_ENV] = old
+        jax.clear_caches()
 
 
 def measure(shape: tuple[int, ...], rounds: int) -> list[dict]:

@@ -128,6 +128,7 @@ def test_vmap_filters_each_batch_element():
 
 def test_thread_count_does_not_change_the_result(monkeypatch):
     # Each block's sums run in the same order whatever thread takes it: bit-equal outputs.
+    # The count is read when a program is traced: each is traced afresh, and says its count.
     rng = np.random.default_rng(3)
     x = jnp.asarray(rng.normal(size=(96, 80, 3)), jnp.float32)
     g = jnp.asarray(rng.random((96, 80)), jnp.float32)
@@ -135,13 +136,20 @@ def test_thread_count_does_not_change_the_result(monkeypatch):
     for n in ("1", "3"):
         monkeypatch.setenv(native.THREADS_ENV, n)
         assert native.threads() == int(n)
-        outs.append(
-            atrous_bilateral(x, g, sigma_d=0.2, levels=4, spatial_axes=(0, 1), kernel="native")
+        jax.clear_caches()
+        f = jax.jit(
+            lambda x, g: atrous_bilateral(
+                x, g, sigma_d=0.2, levels=4, spatial_axes=(0, 1), kernel="native"
+            )
         )
+        assert f"threads = {n} : i64" in f.lower(x, g).as_text()
+        outs.append(f(x, g))
     np.testing.assert_array_equal(np.asarray(outs[0]), np.asarray(outs[1]))
     monkeypatch.setenv(native.THREADS_ENV, "zero")
     with pytest.raises(ValueError, match=native.THREADS_ENV):
         native.threads()
+    monkeypatch.delenv(native.THREADS_ENV)
+    jax.clear_caches()
 
 
 def test_without_the_extension_the_pure_jax_kernels_run():
@@ -193,9 +201,16 @@ def test_transforms_on_the_native_kernel_match_the_goldens(cid, monkeypatch):
     import goldens
 
     data = np.load(goldens.PATH)
+    # The kernel is read when a program is traced: clear the traces before, and after, so
+    # that no later test in this process reuses one made with the native kernel.
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "native")
-    jax.clear_caches()  # the kernel is read when a program is traced
-    for variant, got in goldens.run(cid).items():
+    jax.clear_caches()
+    try:
+        results = goldens.run(cid)
+    finally:
+        monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
+        jax.clear_caches()
+    for variant, got in results.items():
         key = f"{cid}/{variant}"
         if key not in data.files:
             continue
