@@ -36,7 +36,10 @@ else:
 
 
 class Kernel(Protocol):
-    """What the front door needs from a kernel."""
+    """What the front door needs from a kernel. A kernel may also offer
+    ``filter_fields(fields, g, valid, sigma, levels, start)`` (the native kernel does): a
+    separable cascade on fields in their own layout, spatial axes first, which the front door
+    then calls instead of laying the fields out as planes."""
 
     def plane_shape(self, spatial_shape: Sequence[int]) -> tuple[int, ...]:
         """The shape each channel's plane is laid out in."""
