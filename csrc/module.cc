@@ -29,6 +29,21 @@ ffi::Error invalid(const std::string& message) {
   return ffi::Error(ffi::ErrorCode::kInvalidArgument, "optax_bilateral native kernel: " + message);
 }
 
+// The cascade's settings from the call's attributes, then the cascade on XLA's threads.
+template <typename T>
+ffi::Error run_on(ob::Cascade<T>& c, ffi::ThreadPool& pool, ffi::AnyBuffer sigma,
+                  int64_t levels, int64_t start, bool separable, int64_t threads) {
+  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
+  c.levels = static_cast<int>(levels);
+  c.start = static_cast<int>(start);
+  c.separable = separable;
+  c.threads = static_cast<int>(threads);
+  // XLA's intra-op threads, which would otherwise spin beside threads of our own.
+  c.schedule = [&pool](std::function<void()> task) { pool.Schedule(std::move(task)); };
+  ob::run_cascade(c);
+  return ffi::Error::Success();
+}
+
 template <typename T>
 ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
                      ffi::AnyBuffer sigma, ffi::AnyBuffer* out, ffi::AnyBuffer* work,
@@ -57,15 +72,7 @@ ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer vali
   if (work->element_count() != x.element_count() &&
       ob::count_steps(c.shape, static_cast<int>(levels), static_cast<int>(start), separable) > 1)
     return invalid("a cascade of several steps needs a working copy of the fields' size");
-  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
-  c.levels = static_cast<int>(levels);
-  c.start = static_cast<int>(start);
-  c.separable = separable;
-  c.threads = static_cast<int>(threads);
-  // XLA's intra-op threads, which would otherwise spin beside threads of our own.
-  c.schedule = [&pool](std::function<void()> task) { pool.Schedule(std::move(task)); };
-  ob::run_cascade(c);
-  return ffi::Error::Success();
+  return run_on(c, pool, sigma, levels, start, separable, threads);
 }
 
 ffi::Error atrous(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer guide,
@@ -127,14 +134,7 @@ ffi::Error run_fields_typed(ffi::ThreadPool& pool, ffi::AnyBuffer guide, ffi::An
   c.work = static_cast<T*>((*work)->untyped_data());
   c.guide = static_cast<const T*>(guide.untyped_data());
   c.valid = has_valid ? static_cast<const T*>(valid.untyped_data()) : nullptr;
-  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
-  c.levels = static_cast<int>(levels);
-  c.start = static_cast<int>(start);
-  c.separable = true;
-  c.threads = static_cast<int>(threads);
-  c.schedule = [&pool](std::function<void()> task) { pool.Schedule(std::move(task)); };
-  ob::run_cascade(c);
-  return ffi::Error::Success();
+  return run_on(c, pool, sigma, levels, start, true, threads);
 }
 
 // The separable cascade on fields whose channels are interleaved, (points, c_k) each:

@@ -92,14 +92,20 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         # block rescales its own guide (a power of two: same weights, no all-reduce).
         ((16, 16), (4, 2), P("x", "y"), 2, True, False, 2.0**100),
     ]
-    for i, (shape, mesh_shape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
-        scale = scale[0] if scale else 1.0
-        device_mesh = device_mesh_of(mesh_shape, AxisType.Explicit)
+
+    def case_arrays(i, shape, use_mask):
+        """(m, v, guide, mask) of filter case ``i``."""
         k = jax.random.fold_in(key, i)
         m = jax.random.normal(k, shape + (2,))
         v = jax.random.uniform(jax.random.fold_in(k, 1), shape + (3,))
         guide = jax.random.uniform(jax.random.fold_in(k, 2), shape + (3,))
         mask = (jax.random.uniform(jax.random.fold_in(k, 3), shape) > 0.2) if use_mask else None
+        return m, v, guide, mask
+
+    for i, (shape, mesh_shape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
+        scale = scale[0] if scale else 1.0
+        device_mesh = device_mesh_of(mesh_shape, AxisType.Explicit)
+        m, v, guide, mask = case_arrays(i, shape, use_mask)
         axes = tuple(range(len(shape)))
         kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep)
         ref = ob.atrous_bilateral((m, v), guide, mask=mask, **kw)
@@ -141,11 +147,8 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     for i, (shape, mesh_shape, spec, levels, sep, use_mask, *scale) in enumerate(filter_cases):
         scale = scale[0] if scale else 1.0
         device_mesh = device_mesh_of(mesh_shape, AxisType.Explicit)
-        k = jax.random.fold_in(key, i)
-        m = jax.random.normal(k, shape + (2,))
-        v = jax.random.uniform(jax.random.fold_in(k, 1), shape + (3,))
-        guide = jax.random.uniform(jax.random.fold_in(k, 2), shape + (3,)) * scale
-        mask = (jax.random.uniform(jax.random.fold_in(k, 3), shape) > 0.2) if use_mask else None
+        m, v, guide, mask = case_arrays(i, shape, use_mask)
+        guide = guide * scale
         axes = tuple(range(len(shape)))
         kw = dict(
             sigma_d=0.3 * scale, levels=levels, spatial_axes=axes, separable=sep, kernel="native"
