@@ -1,10 +1,11 @@
 """The native kernel of the a-trous filter: one XLA FFI call runs the whole cascade.
 
 The same two functions as the pure-JAX kernels (:func:`plane_shape`, :func:`filter_planes`),
-computed by the C++ extension ``optax_bilateral._native`` (sources in ``csrc/``, built by
-``setup.py``): every level and pass in one call, each pair's weight computed once and used by
-both of its points, on several threads, with one working copy of the fields beside the
-output (a second output of the call, so that it is in XLA's buffer plan).
+and :func:`filter_fields` for fields in their own layout, computed by the C++ extension
+``optax_bilateral._native`` (sources in ``csrc/``, built by ``setup.py``): every level and
+pass in one call, each pair's weight computed once and used by both of its points, on
+several threads, with one working copy of the fields beside the output (a last output of the
+call, so that it is in XLA's buffer plan).
 
 Derivatives are the pure-JAX kernel's: :func:`filter_planes` is a ``jax.custom_jvp`` whose rule
 differentiates :mod:`optax_bilateral._src.plain`, so ``jax.grad`` / ``jax.jvp`` with respect to
@@ -20,8 +21,6 @@ from __future__ import annotations
 
 import functools
 import importlib
-import importlib.machinery
-import importlib.util
 import math
 import os
 from collections.abc import Sequence
@@ -39,8 +38,7 @@ FIELDS_TARGET = "optax_bilateral_atrous_fields"
 # The threads one call uses (default: the CPUs this process may run on). Read when a program
 # is traced: a compiled program keeps the count it was traced with.
 THREADS_ENV = "OPTAX_BILATERAL_THREADS"
-# "0": do not load the extension (the pure-JAX kernels run); a file path: load the extension
-# from that file instead of the installed one (the sanitizer build, `make sanitize`).
+# "0": do not load the extension: the pure-JAX kernels run, as where it was not built.
 NATIVE_ENV = "OPTAX_BILATERAL_NATIVE"
 
 
@@ -53,19 +51,8 @@ class Status(NamedTuple):
 
 
 def _load_module():
-    where = os.environ.get(NATIVE_ENV, "")
-    if where == "0":
+    if os.environ.get(NATIVE_ENV, "") == "0":
         raise ImportError(f"${NATIVE_ENV}=0")
-    if where:
-        loader = importlib.machinery.ExtensionFileLoader("optax_bilateral._native", where)
-        spec = importlib.util.spec_from_file_location(
-            "optax_bilateral._native", where, loader=loader
-        )
-        if spec is None:
-            raise ImportError(f"${NATIVE_ENV}: no extension at {where!r}")
-        module = importlib.util.module_from_spec(spec)
-        loader.exec_module(module)
-        return module
     return importlib.import_module("optax_bilateral._native")
 
 
