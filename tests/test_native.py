@@ -41,7 +41,7 @@ SHAPES = [(23,), (6, 7), (17, 5), (4, 3, 5)]
 
 @given(
     shape=st.sampled_from(SHAPES),
-    levels=st.sampled_from([1, 3]),  # each (shape, levels, ...) compiles a program
+    levels=st.just(3),  # strides 1, 2, 4: beyond some axes; each static setting compiles
     separable=st.booleans(),
     sigma=st.sampled_from([0.0, 1e-3, 0.4, 3.0, np.inf]),
     gch=st.sampled_from([1, 2]),
