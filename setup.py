@@ -39,8 +39,8 @@ def native_extension() -> list[Extension]:
         Extension(
             "optax_bilateral._native",
             sources=[os.path.join("csrc", s) for s in sources],
-            include_dirs=[include],
-            extra_compile_args=flags + warnings,
+            # -isystem: warnings from XLA's own headers (jaxlib 0.11's api.h has one) are not ours.
+            extra_compile_args=["-isystem", include, *flags, *warnings],
             extra_link_args=["-pthread"],
             language="c++",
             optional=True,

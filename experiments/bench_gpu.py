@@ -175,6 +175,15 @@ def _plot(rows: Sequence[dict], path) -> None:
     plt.close(fig)
 
 
+def _markdown(data: dict) -> str:
+    md = [f"Device: {data['machine']['device']}, jax {data['machine']['jax']}", ""]
+    for section in ("filter", "update", "texture"):
+        if section in data:
+            rows = [{k: common.fmt(v) for k, v in r.items()} for r in data[section]]
+            md += [f"### {section}", "", common.markdown_table(rows), ""]
+    return "\n".join(md)
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     args = common.parse_args(
         "The filter and the update on an accelerator, both kernels", "results/bench_gpu", argv
@@ -182,26 +191,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
     quick = args.quick
     levels = 1 if quick else 5
     rounds, inner = (2, 1) if quick else (21, 5)
-    data = {
-        "machine": benchmark.machine(),
-        "filter": filter_rows(quick, levels, rounds, inner),
-        "update": update_rows(quick, levels, rounds, inner),
-        "texture": texture_rows(quick, levels, 2 if quick else 30),
+    sections = {
+        "filter": lambda: filter_rows(quick, levels, rounds, inner),
+        "update": lambda: update_rows(quick, levels, rounds, inner),
+        "texture": lambda: texture_rows(quick, levels, 2 if quick else 30),
     }
-    md = [f"Device: {data['machine']['device']}, jax {data['machine']['jax']}", ""]
-    for section in ("filter", "update", "texture"):
-        md += [
-            f"### {section}",
-            "",
-            common.markdown_table(
-                [{k: common.fmt(v) for k, v in r.items()} for r in data[section]]
-            ),
-            "",
-        ]
-    md = "\n".join(md)
-    common.write_results(args.out, "bench_gpu", data, md)
+    data = {"machine": benchmark.machine()}
+    for section, rows in sections.items():
+        data[section] = rows()
+        # Written after each section: a run cut short on a lent machine keeps what it has.
+        common.write_results(args.out, "bench_gpu", data, _markdown(data))
     _plot(data["update"], args.out / "bench_gpu.png")
-    print(md)
+    print(_markdown(data))
     return data
 
 
