@@ -12,6 +12,7 @@ from optax_bilateral._src.auto import Auto, AutoState
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.fixed import Fixed
 from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
+from optax_bilateral._src.native import status as native_status
 from optax_bilateral._src.pyramid import LaplacianPyramidState, laplacian_pyramid, pyramid_adam
 from optax_bilateral._src.rules import auto_sigma, sure_sigma
 from optax_bilateral._src.sigma import SigmaRule
@@ -57,6 +58,7 @@ __all__ = (
     "laplacian_pyramid",
     "load_state",
     "mesh",
+    "native_status",
     "postfilter",
     "prefilter",
     "pyramid_adam",

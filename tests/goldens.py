@@ -211,7 +211,11 @@ def digest(x: np.ndarray) -> str:
 def toolchain() -> str:
     import jaxlib
 
-    return f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
+    from optax_bilateral._src import native
+
+    # The native kernel's instruction set rounds differently (fused multiply-adds or not).
+    isa = native.status().reason if native.available() else "none"
+    return f"jax {jax.__version__}, jaxlib {jaxlib.__version__}, native kernel {isa}"
 
 
 def record(path=PATH, only: str | None = None) -> None:

@@ -50,7 +50,7 @@ def test_kernel_choice(monkeypatch):
     from optax_bilateral._src.filter import KERNEL_ENV, resolve_kernel
 
     monkeypatch.delenv(KERNEL_ENV, raising=False)
-    assert resolve_kernel("auto") == ("xla_cpu" if jax.default_backend() == "cpu" else "plain")
+    assert resolve_kernel("auto") == ("native" if jax.default_backend() == "cpu" else "plain")
     assert resolve_kernel("plain") == "plain"
     monkeypatch.setenv(KERNEL_ENV, "plain")
     assert resolve_kernel("auto") == "plain"

@@ -78,6 +78,14 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     def filter_pair(m, v, g, mk, **kw):
         return ob.atrous_bilateral((m, v), g, mask=mk, **kw)
 
+    def halo_of(shape, spec, device_mesh, levels, separable):
+        """collectives.halo_bytes of a filter case: 5 field channels, a 3-channel guide."""
+        blocks = [1] * len(shape)
+        for a, e in enumerate(tuple(spec)[: len(shape)]):
+            if e is not None:
+                blocks[a] = device_mesh.shape[e]
+        return collectives.halo_bytes(shape, blocks, levels, 5, 3, separable=separable)
+
     key = jax.random.PRNGKey(0)
 
     # --- The filter itself, explicit meshes: every spatial split, multi-hop halos, masks.
@@ -107,7 +115,9 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         device_mesh = device_mesh_of(mesh_shape, AxisType.Explicit)
         m, v, guide, mask = case_arrays(i, shape, use_mask)
         axes = tuple(range(len(shape)))
-        kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep)
+        # The pure-JAX per-block kernel, which exchanges each pass's halo (the native one,
+        # which takes each level's box at once, is checked below).
+        kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep, kernel="plain")
         ref = ob.atrous_bilateral((m, v), guide, mask=mask, **kw)
         sh = NamedSharding(device_mesh, spec)
         args = [jax.device_put(a, sh) for a in (m, v, guide)]
@@ -122,12 +132,8 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         compiled = fn.lower(*args, *margs).compile()
         out = compiled(*args, *margs)
         st = stats(compiled)
-        blocks = [1] * len(shape)
-        for a, e in enumerate(tuple(spec)[: len(shape)]):
-            if e is not None:
-                blocks[a] = device_mesh.shape[e]
         # Fields per level plus the guide once at the widest radius: what must move.
-        halo = collectives.halo_bytes(shape, blocks, levels, fields=5, guide=3, separable=sep)
+        halo = halo_of(shape, spec, device_mesh, levels, separable=sep)
         emit(
             check="filter",
             case=f"{shape} {mesh_shape} {spec} F={levels} "
@@ -159,12 +165,20 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         mk = None
         if use_mask:
             mk = jax.device_put(mask, NamedSharding(device_mesh, P(*tuple(spec)[: len(shape)])))
-        out = jax.jit(functools.partial(filter_pair, **kw))(*args, mk)
+        compiled = jax.jit(functools.partial(filter_pair, **kw)).lower(*args, mk).compile()
+        out = compiled(*args, mk)
+        st = stats(compiled)
+        # Each level's box at once, corners included, in either mode.
+        halo = halo_of(shape, spec, device_mesh, levels, separable=False)
         emit(
             check="filter_native",
             case=f"{shape} {mesh_shape} {spec} F={levels} {'sep' if sep else 'full'}",
             max_diff=max_diff(out, ref),
             sharding_kept=all(o.sharding.is_equivalent_to(sh, len(shape) + 1) for o in out),
+            kinds=sorted(k for k, s in st.items() if s["count"]),
+            permute_bytes=st["collective-permute"]["bytes"],
+            minimum=halo["minimum"],
+            box=halo["box"],
         )
 
     # --- guide="self": every level guided by its own input; a field whose channels are split
@@ -402,6 +416,14 @@ def test_sharded_filter_equals_single_device():
 def test_sharded_native_filter_equals_single_device_and_keeps_sharding():
     for r in _checks("filter_native"):
         assert r["max_diff"] <= TOL and r["sharding_kept"], r
+
+
+def test_sharded_native_filter_moves_only_halo_boxes():
+    for r in _checks("filter_native"):
+        # Each level takes its box at once (corners included, so that a separable level's
+        # later passes read filtered values in the halo): at most the unclipped boxes.
+        assert r["kinds"] == ["collective-permute"], r
+        assert r["minimum"] <= r["permute_bytes"] <= r["box"], r
 
 
 def test_sharded_filter_keeps_sharding():

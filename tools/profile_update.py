@@ -7,9 +7,11 @@ Compiles ``bilateral_adam``'s update (the optimizer of ``tools.ab_update``: the
 texture experiment's, with ``--log-guide`` its log guide) and ``optax.adam``'s on the same
 arrays, times both untraced (``benchmark.interleaved``), then runs each ``--calls`` times
 under ``jax.profiler.trace`` and adds up, per call, the time of every compiled kernel
-(XLA fusion), grouped by family: the fusion's name without its ``.N`` suffix. In the
-filter, ``select_exponential_fusion`` kernels compute the weights (one exp per pair of
-taps), ``multiply_divide_fusion`` kernels are the passes, and ``wrapped_pad`` /
+(XLA fusion or custom call), grouped by family: the kernel's name without its ``.N``
+suffix. The native filter kernel (``kernel="auto"`` on the CPU) is one ``custom-call`` per
+cascade (family ``ffi_call``); with ``OPTAX_BILATERAL_KERNEL=xla_cpu``,
+``select_exponential_fusion`` kernels compute the weights (one exp per pair of taps),
+``multiply_divide_fusion`` kernels are the passes, and ``wrapped_pad`` /
 ``*_pad_fusion`` kernels pad the fields for the next pass. Writes ``profile.json`` and
 ``profile.md`` to ``--out``.
 
@@ -36,12 +38,13 @@ from experiments import benchmark as bm
 from experiments import common
 from tools import ab_update
 
-_FUSION = re.compile(r"%([\w.\-]+) = [^=]*? fusion\(")
+_KERNEL = re.compile(r"%([\w.\-]+) = [^=]*? (?:fusion|custom-call)\(")
 
 
 def kernel_names(compiled) -> set[str]:
-    """Names of the kernels (XLA fusions) of a compiled program, in every branch."""
-    return set(_FUSION.findall(compiled.as_text()))
+    """Names of the kernels (XLA fusions, and custom calls: the native filter kernel) of a
+    compiled program, in every branch."""
+    return set(_KERNEL.findall(compiled.as_text()))
 
 
 def family(name: str) -> str:

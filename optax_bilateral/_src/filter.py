@@ -14,6 +14,7 @@ the single-device ones.
 from __future__ import annotations
 
 import functools
+import logging
 import os
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Protocol
@@ -68,18 +69,34 @@ KERNEL_ENV = "OPTAX_BILATERAL_KERNEL"
 
 def resolve_kernel(kernel: str) -> str:
     """The single-device kernel ``kernel`` names: ``"auto"`` is ``$OPTAX_BILATERAL_KERNEL``
-    if set, else ``"xla_cpu"`` on JAX's CPU backend and ``"plain"`` on any other.
-    ``"native"`` raises, saying why, where the extension cannot run."""
+    if set, else on JAX's CPU backend ``"native"`` where the extension runs (``"xla_cpu"``
+    where it does not, said once), and ``"plain"`` on any other backend. ``"native"`` raises,
+    saying why, where the extension cannot run."""
     if kernel == "auto":
         env = os.environ.get(KERNEL_ENV, "")
         if env and env not in KERNELS:
             raise ValueError(f"${KERNEL_ENV} must be one of {sorted(KERNELS)}, got {env!r}")
-        kernel = env or ("xla_cpu" if jax.default_backend() == "cpu" else "plain")
+        kernel = env or _default_kernel(jax.default_backend())
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be 'auto' or one of {sorted(KERNELS)}, got {kernel!r}")
     if kernel == "native" and not native.available():
         raise ValueError(f"kernel='native' cannot run here: {native.status().reason}")
     return kernel
+
+
+@functools.cache
+def _default_kernel(backend: str) -> str:
+    if backend != "cpu":
+        return "plain"
+    if native.available():
+        return "native"
+    # Once per process: the filter works, but compiles and runs slower than it would.
+    logging.getLogger("optax_bilateral").warning(
+        "optax_bilateral: filtering on the pure-JAX 'xla_cpu' kernel: the native kernel "
+        "cannot run here (%s)",
+        native.status().reason,
+    )
+    return "xla_cpu"
 
 
 def atrous_bilateral(
@@ -149,16 +166,16 @@ def atrous_bilateral(
       kernel: how the single-device filter is computed; every kernel gives the same
         result up to float rounding. ``"native"``: the C++ kernel (CPU), one XLA FFI call
         for the whole cascade, on ``$OPTAX_BILATERAL_THREADS`` threads (default: every
-        usable CPU); it compiles in a fraction of the others' time, but its update is
-        not yet as fast as ``"xla_cpu"``'s (docs/performance.md, "The native kernel");
-        derivatives through it are the ``"plain"`` kernel's. ``"xla_cpu"`` is the
-        pure-JAX kernel shaped for XLA's CPU backend (chunked, ordered by optimisation
-        barriers); ``"plain"`` is one shifted slice per neighbour, which XLA's GPU
-        backend fuses by itself. ``"auto"`` (default): the environment variable
-        ``OPTAX_BILATERAL_KERNEL`` if set, else ``"xla_cpu"`` on the CPU backend and
+        usable CPU), compiled in a fraction of the pure-JAX kernels' time
+        (docs/performance.md, "The native kernel"); derivatives through it are the
+        ``"plain"`` kernel's. ``"xla_cpu"`` is the pure-JAX kernel shaped for XLA's CPU
+        backend (chunked, ordered by optimisation barriers); ``"plain"`` is one shifted
+        slice per neighbour, which XLA's GPU backend fuses by itself. ``"auto"`` (default):
+        the environment variable ``OPTAX_BILATERAL_KERNEL`` if set, else ``"native"`` on
+        the CPU backend (``"xla_cpu"`` where the extension cannot run, logged once) and
         ``"plain"`` on any other (BENCHMARKS.md, "GPU"). The sharded filter has its own
-        kernel, which runs each device's block on the native kernel when ``"native"`` is
-        chosen.
+        kernel, which runs each device's block on the native kernel when that is the
+        choice.
       first_level: run levels ``first_level .. levels - 1`` only (static int, default 0):
         continues a cascade whose first ``first_level`` levels made ``fields``, so the
         outputs after each of several levels cost one cascade, e.g.

@@ -83,8 +83,17 @@ def threads() -> int:
 
 
 def status() -> Status:
-    """Whether the native kernel can run in this process, its instruction set or the reason
-    it cannot, and the threads it would use."""
+    """Whether the native filter kernel runs in this process (``kernel="auto"`` takes it on
+    the CPU where it does), with which instruction set (``"avx512"``, ``"avx2"``,
+    ``"baseline"``) or, where it cannot, why; and the threads one call uses
+    (``$OPTAX_BILATERAL_THREADS``, else the CPUs this process may run on).
+
+    Example::
+
+        >>> import optax_bilateral as ob
+        >>> ob.native_status().available
+        True
+    """
     ok, reason = _registered()
     return Status(ok, reason, threads())
 
