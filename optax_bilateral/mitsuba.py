@@ -5,7 +5,7 @@ A Mitsuba script keeps its loop and swaps one line: :class:`BilateralAdam` is a
 paper's method, and :class:`OptaxOptimizer` runs any optax transform in that loop::
 
     from optax_bilateral.mitsuba import BilateralAdam
-    opt = BilateralAdam(lr=0.02)              # was: opt = mi.ad.Adam(lr=0.02)
+    opt = BilateralAdam(lr=0.1)               # was: opt = mi.ad.Adam(lr=0.01)
     opt[key] = params[key]
     params.update(opt)
     # per iteration: render, loss, dr.backward(loss), opt.step(), params.update(opt)

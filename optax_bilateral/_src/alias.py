@@ -20,7 +20,7 @@ PAPER_B1 = 0.2
 # optax.adam's own, for the leaves that are not filtered.
 ADAM_B1, ADAM_B2 = 0.9, 0.999
 
-# Keywords bilateral_adam took before 0.2, and where each lives now.
+# Keywords bilateral_adam took before 0.1.0 (deprecated since), and where each lives now.
 _MOVED = {
     "separable": "postfilter",
     "guide": "postfilter",
@@ -117,10 +117,11 @@ def bilateral_adam(
         (e.g. ``optax.adam(1e-3)``). None (the default): Adam at ``learning_rate`` with
         ``b1``, ``b2`` (0.9, 0.999 when not given) and ``eps``, with :func:`postfilter`'s
         policy for non-finite gradients (``postfilter(..., levels=0)``).
-      **deprecated: the keywords this function took before 0.2 (``separable``, ``guide``,
+      **deprecated: the keywords this function took before 0.1.0 (``separable``, ``guide``,
         ``mask_unobserved``, ``eps_root``, ``mu_dtype``, ``filter_m``, ``filter_v``,
         ``second_moment``, ``postfilter``, ``weight_decay``, ``weight_decay_mask``): still
-        applied, with a ``DeprecationWarning`` that names where each lives now.
+        applied, with a ``DeprecationWarning`` that names where each lives now; they will be
+        removed in a future release.
 
     Returns:
       An ``optax.GradientTransformationExtraArgs``; its ``update`` needs ``params`` (the
@@ -186,9 +187,10 @@ def _deprecated(keywords: dict, others) -> dict:
         if name not in _MOVED:
             raise TypeError(f"bilateral_adam() got an unexpected keyword argument {name!r}")
         warnings.warn(
-            f"bilateral_adam({name}=...) is deprecated and will be removed: it is an argument "
-            f"of {_MOVED[name]}; build optax.chain(ob.prefilter(...)?, ob.postfilter(...), "
-            "optax.scale_by_learning_rate(lr)) for the filtered leaves (docs/from_adam.md)",
+            f"bilateral_adam({name}=...) is deprecated since 0.1.0 and will be removed in a "
+            f"future release: it is an argument of {_MOVED[name]}; build optax.chain("
+            "ob.prefilter(...)?, ob.postfilter(...), optax.scale_by_learning_rate(lr)) for the "
+            'filtered leaves (README.md, "The three compositions")',
             DeprecationWarning,
             stacklevel=3,
         )

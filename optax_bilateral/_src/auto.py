@@ -31,15 +31,15 @@ import dataclasses
 import functools
 import math
 from numbers import Real
-from typing import Any, NamedTuple, cast
+from typing import NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from optax_bilateral._src import layout, numerics, sharded
-from optax_bilateral._src.bilateral import log_transform
+from optax_bilateral._src import numerics, sharded
+from optax_bilateral._src.bilateral import TAPS, log_transform
 from optax_bilateral._src.filter import atrous_bilateral
 from optax_bilateral._src.sigma import Filtered, SigmaRule
 from optax_bilateral._src.validation import check_integer, check_number
@@ -398,7 +398,7 @@ class Auto(SigmaRule):
     def blend_phase(self, gate: jax.Array, count: jax.Array) -> jax.Array:
         """What this step computes of the blend: ``BLEND`` (its statistics and the blend) if
         the gate was open at the last step; else ``CHECK`` (the gate alone,
-        :meth:`gate_of`) at a multiple of ``check_period``; else ``SKIP`` (nothing)."""
+        :meth:`weights`) at a multiple of ``check_period``; else ``SKIP`` (nothing)."""
         check = jnp.where(count % self.check_period == 0, CHECK, SKIP)
         return jnp.where(gate > 0, BLEND, check).astype(jnp.int32)
 
@@ -481,9 +481,6 @@ def smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Ar
     return cast(tuple[jax.Array, ...], out)
 
 
-_TAPS = np.array([1, 4, 6, 4, 1]) / 16  # the filter's first level: the B-spline at stride 1
-
-
 def smooth_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
     """:func:`smooth`'s local averages at every ``stride``-th entry along the spatial axes
     only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
@@ -511,10 +508,11 @@ def _every(x: jax.Array, axes: tuple[int, ...], s: int) -> jax.Array:
 
 def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
     n = x.shape[axis]
-    r = len(_TAPS) // 2
+    r = len(TAPS) - 1  # the taps' radius: h[d] for d = -r .. r
     kept = (n - 1) // s + 1
     total, norm = 0.0, np.zeros(kept)
-    for k, w in enumerate(_TAPS):
+    for k in range(2 * r + 1):
+        w = TAPS[abs(k - r)]
         # The sub-grid's texels whose tap k falls on the grid: i in [lo, hi).
         lo = max(0, -(-(r - k) // s))
         hi = min(kept, (n - 1 - k + r) // s + 1)
@@ -530,11 +528,3 @@ def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
     shape = [1] * x.ndim
     shape[axis] = kept
     return total / jnp.asarray(norm.reshape(shape), x.dtype)
-
-
-def full_mask(observed: jax.Array | None, ndim: int, axes: tuple[int, ...]) -> jax.Array | None:
-    return None if observed is None else layout.expand_mask(observed, ndim, axes)
-
-
-def is_auto(sigma_d: Any) -> bool:
-    return isinstance(sigma_d, Auto) or (isinstance(sigma_d, str) and sigma_d == "auto")

@@ -449,7 +449,7 @@ class BilateralAdam(OptaxOptimizer):
 
     A Mitsuba script changes one line::
 
-        opt = BilateralAdam(lr=0.02)              # was: opt = mi.ad.Adam(lr=0.02)
+        opt = BilateralAdam(lr=0.1)               # was: opt = mi.ad.Adam(lr=0.01)
         opt[key] = params[key]
         params.update(opt)
         # ... dr.backward(loss); opt.step(); opt[key] = dr.clip(opt[key], 0, 1);
