@@ -6,7 +6,9 @@ update, each as a ratio to ``optax.adam`` measured side by side in this process.
 Per grid and kernel: cold compile seconds of one update (defaults and a fixed sigma_d), the
 update's median time (interleaved rounds), and XLA's planned temporaries over the
 parameter's size. The kernel is chosen as a user would, with ``$OPTAX_BILATERAL_KERNEL``
-(read when the update is traced). Writes bench_native.json and bench_native.md.
+(read when the update is traced). And, one fresh process each, the peak resident memory
+gained over 5 updates of a 2048x2048x3 leaf (the first compiles) in parameter sizes, against
+Adam's. Writes bench_native.json and bench_native.md.
 """
 
 from __future__ import annotations
@@ -15,6 +17,9 @@ import argparse
 import json
 import os
 import pathlib
+import subprocess
+import sys
+import textwrap
 from collections.abc import Sequence
 
 import jax
@@ -114,6 +119,63 @@ def measure(shape: tuple[int, ...], rounds: int) -> list[dict]:
     return rows
 
 
+# One process per optimizer: its peak resident memory over `updates` updates of a leaf (the
+# first compiles), above what the process held before it made the parameter and its gradient.
+_RSS_CHILD = textwrap.dedent(
+    """
+    import json, resource, sys
+    import jax, optax
+    import optax_bilateral as ob
+    from experiments import common
+    from experiments.benchmark import FIXED_SIGMA_D, update_arrays
+
+    name, shape, updates = sys.argv[1], tuple(json.loads(sys.argv[2])), int(sys.argv[3])
+    jax.block_until_ready(jax.numpy.zeros(3) + 1)  # the runtime started: not the update's
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    params, grad = update_arrays(shape)
+    opt = {
+        "adam": lambda: optax.adam(0.02),
+        "defaults": lambda: ob.bilateral_adam(0.02),
+        "fixed sigma_d F=5": lambda: common.filtered_adam(0.02, sigma_d=FIXED_SIGMA_D, levels=5),
+    }[name]()
+    update = jax.jit(opt.update)
+    state = opt.init(params)
+    for _ in range(updates):
+        u, state = update(grad, state, params)
+        params = optax.apply_updates(params, u)
+    jax.block_until_ready((params, state))
+    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"growth_kib": after - before, "param_kib": params.nbytes / 1024}))
+    """
+)
+
+
+def rss_rows(shape: tuple[int, ...], updates: int) -> list[dict]:
+    """Peak RSS growth over ``updates`` updates of one leaf, in parameter sizes, per optimizer
+    and kernel, each in a fresh process (the first update's compilation included)."""
+    rows = []
+    runs = [("adam", "")] + [(n, k) for k in KERNELS for n in ("defaults", "fixed sigma_d F=5")]
+    for name, kernel in runs:
+        env = dict(os.environ, **({KERNEL_ENV: kernel} if kernel else {}))
+        proc = subprocess.run(
+            [sys.executable, "-c", _RSS_CHILD, name, json.dumps(shape), str(updates)],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(
+            {
+                "grid": "x".join(map(str, shape)),
+                "update": name,
+                "kernel": kernel or "-",
+                "peak RSS growth / parameter": r["growth_kib"] / r["param_kib"],
+            }
+        )
+    return rows
+
+
 def table(rows: Sequence[dict]) -> str:
     keys = list(rows[0])
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
@@ -138,12 +200,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     )
     rounds = args.rounds or (3 if args.quick else 15)
     rows = [r for shape in grids for r in measure(shape, rounds)]
+    rss = rss_rows((32, 32, 3) if args.quick else (2048, 2048, 3), 2 if args.quick else 5)
     status = native.status()
-    data = {"rows": rows, "instruction set": status.reason, "threads": status.threads}
+    data = {"rows": rows, "rss": rss, "instruction set": status.reason, "threads": status.threads}
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_native.json").write_text(json.dumps(data, indent=1))
-    md = table(rows)
+    md = table(rows) + "\n" + table(rss)
     (out / "bench_native.md").write_text(md)
     print(md)
     print(f"instruction set {status.reason}, {status.threads} threads; temporaries: XLA's plan")

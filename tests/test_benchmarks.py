@@ -396,4 +396,8 @@ def test_bench_native_quick_compares_the_kernels_inside_an_update(tmp_path):
     for r in data["rows"]:
         for key in ("compile x adam", "update x adam", "temporaries / parameter"):
             assert np.isfinite(r[key]) and r[key] > 0, (r, key)
+    assert [(r["update"], r["kernel"]) for r in data["rss"]] == [("adam", "-")] + [
+        (u, k) for k in bench_native.KERNELS for u in ("defaults", "fixed sigma_d F=5")
+    ]
+    assert all(np.isfinite(r["peak RSS growth / parameter"]) for r in data["rss"])
     assert (tmp_path / "bench_native.json").exists() and (tmp_path / "bench_native.md").exists()

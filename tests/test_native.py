@@ -32,7 +32,7 @@ def test_the_install_built_the_extension():
 
 
 def _both(x, g, **kw):
-    return [atrous_bilateral(x, g, kernel=k, **kw) for k in ("native", "plain")]
+    return [atrous_bilateral(x, g, kernel=k, **kw) for k in ("native", "xla_cpu")]
 
 
 # Shapes from a small set (each compiles a program), data drawn freely.
@@ -48,7 +48,9 @@ SHAPES = [(23,), (6, 7), (17, 5), (4, 3, 5)]
     masked=st.booleans(),
     seed=st.integers(0, 2**31 - 1),
 )
-def test_equals_the_plain_kernel_on_drawn_grids(shape, levels, separable, sigma, gch, masked, seed):
+def test_equals_the_pure_jax_kernel_on_drawn_grids(
+    shape, levels, separable, sigma, gch, masked, seed
+):
     rng = np.random.default_rng(seed)
     x = jnp.asarray(rng.normal(size=shape + (2,)), jnp.float32)
     # Quantised guides: equal values exercise "equal guides weigh 1" (and sigma_d = 0).

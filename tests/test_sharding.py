@@ -117,7 +117,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
         axes = tuple(range(len(shape)))
         # The pure-JAX per-block kernel, which exchanges each pass's halo (the native one,
         # which takes each level's box at once, is checked below).
-        kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep, kernel="plain")
+        kw = dict(sigma_d=0.3, levels=levels, spatial_axes=axes, separable=sep, kernel="xla_cpu")
         ref = ob.atrous_bilateral((m, v), guide, mask=mask, **kw)
         sh = NamedSharding(device_mesh, spec)
         args = [jax.device_put(a, sh) for a in (m, v, guide)]
