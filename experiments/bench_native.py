@@ -8,7 +8,8 @@ update's median time (interleaved rounds), and XLA's planned temporaries over th
 parameter's size. The kernel is chosen as a user would, with ``$OPTAX_BILATERAL_KERNEL``
 (read when the update is traced). And, one fresh process each, the peak resident memory
 gained over 5 updates of a 2048x2048x3 leaf (the first compiles) in parameter sizes, against
-Adam's. Writes bench_native.json and bench_native.md.
+Adam's. And the filter alone on each single-device kernel of the CPU, ``plain`` included.
+Writes bench_native.json and bench_native.md.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import pathlib
 import subprocess
 import sys
 import textwrap
+import time
 from collections.abc import Sequence
 
 import jax
@@ -129,9 +131,17 @@ _RSS_CHILD = textwrap.dedent(
     from experiments import common
     from experiments.benchmark import FIXED_SIGMA_D, update_arrays
 
+    def peak_kib():
+        # Linux's VmHWM: this program's own peak (ru_maxrss keeps the parent's across exec).
+        try:
+            with open("/proc/self/status") as fh:
+                return next(int(l.split()[1]) for l in fh if l.startswith("VmHWM:"))
+        except (OSError, StopIteration):
+            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
     name, shape, updates = sys.argv[1], tuple(json.loads(sys.argv[2])), int(sys.argv[3])
     jax.block_until_ready(jax.numpy.zeros(3) + 1)  # the runtime started: not the update's
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    before = peak_kib()
     params, grad = update_arrays(shape)
     opt = {
         "adam": lambda: optax.adam(0.02),
@@ -144,7 +154,7 @@ _RSS_CHILD = textwrap.dedent(
         u, state = update(grad, state, params)
         params = optax.apply_updates(params, u)
     jax.block_until_ready((params, state))
-    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    after = peak_kib()
     print(json.dumps({"growth_kib": after - before, "param_kib": params.nbytes / 1024}))
     """
 )
@@ -176,6 +186,49 @@ def rss_rows(shape: tuple[int, ...], updates: int) -> list[dict]:
     return rows
 
 
+def filter_rows(grids: Sequence[tuple[int, ...]], rounds: int) -> list[dict]:
+    """The filter alone (jitted; ``(g, g*g)``, F = 5, sigma_d 0.1) on every single-device kernel
+    of the CPU, ``plain`` included: what the CPU would fall back to without ``xla_cpu``."""
+    rows = []
+    for shape in grids:
+        params, grad = update_arrays(shape)
+        axes = tuple(range(len(shape) - 1))
+        for separable in (True, False) if len(shape) == 3 else (True,):
+            fns, extra = {}, {}
+            for kernel in (*KERNELS, "plain"):
+
+                def f(g, p, kernel=kernel, separable=separable, axes=axes):
+                    return ob.atrous_bilateral(
+                        (g, g * g),
+                        p,
+                        sigma_d=0.1,
+                        levels=5,
+                        spatial_axes=axes,
+                        separable=separable,
+                        kernel=kernel,
+                    )
+
+                t0 = time.perf_counter()
+                compiled = jax.jit(f).lower(grad, params).compile()
+                extra[kernel] = (time.perf_counter() - t0, temp_mb(compiled))
+                fns[kernel] = (compiled, (grad, params))
+            res = interleaved(fns, rounds, desc=f"filter {shape}")
+            fields_mb = 2 * params.size * params.dtype.itemsize / 2**20
+            for kernel, r in res.items():
+                rows.append(
+                    {
+                        "grid": "x".join(map(str, shape)),
+                        "mode": "separable" if separable else "full",
+                        "kernel": kernel,
+                        "compile s": extra[kernel][0],
+                        "filter ms": 1e3 * r["median"],
+                        "x native": r["median"] / res["native"]["median"],
+                        "temporaries / fields": extra[kernel][1] / fields_mb,
+                    }
+                )
+    return rows
+
+
 def table(rows: Sequence[dict]) -> str:
     keys = list(rows[0])
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
@@ -201,12 +254,19 @@ def main(argv: Sequence[str] | None = None) -> dict:
     rounds = args.rounds or (3 if args.quick else 15)
     rows = [r for shape in grids for r in measure(shape, rounds)]
     rss = rss_rows((32, 32, 3) if args.quick else (2048, 2048, 3), 2 if args.quick else 5)
+    filters = filter_rows(grids[:1] if args.quick else grids[1:], rounds)
     status = native.status()
-    data = {"rows": rows, "rss": rss, "instruction set": status.reason, "threads": status.threads}
+    data = {
+        "rows": rows,
+        "rss": rss,
+        "filter": filters,
+        "instruction set": status.reason,
+        "threads": status.threads,
+    }
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_native.json").write_text(json.dumps(data, indent=1))
-    md = table(rows) + "\n" + table(rss)
+    md = table(rows) + "\n" + table(rss) + "\n" + table(filters)
     (out / "bench_native.md").write_text(md)
     print(md)
     print(f"instruction set {status.reason}, {status.threads} threads; temporaries: XLA's plan")

@@ -399,5 +399,9 @@ def test_bench_native_quick_compares_the_kernels_inside_an_update(tmp_path):
     assert [(r["update"], r["kernel"]) for r in data["rss"]] == [("adam", "-")] + [
         (u, k) for k in bench_native.KERNELS for u in ("defaults", "fixed sigma_d F=5")
     ]
-    assert all(np.isfinite(r["peak RSS growth / parameter"]) for r in data["rss"])
+    # Each process holds at least its parameter and gradient (the quick run's 32x32x3 leaf
+    # is small beside the runtime's own pages, so no more than that is asserted).
+    assert all(r["peak RSS growth / parameter"] > 0 for r in data["rss"])
+    assert {r["kernel"] for r in data["filter"]} == {*bench_native.KERNELS, "plain"}
+    assert all(r["filter ms"] > 0 and r["temporaries / fields"] >= 0 for r in data["filter"])
     assert (tmp_path / "bench_native.json").exists() and (tmp_path / "bench_native.md").exists()
