@@ -254,7 +254,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     rounds = args.rounds or (3 if args.quick else 15)
     rows = [r for shape in grids for r in measure(shape, rounds)]
     rss = rss_rows((32, 32, 3) if args.quick else (2048, 2048, 3), 2 if args.quick else 5)
-    filters = filter_rows(grids[:1] if args.quick else grids[1:], rounds)
+    # Beside the update's grids: one channel on a line, and short innermost rows.
+    short = [(262144, 1), (128, 128, 16, 1)]
+    filters = filter_rows(grids[:1] if args.quick else grids[1:] + short, rounds)
     status = native.status()
     data = {
         "rows": rows,
