@@ -198,18 +198,18 @@ def test_compiles_one_custom_call_for_the_whole_cascade():
 
 
 @pytest.mark.parametrize("cid", __import__("goldens").covering_subset())
-def test_transforms_on_the_plain_kernel_match_the_goldens(cid, monkeypatch):
+def test_transforms_on_the_pure_jax_kernel_match_the_goldens(cid, monkeypatch):
     # Every golden configuration (tests/goldens.py: the transforms' updates and states over
     # steps, recorded with the native kernel that "auto" takes on the CPU), run with the
-    # pure-JAX reference kernel in every filter. Tolerance as across toolchains: kernels round
-    # differently, and a one-ulp change of a moment moves a step by about as much;
-    # bfloat16/float16 round to ~1e-3.
+    # pure-JAX xla_cpu kernel (the CPU's without the extension) in every filter. Tolerance as
+    # across toolchains: kernels round differently, and a one-ulp change of a moment moves a
+    # step by about as much; bfloat16/float16 round to ~1e-3.
     import goldens
 
     data = np.load(goldens.PATH)
     # The kernel is read when a program is traced: clear the traces before, and after, so
-    # that no later test in this process reuses one made with the plain kernel.
-    monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "plain")
+    # that no later test in this process reuses one made with the xla_cpu kernel.
+    monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
     jax.clear_caches()
     try:
         results = goldens.run(cid)
