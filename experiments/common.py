@@ -522,6 +522,17 @@ def write_results(out: pathlib.Path, name: str, data: Mapping, md: str) -> None:
     (out / f"{name}.md").write_text(md + "\n")
 
 
+def write_rows(
+    out: pathlib.Path, name: str, rows: Sequence[Mapping], intro: str, quick: bool
+) -> str:
+    """Prints and writes (:func:`write_results`) ``rows`` as a table after ``intro``; the
+    JSON keeps the rows and whether the run was ``--quick``. Returns the markdown."""
+    md = f"{intro}\n\n" + markdown_table([{k: fmt(v) for k, v in r.items()} for r in rows])
+    print(md)
+    write_results(out, name, {"rows": rows, "quick": quick}, md)
+    return md
+
+
 def save_figure(fig, path: pathlib.Path) -> pathlib.Path:
     """Saves an image grid (no ticks), closes it and returns ``path``."""
     import matplotlib.pyplot as plt

@@ -405,3 +405,20 @@ def test_bench_native_quick_compares_the_kernels_inside_an_update(tmp_path):
     assert {r["kernel"] for r in data["filter"]} == {*bench_native.KERNELS, "plain"}
     assert all(r["filter ms"] > 0 and r["temporaries / fields"] >= 0 for r in data["filter"])
     assert (tmp_path / "bench_native.json").exists() and (tmp_path / "bench_native.md").exists()
+
+
+def test_mesh_update_parts_quick_times_every_part(tmp_path):
+    # Checks the tool and its outputs, not the numbers.
+    from tools import mesh_update_parts
+
+    rows = mesh_update_parts.main(["--quick", "--out", str(tmp_path)])
+    assert [r["solver"] for r in rows] == ["cholesky", "cg"]
+    for r in rows:
+        for key in (
+            "bilateral_large_steps update ms",
+            "large_steps update ms",
+            "M^-1 g ms",
+            "B g ms",
+        ):
+            assert np.isfinite(r[key]) and r[key] > 0, (r, key)
+    assert (tmp_path / "mesh_update_parts.json").exists()

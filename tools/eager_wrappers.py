@@ -59,10 +59,8 @@ def main(argv=None) -> list[dict]:
                     "compilations per call": [c for _, c in measured],
                 }
             )
-    md = f"Eager calls on a {shape} leaf; `python -m tools.eager_wrappers`.\n\n"
-    md += common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in rows])
-    print(md)
-    common.write_results(args.out, "eager_wrappers", {"rows": rows, "quick": args.quick}, md)
+    intro = f"Eager calls on a {shape} leaf; `python -m tools.eager_wrappers`."
+    common.write_rows(args.out, "eager_wrappers", rows, intro, args.quick)
     return rows
 
 
