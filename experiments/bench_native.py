@@ -160,11 +160,14 @@ _RSS_CHILD = textwrap.dedent(
 )
 
 
-def rss_rows(shape: tuple[int, ...], updates: int) -> list[dict]:
-    """Peak RSS growth over ``updates`` updates of one leaf, in parameter sizes, per optimizer
-    and kernel, each in a fresh process (the first update's compilation included)."""
+RSS_RUNS = [("adam", "")] + [(n, k) for k in KERNELS for n in ("defaults", "fixed sigma_d F=5")]
+
+
+def rss_rows(shape: tuple[int, ...], updates: int, runs=RSS_RUNS) -> list[dict]:
+    """Peak RSS growth over ``updates`` updates of one leaf, in parameter sizes, per
+    ``(optimizer, kernel)`` of ``runs``, each in a fresh process (the first update's
+    compilation included)."""
     rows = []
-    runs = [("adam", "")] + [(n, k) for k in KERNELS for n in ("defaults", "fixed sigma_d F=5")]
     for name, kernel in runs:
         env = dict(os.environ, **({KERNEL_ENV: kernel} if kernel else {}))
         proc = subprocess.run(
@@ -253,7 +256,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     )
     rounds = args.rounds or (3 if args.quick else 15)
     rows = [r for shape in grids for r in measure(shape, rounds)]
-    rss = rss_rows((32, 32, 3) if args.quick else (2048, 2048, 3), 2 if args.quick else 5)
+    if args.quick:  # a process each: Adam's and one of ours
+        rss = rss_rows((32, 32, 3), 2, [("adam", ""), ("fixed sigma_d F=5", "native")])
+    else:
+        rss = rss_rows((2048, 2048, 3), 5)
     # Beside the update's grids: one channel on a line, and short innermost rows.
     short = [(262144, 1), (128, 128, 16, 1)]
     filters = filter_rows(grids[:1] if args.quick else grids[1:] + short, rounds)
