@@ -91,6 +91,54 @@ def test_converges_and_tree_map_params_works(setting, target):
         np.testing.assert_allclose(got, want, rtol=3e-2, atol=3e-2)
 
 
+MAP_PARAMS = {
+    "defaults": lambda: ob.bilateral_adam(0.02),  # "auto": a rule state per filtered leaf
+    "prefilter + postfilter": lambda: optax.chain(
+        ob.prefilter(), ob.postfilter(), optax.scale_by_learning_rate(0.02)
+    ),
+    "memoryless": lambda: ob.postfilter(b1=0.0, b2=0.0),
+}
+
+
+@pytest.mark.parametrize("setting", list(MAP_PARAMS))
+def test_tree_map_params_maps_the_moments_of_filtered_leaves(setting):
+    # Filtered float and complex textures beside an unfiltered vector: f reaches every
+    # parameter-shaped tree (the moments) and nothing else (rule states, counts); the
+    # partition-spec idiom of optax's docstring gives a tree of the state's structure.
+    params = {
+        "tex": jnp.linspace(0, 1, 16 * 16 * 3).reshape(16, 16, 3),
+        "wave": jnp.exp(1j * jnp.linspace(0, 3, 8 * 8 * 2)).reshape(8, 8, 2).astype(jnp.complex64),
+        "w": jnp.ones(4),
+    }
+    opt = MAP_PARAMS[setting]()
+    grads = jax.tree.map(lambda p: 0.1 * jnp.ones_like(p), params)
+    _, state = opt.update(grads, opt.init(params), params)
+    mapped = optax.tree_utils.tree_map_params(opt, lambda p: p + 1, state)
+    assert jax.tree.structure(mapped) == jax.tree.structure(state)
+    moments = {"mu", "nu"}
+    changed, kept = 0, 0
+    for (path, new), old in zip(
+        jax.tree_util.tree_flatten_with_path(mapped)[0], jax.tree.leaves(state)
+    ):
+        field = next((k.name for k in path if hasattr(k, "name") and k.name in moments), None)
+        if field is None:  # rule states, counts: untouched
+            np.testing.assert_array_equal(new, old, err_msg=jax.tree_util.keystr(path))
+            kept += 1
+        else:
+            np.testing.assert_allclose(new, old + 1, err_msg=jax.tree_util.keystr(path))
+            changed += 1
+    assert kept > 0 and changed == (6 if setting != "memoryless" else 0)
+    specs = jax.tree.map(lambda p: jax.sharding.PartitionSpec(*[None] * p.ndim), params)
+    state_specs = optax.tree_utils.tree_map_params(
+        opt, lambda _, spec: spec, state, specs, transform_non_params=lambda _: None
+    )
+    is_spec = lambda x: isinstance(x, jax.sharding.PartitionSpec)
+    spec_leaves = [x for x in jax.tree.leaves(state_specs, is_leaf=is_spec) if is_spec(x)]
+    assert len(spec_leaves) == (6 if setting != "memoryless" else 0)
+    # The mapped state still updates.
+    opt.update(grads, mapped, params)
+
+
 @pytest.mark.parametrize("setting", list(SETTINGS))
 def test_extra_args_are_accepted_and_nothing_recompiles(setting):
     opt = SETTINGS[setting](1e-2)

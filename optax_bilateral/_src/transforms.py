@@ -85,6 +85,27 @@ guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes
 DEFAULT_LEVELS = leaves.DEFAULT_LEVELS
 SURE_LEVELS = leaves.SURE_LEVELS
 
+try:  # what optax.tree.map_params passes to init in place of the parameters
+    from optax.tree_utils._state_utils import _ParamsPlaceholder
+except ImportError:  # another optax layout: map_params then sees no parameter-shaped field
+    _ParamsPlaceholder = None
+
+
+class _NotParams:
+    """Stands, in the state that ``optax.tree.map_params`` reads the layout from, for a field
+    that is not parameter-shaped (per-leaf rule states and counts): a leaf, so that the
+    field's real value is left alone (or given to ``transform_non_params``) whole."""
+
+
+def _is_placeholder(params) -> bool:
+    return _ParamsPlaceholder is not None and isinstance(params, _ParamsPlaceholder)
+
+
+def _placeholder_postfilter_state(params, memoryless: bool):
+    """A postfilter's state for ``optax.tree.map_params``: the moments are parameter-shaped."""
+    moments = (None, None) if memoryless else (params, params)
+    return PostfilterState(jnp.zeros([], jnp.int32), *moments, _NotParams(), _NotParams())
+
 
 # ----------------------------------------------------------------------------------------
 # scale_by_adam
@@ -383,6 +404,8 @@ def prefilter(
     _check_sure(sigma_d, "a prefilter has no moments; use a number or 'auto'")
 
     def init_fn(params):
+        if _is_placeholder(params):  # optax.tree.map_params: no parameter-shaped field
+            return PrefilterState(count=_NotParams(), sigma_state=_NotParams())
         # Shapes, dtypes and the guide are checked now rather than at the first update.
         specs = leaves.check_params(params, settings, transform="prefilter", all_leaves=False)
         sigma_state = settings.init_states(params, specs, "prefilter", "prefilter")
@@ -604,16 +627,16 @@ def postfilter(
     _check_sure(sigma_d, _sure_unusable(memoryless, guide, filter_m, filter_v))
 
     def init_fn(params):
+        if _is_placeholder(params):
+            return _placeholder_postfilter_state(params, memoryless)
         # Shapes, dtypes and the guide are checked now rather than at the first update.
         specs = leaves.check_params(params, settings, transform="postfilter", all_leaves=True)
         kind = "memoryless" if memoryless else "postfilter"
         sigma_state = settings.init_states(params, specs, "postfilter", kind)
         count = jnp.zeros([], jnp.int32)
         nonfinite = jax.tree.map(lambda _: jnp.zeros([], jnp.int32), params)
-        if memoryless:
-            return PostfilterState(count, None, None, sigma_state, nonfinite)
-        mu = jax.tree.map(lambda p: numerics.zeros(p, mu_dtype), params)
-        nu = jax.tree.map(numerics.zeros, params)
+        mu = None if memoryless else jax.tree.map(lambda p: numerics.zeros(p, mu_dtype), params)
+        nu = None if memoryless else jax.tree.map(numerics.zeros, params)
         return PostfilterState(count, mu, nu, sigma_state, nonfinite)
 
     def update_fn(updates, state, params=None, **extra_args):
