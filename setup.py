@@ -3,7 +3,7 @@
 Everything else about the package is in pyproject.toml. The extension is optional: where it
 cannot be built (no C++17 compiler, no XLA FFI headers, another OS), the package installs
 without it and the filter runs on its pure-JAX kernels, saying once why
-(``optax_bilateral._src.native``). The XLA FFI headers come from jaxlib
+(``optax_bilateral._src.filter.native``). The XLA FFI headers come from jaxlib
 (``jax.ffi.include_dir()``), a build requirement. The code is compiled for the baseline of the
 target (x86-64: SSE2) and, on x86-64, twice more with AVX2 and AVX-512 enabled per function;
 the CPU's widest is chosen at run time (csrc/atrous.cc).

@@ -36,8 +36,8 @@ from experiments.benchmark import (
     temp_mb,
     update_arrays,
 )
-from optax_bilateral._src import native
-from optax_bilateral._src.filter import KERNEL_ENV
+from optax_bilateral._src.filter import native
+from optax_bilateral._src.filter.front import KERNEL_ENV
 
 KERNELS = ("xla_cpu", "native")
 

@@ -6,7 +6,7 @@ mode (separable / full) and device mesh, it compiles one optimizer update
 
 * ``shard_map``: parameters on an *explicit* mesh (``jax.make_mesh``'s default);
   the filter runs per device with explicit halo exchange
-  (``optax_bilateral/_src/sharded.py``);
+  (``optax_bilateral/_src/filter/sharded.py``);
 * ``xla_auto``: parameters on an *auto* mesh; the single-device filter is split
   by XLA's SPMD partitioner.
 

@@ -7,18 +7,21 @@ for Inverse Rendering". SIGGRAPH Asia 2024.
 from importlib.metadata import PackageNotFoundError, version
 
 from optax_bilateral import mesh, triangle_mesh
-from optax_bilateral._src.alias import bilateral_adam
-from optax_bilateral._src.auto import Auto, AutoState
-from optax_bilateral._src.filter import atrous_bilateral
-from optax_bilateral._src.fixed import Fixed
-from optax_bilateral._src.leaves import LeafRuleWarning, default_spatial_axes, filtered_axes
-from optax_bilateral._src.native import status as native_status
-from optax_bilateral._src.pyramid import LaplacianPyramidState, laplacian_pyramid, pyramid_adam
-from optax_bilateral._src.rules import auto_sigma, sure_sigma
-from optax_bilateral._src.sigma import SigmaRule
-from optax_bilateral._src.state_io import load_state, save_state
-from optax_bilateral._src.sure import Sure, SureState
-from optax_bilateral._src.transforms import (
+from optax_bilateral._src.filter.front import atrous_bilateral
+from optax_bilateral._src.filter.native import status as native_status
+from optax_bilateral._src.optimizer.alias import bilateral_adam
+from optax_bilateral._src.optimizer.leaves import (
+    LeafRuleWarning,
+    default_spatial_axes,
+    filtered_axes,
+)
+from optax_bilateral._src.optimizer.pyramid import (
+    LaplacianPyramidState,
+    laplacian_pyramid,
+    pyramid_adam,
+)
+from optax_bilateral._src.optimizer.state_io import load_state, save_state
+from optax_bilateral._src.optimizer.transforms import (
     DEFAULT_LEVELS,
     DEFAULT_SIGMA_D,
     SURE_LEVELS,
@@ -29,6 +32,11 @@ from optax_bilateral._src.transforms import (
     prefilter,
     scale_by_adam,
 )
+from optax_bilateral._src.rules.auto import Auto, AutoState
+from optax_bilateral._src.rules.fixed import Fixed
+from optax_bilateral._src.rules.registry import auto_sigma, sure_sigma
+from optax_bilateral._src.rules.sigma import SigmaRule
+from optax_bilateral._src.rules.sure import Sure, SureState
 
 try:
     __version__ = version("optax_bilateral")  # written once, in pyproject.toml

@@ -20,7 +20,7 @@ Dr.Jit's, on first access), not by this module.
 
 from typing import TYPE_CHECKING
 
-from optax_bilateral._src.mitsuba import (
+from optax_bilateral._src.mitsuba.bridge import (
     GRID_NDIMS,
     MIN_LLVM_MAJOR,
     SceneOptimizer,
@@ -31,7 +31,7 @@ from optax_bilateral._src.mitsuba import (
 )
 
 if TYPE_CHECKING:
-    from optax_bilateral._src.mitsuba_optimizer import BilateralAdam, OptaxOptimizer
+    from optax_bilateral._src.mitsuba.optimizer import BilateralAdam, OptaxOptimizer
 
 _DRJIT_CLASSES = ("BilateralAdam", "OptaxOptimizer")
 
@@ -40,9 +40,9 @@ def __getattr__(name: str):
     # The optimizers subclass drjit.opt.Optimizer, so defining them imports Dr.Jit.
     if name in _DRJIT_CLASSES:
         try:
-            from optax_bilateral._src import mitsuba_optimizer
+            from optax_bilateral._src.mitsuba import optimizer as mitsuba_optimizer
         except ImportError as e:
-            from optax_bilateral._src.mitsuba import INSTALL_HINT
+            from optax_bilateral._src.mitsuba.bridge import INSTALL_HINT
 
             raise ImportError(f"optax_bilateral.mitsuba.{name} needs Dr.Jit: {INSTALL_HINT}") from e
         return getattr(mitsuba_optimizer, name)

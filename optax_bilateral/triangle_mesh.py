@@ -8,7 +8,7 @@ docs/triangle_mesh.md for the method and the measured results)::
     opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=0.5, sigma_phi=0.4)
 """
 
-from optax_bilateral._src.triangle_mesh import (
+from optax_bilateral._src.mesh.triangle_mesh import (
     DEFAULT_DIRECTIONS,
     DEFAULT_LAMBDA,
     DEFAULT_MAXITER,

@@ -50,7 +50,7 @@ def check_base() -> None:
     exec(docs_blocks.by("README.md", "compositions").code, namespace)
     assert {"pre", "post", "both", "opt"} <= set(namespace)
     # The wheel carries the native kernel, built for any CPU of its platform.
-    from optax_bilateral._src import native
+    from optax_bilateral._src.filter import native
 
     status = native.status()
     assert status.available, status.reason

@@ -211,7 +211,7 @@ def digest(x: np.ndarray) -> str:
 def toolchain() -> str:
     import jaxlib
 
-    from optax_bilateral._src import native
+    from optax_bilateral._src.filter import native
 
     # The native kernel's instruction set rounds differently (fused multiply-adds or not).
     isa = native.status().reason if native.available() else "none"

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 import jax_compat
 import optax_bilateral as ob
 from optax_bilateral import atrous_bilateral
-from optax_bilateral._src import atrous
+from optax_bilateral._src.filter import atrous
 from reference import atrous_reference
 
 RTOL = 1e-5  # float32 accumulation of <= 125-tap sums over a few levels: ~1e-7 per op
@@ -442,7 +442,7 @@ def test_atrous_bilateral_is_defined_once_and_help_shows_its_docstring():
 
     root = pathlib.Path(ob.__file__).parent
     defs = [p for p in root.rglob("*.py") if "def atrous_bilateral(" in p.read_text()]
-    assert [p.name for p in defs] == ["filter.py"]
+    assert [p.relative_to(root).as_posix() for p in defs] == ["_src/filter/front.py"]
     text = pydoc.render_doc(ob.atrous_bilateral, renderer=pydoc.plaintext)
     for part in (
         "A-trous cross-bilateral filter",

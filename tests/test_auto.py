@@ -16,8 +16,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import optax_bilateral as ob
-from optax_bilateral._src import auto
-from optax_bilateral._src.sigma import blend
+from optax_bilateral._src.rules import auto
+from optax_bilateral._src.rules.sigma import blend
 from states import filtered_state, with_filtered_state
 
 AUTO, SURE = ob.Auto(), ob.Sure()

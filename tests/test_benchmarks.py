@@ -254,7 +254,7 @@ def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
     adam, ours = result["programs"]["adam"], result["programs"]["ours"]
     # The filter runs in ours only, every traced call: the native kernel's custom call (what
     # kernel="auto" takes on the CPU), or the pure-JAX kernels' weights (exp kernels).
-    from optax_bilateral._src.filter import resolve_kernel
+    from optax_bilateral._src.filter.front import resolve_kernel
 
     filter_family = "ffi_call" if resolve_kernel("auto") == "native" else "exponential"
     assert any(filter_family in f for f in ours["families"]), ours["families"]

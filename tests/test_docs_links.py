@@ -9,7 +9,7 @@ the Markdown cells of every notebook (notebooks/*.ipynb, whose pages the docs si
   ``notebooks/<name>.ipynb``), and none points into ``results/``;
 * every path written in the text (``dir/name.ext``, with at least one folder, as in
   ``experiments/benchmark.py`` or ``figures/x.png``) exists, read from the repository root,
-  from the page's folder or from ``optax_bilateral/`` (docs name ``_src/step.py``);
+  from the page's folder or from ``optax_bilateral/`` (docs name ``_src/optimizer/step.py``);
 * a path of *another* repository is cited as such: its paragraph names the repository
   (``github owner/name``, as docs/method.md cites the authors' code);
 * paths under ``results/`` are what the experiments write (git-ignored): they are generated
@@ -134,7 +134,7 @@ def test_the_rule_catches_what_it_should():
     assert PATH.findall("`OUT/cache/<scene>/<family>.json` and `processes/*/m.json`") == []
     assert not _exists("experiments/no_such_file.py", page)
     assert _exists("notebooks/ablation.md", page) and not _exists("notebooks/no_such.md", page)
-    assert _exists("_src/step.py", page) and _exists("figures", page)
+    assert _exists("_src/optimizer/step.py", page) and _exists("figures", page)
     assert _external("a/b.py", "The authors' code (github owner/repo, `a/b.py`).\n\nMore.")
     assert not _external("a/b.py", "Our `a/b.py`.\n\nThe authors' (github owner/repo).")
 

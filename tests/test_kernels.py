@@ -47,7 +47,7 @@ def test_plain_kernel_equals_the_cpu_kernel_at_extremes(shape, separable):
 
 
 def test_kernel_choice(monkeypatch):
-    from optax_bilateral._src.filter import KERNEL_ENV, resolve_kernel
+    from optax_bilateral._src.filter.front import KERNEL_ENV, resolve_kernel
 
     monkeypatch.delenv(KERNEL_ENV, raising=False)
     assert resolve_kernel("auto") == ("native" if jax.default_backend() == "cpu" else "plain")

@@ -18,7 +18,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from optax_bilateral import atrous_bilateral
-from optax_bilateral._src import native
+from optax_bilateral._src.filter import native
 from reference import atrous_reference
 
 # float32 sums of <= 125 taps over a few levels, in another order than the JAX kernels'.
@@ -172,7 +172,7 @@ def test_without_the_extension_the_pure_jax_kernels_run():
     code = textwrap.dedent(
         """
         import jax.numpy as jnp, optax_bilateral as ob
-        from optax_bilateral._src import native
+        from optax_bilateral._src.filter import native
         s = native.status()
         assert not s.available and "OPTAX_BILATERAL_NATIVE=0" in s.reason, s
         for n in (8, 9):  # two programs traced: the fallback is said once

@@ -44,7 +44,7 @@ def test_wheel_holds_only_the_library(tmp_path):
     assert {n.split("/")[0] for n in names} == {"optax_bilateral", dist_info}
     assert {
         "optax_bilateral/py.typed",
-        "optax_bilateral/_src/filter.py",
+        "optax_bilateral/_src/filter/front.py",
         "optax_bilateral/toy/texture.py",
     } <= set(names)
     assert any(n.startswith(dist_info) and n.endswith("LICENSE") for n in names)

@@ -8,7 +8,7 @@ import optax
 import pytest
 
 import optax_bilateral as ob
-from optax_bilateral._src import pyramid as pyr
+from optax_bilateral._src.optimizer import pyramid as pyr
 
 SHAPES = [((16, 1), (0, 1)), ((13, 10, 3), (0, 1)), ((9, 8), (0, 1)), ((6, 5, 7, 2), (0, 1, 2))]
 

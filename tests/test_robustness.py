@@ -537,7 +537,7 @@ def test_load_state_assembles_the_parts_of_a_multiprocess_checkpoint(tmp_path, m
     the blocks together, and refuses incomplete or mixed sets of parts."""
     from jax.experimental import multihost_utils
 
-    from optax_bilateral._src import state_io
+    from optax_bilateral._src.optimizer import state_io
 
     tree = {
         "m": jnp.arange(8 * 6 * 2, dtype=jnp.float32).reshape(8, 6, 2),

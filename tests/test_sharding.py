@@ -8,7 +8,7 @@ child prints one JSON record per check; the tests below assert on them.
 Two routes are checked:
 
 * explicit meshes (``jax.make_mesh``'s default): the filter runs per device with
-  explicit halo exchange (``optax_bilateral/_src/sharded.py``);
+  explicit halo exchange (``optax_bilateral/_src/filter/sharded.py``);
 * auto meshes: the single-device filter, split by XLA's SPMD partitioner.
 """
 

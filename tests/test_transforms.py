@@ -686,7 +686,7 @@ def test_masked_filter_by_nan_guide_equals_the_filters_mask(separable, guide_kin
     # The transforms leave unobserved texels out of the sums with a NaN guide there (it costs
     # the kernel nothing); at observed texels that must equal atrous_bilateral's mask. An
     # integer guide has no NaN: it falls back to the mask.
-    from optax_bilateral._src import operators
+    from optax_bilateral._src.filter import operators
 
     k1, k2, k3 = jax.random.split(KEY, 3)
     m = jax.random.normal(k1, (9, 7, 3))

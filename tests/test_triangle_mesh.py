@@ -6,7 +6,7 @@ import numpy as np
 import optax
 import pytest
 
-from optax_bilateral._src import triangle_mesh as M
+from optax_bilateral._src.mesh import triangle_mesh as M
 from optax_bilateral.toy import triangle_mesh as toy
 
 LAM = 7.0

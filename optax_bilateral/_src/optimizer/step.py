@@ -29,8 +29,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src import layout, numerics, operators
-from optax_bilateral._src.sigma import Moments, SigmaRule, StepContext, blend
+from optax_bilateral._src import numerics
+from optax_bilateral._src.filter import layout, operators
+from optax_bilateral._src.rules.sigma import Moments, SigmaRule, StepContext, blend
 
 
 class LeafPlan(NamedTuple):

@@ -8,7 +8,8 @@ several threads, with one working copy of the fields beside the output (a last o
 call, so that it is in XLA's buffer plan).
 
 Derivatives are the pure-JAX kernel's: :func:`filter_planes` is a ``jax.custom_jvp`` whose rule
-differentiates :mod:`optax_bilateral._src.plain`, so ``jax.grad`` / ``jax.jvp`` with respect to
+differentiates
+:mod:`optax_bilateral._src.filter.plain`, so ``jax.grad`` / ``jax.jvp`` with respect to
 the fields, the guide and sigma_d work as with the other kernels. ``jax.vmap`` runs the call
 once per batch element (``vmap_method="sequential"``).
 
@@ -30,8 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from optax_bilateral._src import plain
-from optax_bilateral._src.bilateral import level_passes
+from optax_bilateral._src.filter import plain
+from optax_bilateral._src.filter.bilateral import level_passes
 
 TARGET = "optax_bilateral_atrous"
 FIELDS_TARGET = "optax_bilateral_atrous_fields"

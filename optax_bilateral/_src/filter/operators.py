@@ -25,8 +25,8 @@ from typing import Any, NamedTuple, Protocol
 import jax
 import jax.numpy as jnp
 
-from optax_bilateral._src import layout
-from optax_bilateral._src.filter import atrous_bilateral
+from optax_bilateral._src.filter import layout
+from optax_bilateral._src.filter.front import atrous_bilateral
 
 # A field's sigma_d: a scalar, or (a self-guided operator) a function of the field.
 Sigma = Any

@@ -1,6 +1,6 @@
 """A plain kernel of the a-trous filter, for backends other than XLA's CPU.
 
-The same two functions as :mod:`optax_bilateral._src.atrous` (:func:`plane_shape`,
+The same two functions as :mod:`optax_bilateral._src.filter.atrous` (:func:`plane_shape`,
 :func:`filter_planes`), written the obvious way: each pass zero-pads the fields, the
 guide and the validity once and reads every neighbour as a shifted slice, with no
 chunking, barriers or pitch columns. XLA's GPU backend fuses each pass into a few
@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src.bilateral import (
+from optax_bilateral._src.filter.bilateral import (
     Pair,
     channel_sq_dist,
     level_passes,

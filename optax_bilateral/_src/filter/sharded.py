@@ -13,7 +13,7 @@ rule "neighbours outside the grid are skipped and the rest renormalised". Then
              / (h0 + sum_o w(p, p+o) + w(p, p-o))
 
 is evaluated on the block only, with the same terms in the same order as the
-single-device kernel (:mod:`optax_bilateral._src.atrous`): the result equals it up
+single-device kernel (:mod:`optax_bilateral._src.filter.atrous`): the result equals it up
 to float rounding.
 
 Why not leave it to XLA's SPMD partitioner: with an *explicit* mesh (the
@@ -23,7 +23,7 @@ default of ``jax.make_mesh``) the single-device code does not even trace
 single-device filter flattens the spatial axes to read neighbours as flat
 windows XLA gathers whole grids (``docs/sharding.md`` has the measurements).
 
-The front door (:mod:`optax_bilateral._src.filter`) takes this route when a field's
+The front door (:mod:`optax_bilateral._src.filter.front`) takes this route when a field's
 type carries an explicit sharding of a spatial axis (``jax.typeof(x).sharding``,
 visible at trace time): :func:`filter_sharded` places the arrays and runs the front
 door's per-block function (planar layout, :class:`HaloKernel`, back) on every device.
@@ -41,8 +41,8 @@ import numpy as np
 from jax import lax
 from jax.sharding import AbstractMesh, AxisType, Mesh, NamedSharding, PartitionSpec
 
-from optax_bilateral._src import native
-from optax_bilateral._src.bilateral import (
+from optax_bilateral._src.filter import native
+from optax_bilateral._src.filter.bilateral import (
     channel_sq_dist,
     level_passes,
     rescale_guide,
@@ -247,11 +247,12 @@ def _reshard(x, device_mesh, entries):
 
 
 class HaloKernel:
-    """The per-block kernel, with the interface of :mod:`optax_bilateral._src.atrous`:
+    """The per-block kernel, with the interface of :mod:`optax_bilateral._src.filter.atrous`:
     planes are the block's own spatial shape, and each pass first fetches its halo.
 
     ``native``: each level runs as one call of the native kernel
-    (:mod:`optax_bilateral._src.native`) on the block extended by the level's reach along every
+    (:mod:`optax_bilateral._src.filter.native`) on the block
+    extended by the level's reach along every
     axis (corners included, so a separable level's later passes read correct values in the
     halo), and keeps the block's own points."""
 

@@ -13,10 +13,10 @@ from typing import Literal, TypeAlias
 
 import jax
 
-from optax_bilateral._src.auto import Auto
-from optax_bilateral._src.fixed import Fixed
-from optax_bilateral._src.sigma import SigmaRule
-from optax_bilateral._src.sure import Sure
+from optax_bilateral._src.rules.auto import Auto
+from optax_bilateral._src.rules.fixed import Fixed
+from optax_bilateral._src.rules.sigma import SigmaRule
+from optax_bilateral._src.rules.sure import Sure
 
 SigmaD: TypeAlias = float | jax.Array | Literal["auto", "sure"] | SigmaRule
 """One leaf's ``sigma_d``: a number (>= 0, in the guide's units; ``inf`` is a low-pass),

@@ -16,7 +16,7 @@ applied afresh each step and never accumulates). A transform placed after
 into ``B m / sqrt(B v)``; so the postfilter is Adam with a filter between the
 moment update and the step.
 
-Every leaf goes through one straight step (``_src/step.py``: ``postfilter_leaf``,
+Every leaf goes through one straight step (``_src/optimizer/step.py``: ``postfilter_leaf``,
 ``prefilter_leaf``); what the transform decides once per leaf (axes, F, dtypes, the sigma_d
 rule) is its ``LeafPlan``.
 
@@ -56,10 +56,20 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from optax_bilateral._src import layout, leaves, numerics, rules, sure
-from optax_bilateral._src.operators import FilterPlan
-from optax_bilateral._src.sigma import Kind, SigmaRule
-from optax_bilateral._src.step import AdamHyper, Clock, LeafPlan, postfilter_leaf, prefilter_leaf
+from optax_bilateral._src import numerics
+from optax_bilateral._src.filter import layout
+from optax_bilateral._src.filter.operators import FilterPlan
+from optax_bilateral._src.optimizer import leaves
+from optax_bilateral._src.optimizer.step import (
+    AdamHyper,
+    Clock,
+    LeafPlan,
+    postfilter_leaf,
+    prefilter_leaf,
+)
+from optax_bilateral._src.rules import registry as rules
+from optax_bilateral._src.rules import sure
+from optax_bilateral._src.rules.sigma import Kind, SigmaRule
 from optax_bilateral._src.validation import (
     check_bool,
     check_decay,
@@ -73,8 +83,8 @@ from optax_bilateral._src.validation import (
 )
 
 if TYPE_CHECKING:
-    from optax_bilateral._src.leaves import GuideSetting, SpatialAxesSetting
-    from optax_bilateral._src.rules import LevelsSetting, SigmaSetting
+    from optax_bilateral._src.optimizer.leaves import GuideSetting, SpatialAxesSetting
+    from optax_bilateral._src.rules.registry import LevelsSetting, SigmaSetting
 
 SecondMoment = Literal["elementwise", "uniform"]
 

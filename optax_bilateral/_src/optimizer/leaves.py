@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from optax_bilateral._src import sure
-from optax_bilateral._src.bilateral import log_transform
-from optax_bilateral._src.sigma import SigmaRule
+from optax_bilateral._src.filter.bilateral import log_transform
+from optax_bilateral._src.rules import sure
+from optax_bilateral._src.rules.sigma import SigmaRule
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 # F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.

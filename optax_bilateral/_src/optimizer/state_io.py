@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from optax_bilateral._src.leaves import leaf_names
+from optax_bilateral._src.optimizer.leaves import leaf_names
 
 _FORMAT = "optax_bilateral.state/1"
 _PART_FORMAT = "optax_bilateral.state-part/1"

@@ -30,9 +30,10 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src import numerics, sharded
-from optax_bilateral._src.auto import Auto, noise_ratio
-from optax_bilateral._src.sigma import Filtered, SigmaRule
+from optax_bilateral._src import numerics
+from optax_bilateral._src.filter import sharded
+from optax_bilateral._src.rules.auto import Auto, noise_ratio
+from optax_bilateral._src.rules.sigma import Filtered, SigmaRule
 from optax_bilateral._src.validation import check_integer, check_number
 
 

@@ -1,11 +1,11 @@
 """The filter's front door: :func:`atrous_bilateral`.
 
 Checks the arguments and sets up the planar layout once, then hands the planes
-to a kernel: the native C++ kernel on the CPU (:mod:`optax_bilateral._src.native`, one XLA
-FFI call per cascade), the pure-JAX XLA-CPU kernel (:mod:`optax_bilateral._src.atrous`),
-the plain kernel for other backends (:mod:`optax_bilateral._src.plain`), or, when
+to a kernel: the native C++ kernel on the CPU (:mod:`optax_bilateral._src.filter.native`, one XLA
+FFI call per cascade), the pure-JAX XLA-CPU kernel (:mod:`optax_bilateral._src.filter.atrous`),
+the plain kernel for other backends (:mod:`optax_bilateral._src.filter.plain`), or, when
 the fields' spatial axes are split over explicit mesh axes, the same per-block code
-run on every device with halo exchange (:mod:`optax_bilateral._src.sharded`).
+run on every device with halo exchange (:mod:`optax_bilateral._src.filter.sharded`).
 
 A kernel is anything with the two methods of :class:`Kernel`; :data:`KERNELS` names
 the single-device ones.
@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Protocol
 import jax
 import jax.numpy as jnp
 
-from optax_bilateral._src import atrous, layout, native, plain, sharded
-from optax_bilateral._src.bilateral import log_transform
+from optax_bilateral._src.filter import atrous, layout, native, plain, sharded
+from optax_bilateral._src.filter.bilateral import log_transform
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 if TYPE_CHECKING:

@@ -38,10 +38,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from optax_bilateral._src import numerics, sharded
-from optax_bilateral._src.bilateral import TAPS, log_transform
-from optax_bilateral._src.filter import atrous_bilateral
-from optax_bilateral._src.sigma import Filtered, SigmaRule
+from optax_bilateral._src import numerics
+from optax_bilateral._src.filter import sharded
+from optax_bilateral._src.filter.bilateral import TAPS, log_transform
+from optax_bilateral._src.filter.front import atrous_bilateral
+from optax_bilateral._src.rules.sigma import Filtered, SigmaRule
 from optax_bilateral._src.validation import check_integer, check_number
 
 SKIP, CHECK, BLEND = 0, 1, 2  # what a postfilter step computes of the blend (blend_phase)

@@ -1,6 +1,7 @@
 """How a leaf chooses its ``sigma_d``: the :class:`SigmaRule` interface.
 
-A rule is a small frozen object. The per-leaf step (:mod:`optax_bilateral._src.step`) asks it,
+A rule is a small frozen object. The per-leaf step (:mod:`optax_bilateral._src.optimizer.step`)
+asks it,
 in this order, for
 
 * ``init``: the leaf's state (a ``NamedTuple`` of arrays the rule owns, or None);
@@ -13,7 +14,7 @@ in this order, for
 * ``after_step``: the state with what the step taught it (a postfilter).
 
 Three rules exist, each in its own module with its state and its constants: :class:`Fixed`
-(a number, :mod:`~optax_bilateral._src.fixed`), :class:`~optax_bilateral._src.auto.Auto`
+(a number, :mod:`~optax_bilateral._src.rules.fixed`), :class:`~optax_bilateral._src.auto.Auto`
 (``sigma_d="auto"``, the default) and :class:`~optax_bilateral._src.sure.Sure`
 (``sigma_d="sure"``). A rule's tunables are its fields, hashable, so that another setting is
 another object (and another compiled step), never a module global. A new rule subclasses
@@ -26,7 +27,7 @@ from typing import Any, Literal, NamedTuple
 
 import jax
 
-from optax_bilateral._src import operators
+from optax_bilateral._src.filter import operators
 
 # Which transform a leaf's state belongs to: what it can learn from.
 Kind = Literal["prefilter", "postfilter", "memoryless"]

@@ -41,10 +41,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from optax_bilateral._src import leaves as lv
+from optax_bilateral._src.optimizer import leaves as lv
 
 if TYPE_CHECKING:
-    from optax_bilateral._src.leaves import SpatialAxesSetting
+    from optax_bilateral._src.optimizer.leaves import SpatialAxesSetting
 
 
 def _check_levels(levels) -> int:

@@ -8,12 +8,12 @@ from typing import TYPE_CHECKING, Any, cast
 import jax
 import optax
 
-from optax_bilateral._src import leaves, transforms
+from optax_bilateral._src.optimizer import leaves, transforms
 from optax_bilateral._src.validation import check_learning_rate, check_nonnegative
 
 if TYPE_CHECKING:
-    from optax_bilateral._src.leaves import SpatialAxesSetting
-    from optax_bilateral._src.rules import LevelsSetting, SigmaSetting
+    from optax_bilateral._src.optimizer.leaves import SpatialAxesSetting
+    from optax_bilateral._src.rules.registry import LevelsSetting, SigmaSetting
 
 # The paper's grid runs (both references): b1 = 0.2, b2 = 1 - (1 - b1)^2.
 PAPER_B1 = 0.2

@@ -1,6 +1,6 @@
 """The single-device kernel of the a-trous filter, shaped for XLA's CPU backend.
 
-The front door (:mod:`optax_bilateral._src.filter`) validates the arguments and
+The front door (:mod:`optax_bilateral._src.filter.front`) validates the arguments and
 lays the fields out as planes; this kernel then runs every level on those planes.
 Its interface is two functions, :func:`plane_shape` and :func:`filter_planes`:
 another backend's kernel (a plainer one, with no CPU steering) implements the same
@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from optax_bilateral._src.bilateral import (
+from optax_bilateral._src.filter.bilateral import (
     channel_sq_dist,
     level_passes,
     rescale_guide,

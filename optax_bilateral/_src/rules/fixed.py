@@ -9,7 +9,7 @@ from typing import Any
 import jax
 
 from optax_bilateral._src import numerics
-from optax_bilateral._src.sigma import SigmaRule
+from optax_bilateral._src.rules.sigma import SigmaRule
 
 
 @jax.tree_util.register_pytree_node_class

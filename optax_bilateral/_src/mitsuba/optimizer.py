@@ -29,7 +29,7 @@ import optax
 from drjit.opt import Optimizer
 
 import optax_bilateral as ob
-from optax_bilateral._src.mitsuba import GRID_NDIMS, ById, observed_texels, to_jax
+from optax_bilateral._src.mitsuba.bridge import GRID_NDIMS, ById, observed_texels, to_jax
 
 LearningRate = float | dr.ArrayBase | Callable[[Any], Any]
 

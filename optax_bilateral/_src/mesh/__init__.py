@@ -1,0 +1,1 @@
+"""Triangle meshes: Large Steps and its bilateral variant."""
