@@ -11,6 +11,7 @@ from optax_bilateral._src.filter.front import atrous_bilateral
 from optax_bilateral._src.filter.native import status as native_status
 from optax_bilateral._src.optimizer.alias import bilateral_adam
 from optax_bilateral._src.optimizer.leaves import (
+    DEFAULT_LEVELS,
     LeafRuleWarning,
     default_spatial_axes,
     filtered_axes,
@@ -22,9 +23,6 @@ from optax_bilateral._src.optimizer.pyramid import (
 )
 from optax_bilateral._src.optimizer.state_io import load_state, save_state
 from optax_bilateral._src.optimizer.transforms import (
-    DEFAULT_LEVELS,
-    DEFAULT_SIGMA_D,
-    SURE_LEVELS,
     PostfilterState,
     PrefilterState,
     ScaleByAdamState,
@@ -34,9 +32,9 @@ from optax_bilateral._src.optimizer.transforms import (
 )
 from optax_bilateral._src.rules.auto import Auto, AutoState
 from optax_bilateral._src.rules.fixed import Fixed
-from optax_bilateral._src.rules.registry import auto_sigma, sure_sigma
+from optax_bilateral._src.rules.registry import DEFAULT_SIGMA_D, auto_sigma, sure_sigma
 from optax_bilateral._src.rules.sigma import SigmaRule
-from optax_bilateral._src.rules.sure import Sure, SureState
+from optax_bilateral._src.rules.sure import SURE_LEVELS, Sure, SureState
 
 try:
     __version__ = version("optax_bilateral")  # written once, in pyproject.toml

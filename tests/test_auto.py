@@ -16,6 +16,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import optax_bilateral as ob
+from optax_bilateral._src.filter import local
 from optax_bilateral._src.rules import auto
 from optax_bilateral._src.rules.sigma import blend
 from states import filtered_state, with_filtered_state
@@ -331,8 +332,10 @@ def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
         ((64, 64, 64, 1), (0, 1, 2)),
     ]:
         a = jnp.asarray(rng.normal(size=shape), jnp.float32)
-        full = [AUTO.subgrid(x, axes) for x in auto.smooth((a, a * a), axes)]
-        for x, y in zip(auto.smooth_subgrid((a, a * a), axes, AUTO.stride(shape, axes)), full):
+        full = [AUTO.subgrid(x, axes) for x in local.local_average((a, a * a), axes)]
+        for x, y in zip(
+            local.local_average_subgrid((a, a * a), axes, AUTO.stride(shape, axes)), full
+        ):
             np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
     shape, axes = (256, 256, 2), (0, 1)
     assert AUTO.stride(shape, axes) > 1
@@ -674,17 +677,18 @@ def test_a_run_on_correlated_noise_switches_from_its_second_step_and_a_self_guid
     assert all(f == 0 for f in flags)
 
 
+def _with_correlated(state, flag: int):
+    """``state`` with ``AutoState.correlated`` set to ``flag``."""
+    post = filtered_state(state)
+    auto_state = post.sigma_state._replace(correlated=jnp.full([], flag, jnp.float32))
+    return with_filtered_state(state, post._replace(sigma_state=auto_state))
+
+
 def test_a_correlated_step_is_the_filter_at_heavy_factor_with_extra_levels_and_no_blend():
     """With ``AutoState.correlated`` set, the update is the one of ``levels + 1`` levels at
     ``HEAVY_FACTOR`` times sigma_d without the blend (clean and masked gradients alike)."""
     _, state, x = _correlated_problem(2)
-    post = filtered_state(state)
-    heavy = with_filtered_state(
-        state, post._replace(sigma_state=post.sigma_state._replace(correlated=jnp.ones([])))
-    )
-    light = with_filtered_state(
-        state, post._replace(sigma_state=post.sigma_state._replace(correlated=jnp.zeros([])))
-    )
+    heavy, light = _with_correlated(state, 1), _with_correlated(state, 0)
     g = jnp.asarray(_blurred(np.random.default_rng(3).normal(size=SHAPE), 1.5), jnp.float32)
     masked = g.at[3, 4].set(jnp.nan)
     opt = ob.bilateral_adam(0.02, spatial_axes=(0, 1))
@@ -705,3 +709,26 @@ def test_a_correlated_step_is_the_filter_at_heavy_factor_with_extra_levels_and_n
         u_light, _ = opt.update(grad, light, x)
         assert np.max(np.abs(np.asarray(u_light) - np.asarray(u))) > 1e-3 * np.max(np.abs(u))
     assert float(u[3, 4, 0]) == 0  # the masked texel does not move
+
+
+def test_heavy_levels_sets_the_levels_a_correlated_step_adds():
+    """``auto_sigma(heavy_levels=(1-D, 2-D, 3-D))``: a correlated 2-D step runs ``levels + 2``
+    levels with ``(0, 2, 0)``, and ``levels`` alone with ``(2, 0, 0)``."""
+    _, state, x = _correlated_problem(2)
+    heavy, light = _with_correlated(state, 1), _with_correlated(state, 0)
+    g = jnp.asarray(_blurred(np.random.default_rng(4).normal(size=SHAPE), 1.5), jnp.float32)
+    heavier = ob.auto_sigma(rate_factor=AUTO.rate_factor * AUTO.heavy_factor)
+    for added in (2, 0):
+        rule = ob.auto_sigma(heavy_levels=(2 - added, added, 0))
+        opt = ob.bilateral_adam(0.02, sigma_d=rule, spatial_axes=(0, 1))
+        levels = ob.DEFAULT_LEVELS + added
+        reference = ob.bilateral_adam(0.02, sigma_d=heavier, spatial_axes=(0, 1), levels=levels)
+        u, _ = opt.update(g, heavy, x)
+        u_ref, _ = reference.update(g, light, x)
+        np.testing.assert_allclose(u, u_ref, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("bad", [(1, 2), (1, -1, 0), (1.0, 1, 0), [2, 1, 0], (True, 1, 0)])
+def test_heavy_levels_must_be_three_non_negative_ints(bad):
+    with pytest.raises(ValueError, match="heavy_levels must be a tuple of 3 ints"):
+        ob.auto_sigma(heavy_levels=bad)

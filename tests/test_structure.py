@@ -107,3 +107,101 @@ def test_the_library_imports_neither_experiments_nor_tools():
         str(p) for p in (ROOT / "optax_bilateral").rglob("*.py") if imports.search(p.read_text())
     ]
     assert not found, found
+
+
+# The layers of ``_src``, lowest first (docs/design.md, "Each module's one job"): a module
+# imports its own group and the groups of lower layers, never one above or beside it.
+LAYERS = {
+    "validation": 0,
+    "numerics": 1,
+    "filter": 2,
+    "rules": 3,
+    "optimizer": 4,
+    "mesh": 5,
+    "mitsuba": 5,
+}
+# The filter's kernels are its own: the layers above reach them through these modules.
+FILTER_FACE = {"front", "operators", "layout", "bilateral", "local"}
+
+
+def _is_module(dotted: str) -> bool:
+    path = ROOT.joinpath(*dotted.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def _library_imports(path: pathlib.Path):
+    """The modules of ``optax_bilateral`` that ``path`` imports, as dotted names (``from a
+    import b`` names ``a.b`` where that is a module, else ``a``)."""
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("optax_bilateral"):
+            for alias in node.names:
+                name = f"{node.module}.{alias.name}"
+                yield name if _is_module(name) else node.module
+        elif isinstance(node, ast.Import):
+            yield from (a.name for a in node.names if a.name.startswith("optax_bilateral"))
+
+
+def _place(module: str) -> tuple[str | None, str | None]:
+    """``(group, module in the group)`` of a module of ``_src``, e.g. ``("rules", "auto")``;
+    ``(None, None)`` outside ``_src`` (the package face)."""
+    parts = module.split(".")
+    if len(parts) < 3 or parts[1] != "_src":
+        return None, None
+    return parts[2], (parts[3] if len(parts) > 3 else None)
+
+
+def test_imports_run_down_the_layers_of_src():
+    wrong = []
+    for path in sorted(SRC.rglob("*.py")):
+        here, _ = _place(".".join(path.relative_to(ROOT).with_suffix("").parts))
+        for name in sorted(set(_library_imports(path))):
+            there, module = _place(name)
+            where = f"{path.relative_to(ROOT)} imports {name}"
+            if there is None:
+                wrong.append(f"{where}: the package face")
+            elif there != here and LAYERS[there] >= LAYERS[here]:
+                wrong.append(f"{where}: layer {there} is not below {here}")
+            elif there == "filter" != here and module not in FILTER_FACE:
+                wrong.append(f"{where}: a kernel of the filter, past its face")
+    assert not wrong, wrong
+
+
+# The rules and the one module that maps shorthands to them; elsewhere a rule is a SigmaRule.
+RULE_MODULES = {"rules/fixed.py", "rules/auto.py", "rules/sure.py", "rules/registry.py"}
+RULE_NAMES = {"Fixed", "Auto", "Sure", "AutoState", "SureState", "SURE_LEVELS", "auto", "sure"}
+
+
+def _docstrings(tree) -> set[int]:
+    """The ids of the docstring nodes of a module and its classes and functions."""
+    kinds = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
+    return {
+        id(node.body[0].value)
+        for node in ast.walk(tree)
+        if isinstance(node, kinds) and node.body and isinstance(node.body[0], ast.Expr)
+    }
+
+
+def test_no_module_outside_the_rules_names_a_particular_rule():
+    """Whatever a rule needs (its default levels, the transforms it can run in, its state)
+    is declared on the rule (``SigmaRule.default_levels``, ``SigmaRule.check``), so a new
+    rule needs no change elsewhere."""
+    found = []
+    for path in sorted(SRC.rglob("*.py")):
+        if path.relative_to(SRC).as_posix() in RULE_MODULES:
+            continue
+        tree = ast.parse(path.read_text())
+        docs = _docstrings(tree)
+        for node in ast.walk(tree):
+            named = (
+                (isinstance(node, ast.Name) and node.id in RULE_NAMES)
+                or (isinstance(node, ast.Attribute) and node.attr in RULE_NAMES)
+                or (isinstance(node, ast.alias) and node.name.split(".")[-1] in RULE_NAMES)
+                # (the filter's "auto" is its kernel's; the filter cannot import a rule)
+                or (
+                    (isinstance(node, ast.Constant) and node.value in ("auto", "sure"))
+                    and path.parent.name != "filter"
+                )
+            )
+            if named and id(node) not in docs:
+                found.append(f"{path.relative_to(ROOT)}:{getattr(node, 'lineno', '?')}")
+    assert not found, found

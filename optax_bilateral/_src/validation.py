@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
 from typing import Any, cast
 
 import jax
@@ -28,17 +29,18 @@ def is_concrete(x: Any) -> bool:
     return True
 
 
-def check_sigma_d(sigma_d: Any, name: str = "sigma_d", *, allow_auto: bool = False) -> None:
-    """Raises if a concrete ``sigma_d`` is negative, NaN or not a real scalar (or, with
-    ``allow_auto``, one of the strings "auto" and "sure")."""
-    if allow_auto and isinstance(sigma_d, str):
-        if sigma_d not in ("auto", "sure"):
-            raise ValueError(f"{name} must be a number >= 0, 'auto' or 'sure', got {sigma_d!r}")
+def check_sigma_d(sigma_d: Any, name: str = "sigma_d", *, names: Sequence[str] = ()) -> None:
+    """Raises if a concrete ``sigma_d`` is negative, NaN or not a real scalar, and is not one
+    of the shorthands ``names`` (e.g. "auto")."""
+    listed = " or ".join(map(repr, names))
+    if names and isinstance(sigma_d, str):
+        if sigma_d not in names:
+            raise ValueError(f"{name} must be a number >= 0, {listed}, got {sigma_d!r}")
         return
     if isinstance(sigma_d, bool) or not (
         isinstance(sigma_d, numbers.Real) or hasattr(sigma_d, "dtype")
     ):
-        also = ", 'auto' or 'sure'" if allow_auto else ""
+        also = f", {listed}" if names else ""
         raise TypeError(f"{name} must be a real scalar (float, inf allowed){also}, got {sigma_d!r}")
     sigma_d = cast(Any, sigma_d)  # a number or an array: told apart by attribute below
     if hasattr(sigma_d, "shape") and np.shape(sigma_d) != ():

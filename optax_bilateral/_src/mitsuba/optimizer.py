@@ -28,8 +28,10 @@ import numpy as np
 import optax
 from drjit.opt import Optimizer
 
-import optax_bilateral as ob
 from optax_bilateral._src.mitsuba.bridge import GRID_NDIMS, ById, observed_texels, to_jax
+from optax_bilateral._src.optimizer.alias import PAPER_B1, filtered_chain
+from optax_bilateral._src.optimizer.transforms import scale_by_adam
+from optax_bilateral._src.rules.registry import DEFAULT_SIGMA_D
 
 LearningRate = float | dr.ArrayBase | Callable[[Any], Any]
 
@@ -419,18 +421,18 @@ def filtered_adam(
         cached, args = None, None
     if cached is not None:
         return cached
-    common = dict(
+    chain = filtered_chain(
+        1.0,
+        PAPER_B1 if b1 is None else b1,
+        b2,
+        eps,
+        prefilter=prefilter,
         sigma_d=sigma_d,
         levels=levels,
         spatial_axes=spatial_axes,
         log_guide=log_guide,
         mask_unobserved=mask_unobserved,
     )
-    moments = {} if b1 is None else {"b1": b1}
-    parts: list[optax.GradientTransformation] = [ob.prefilter(**common)] if prefilter else []
-    parts.append(ob.postfilter(b2=b2, eps=eps, **moments, **common))
-    parts.append(optax.scale_by_learning_rate(1.0))
-    chain = optax.chain(*parts)
     if args is not None:
         _CHAINS[args] = chain
     return chain
@@ -440,7 +442,7 @@ def filtered_adam(
 def adam_rule(eps: float) -> optax.GradientTransformation:
     """The other keys' default transform, without the learning rate: Adam (b1 0.9, b2
     0.999)."""
-    return optax.chain(ob.scale_by_adam(eps=eps), optax.scale_by_learning_rate(1.0))
+    return optax.chain(scale_by_adam(eps=eps), optax.scale_by_learning_rate(1.0))
 
 
 class BilateralAdam(OptaxOptimizer):
@@ -534,7 +536,7 @@ class BilateralAdam(OptaxOptimizer):
         b1: float | None = None,
         b2: float | None = None,
         eps: float = 1e-8,
-        sigma_d: Any = "auto",
+        sigma_d: Any = DEFAULT_SIGMA_D,
         levels: Any = None,
         prefilter: Any = False,
         spatial_axes: Any = None,

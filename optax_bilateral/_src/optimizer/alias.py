@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import inspect
 import warnings
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import optax
 
 from optax_bilateral._src.optimizer import leaves, transforms
+from optax_bilateral._src.rules.registry import DEFAULT_SIGMA_D
 from optax_bilateral._src.validation import check_learning_rate, check_nonnegative
 
 if TYPE_CHECKING:
@@ -34,7 +37,37 @@ _MOVED = {
     "weight_decay": "optax.add_decayed_weights",
     "weight_decay_mask": "optax.add_decayed_weights",
 }
-_SHARED = ("separable", "guide", "mask_unobserved")  # the prefilter takes these too
+# What the prefilter shares with the postfilter: its own keywords.
+PREFILTER_SETTINGS = tuple(inspect.signature(transforms.prefilter).parameters)
+
+
+def filtered_chain(
+    learning_rate: optax.ScalarOrSchedule,
+    b1: jax.typing.ArrayLike = PAPER_B1,
+    b2: jax.typing.ArrayLike | None = None,
+    eps: jax.typing.ArrayLike = 1e-8,
+    *,
+    prefilter: bool | Mapping[str, Any] = False,
+    tail: Sequence[optax.GradientTransformation] = (),
+    **settings: Any,
+) -> optax.GradientTransformationExtraArgs:
+    """The filtered leaves' optimizer, ``optax.chain(prefilter(...)?, postfilter(b1, b2, eps,
+    **settings), *tail, optax.scale_by_learning_rate(learning_rate))``: built here only, for
+    :func:`bilateral_adam`, the Mitsuba optimizers and the experiments.
+
+    ``prefilter``: True gives the prefilter the ``settings`` it takes too
+    (:data:`PREFILTER_SETTINGS`); a mapping gives it those settings instead.
+    """
+    if isinstance(prefilter, Mapping):
+        pre = [transforms.prefilter(**prefilter)]
+    elif prefilter:
+        pre = [
+            transforms.prefilter(**{k: settings[k] for k in PREFILTER_SETTINGS if k in settings})
+        ]
+    else:
+        pre = []
+    post = transforms.postfilter(b1, b2, eps, **settings)
+    return optax.chain(*pre, post, *tail, optax.scale_by_learning_rate(learning_rate))
 
 
 def bilateral_adam(
@@ -43,7 +76,7 @@ def bilateral_adam(
     b2: jax.typing.ArrayLike | None = None,
     eps: jax.typing.ArrayLike = 1e-8,
     *,
-    sigma_d: SigmaSetting = transforms.DEFAULT_SIGMA_D,
+    sigma_d: SigmaSetting = DEFAULT_SIGMA_D,
     levels: LevelsSetting = None,
     prefilter: bool = False,
     spatial_axes: SpatialAxesSetting = None,
@@ -146,18 +179,16 @@ def bilateral_adam(
     unfiltered_betas = (ADAM_B1 if b1 is None else b1, ADAM_B2 if b2 is None else b2)
     post = {k: old.pop(k) for k in list(old) if _MOVED[k] == "postfilter"}
     tail = _weight_decay(old.get("weight_decay"), old.get("weight_decay_mask"))
-    tail.append(optax.scale_by_learning_rate(learning_rate))
     grid = dict(sigma_d=sigma_d, levels=levels, log_guide=log_guide, spatial_axes=spatial_axes)
-    parts = []
-    if prefilter:
-        pre = {k: post[k] for k in _SHARED if k in post}
-        parts.append(transforms.prefilter(**grid, **pre))
-    if not post.pop("postfilter", True):
-        grid = dict(levels=0)  # deprecated postfilter=False: Adam (b1, b2) after the prefilter
+    pre: bool | dict = prefilter
+    if not post.pop("postfilter", True):  # deprecated: Adam (b1, b2) after the prefilter
+        pre = prefilter and {**grid, **{k: post[k] for k in PREFILTER_SETTINGS if k in post}}
+        grid = dict(levels=0)
     elif others is None:  # one postfilter: Adam's own decay rates where it does not filter
         post["unfiltered_betas"] = unfiltered_betas
-    parts.append(transforms.postfilter(*filtered_betas, eps, **grid, **post))
-    filtered = optax.chain(*parts, *tail)
+    filtered = filtered_chain(
+        learning_rate, *filtered_betas, eps, prefilter=pre, tail=tail, **grid, **post
+    )
     if others is None:
         return filtered
     return optax.multi_transform(

@@ -19,24 +19,23 @@ import numpy as np
 import optax
 
 from optax_bilateral._src.filter.bilateral import log_transform
-from optax_bilateral._src.rules import sure
+from optax_bilateral._src.rules import registry
 from optax_bilateral._src.rules.sigma import SigmaRule
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 # F: the benchmark suite's best for auto (docs/auto_sigma.md); the authors' stride_levels = 4.
 DEFAULT_LEVELS = 3
 """The default ``levels`` F = 3 of every transform: footprint radius ``2 (2^F - 1) = 14``
-texels; the authors' ``stride_levels = 4``. A leaf with ``sigma_d="sure"`` defaults to
-:data:`SURE_LEVELS` instead."""
-# With "sure", F is chosen per step among 2 .. levels; 5 is the suite's best bound.
-SURE_LEVELS = 5
-"""The default ``levels`` of a leaf with ``sigma_d="sure"``, the most F it may choose (F = 2
-.. 5, footprint radius up to 62 texels; the authors' ``stride_levels = 6``)."""
+texels; the authors' ``stride_levels = 4``. A rule may declare its own
+(:meth:`SigmaRule.default_levels`: ``"sure"``'s is ``SURE_LEVELS`` = 5)."""
 
 
 def default_levels(sigma_d: Any) -> int:
-    """A leaf's ``levels`` when the transform's ``levels`` is None (the default)."""
-    return SURE_LEVELS if sure.is_sure(sigma_d) else DEFAULT_LEVELS
+    """A leaf's ``levels`` when the transform's ``levels`` is None (the default): its rule's
+    own, else :data:`DEFAULT_LEVELS`."""
+    rule = registry.NAMED.get(sigma_d) if isinstance(sigma_d, str) else sigma_d
+    own = rule.default_levels() if isinstance(rule, SigmaRule) else None
+    return DEFAULT_LEVELS if own is None else own
 
 
 # "params" | "self" | a callable params -> guide pytree (a prefix of the parameters).
@@ -339,12 +338,9 @@ def leaf_specs(tree, *, spatial_axes, sigma_d, levels, warn: bool = False) -> li
         lev = check_levels(lev, name=f"levels (for leaf {name})")
         ax = _resolve_axes(leaf, ax, name, warn and lev > 0)
         if sig is None:
-            raise ValueError(
-                f"sigma_d is None for leaf {name}; pass a number >= 0 (inf for a low-pass), "
-                "'auto', 'sure' or a sigma_d rule (ob.auto_sigma(), ob.sure_sigma())"
-            )
+            raise ValueError(f"sigma_d is None for leaf {name}; pass {registry.SETTINGS}")
         if not isinstance(sig, SigmaRule):
-            check_sigma_d(sig, name=f"sigma_d (for leaf {name})", allow_auto=True)
+            check_sigma_d(sig, name=f"sigma_d (for leaf {name})", names=tuple(registry.NAMED))
         if ax and lev > 0:
             check_floating(
                 leaf,

@@ -50,7 +50,7 @@ them, docs/robustness.md has the full table):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -68,8 +68,8 @@ from optax_bilateral._src.optimizer.step import (
     prefilter_leaf,
 )
 from optax_bilateral._src.rules import registry as rules
-from optax_bilateral._src.rules import sure
-from optax_bilateral._src.rules.sigma import Kind, SigmaRule
+from optax_bilateral._src.rules.registry import DEFAULT_SIGMA_D
+from optax_bilateral._src.rules.sigma import Kind, Setting, SigmaRule
 from optax_bilateral._src.validation import (
     check_bool,
     check_decay,
@@ -88,12 +88,6 @@ if TYPE_CHECKING:
 
 SecondMoment = Literal["elementwise", "uniform"]
 
-# Chosen from the data every step (docs/auto_sigma.md): no number suits every problem.
-DEFAULT_SIGMA_D = "auto"
-"""The default ``sigma_d`` of every transform: ``"auto"``, chosen per leaf and step from the
-guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes it."""
-DEFAULT_LEVELS = leaves.DEFAULT_LEVELS
-SURE_LEVELS = leaves.SURE_LEVELS
 
 try:  # what optax.tree.map_params passes to init in place of the parameters
     from optax.tree_utils._state_utils import _ParamsPlaceholder
@@ -250,11 +244,8 @@ class _Filtering(NamedTuple):
             if isinstance(sig, SigmaRule):
                 continue
             if sig is None:
-                raise ValueError(
-                    "sigma_d must be a number >= 0 (inf for a low-pass), 'auto', 'sure' or a "
-                    "sigma_d rule (ob.auto_sigma(), ob.sure_sigma()), got None"
-                )
-            check_sigma_d(sig, allow_auto=True)
+                raise ValueError(f"sigma_d must be {rules.SETTINGS}, got None")
+            check_sigma_d(sig, names=tuple(rules.NAMED))
         for lev in jax.tree.leaves(self.levels):
             if not (hasattr(lev, "shape") and not is_concrete(lev)):
                 check_levels(lev)  # a traced one: update says how
@@ -411,7 +402,7 @@ def prefilter(
     """
     settings = _Filtering(sigma_d, levels, separable, guide, log_guide, spatial_axes)
     settings.check()
-    _check_sure(sigma_d, "a prefilter has no moments; use a number or 'auto'")
+    _check_rules(sigma_d, Setting("prefilter", guide == "self", filters_both=True))
 
     def init_fn(params):
         if _is_placeholder(params):  # optax.tree.map_params: no parameter-shaped field
@@ -461,14 +452,11 @@ def prefilter(
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def _check_sure(sigma_d, why: str | None) -> None:
-    """Raises if some leaf's ``sigma_d`` is "sure" where it cannot work (``why``: the reason)."""
-    atoms = jax.tree.leaves(sigma_d, is_leaf=leaves.is_sigma_atom)
-    if why is not None and any(map(sure.is_sure, atoms)):
-        raise ValueError(
-            "sigma_d='sure' chooses among filters of Adam's moments m and v by their "
-            f"estimated risk: {why}"
-        )
+def _check_rules(sigma_d, setting: Setting) -> None:
+    """Each leaf's rule checks, when the transform is built, that it can run in it."""
+    for atom in jax.tree.leaves(sigma_d, is_leaf=leaves.is_sigma_atom):
+        if isinstance(atom, (str, SigmaRule)):
+            rules.resolve(cast(Any, atom)).check(setting)
 
 
 # ----------------------------------------------------------------------------------------
@@ -634,7 +622,8 @@ def postfilter(
     mu_dtype = check_mu_dtype(mu_dtype)
     check_second_moment(second_moment)
     memoryless = all(map(is_zero, (b1, b2, *unfiltered_betas)))
-    _check_sure(sigma_d, _sure_unusable(memoryless, guide, filter_m, filter_v))
+    kind = "memoryless" if memoryless else "postfilter"
+    _check_rules(sigma_d, Setting(kind, guide == "self", filter_m and filter_v))
 
     def init_fn(params):
         if _is_placeholder(params):
@@ -771,14 +760,3 @@ def _postfilter_leaf(g, guide, moments, state, rule, adam, clock, *, plan: LeafP
         m, v = new
         new = (layout.from_real_view(m, moments[0].dtype), v[..., 0].astype(moments[1].dtype))
     return layout.from_real_view(d, g.dtype), new, state
-
-
-def _sure_unusable(memoryless: bool, guide, filter_m: bool, filter_v: bool) -> str | None:
-    """Why a postfilter with these settings cannot take sigma_d="sure" (None: it can)."""
-    if memoryless:
-        return "b1 = b2 = 0 keeps no moments; use a number or 'auto'"
-    if guide == "self":
-        return "guide='self' gives m and v their own weights; use a number or 'auto'"
-    if not (filter_m and filter_v):
-        return "it needs filter_m=True and filter_v=True (one operator for both)"
-    return None

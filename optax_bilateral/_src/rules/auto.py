@@ -21,7 +21,7 @@ their constants are the fields of :class:`Auto` (``"auto"`` is ``Auto()``):
 * **Correlated noise** (postfilter with moments, cross-guided). Where the lag-1 correlation
   of ``g - m_hat`` between neighbours is at least ``correlated`` and that difference is
   noise, not the signal's drift (``noisy``), the step filters at ``heavy_factor`` times
-  sigma_d with :func:`extra_levels` more levels, and without the blend. The check runs at the
+  sigma_d with :attr:`Auto.heavy_levels` more levels, and without the blend. The check runs at the
   second step and every ``check_period``-th, and holds until the next.
 """
 
@@ -31,21 +31,23 @@ import dataclasses
 import functools
 import math
 from numbers import Real
-from typing import NamedTuple, cast
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 
 from optax_bilateral._src import numerics
-from optax_bilateral._src.filter import sharded
-from optax_bilateral._src.filter.bilateral import TAPS, log_transform
-from optax_bilateral._src.filter.front import atrous_bilateral
+from optax_bilateral._src.filter.bilateral import log_transform
+from optax_bilateral._src.filter.local import every, local_average_subgrid
 from optax_bilateral._src.rules.sigma import Filtered, SigmaRule
 from optax_bilateral._src.validation import check_integer, check_number
 
 SKIP, CHECK, BLEND = 0, 1, 2  # what a postfilter step computes of the blend (blend_phase)
+# The first step with a noise estimate: v_hat - m_hat^2 needs two gradients.
+FIRST_NOISE_STEP = 2
+# m_hat's variance within this share of the gradient's: b1 ~ 0, no memory to tell noise by.
+MEMORY_EPS = 1e-6
 
 
 class AutoState(NamedTuple):
@@ -69,7 +71,7 @@ class AutoState(NamedTuple):
       correlated: 1 where the gradient's noise was spatially correlated at the last check
         (:meth:`Auto.correlated`; the second step and every ``check_period``-th), else 0
         (a scalar): until the next check the postfilter filters at ``heavy_factor`` times
-        sigma_d with :func:`extra_levels` more levels and without the blend. None where
+        sigma_d with :attr:`Auto.heavy_levels` more levels and without the blend. None where
         ``residual`` is.
 
     Example::
@@ -115,6 +117,9 @@ class Auto(SigmaRule):
       noisy: ``g - m_hat_{t-1}`` must carry at least this share of ``m_hat``'s energy for
         the correlation to be the noise's, not the signal's.
       heavy_factor: sigma_d per learning rate where the gradient's noise is correlated.
+      heavy_levels: the levels added where the noise is correlated, on 1-D, 2-D and 3-D
+        grids: 2, 1 and none (on 3-D the compiled extra level slows every update;
+        docs/auto_sigma.md).
 
     Example::
 
@@ -137,6 +142,7 @@ class Auto(SigmaRule):
     correlated: float = math.exp(-0.25)
     noisy: float = 0.25
     heavy_factor: float = 3.0
+    heavy_levels: tuple[int, int, int] = (2, 1, 0)
 
     def __post_init__(self):
         for name in ("rate_factor", "step_factor", "contrast_factor", "gain", "power"):
@@ -147,6 +153,15 @@ class Auto(SigmaRule):
         check_number(self, "noisy", low=0)
         check_integer(self, "check_period", low=1)
         check_integer(self, "min_texels", low=1)
+        levels = self.heavy_levels
+        if not (
+            isinstance(levels, tuple)
+            and len(levels) == 3
+            and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in levels)
+        ):
+            raise ValueError(
+                f"heavy_levels must be a tuple of 3 ints >= 0 (1-D, 2-D, 3-D grids), got {levels!r}"
+            )
         gate = self.gate
         if not (
             isinstance(gate, tuple)
@@ -214,9 +229,9 @@ class Auto(SigmaRule):
 
     def _cascade(self, op, moments, sigma, heavy):
         """``(B m, B v)`` at ``sigma``; where the noise is correlated (``heavy``, a traced
-        bool), :func:`extra_levels` more levels after the plan's F."""
+        bool), :attr:`heavy_levels` more levels after the plan's F."""
         out = op.apply((moments.m, moments.v), sigma)
-        extra = extra_levels(op.plan.axes) if op.plan.one_operator else 0
+        extra = self.heavy_levels[len(op.plan.axes) - 1] if op.plan.one_operator else 0
         if not extra:
             return out
         levels = op.plan.levels
@@ -252,7 +267,8 @@ class Auto(SigmaRule):
 
         stored = lambda: state.correlated.astype(m.dtype)
         count = ctx.count
-        return lax.cond((count == 2) | (count % self.check_period == 0), check, stored)
+        first = count == FIRST_NOISE_STEP
+        return lax.cond(first | (count % self.check_period == 0), check, stored)
 
     # ------------------------------------------------------------------ statistics
 
@@ -266,7 +282,7 @@ class Auto(SigmaRule):
 
     def subgrid(self, x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
         """Every ``stride``-th texel of ``x`` along each of its spatial ``axes``."""
-        return _every(x, axes, self.stride(x.shape, axes))
+        return every(x, axes, self.stride(x.shape, axes))
 
     def kept_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
         """What :attr:`AutoState.previous_guide` keeps of a guide: its sub-grid."""
@@ -350,7 +366,8 @@ class Auto(SigmaRule):
 
     def _blend_weight(self, m, v, residual, smooth, *, b1, c1, c2, count):
         """The blend's weight of the unfiltered moments per entry, before the gate; ``smooth``
-        takes the local averages (:func:`smooth`, or the sub-grid's)."""
+        takes the local averages (:func:`local_average`, or the
+        sub-grid's)."""
         dtype = m.dtype
         b1 = jnp.asarray(b1, dtype)
         c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
@@ -359,7 +376,7 @@ class Auto(SigmaRule):
         residual_hat = residual / (1 - decay**t)
         # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
         ratio, usable = noise_ratio(b1, c1, count)
-        k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, 1e-6), 0)
+        k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, MEMORY_EPS), 0)
         noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
         residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)
         residual_noise = residual_noise * (1 + b1 * decay) / (1 - b1 * decay)  # m_hat correlates
@@ -383,7 +400,7 @@ class Auto(SigmaRule):
         weight is a smooth field, which a large leaf's sub-grid samples finely enough.
         """
         stride = self.stride(m.shape, axes)
-        sub = functools.partial(smooth_subgrid, axes=axes, stride=stride)
+        sub = functools.partial(local_average_subgrid, axes=axes, stride=stride)
         lam = self._blend_weight(m, v, residual, sub, b1=b1, c1=c1, c2=c2, count=count)
         gate = self._gate(lam)
         return lam * gate, gate
@@ -440,20 +457,14 @@ def contrast(guide: jax.Array, axes: tuple[int, ...], stride: int = 1) -> jax.Ar
     no full-size temporaries)."""
     guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
     axes = _guide_axes(guide, axes)
-    (local,) = smooth_subgrid((jnp.nan_to_num(guide),), axes, stride)
-    return _finite_mean(_texel_norm(_every(guide, axes, stride) - local, axes))
+    (local,) = local_average_subgrid((jnp.nan_to_num(guide),), axes, stride)
+    return _finite_mean(_texel_norm(every(guide, axes, stride) - local, axes))
 
 
 def direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
     """The mean norm per texel of a step's direction (:attr:`AutoState.direction`), over the
     same sub-grid as the guide's step; ``d`` is finite (unobserved entries step by 0)."""
     return jnp.mean(_texel_norm(rule.subgrid(d, axes), axes))
-
-
-def extra_levels(axes: tuple[int, ...]) -> int:
-    """The levels added where the noise is correlated: 2 on a 1-D grid, 1 on a 2-D one, none
-    on 3-D (there the compiled extra level slows every update; docs/auto_sigma.md)."""
-    return {1: 2, 2: 1}.get(len(axes), 0)
 
 
 def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:
@@ -466,66 +477,4 @@ def noise_ratio(b1: jax.Array, c1: jax.Array, count: jax.Array) -> tuple[jax.Arr
     """``(rho, usable)``: Var of ``m_hat`` per unit gradient variance, and whether the noise
     can be told from the signal (the step has memory: ``t > 1``, ``b1 > 0``)."""
     ratio = _ema_variance_ratio(b1, c1)
-    return ratio, (count > 1) & (ratio < 1 - 1e-6)
-
-
-def smooth(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
-    """Local averages of the statistics: one level of the filter's 5-tap B-spline with
-    every weight 1 (sigma_d = inf), on one device or sharded like the leaf. (The filter's
-    kernel, not five shifted slices: inside the blend's branch, those hold several full-size
-    temporaries.)"""
-    # The guide is unused at sigma_d = inf: a grid of zeros, sharded like the leaf.
-    channels = tuple(a for a in range(fields[0].ndim) if a not in axes)
-    guide = jnp.zeros_like(jnp.sum(fields[0], axis=channels))
-    guide = jnp.transpose(guide, [sorted(axes).index(a) for a in axes])
-    out = atrous_bilateral(fields, guide, sigma_d=jnp.inf, levels=1, spatial_axes=axes)
-    return cast(tuple[jax.Array, ...], out)
-
-
-def smooth_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
-    """:func:`smooth`'s local averages at every ``stride``-th entry along the spatial axes
-    only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
-    (the filter's weight off the grid is 0). Without a sub-grid, or on a grid split over
-    devices in its type (whose axes take no slice of uneven length), the full local
-    averages' sub-grid."""
-    if sharded.is_split(fields[0]):
-        return tuple(_every(f, axes, stride) for f in smooth(fields, axes))
-    out = []
-    for x in fields:
-        for a in axes:
-            x = _taps_at_stride(x, a, stride)
-        out.append(x)
-    return tuple(out)
-
-
-def _every(x: jax.Array, axes: tuple[int, ...], s: int) -> jax.Array:
-    """Every ``s``-th entry of ``x`` along its ``axes``."""
-    if s == 1:
-        return x
-    # A strided lax.slice, not indexing: an eager init of a grid on an explicit mesh keeps it split.
-    strides = tuple(s if a in axes else 1 for a in range(x.ndim))
-    return lax.slice(x, (0,) * x.ndim, x.shape, strides)
-
-
-def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
-    n = x.shape[axis]
-    r = len(TAPS) - 1  # the taps' radius: h[d] for d = -r .. r
-    kept = (n - 1) // s + 1
-    total, norm = 0.0, np.zeros(kept)
-    for k in range(2 * r + 1):
-        w = TAPS[abs(k - r)]
-        # The sub-grid's texels whose tap k falls on the grid: i in [lo, hi).
-        lo = max(0, -(-(r - k) // s))
-        hi = min(kept, (n - 1 - k + r) // s + 1)
-        if hi <= lo:
-            continue
-        start = s * lo + k - r
-        taps = lax.slice_in_dim(x, start, start + s * (hi - lo - 1) + 1, stride=s, axis=axis)
-        # Padded after the slice: only the sub-grid's rows are copied.
-        pad = [(0, 0)] * x.ndim
-        pad[axis] = (lo, kept - hi)
-        total = total + float(w) * jnp.pad(taps, pad)
-        norm[lo:hi] += w
-    shape = [1] * x.ndim
-    shape[axis] = kept
-    return total / jnp.asarray(norm.reshape(shape), x.dtype)
+    return ratio, (count > 1) & (ratio < 1 - MEMORY_EPS)

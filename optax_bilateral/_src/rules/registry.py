@@ -29,6 +29,16 @@ LevelsSetting: TypeAlias = "int | Mapping[str, LevelsSetting] | Sequence[LevelsS
 pytree prefix of the parameters."""
 
 NAMED = {"auto": Auto(), "sure": Sure()}
+"""The shorthands a ``sigma_d`` may name, and the rules they stand for."""
+# Chosen from the data every step (docs/auto_sigma.md): no number suits every problem.
+DEFAULT_SIGMA_D = "auto"
+"""The default ``sigma_d`` of every transform: ``"auto"``, chosen per leaf and step from the
+guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes it."""
+SETTINGS = (
+    "a number >= 0 (inf for a low-pass), 'auto', 'sure' or a sigma_d rule "
+    "(ob.auto_sigma(), ob.sure_sigma())"
+)
+"""What a ``sigma_d`` may be, for error messages."""
 
 
 def resolve(sigma_d: SigmaD) -> SigmaRule:
@@ -45,7 +55,8 @@ def auto_sigma(**constants) -> Auto:
 
     Each keyword is a field of :class:`Auto` (``rate_factor``, ``step_factor``,
     ``contrast_factor``, ``residual_decay``, ``gain``, ``power``, ``gate``,
-    ``check_period``, ``min_texels``, ``correlated``, ``noisy``, ``heavy_factor``);
+    ``check_period``, ``min_texels``, ``correlated``, ``noisy``, ``heavy_factor``,
+    ``heavy_levels``);
     docs/auto_sigma.md derives the defaults. The result is frozen and hashable: a setting is
     a constant of the compiled update, and another setting is another program.
 

@@ -13,6 +13,10 @@ in this order, for
   fuses into it) and runs the one chosen;
 * ``after_step``: the state with what the step taught it (a postfilter).
 
+Two declarations are read once, when a transform is built: ``default_levels`` (the leaf's
+F when the transform's ``levels`` is None) and ``check`` (whether the rule can run in a
+transform with these settings, a :class:`Setting`).
+
 Three rules exist, each in its own module with its state and its constants: :class:`Fixed`
 (a number, :mod:`~optax_bilateral._src.rules.fixed`), :class:`~optax_bilateral._src.auto.Auto`
 (``sigma_d="auto"``, the default) and :class:`~optax_bilateral._src.sure.Sure`
@@ -31,6 +35,14 @@ from optax_bilateral._src.filter import operators
 
 # Which transform a leaf's state belongs to: what it can learn from.
 Kind = Literal["prefilter", "postfilter", "memoryless"]
+
+
+class Setting(NamedTuple):
+    """What a transform tells each leaf's rule when it is built (:meth:`SigmaRule.check`)."""
+
+    kind: Kind  # the transform: "prefilter", "postfilter", or "memoryless" (b1 = b2 = 0)
+    self_guided: bool  # guide="self": m and v are filtered with their own weights
+    filters_both: bool  # one operator filters both m and v (filter_m and filter_v)
 
 
 class StepContext(NamedTuple):
@@ -85,6 +97,16 @@ class SigmaRule:
         >>> opt = ob.postfilter(sigma_d=Halved(0.2))      # the same as sigma_d=0.1
         >>> step, _ = opt.update(jnp.ones_like(params), opt.init(params), params)
     """
+
+    def default_levels(self) -> int | None:
+        """The leaf's F when the transform's ``levels`` is None; None: the transforms'
+        ``DEFAULT_LEVELS``."""
+        return None
+
+    def check(self, setting: Setting) -> None:
+        """Raises ``ValueError``, saying why, if the rule cannot run in a transform with this
+        ``setting``; read once, when the transform is built."""
+        del setting
 
     def init(self, leaf: jax.Array, guide: jax.Array | None, plan, kind: Kind) -> Any:
         """The leaf's state (``guide``: its guide at ``init``, None if self-guided)."""

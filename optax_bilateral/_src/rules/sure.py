@@ -31,10 +31,15 @@ import jax.numpy as jnp
 from jax import lax
 
 from optax_bilateral._src import numerics
-from optax_bilateral._src.filter import sharded
+from optax_bilateral._src.filter.local import sum_of_squares
 from optax_bilateral._src.rules.auto import Auto, noise_ratio
-from optax_bilateral._src.rules.sigma import Filtered, SigmaRule
+from optax_bilateral._src.rules.sigma import Filtered, Setting, SigmaRule
 from optax_bilateral._src.validation import check_integer, check_number
+
+# With "sure", F is chosen per step among 2 .. levels; 5 is the suite's best bound.
+SURE_LEVELS = 5
+"""The default ``levels`` of a leaf with ``sigma_d="sure"``, the most F it may choose (F = 2
+.. 5, footprint radius up to 62 texels; the authors' ``stride_levels = 6``)."""
 
 
 class SureState(NamedTuple):
@@ -106,6 +111,17 @@ class Sure(SigmaRule):
     risk_decay: float = 0.9
     first_factor: float = 3.0
     auto: Auto = dataclasses.field(default_factory=Auto)
+
+    def default_levels(self) -> int:
+        return SURE_LEVELS
+
+    def check(self, setting: Setting) -> None:
+        why = _unusable(setting)
+        if why is not None:
+            raise ValueError(
+                "sigma_d='sure' chooses among filters of Adam's moments m and v by their "
+                f"estimated risk: {why}"
+            )
 
     def __post_init__(self):
         factors = self.factors
@@ -237,8 +253,8 @@ class Sure(SigmaRule):
         keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
         step = []
         for bm, bz in candidates:
-            bias = _norm2(keep(m - bm)) / c1**2 - _norm2(keep(zeta - bz))
-            step.append(bias + self.variance_weight * _norm2(keep(bz)))
+            bias = sum_of_squares(keep(m - bm)) / c1**2 - sum_of_squares(keep(zeta - bz))
+            step.append(bias + self.variance_weight * sum_of_squares(keep(bz)))
         step = _votes(jnp.stack(step))
         previous = jnp.zeros_like(step) if risks is None else risks.astype(step.dtype)
         new = jnp.where(usable, self.risk_decay * previous + (1 - self.risk_decay) * step, previous)
@@ -265,14 +281,15 @@ def _votes(risks):
     return jnp.where(finite, scaled, 2)
 
 
-def _norm2(x):
-    """``sum(x^2)``: as a contraction over every axis on one device (XLA's CPU backend runs a
-    dot several times faster than a fused elementwise reduction); a sum where ``x`` is split
-    over an explicit mesh (a contraction of split axes needs its output sharding named)."""
-    if sharded.is_split(x):
-        return jnp.sum(x * x)
-    return jnp.tensordot(x, x, axes=x.ndim)
-
-
-def is_sure(sigma_d) -> bool:
-    return isinstance(sigma_d, Sure) or (isinstance(sigma_d, str) and sigma_d == "sure")
+def _unusable(setting: Setting) -> str | None:
+    """Why ``"sure"`` cannot run in a transform with ``setting`` (None: it can): it compares
+    filters of the moments m and v, so it needs both, filtered by one operator."""
+    if setting.kind == "prefilter":
+        return "a prefilter has no moments; use a number or 'auto'"
+    if setting.kind == "memoryless":
+        return "b1 = b2 = 0 keeps no moments; use a number or 'auto'"
+    if setting.self_guided:
+        return "guide='self' gives m and v their own weights; use a number or 'auto'"
+    if not setting.filters_both:
+        return "it needs filter_m=True and filter_v=True (one operator for both)"
+    return None

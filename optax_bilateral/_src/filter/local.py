@@ -1,0 +1,87 @@
+"""Local averages for the sigma_d rules' statistics: one level of the filter's 5-tap B-spline
+with every weight 1 (sigma_d = inf), on the whole grid or at a sub-grid, on one device or
+sharded like the leaf; and sums of squares that stay fast on one device and valid on a mesh."""
+
+from __future__ import annotations
+
+from typing import cast
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from optax_bilateral._src.filter import sharded
+from optax_bilateral._src.filter.bilateral import TAPS
+from optax_bilateral._src.filter.front import atrous_bilateral
+
+
+def local_average(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
+    """Local averages of the statistics: one level of the filter's 5-tap B-spline with
+    every weight 1 (sigma_d = inf), on one device or sharded like the leaf. (The filter's
+    kernel, not five shifted slices: inside the blend's branch, those hold several full-size
+    temporaries.)"""
+    # The guide is unused at sigma_d = inf: a grid of zeros, sharded like the leaf.
+    channels = tuple(a for a in range(fields[0].ndim) if a not in axes)
+    guide = jnp.zeros_like(jnp.sum(fields[0], axis=channels))
+    guide = jnp.transpose(guide, [sorted(axes).index(a) for a in axes])
+    out = atrous_bilateral(fields, guide, sigma_d=jnp.inf, levels=1, spatial_axes=axes)
+    return cast(tuple[jax.Array, ...], out)
+
+
+def local_average_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
+    """:func:`local_average`'s local averages at every ``stride``-th entry along the spatial axes
+    only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
+    (the filter's weight off the grid is 0). Without a sub-grid, or on a grid split over
+    devices in its type (whose axes take no slice of uneven length), the full local
+    averages' sub-grid."""
+    if sharded.is_split(fields[0]):
+        return tuple(every(f, axes, stride) for f in local_average(fields, axes))
+    out = []
+    for x in fields:
+        for a in axes:
+            x = _taps_at_stride(x, a, stride)
+        out.append(x)
+    return tuple(out)
+
+
+def every(x: jax.Array, axes: tuple[int, ...], s: int) -> jax.Array:
+    """Every ``s``-th entry of ``x`` along its ``axes``."""
+    if s == 1:
+        return x
+    # A strided lax.slice, not indexing: an eager init of a grid on an explicit mesh keeps it split.
+    strides = tuple(s if a in axes else 1 for a in range(x.ndim))
+    return lax.slice(x, (0,) * x.ndim, x.shape, strides)
+
+
+def _taps_at_stride(x: jax.Array, axis: int, s: int) -> jax.Array:
+    n = x.shape[axis]
+    r = len(TAPS) - 1  # the taps' radius: h[d] for d = -r .. r
+    kept = (n - 1) // s + 1
+    total, norm = 0.0, np.zeros(kept)
+    for k in range(2 * r + 1):
+        w = TAPS[abs(k - r)]
+        # The sub-grid's texels whose tap k falls on the grid: i in [lo, hi).
+        lo = max(0, -(-(r - k) // s))
+        hi = min(kept, (n - 1 - k + r) // s + 1)
+        if hi <= lo:
+            continue
+        start = s * lo + k - r
+        taps = lax.slice_in_dim(x, start, start + s * (hi - lo - 1) + 1, stride=s, axis=axis)
+        # Padded after the slice: only the sub-grid's rows are copied.
+        pad = [(0, 0)] * x.ndim
+        pad[axis] = (lo, kept - hi)
+        total = total + float(w) * jnp.pad(taps, pad)
+        norm[lo:hi] += w
+    shape = [1] * x.ndim
+    shape[axis] = kept
+    return total / jnp.asarray(norm.reshape(shape), x.dtype)
+
+
+def sum_of_squares(x: jax.Array) -> jax.Array:
+    """``sum(x^2)``: as a contraction over every axis on one device (XLA's CPU backend runs a
+    dot several times faster than a fused elementwise reduction); a sum where ``x`` is split
+    over an explicit mesh (a contraction of split axes needs its output sharding named)."""
+    if sharded.is_split(x):
+        return jnp.sum(x * x)
+    return jnp.tensordot(x, x, axes=x.ndim)
