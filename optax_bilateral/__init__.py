@@ -10,12 +10,8 @@ from optax_bilateral import mesh, triangle_mesh
 from optax_bilateral._src.filter.front import atrous_bilateral
 from optax_bilateral._src.filter.native import status as native_status
 from optax_bilateral._src.optimizer.alias import bilateral_adam
-from optax_bilateral._src.optimizer.leaves import (
-    DEFAULT_LEVELS,
-    LeafRuleWarning,
-    default_spatial_axes,
-    filtered_axes,
-)
+from optax_bilateral._src.optimizer.leaf_rule import LeafRuleWarning, default_spatial_axes
+from optax_bilateral._src.optimizer.leaves import DEFAULT_LEVELS, filtered_axes
 from optax_bilateral._src.optimizer.pyramid import (
     LaplacianPyramidState,
     laplacian_pyramid,

@@ -312,6 +312,35 @@ def test_ambiguous_leaves_warn_once_naming_the_leaf_and_the_setting(shape, axes,
         )
 
 
+def test_one_init_warns_once_naming_every_guessed_leaf():
+    params = {"w": jnp.zeros((40, 41)), "curve": jnp.zeros(37), "tex": jnp.zeros((8, 8, 3))}
+    with pytest.warns(ob.LeafRuleWarning) as record:
+        ob.bilateral_adam(0.1).init(params)
+    assert len(record) == 1
+    text = str(record[0].message)
+    assert "2 leaf(s)" in text and "['w'] of shape (40, 41)" in text
+    assert "['curve'] of shape (37,)" in text and "spatial_axes=(0,)" in text
+    assert "['tex']" not in text and 'spatial_axes="default"' in text
+
+
+def test_spatial_axes_default_is_the_rule_without_its_warning():
+    params = {"w2": jnp.zeros((40, 43)), "v2": jnp.zeros(39), "tex": jnp.zeros((8, 8, 3))}
+    assert ob.filtered_axes(params, spatial_axes="default") == ob.filtered_axes(params)
+    prefix = {"w2": "default", "v2": (0,), "tex": "default"}
+    assert ob.filtered_axes(params, spatial_axes=prefix) == {
+        "['tex']": (0, 1),
+        "['v2']": (0,),
+        "['w2']": (),
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ob.LeafRuleWarning)
+        for setting in ("default", prefix):
+            opt = ob.bilateral_adam(0.1, spatial_axes=setting)
+            opt.update(jax.tree.map(jnp.ones_like, params), opt.init(params), params)
+    with pytest.raises(TypeError, match='spatial_axes must be None, "default"'):
+        ob.bilateral_adam(0.1, spatial_axes="auto")
+
+
 @pytest.mark.parametrize(
     "shape,axes",
     [

@@ -30,7 +30,7 @@ from drjit.opt import Optimizer
 
 from optax_bilateral._src.mitsuba.bridge import GRID_NDIMS, ById, observed_texels, to_jax
 from optax_bilateral._src.optimizer.alias import PAPER_B1, filtered_chain
-from optax_bilateral._src.optimizer.transforms import scale_by_adam
+from optax_bilateral._src.optimizer.transforms import called_as, scale_by_adam
 from optax_bilateral._src.rules.registry import DEFAULT_SIGMA_D
 
 LearningRate = float | dr.ArrayBase | Callable[[Any], Any]
@@ -421,18 +421,19 @@ def filtered_adam(
         cached, args = None, None
     if cached is not None:
         return cached
-    chain = filtered_chain(
-        1.0,
-        PAPER_B1 if b1 is None else b1,
-        b2,
-        eps,
-        prefilter=prefilter,
-        sigma_d=sigma_d,
-        levels=levels,
-        spatial_axes=spatial_axes,
-        log_guide=log_guide,
-        mask_unobserved=mask_unobserved,
-    )
+    with called_as("BilateralAdam"):
+        chain = filtered_chain(
+            1.0,
+            PAPER_B1 if b1 is None else b1,
+            b2,
+            eps,
+            prefilter=prefilter,
+            sigma_d=sigma_d,
+            levels=levels,
+            spatial_axes=spatial_axes,
+            log_guide=log_guide,
+            mask_unobserved=mask_unobserved,
+        )
     if args is not None:
         _CHAINS[args] = chain
     return chain

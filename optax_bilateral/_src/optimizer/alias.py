@@ -15,7 +15,7 @@ from optax_bilateral._src.rules.registry import DEFAULT_SIGMA_D
 from optax_bilateral._src.validation import check_learning_rate, check_nonnegative
 
 if TYPE_CHECKING:
-    from optax_bilateral._src.optimizer.leaves import SpatialAxesSetting
+    from optax_bilateral._src.optimizer.leaf_rule import SpatialAxesSetting
     from optax_bilateral._src.rules.registry import LevelsSetting, SigmaSetting
 
 # The paper's grid runs (both references): b1 = 0.2, b2 = 1 - (1 - b1)^2.
@@ -142,9 +142,9 @@ def bilateral_adam(
         (:data:`DEFAULT_LEVELS`), and 5 (:data:`SURE_LEVELS`) for the leaves with
         ``sigma_d="sure"``.
       prefilter: also filter the gradient before the moments (``A_t``, eq. 1).
-      spatial_axes: ``None`` (the default leaf rule, :func:`default_spatial_axes`), a
-        tuple of axes for every leaf, a pytree prefix of tuples (``()`` = not filtered), or
-        a callable ``leaf -> axes``.
+      spatial_axes: ``None`` (the default leaf rule, :func:`default_spatial_axes`;
+        ``"default"``: the same rule without its warning), a tuple of axes for every leaf,
+        a pytree prefix of tuples (``()`` = not filtered), or a callable ``leaf -> axes``.
       log_guide: guide with ``log(|guide| + 1e-8)`` (the paper's texture runs).
       others: the optimizer of the leaves that are not filtered, learning rate included
         (e.g. ``optax.adam(1e-3)``). None (the default): Adam at ``learning_rate`` with
@@ -186,9 +186,10 @@ def bilateral_adam(
         grid = dict(levels=0)
     elif others is None:  # one postfilter: Adam's own decay rates where it does not filter
         post["unfiltered_betas"] = unfiltered_betas
-    filtered = filtered_chain(
-        learning_rate, *filtered_betas, eps, prefilter=pre, tail=tail, **grid, **post
-    )
+    with transforms.called_as("bilateral_adam"):
+        filtered = filtered_chain(
+            learning_rate, *filtered_betas, eps, prefilter=pre, tail=tail, **grid, **post
+        )
     if others is None:
         return filtered
     return optax.multi_transform(

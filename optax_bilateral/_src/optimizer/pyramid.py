@@ -41,10 +41,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from optax_bilateral._src.optimizer import leaf_rule
 from optax_bilateral._src.optimizer import leaves as lv
 
 if TYPE_CHECKING:
-    from optax_bilateral._src.optimizer.leaves import SpatialAxesSetting
+    from optax_bilateral._src.optimizer.leaf_rule import SpatialAxesSetting
 
 
 def _check_levels(levels) -> int:
@@ -198,7 +199,7 @@ def laplacian_pyramid(
         -1.6728516 -0.390625
     """
     levels = _check_levels(levels)
-    lv.check_spatial_axes_setting(spatial_axes)
+    leaf_rule.check_spatial_axes_setting(spatial_axes)
 
     def coefficients(tree):
         flat, treedef = jax.tree.flatten(tree)

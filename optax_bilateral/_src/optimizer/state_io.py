@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from optax_bilateral._src.optimizer.leaves import leaf_names
+from optax_bilateral._src.optimizer.prefix import leaf_names
 
 _FORMAT = "optax_bilateral.state/1"
 _PART_FORMAT = "optax_bilateral.state-part/1"
@@ -77,7 +77,7 @@ def save_state(path: str | os.PathLike, state: Any) -> None:
         return
     arrays = {f"leaf_{i:05d}": _raw(x) for i, x in enumerate(leaves)}
     arrays["__format__"] = np.asarray(_FORMAT)
-    arrays["__paths__"] = np.asarray(leaf_names(state) or [""], dtype=str)
+    arrays["__paths__"] = np.asarray(leaf_names(state, root="") or [""], dtype=str)
     arrays["__dtypes__"] = np.asarray([str(np.asarray(x).dtype) for x in leaves] or [""], dtype=str)
     _write_npz(path, arrays)
 
@@ -134,7 +134,7 @@ def load_state(path: str | os.PathLike, like: Any) -> Any:
         (True, 1)
     """
     leaves, treedef = jax.tree.flatten(like)
-    names = leaf_names(like)
+    names = leaf_names(like, root="")
     with contextlib.ExitStack() as files:
         blocks = _open_checkpoint(os.fspath(path), files)
         saved_names, saved_dtypes, shapes = blocks.names, blocks.dtypes, blocks.shapes
@@ -217,7 +217,7 @@ def _save_part(path: str, state: Any) -> None:
             arrays[f"leaf_{i:05d}_{j:05d}"] = _raw(data)
         meta.append({"shape": list(shape), "starts": starts, "stops": stops})
     arrays["__format__"] = np.asarray(_PART_FORMAT)
-    arrays["__paths__"] = np.asarray(leaf_names(state) or [""], dtype=str)
+    arrays["__paths__"] = np.asarray(leaf_names(state, root="") or [""], dtype=str)
     arrays["__dtypes__"] = np.asarray([str(jnp.result_type(x)) for x in leaves] or [""], dtype=str)
     arrays["__blocks__"] = np.asarray(json.dumps(meta))
     _write_npz(f"{path}.{jax.process_index()}-of-{jax.process_count()}", arrays)

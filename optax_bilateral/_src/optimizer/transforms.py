@@ -50,6 +50,9 @@ them, docs/robustness.md has the full table):
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast
 
 import jax
@@ -59,7 +62,7 @@ import optax
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter import layout
 from optax_bilateral._src.filter.operators import FilterPlan
-from optax_bilateral._src.optimizer import leaves
+from optax_bilateral._src.optimizer import guides, leaf_rule, leaves, prefix
 from optax_bilateral._src.optimizer.step import (
     AdamHyper,
     Clock,
@@ -83,10 +86,32 @@ from optax_bilateral._src.validation import (
 )
 
 if TYPE_CHECKING:
-    from optax_bilateral._src.optimizer.leaves import GuideSetting, SpatialAxesSetting
+    from optax_bilateral._src.optimizer.guides import GuideSetting
+    from optax_bilateral._src.optimizer.leaf_rule import SpatialAxesSetting
     from optax_bilateral._src.rules.registry import LevelsSetting, SigmaSetting
 
 SecondMoment = Literal["elementwise", "uniform"]
+
+# The function the user called, for the messages init and update raise long after it
+# returned: bilateral_adam builds its transforms under its own name (called_as).
+_CALLER: contextvars.ContextVar[str | None] = contextvars.ContextVar("caller", default=None)
+
+
+@contextlib.contextmanager
+def called_as(name: str) -> Iterator[None]:
+    """Transforms built inside this block name ``name`` in their messages."""
+    token = _CALLER.set(name)
+    try:
+        yield
+    finally:
+        _CALLER.reset(token)
+
+
+def _caller(transform: str) -> str:
+    """How a transform's messages name it: ``"postfilter"``, or ``"bilateral_adam (its
+    postfilter)"`` when built by :func:`bilateral_adam`."""
+    outer = _CALLER.get()
+    return transform if outer is None else f"{outer} (its {transform})"
 
 
 try:  # what optax.tree.map_params passes to init in place of the parameters
@@ -182,7 +207,7 @@ def scale_by_adam(
     mu_dtype = check_mu_dtype(mu_dtype)
 
     def init_fn(params):
-        for leaf, name in zip(jax.tree.leaves(params), leaves.leaf_names(params)):
+        for leaf, name in zip(jax.tree.leaves(params), prefix.leaf_names(params)):
             leaves.check_floating(
                 leaf,
                 name,
@@ -239,8 +264,8 @@ class _Filtering(NamedTuple):
     def check(self) -> None:
         """Construction-time checks of the settings that need no parameters (what depends on
         the leaves, axis ranges and dimensions, is checked by ``init``)."""
-        leaves.check_guide(self.guide)
-        for sig in jax.tree.leaves(self.sigma_d, is_leaf=leaves.is_sigma_atom):
+        guides.check_guide(self.guide)
+        for sig in jax.tree.leaves(self.sigma_d, is_leaf=prefix.is_sigma_atom):
             if isinstance(sig, SigmaRule):
                 continue
             if sig is None:
@@ -249,7 +274,7 @@ class _Filtering(NamedTuple):
         for lev in jax.tree.leaves(self.levels):
             if not (hasattr(lev, "shape") and not is_concrete(lev)):
                 check_levels(lev)  # a traced one: update says how
-        leaves.check_spatial_axes_setting(self.spatial_axes)
+        leaf_rule.check_spatial_axes_setting(self.spatial_axes)
 
     def specs(self, tree, warn: bool = False) -> list[leaves.LeafSpec]:
         return leaves.leaf_specs(
@@ -274,7 +299,7 @@ class _Filtering(NamedTuple):
         )
 
     def guides(self, params, tree, specs, transform: str) -> list:
-        return leaves.guide_leaves(self.guide, params, tree, specs, self.log_guide, transform)
+        return guides.guide_leaves(self.guide, params, tree, specs, self.log_guide, transform)
 
     def init_states(self, params, specs, transform: str, kind: Kind):
         """Per leaf, its sigma_d rule's state (None for an unfiltered leaf or a rule that keeps
@@ -282,14 +307,14 @@ class _Filtering(NamedTuple):
         plans = [self.filter_plan(spec) for spec in specs]
         if not any(plans):
             return None
-        guides = self.guides(params, params, specs, transform)
+        guide_list = self.guides(params, params, specs, transform)
         states = [
             None
             if plan is None
             else rules.resolve(spec.sigma_d).init(
                 layout.real_view(leaf), layout.real_view(guide), plan, kind
             )
-            for leaf, guide, spec, plan in zip(jax.tree.leaves(params), guides, specs, plans)
+            for leaf, guide, spec, plan in zip(jax.tree.leaves(params), guide_list, specs, plans)
         ]
         if all(s is None for s in states):
             return None
@@ -370,9 +395,9 @@ def prefilter(
         parameters).
       log_guide: use ``log(|guide| + 1e-8)`` as the guide (the authors'
         ``log_primal``; with ``"self"``, of each level's input).
-      spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`),
-        a tuple for every leaf, a pytree prefix of tuples (``()`` = do not
-        filter), or a callable ``leaf -> axes``.
+      spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`;
+        ``"default"``: the same rule without its warning), a tuple for every leaf, a
+        pytree prefix of tuples (``()`` = do not filter), or a callable ``leaf -> axes``.
       mask_unobserved: leave texels whose gradient is 0 in every channel out of
         the sums (see :func:`postfilter`).
 
@@ -403,28 +428,31 @@ def prefilter(
     settings = _Filtering(sigma_d, levels, separable, guide, log_guide, spatial_axes)
     settings.check()
     _check_rules(sigma_d, Setting("prefilter", guide == "self", filters_both=True))
+    name = _caller("prefilter")
 
     def init_fn(params):
         if _is_placeholder(params):  # optax.tree.map_params: no parameter-shaped field
             return PrefilterState(count=_NotParams(), sigma_state=_NotParams())
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        specs = leaves.check_params(params, settings, transform="prefilter", all_leaves=False)
-        sigma_state = settings.init_states(params, specs, "prefilter", "prefilter")
+        specs = leaves.check_params(params, settings, transform=name, all_leaves=False)
+        sigma_state = settings.init_states(params, specs, name, "prefilter")
         if sigma_state is None:
             return PrefilterState()
         return PrefilterState(count=jnp.zeros([], jnp.int32), sigma_state=sigma_state)
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
-        leaves.check_update_shapes(updates, params, "prefilter")
+        leaves.check_update_shapes(updates, params, name)
         specs = settings.specs(updates)
-        guides = settings.guides(params, updates, specs, "prefilter")
+        guide_list = settings.guides(params, updates, specs, name)
         flat, treedef = jax.tree.flatten(updates)
         # A stateless prefilter's state may also be passed as () (it was an empty tuple).
         tree = state.sigma_state if isinstance(state, PrefilterState) else None
         count = None if tree is None else optax.safe_increment(state.count)
         out, new_states = [], []
-        for g, leaf_guide, spec, leaf_state in zip(flat, guides, specs, _per_leaf(tree, treedef)):
+        for g, leaf_guide, spec, leaf_state in zip(
+            flat, guide_list, specs, _per_leaf(tree, treedef)
+        ):
             plan = LeafPlan(
                 settings.filter_plan(spec),
                 mask_unobserved,
@@ -454,7 +482,7 @@ def prefilter(
 
 def _check_rules(sigma_d, setting: Setting) -> None:
     """Each leaf's rule checks, when the transform is built, that it can run in it."""
-    for atom in jax.tree.leaves(sigma_d, is_leaf=leaves.is_sigma_atom):
+    for atom in jax.tree.leaves(sigma_d, is_leaf=prefix.is_sigma_atom):
         if isinstance(atom, (str, SigmaRule)):
             rules.resolve(cast(Any, atom)).check(setting)
 
@@ -567,9 +595,9 @@ def postfilter(
         by its own input: they then get *different* weights and the bound above no
         longer holds.
       log_guide: use ``log(|guide| + 1e-8)`` as the guide.
-      spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`),
-        a tuple for every leaf, a pytree prefix of tuples (``()`` = do not
-        filter), or a callable ``leaf -> axes``.
+      spatial_axes: ``None`` (default leaf rule, see :func:`default_spatial_axes`;
+        ``"default"``: the same rule without its warning), a tuple for every leaf, a
+        pytree prefix of tuples (``()`` = do not filter), or a callable ``leaf -> axes``.
       mask_unobserved: texels whose gradient is exactly zero in every channel
         this step keep their moments, get a zero update and are left out of the
         filter sums (Mitsuba's ``mask_updates``; PyTorch's SparseAdam).
@@ -622,6 +650,7 @@ def postfilter(
     mu_dtype = check_mu_dtype(mu_dtype)
     check_second_moment(second_moment)
     memoryless = all(map(is_zero, (b1, b2, *unfiltered_betas)))
+    name = _caller("postfilter")
     kind = "memoryless" if memoryless else "postfilter"
     _check_rules(sigma_d, Setting(kind, guide == "self", filter_m and filter_v))
 
@@ -629,9 +658,8 @@ def postfilter(
         if _is_placeholder(params):
             return _placeholder_postfilter_state(params, memoryless)
         # Shapes, dtypes and the guide are checked now rather than at the first update.
-        specs = leaves.check_params(params, settings, transform="postfilter", all_leaves=True)
-        kind = "memoryless" if memoryless else "postfilter"
-        sigma_state = settings.init_states(params, specs, "postfilter", kind)
+        specs = leaves.check_params(params, settings, transform=name, all_leaves=True)
+        sigma_state = settings.init_states(params, specs, name, kind)
         count = jnp.zeros([], jnp.int32)
         nonfinite = jax.tree.map(lambda _: jnp.zeros([], jnp.int32), params)
         mu = None if memoryless else jax.tree.map(lambda p: numerics.zeros(p, mu_dtype), params)
@@ -640,17 +668,17 @@ def postfilter(
 
     def update_fn(updates, state, params=None, **extra_args):
         del extra_args
-        leaves.check_update_shapes(updates, params, "postfilter")
-        leaves.check_update_shapes(updates, state.mu, "postfilter", "moments")
+        leaves.check_update_shapes(updates, params, name)
+        leaves.check_update_shapes(updates, state.mu, name, "moments")
         count = jnp.asarray(optax.safe_increment(state.count))
         adams = _adams((b1, b2), unfiltered_betas, eps, eps_root, count)
         specs = settings.specs(updates)
-        guides = settings.guides(params, updates, specs, "postfilter")
+        guide_list = settings.guides(params, updates, specs, name)
         flat, treedef = jax.tree.flatten(updates)
         moments = _moments(state, treedef)
         outs = []
         for g, leaf_guide, spec, leaf_moments, leaf_state in zip(
-            flat, guides, specs, moments, _per_leaf(state.sigma_state, treedef)
+            flat, guide_list, specs, moments, _per_leaf(state.sigma_state, treedef)
         ):
             plan = _post_plan(settings, spec, g, leaf_moments, mask_unobserved, second_moment)
             rule = rules.resolve(spec.sigma_d)
