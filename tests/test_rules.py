@@ -55,7 +55,7 @@ def test_rules_are_frozen_and_hashable_and_another_constant_is_another_rule():
         ({"check_period": 0}, ValueError, "check_period must be >= 1"),
         ({"check_period": 2.5}, TypeError, "check_period must be an int"),
         ({"residual_decay": 1.0}, ValueError, "residual_decay must be >= 0 and < 1"),
-        ({"gate": (0.7, 0.5)}, ValueError, "gate must be a tuple"),
+        ({"gate_bounds": (0.7, 0.5)}, ValueError, "gate_bounds must be a tuple"),
         ({"rate_factor": -1.0}, ValueError, "rate_factor must be > 0"),
         ({"rate_factor": float("nan")}, TypeError, "rate_factor must be a real number"),
         ({"colour": 1.0}, TypeError, "colour"),
@@ -137,3 +137,9 @@ def test_others_takes_the_leaves_that_are_not_filtered():
     u, _ = opt.update(grads, opt.init(params), params)
     np.testing.assert_allclose(u["w"], -0.5 * 2.0)  # plain SGD
     np.testing.assert_allclose(u["tex"], -0.05, rtol=1e-5)  # the filtered Adam's first step
+
+
+def test_auto_sigma_gate_is_the_deprecated_name_of_gate_bounds():
+    with pytest.warns(DeprecationWarning, match="gate_bounds"):
+        rule = ob.auto_sigma(gate=(0.4, 0.6))
+    assert rule == ob.auto_sigma(gate_bounds=(0.4, 0.6))

@@ -243,7 +243,7 @@ def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
     assert float(tex.sigma_d) > 0  # the noise dominates: it filtered
     assert int(tex.levels) in SURE.level_choices(ob.SURE_LEVELS)
     # The chosen F is the label of the least averaged risk.
-    assert tex.risks.shape == (SURE.count(ob.SURE_LEVELS),)
+    assert tex.risks.shape == (SURE.n_candidates(ob.SURE_LEVELS),)
     best = int(jnp.argmin(tex.risks))
     assert int(tex.levels) == int(SURE.labels(ob.SURE_LEVELS, jnp.asarray(1.0))[1][best])
     path = tmp_path / "state.npz"
@@ -274,7 +274,7 @@ def test_a_sure_leaf_defaults_to_sure_levels_and_the_others_keep_default_levels(
     params = {"tex": jnp.full((16, 16, 3), 0.5), "other": jnp.full((16, 16, 3), 0.5)}
     opt = ob.bilateral_adam(0.05, sigma_d={"tex": "sure", "other": 0.1}, levels=levels)
     state = opt.init(params)
-    assert filtered_state(state).sigma_state["tex"].risks.shape == (SURE.count(expected),)
+    assert filtered_state(state).sigma_state["tex"].risks.shape == (SURE.n_candidates(expected),)
     # The leaf with a number filters exactly as with levels=3 (or the levels given).
     alone = ob.bilateral_adam(0.05, sigma_d=0.1, levels=levels or ob.DEFAULT_LEVELS)
     rng = np.random.default_rng(0)

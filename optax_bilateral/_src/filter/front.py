@@ -229,7 +229,7 @@ def atrous_bilateral(
     )
 
 
-class _Plan(NamedTuple):
+class _Arguments(NamedTuple):
     """The checked arguments: fields as a tuple, normalised axes, the spatial shape."""
 
     single: bool  # fields was one array, not a tuple
@@ -241,7 +241,7 @@ class _Plan(NamedTuple):
     mask: jax.Array | None
 
 
-def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
+def _checked(fields, guide, mask, spatial_axes, guide_axes) -> _Arguments:
     """Every check of the arguments' shapes and dtypes (trace time, before any work)."""
     single = not isinstance(fields, (tuple, list))
     fields = (fields,) if single else tuple(fields)
@@ -273,7 +273,7 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
 
     mask = _check_mask(mask, shape)
     if guide is None:
-        return _Plan(single, fields, tuple(field_axes), shape, None, (), mask)
+        return _Arguments(single, fields, tuple(field_axes), shape, None, (), mask)
     guide = jnp.asarray(guide)
     if jnp.issubdtype(guide.dtype, jnp.complexfloating):
         raise TypeError(
@@ -294,7 +294,7 @@ def _plan(fields, guide, mask, spatial_axes, guide_axes) -> _Plan:
             f"guide has spatial shape {g_shape} but the fields have {shape}: "
             "the guide must cover the same grid"
         )
-    return _Plan(single, fields, tuple(field_axes), shape, guide, g_axes, mask)
+    return _Arguments(single, fields, tuple(field_axes), shape, guide, g_axes, mask)
 
 
 def _check_mask(mask, shape):
@@ -321,46 +321,46 @@ class _Run(NamedTuple):
 def _filter_jit(fields, guide, sigma_d, mask, *, spatial_axes, guide_axes, run: _Run):
     """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
     traced."""
-    plan = _plan(fields, guide, mask, spatial_axes, guide_axes)
-    if 0 in plan.shape:  # an empty grid: no point to filter, no neighbour to read
-        return plan.fields[0] if plan.single else plan.fields
+    args = _checked(fields, guide, mask, spatial_axes, guide_axes)
+    if 0 in args.shape:  # an empty grid: no point to filter, no neighbour to read
+        return args.fields[0] if args.single else args.fields
     if run.levels == run.start:  # only a mask to apply (the front door returns early without one)
-        mask = plan.mask
+        mask = args.mask
         assert mask is not None
         out = tuple(
             jnp.where(layout.expand_mask(mask, f.ndim, ax), f, 0).astype(f.dtype)
-            for f, ax in zip(plan.fields, plan.field_axes)
+            for f, ax in zip(args.fields, args.field_axes)
         )
     elif run.self_guided:
         # Each field guides itself: its own weights, its own guide read at every level.
         out = tuple(
-            _filter_route((f,), (ax,), f, ax, plan, sigma_d, run)[0]
-            for f, ax in zip(plan.fields, plan.field_axes)
+            _filter_route((f,), (ax,), f, ax, args, sigma_d, run)[0]
+            for f, ax in zip(args.fields, args.field_axes)
         )
     else:
         out = _filter_route(
-            plan.fields, plan.field_axes, plan.guide, plan.guide_axes, plan, sigma_d, run
+            args.fields, args.field_axes, args.guide, args.guide_axes, args, sigma_d, run
         )
-    return out[0] if plan.single else out
+    return out[0] if args.single else out
 
 
-def _filter_route(fields, field_axes, guide, guide_axes, plan, sigma_d, run: _Run):
+def _filter_route(fields, field_axes, guide, guide_axes, args, sigma_d, run: _Run):
     """The single-device kernel, or the sharded one when the fields' type says so."""
     filter_blocks = functools.partial(
         _filter_blocks, field_axes=field_axes, guide_axes=guide_axes, run=run
     )
     partition = sharded.spatial_partition(fields[0], field_axes[0])
     if partition is None:
-        return filter_blocks(fields, guide, plan.mask, sigma_d, KERNELS[run.kernel])
+        return filter_blocks(fields, guide, args.mask, sigma_d, KERNELS[run.kernel])
     return sharded.filter_sharded(
         filter_blocks,
         partition,
         fields,
         field_axes,
-        plan.shape,
+        args.shape,
         guide,
         guide_axes,
-        plan.mask,
+        args.mask,
         sigma_d,
         gather_channels=run.self_guided,
         native=run.kernel == "native",

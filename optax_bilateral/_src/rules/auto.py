@@ -108,7 +108,8 @@ class Auto(SigmaRule):
         noise shows).
       gain: ``lam = 0`` until the persistent residual exceeds ``1 / gain`` times its noise.
       power: ``lam``'s exponent.
-      gate: a leaf's mean ``lam`` below ``gate[0]``: no blend; above ``gate[1]``: full blend.
+      gate_bounds: a leaf's mean ``lam`` below ``gate_bounds[0]``: no blend (the gate,
+        :attr:`AutoState.gate`, is 0); above ``gate_bounds[1]``: full blend (1).
       check_period: a closed gate (and the correlation) is checked every this many steps.
       min_texels: a larger leaf's statistics run over a strided sub-grid of at least this
         many texels.
@@ -136,7 +137,7 @@ class Auto(SigmaRule):
     residual_decay: float = 0.97
     gain: float = 0.25
     power: float = 2.0
-    gate: tuple[float, float] = (0.5, 0.65)
+    gate_bounds: tuple[float, float] = (0.5, 0.65)
     check_period: int = 8
     min_texels: int = 16384
     correlated: float = math.exp(-0.25)
@@ -162,7 +163,7 @@ class Auto(SigmaRule):
             raise ValueError(
                 f"heavy_levels must be a tuple of 3 ints >= 0 (1-D, 2-D, 3-D grids), got {levels!r}"
             )
-        gate = self.gate
+        gate = self.gate_bounds
         if not (
             isinstance(gate, tuple)
             and len(gate) == 2
@@ -170,7 +171,7 @@ class Auto(SigmaRule):
             and 0 <= gate[0] < gate[1] <= 1
         ):
             raise ValueError(
-                "gate must be a tuple (low, high) of numbers with 0 <= low < high <= 1, "
+                "gate_bounds must be a tuple (low, high) of numbers with 0 <= low < high <= 1, "
                 f"got {gate!r}"
             )
 
@@ -385,7 +386,7 @@ class Auto(SigmaRule):
         return jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** self.power
 
     def _gate(self, lam: jax.Array) -> jax.Array:
-        low, high = self.gate
+        low, high = self.gate_bounds
         return jnp.clip((jnp.mean(lam) - low) / (high - low), 0, 1)
 
     def weights(self, m, v, residual, *, b1, c1, c2, count, axes) -> tuple[jax.Array, jax.Array]:

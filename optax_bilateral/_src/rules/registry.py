@@ -8,6 +8,7 @@ prefix of the parameters holding one of those per subtree.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Literal, TypeAlias
 
@@ -54,7 +55,7 @@ def auto_sigma(**constants) -> Auto:
     """``sigma_d="auto"`` with other constants: ``auto_sigma()`` is ``"auto"``.
 
     Each keyword is a field of :class:`Auto` (``rate_factor``, ``step_factor``,
-    ``contrast_factor``, ``residual_decay``, ``gain``, ``power``, ``gate``,
+    ``contrast_factor``, ``residual_decay``, ``gain``, ``power``, ``gate_bounds``,
     ``check_period``, ``min_texels``, ``correlated``, ``noisy``, ``heavy_factor``,
     ``heavy_levels``);
     docs/auto_sigma.md derives the defaults. The result is frozen and hashable: a setting is
@@ -78,6 +79,14 @@ def auto_sigma(**constants) -> Auto:
         (True, 1.0)
         >>> opt = ob.bilateral_adam(0.02, sigma_d=rule)
     """
+    if "gate" in constants:  # the field's former name; AutoState.gate is the gate's value
+        warnings.warn(
+            "auto_sigma(gate=...) is deprecated and will be removed in a future release: the "
+            "field is gate_bounds (AutoState.gate is how far the gate is open)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        constants["gate_bounds"] = constants.pop("gate")
     return Auto(**constants)
 
 

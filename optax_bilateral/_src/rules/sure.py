@@ -100,7 +100,7 @@ class Sure(SigmaRule):
 
         >>> import optax_bilateral as ob
         >>> rule = ob.sure_sigma(factors=(1.0, 3.0), first_factor=3.0)
-        >>> rule.count(5)               # candidates at F = 2 .. 5, two factors each
+        >>> rule.n_candidates(5)              # candidates at F = 2 .. 5, two factors each
         8
         >>> opt = ob.postfilter(sigma_d=rule)
     """
@@ -150,7 +150,7 @@ class Sure(SigmaRule):
             numerics.zeros(leaf, dtype),
             zeros([]),
             zeros([], jnp.int32),
-            zeros([self.count(plan.levels)]),
+            zeros([self.n_candidates(plan.levels)]),
             zeros([]),
         )
 
@@ -210,7 +210,7 @@ class Sure(SigmaRule):
         """The candidates' F for a leaf filtered with ``levels`` levels at most."""
         return tuple(range(min(self.min_levels, levels), levels + 1))
 
-    def count(self, levels: int) -> int:
+    def n_candidates(self, levels: int) -> int:
         """How many candidates a leaf filtered with ``levels`` levels at most has."""
         return len(self.factors) * len(self.level_choices(levels))
 
