@@ -8,7 +8,7 @@ the Markdown cells of every notebook (notebooks/*.ipynb, whose pages the docs si
   ``docs/notebooks/<name>.md``, which the docs build generates from
   ``notebooks/<name>.ipynb``), and none points into ``results/``;
 * every path written in the text (``dir/name.ext``, with at least one folder, as in
-  ``experiments/benchmark.py`` or ``figures/x.png``) exists, read from the repository root,
+  ``experiments/benchmarks/suite.py`` or ``figures/x.png``) exists, read from the repository root,
   from the page's folder or from ``optax_bilateral/`` (docs name ``_src/optimizer/step.py``);
 * a path of *another* repository is cited as such: its paragraph names the repository
   (``github owner/name``, as docs/method.md cites the authors' code);
@@ -127,8 +127,8 @@ def test_the_rule_catches_what_it_should():
     page = ROOT / "docs" / "example.md"
     assert _links("see [x](missing.md) and [y](https://a.b/c) and [z](#here)") == ["missing.md"]
     assert _links("`[x](in-code.md)`") == []
-    assert PATH.findall("run `experiments/benchmark.py`, see docs/x.md.") == [
-        "experiments/benchmark.py",
+    assert PATH.findall("run `experiments/benchmarks/suite.py`, see docs/x.md.") == [
+        "experiments/benchmarks/suite.py",
         "docs/x.md",
     ]
     assert PATH.findall("`OUT/cache/<scene>/<family>.json` and `processes/*/m.json`") == []

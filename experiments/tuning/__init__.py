@@ -4,7 +4,7 @@
                                  [--candidates [NAME=]module:factory,...] [--recompute]
                                  [--reference FILE]
 
-For every scene of :mod:`experiments.scenes` (texture, its noise target, its
+For every scene of :mod:`experiments.tuning.scenes` (texture, its noise target, its
 low-noise variant, volume, a 1-D signal, deblurring, deblurring at 100x scale)
 it reports the final parameter error (median over seeds) of
 
@@ -32,7 +32,7 @@ Plugging in a candidate (the API the ``sigma_d="auto"`` work uses)
 A *candidate* is a factory ``factory(learning_rate) -> optax.GradientTransformation``
 (``learning_rate`` arrives as a traced scalar, so one compiled update program serves
 every learning rate and seed). A factory with a ``scene`` parameter also receives the
-:class:`experiments.scenes.Scene` (e.g. to use ``log_guide`` where ``scene.log_guide``).
+:class:`experiments.tuning.scenes.Scene` (e.g. to use ``log_guide`` where ``scene.log_guide``).
 From the command line (``module`` importable, e.g. a file on ``PYTHONPATH``)::
 
     python -m experiments.tuning --only-scenes deblur,texture --candidates auto2=mymodule:factory
@@ -41,7 +41,8 @@ compares it with the stored grid (``--out``'s ``cache/``; the grid is only run w
 its cache is missing or its configuration changed) and adds it to ``table.md``
 with its ratios to the best-tuned and to Adam's error. From Python::
 
-    from experiments import scenes, tuning
+    from experiments import tuning
+    from experiments.tuning import scenes
     scene = scenes.make("deblur")
     factory = lambda learning_rate, sigma_d: ob.bilateral_adam(learning_rate, sigma_d=sigma_d)
     settings = [{"learning_rate": 0.02, "sigma_d": s} for s in (0.02, 0.1)]
@@ -60,7 +61,7 @@ rate), and ``--reference FILE`` takes the best-tuned, Adam and pyramid grids fro
 file instead of running them (``auto``, the defaults and the candidates still run). The
 repository keeps the full run's file, so on a fresh clone::
 
-    python -m experiments.tuning --reference experiments/tuning_reference.json \
+    python -m experiments.tuning --reference experiments/tuning/reference.json \
         --candidates mine=mymodule:factory --out results/mine
 
 A file of another setting (``--quick`` or not), without a requested scene, or whose
@@ -106,7 +107,7 @@ import optax
 
 import optax_bilateral as ob
 from experiments import common
-from experiments import scenes as sc
+from experiments.tuning import scenes as sc
 
 #: ``sigma_d`` grid (times ``scene.scale`` for a linear guide); 0 and inf are the extremes.
 SIGMA_GRID = (0.0, 1e-3, 3e-3, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, math.inf)
@@ -1459,7 +1460,7 @@ def main(argv=None) -> dict:
         parser.add_argument(
             "--reference",
             default=None,
-            help="a run's reference.json (e.g. experiments/tuning_reference.json): take the "
+            help="a run's reference.json (e.g. experiments/tuning/reference.json): take the "
             "best-tuned, Adam and pyramid grids from it instead of running them",
         )
         parser.add_argument(
@@ -1532,7 +1533,3 @@ def _jsonable(obj):
         v = float(obj)
         return v if math.isfinite(v) else str(v)
     return obj
-
-
-if __name__ == "__main__":
-    main()

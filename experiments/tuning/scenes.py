@@ -38,7 +38,7 @@ Scenes (:data:`SCENES`; ``quick`` is the test-suite size):
 
 =======================  ========================================================================
 ``mitsuba_close``        a Mitsuba 3 diffuse plane, 192^2 RGB albedo, 96^2 film, spp 1, seen at
-``mitsuba_mid``          0.5, 2 and 12 texels per pixel (:mod:`experiments.camera_distance`;
+``mitsuba_mid``          0.5, 2 and 12 texels per pixel (:mod:`experiments.tuning.camera_distance`;
 ``mitsuba_far``          error at the resolution the camera resolves)
 ``mitsuba_two_cameras``  the same plane from the close and the far camera in turn
 ``absorption_mc``        a 64^2 piecewise-constant absorption map with sharp edges in [0, 1],
@@ -573,7 +573,7 @@ HELD_OUT: dict[str, Callable[[bool], Scene]] = {
 
 def _camera_distance(cameras: tuple[str, ...], name: str) -> Callable[[bool], Scene]:
     def make(quick: bool) -> Scene:
-        from experiments import camera_distance
+        from experiments.tuning import camera_distance
 
         return camera_distance.scene(quick, cameras, name)
 
@@ -582,7 +582,7 @@ def _camera_distance(cameras: tuple[str, ...], name: str) -> Callable[[bool], Sc
 
 #: Problems whose gradients are a renderer's Monte Carlo estimates (issue #47): a Mitsuba 3
 #: texture seen from three camera distances and from two cameras in turn
-#: (:mod:`experiments.camera_distance`; Mitsuba required), and a sharp-edged absorption map
+#: (:mod:`experiments.tuning.camera_distance`; Mitsuba required), and a sharp-edged absorption map
 #: from ratio-tracking transmittances; outside the default run (``--only-scenes``).
 RENDERED: dict[str, Callable[[bool], Scene]] = {
     "mitsuba_close": _camera_distance(("close",), "mitsuba_close"),
