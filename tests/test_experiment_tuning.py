@@ -14,6 +14,7 @@ import docs_blocks
 import optax_bilateral as ob
 from experiments import tuning as T
 from experiments.tuning import scenes as sc
+from experiments.tuning import store
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 METHODS = ("best_tuned", "auto", "defaults", "adam", "pyramid")
@@ -171,7 +172,8 @@ def test_committed_reference_matches_the_scenes():
         grids = T.families(scene, s)
         for fam in T.REFERENCE_FAMILIES:
             stored = ref["scenes"][name]["families"][fam]
-            assert stored["key"] == T._cache_key(scene, grids[fam], s, library=False), (name, fam)
+            key = store.cache_key(scene, grids[fam], s, library=False)
+            assert stored["key"] == key, (name, fam)
             assert stored["records"], (name, fam)
 
 
