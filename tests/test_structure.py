@@ -159,6 +159,40 @@ def test_no_experiment_imports_tools():
     assert not found, found
 
 
+def _cycle(graph: Mapping[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (module -> the modules it imports), or None."""
+    done: set[str] = set()
+
+    def visit(node: str, path: list[str]) -> list[str] | None:
+        if node in path:
+            return path[path.index(node) :] + [node]
+        if node in done:
+            return None
+        for nxt in sorted(graph[node]):
+            if cycle := visit(nxt, [*path, node]):
+                return cycle
+        done.add(node)
+        return None
+
+    return next((c for node in sorted(graph) if (c := visit(node, []))), None)
+
+
+def test_no_import_cycle_among_the_experiments_and_tools():
+    """Read from every ``import`` (a function's too): a module imported lazily to dodge a
+    cycle is still a cycle. Importing a package's module does not count as importing the
+    package's ``__init__``."""
+    modules = _modules("experiments", "tools")
+    graph = {
+        name: (_imports(path, modules) & set(modules)) - {name} for name, path in modules.items()
+    }
+    assert _cycle(graph) is None, " -> ".join(_cycle(graph))
+
+
+def test_the_cycle_check_finds_a_cycle_and_passes_a_chain():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
+
+
 def test_the_library_imports_neither_experiments_nor_tools():
     imports = re.compile(r"^\s*(from|import) (experiments|tools|tests)\b", re.M)
     found = [

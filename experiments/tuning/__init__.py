@@ -85,7 +85,8 @@ against ``sigma_d``, one curve per ``levels`` at that point's best learning rate
 and ``cache/``.
 
 The package, by job: :mod:`~experiments.tuning.scenes` (the problems; the Mitsuba ones in
-:mod:`~experiments.tuning.camera_distance`), :mod:`~experiments.tuning.sweep` (running a method,
+:mod:`~experiments.tuning.camera_distance`; their type, :class:`Scene`, in
+:mod:`~experiments.tuning.problem`), :mod:`~experiments.tuning.sweep` (running a method,
 the learning-rate sweep), :mod:`~experiments.tuning.methods` (the methods compared, their
 grids), :mod:`~experiments.tuning.store` (the cache and reference files),
 :mod:`~experiments.tuning.report` (plots, ``table.md``) and

@@ -26,6 +26,7 @@ from experiments.tuning.methods import (
     levels_that_matter,
     settings,
 )
+from experiments.tuning.problem import Scene
 from experiments.tuning.report import (
     TARGET_ADAM,
     TARGET_BEST,
@@ -54,7 +55,7 @@ DEFAULT_JOBS = max(1, min(2, os.cpu_count() or 1))
 
 
 def run_scene(
-    scene: sc.Scene,
+    scene: Scene,
     s: Settings,
     cache_dir: pathlib.Path | None,
     *,
@@ -119,7 +120,7 @@ def run_scene(
     return entry
 
 
-def _defaults_in_grid(scene: sc.Scene, s: Settings, grid: Result) -> Result | None:
+def _defaults_in_grid(scene: Scene, s: Settings, grid: Result) -> Result | None:
     """The defaults' runs, when the bilateral grid already holds them (the same optimizer,
     the same learning-rate search), else None."""
     d = bilateral_defaults()

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.tuning import scenes as sc
+from experiments.tuning.problem import Scene, around
 
 #: The plane's side in scene units (Mitsuba's ``rectangle`` spans [-1, 1]^2).
 PLANE_SIDE = 2.0
@@ -166,7 +166,7 @@ class Renderer:
         return np.array(dr.grad(self.params[KEY]), np.float32)
 
 
-def scene(quick: bool, cameras: Sequence[str], name: str) -> sc.Scene:
+def scene(quick: bool, cameras: Sequence[str], name: str) -> Scene:
     """The plane seen from ``cameras`` (names of :data:`CAMERAS`, taken in turn)."""
     for c in cameras:
         if c not in CAMERAS:
@@ -192,7 +192,7 @@ def scene(quick: bool, cameras: Sequence[str], name: str) -> sc.Scene:
         return sum(resolved_error(x, data["target"], t, film) for t in tpps) / len(tpps)
 
     views = ", ".join(f"{c} ({CAMERAS[c]:g} texels/px)" for c in cameras)
-    return sc.Scene(
+    return Scene(
         name=name,
         description=(
             f"Mitsuba diffuse plane, {texture}^2 RGB albedo, {film}^2 film, spp {cfg['spp']}, "
@@ -204,7 +204,7 @@ def scene(quick: bool, cameras: Sequence[str], name: str) -> sc.Scene:
         project=lambda data, x: jnp.clip(x, 0.0, 1.0),
         error=error,
         iterations=cfg["iterations"],
-        learning_rates=sc.around(max(LEARNING_RATES[c] for c in cameras)),
+        learning_rates=around(max(LEARNING_RATES[c] for c in cameras)),
         error_name="mean |albedo - target| at the resolution each camera resolves",
         config=dict(kind="mitsuba_plane", cameras=list(cameras), tpp=tpps, fov=FOV, **cfg),
         batch=8,

@@ -16,7 +16,7 @@ import numpy as np
 import optax
 
 import optax_bilateral as ob
-from experiments.tuning import scenes as sc
+from experiments.tuning.problem import Scene
 from experiments.tuning.sweep import MAX_EXTEND, SEEDS, Family, jsonable, rounded
 
 #: ``sigma_d`` grid (times ``scene.scale`` for a linear guide); 0 and inf are the extremes.
@@ -71,7 +71,7 @@ def settings(quick: bool, grid: str | None = None) -> Settings:
     return Settings(SIGMA_GRID, LEVELS_GRID, ADAM_B1, PYRAMID_LEVELS, SEEDS, MAX_EXTEND)
 
 
-def levels_that_matter(scene: sc.Scene, levels_grid: Sequence[int]) -> tuple[list[int], dict]:
+def levels_that_matter(scene: Scene, levels_grid: Sequence[int]) -> tuple[list[int], dict]:
     """Levels whose last a-trous pass reaches a neighbour on some leaf; ``{skipped: same_as}``.
 
     A level of stride ``2^(L-1)`` at least every spatial size has no neighbour inside the
@@ -145,7 +145,7 @@ def bilateral_defaults() -> dict:
     return {k: sig[k].default for k in ("sigma_d", "levels", "b1")}
 
 
-def families(scene: sc.Scene, s: Settings) -> dict[str, Family]:
+def families(scene: Scene, s: Settings) -> dict[str, Family]:
     """The grid families of the benchmark on ``scene`` (cached), in running order."""
     levels, _ = levels_that_matter(scene, s.levels_grid)
     guides = (False, True) if scene.log_guide else (False,)

@@ -11,8 +11,8 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import optax_bilateral as ob
-from experiments.tuning import scenes as sc
 from experiments.tuning.methods import Settings
+from experiments.tuning.problem import Scene
 from experiments.tuning.sweep import Family, Record, Result, jsonable, tune
 
 #: Bumped when a change makes cached grids stale.
@@ -22,7 +22,7 @@ CACHE_VERSION = 1
 # ----------------------------------------------------------------------------- caching
 
 
-def cache_key(scene: sc.Scene, family: Family, s: Settings, *, library: bool = True) -> str:
+def cache_key(scene: Scene, family: Family, s: Settings, *, library: bool = True) -> str:
     """A hash of everything a family's grid depends on; ``library=False`` leaves out the
     library's version (a reference is meant to outlive it)."""
     spec = {
@@ -44,7 +44,7 @@ def cache_key(scene: sc.Scene, family: Family, s: Settings, *, library: bool = T
 
 
 def cached_tune(
-    scene: sc.Scene,
+    scene: Scene,
     family: Family,
     s: Settings,
     cache_dir: pathlib.Path | None,
@@ -97,7 +97,7 @@ def cached_tune(
     return res, False
 
 
-def scene_learning_rates(scene: sc.Scene, s: Settings) -> tuple[float, ...]:
+def scene_learning_rates(scene: Scene, s: Settings) -> tuple[float, ...]:
     lrs = tuple(scene.learning_rates)
     if s.lr_points is not None and s.lr_points < len(lrs):
         mid = (len(lrs) - s.lr_points) // 2
@@ -115,7 +115,7 @@ REFERENCE_PART = "reference_part"
 
 
 def reference_part(
-    scene: sc.Scene, s: Settings, grids: Mapping[str, Family], results, library: str
+    scene: Scene, s: Settings, grids: Mapping[str, Family], results, library: str
 ) -> dict:
     """One scene's part of ``reference.json``: per reference family the key of its grid's
     configuration and, for every setting, the record at its best learning rate (the other
@@ -175,7 +175,7 @@ def load_reference(
     return {"file": str(path), "scenes": {n: data["scenes"][n] for n in scene_names}}
 
 
-def from_reference(part: Mapping[str, Any], scene: sc.Scene, family: Family, s: Settings):
+def from_reference(part: Mapping[str, Any], scene: Scene, family: Family, s: Settings):
     stored = part["families"].get(family.name)
     if stored is None or stored["key"] != cache_key(scene, family, s, library=False):
         raise ValueError(

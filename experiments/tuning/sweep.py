@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from experiments.tuning import scenes as sc
+from experiments.tuning.problem import Scene
 
 SEEDS = (0, 1, 2)
 #: Rounds of learning-rate grid extension at an edge (each adds one factor of 2).
@@ -29,7 +29,7 @@ LR_RATIO = 2.0
 _GRAD_PROGRAMS: dict = {}
 
 
-def _grad_program(scene: sc.Scene):
+def _grad_program(scene: Scene):
     """The scene's vmapped noisy gradient, compiled once per scene (shared by every family)."""
     if scene not in _GRAD_PROGRAMS:
         takes_step = "step" in inspect.signature(scene.grad).parameters
@@ -64,7 +64,7 @@ class Runner:
 
     def __init__(
         self,
-        scene: sc.Scene,
+        scene: Scene,
         factory: Callable[..., optax.GradientTransformation],
         names: Sequence[str],
         *,
@@ -143,7 +143,7 @@ def _chunks(n: int, big: int, small: int) -> list[tuple[int, int]]:
 
 
 def evaluate(
-    scene: sc.Scene,
+    scene: Scene,
     make_optimizer: Callable[..., optax.GradientTransformation],
     hyper_grid: Sequence[Mapping[str, float]] | Mapping[str, Sequence[float]],
     seeds: Sequence[int] = SEEDS,
@@ -304,7 +304,7 @@ class Result:
 
 
 def tune(
-    scene: sc.Scene,
+    scene: Scene,
     family: Family,
     seeds: Sequence[int] = SEEDS,
     *,
@@ -375,7 +375,7 @@ def rounded(x: float) -> float:
     return float(f"{x:.4g}")
 
 
-def _bind(factory, static: Mapping[str, Any], scene: sc.Scene):
+def _bind(factory, static: Mapping[str, Any], scene: Scene):
     """``factory`` with the static settings and (if it takes them) the scene and the scene's
     ``spatial_axes`` bound."""
     kwargs = dict(static)
