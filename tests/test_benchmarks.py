@@ -367,22 +367,6 @@ def test_scale_slopes_fit_time_against_elements():
     assert benchmark.loglog_slopes(linear, min_elements=10**5) == {}  # one grid: no fit
 
 
-def test_largest_grid_is_the_largest_whose_planned_step_fits():
-    import optax
-
-    from experiments import largest_grid
-
-    opt = optax.adam(0.1)  # compiles in a blink; the search is the same for any optimizer
-    budget = 2**20
-    best = largest_grid.largest_n(opt, "texture", budget, multiple=16, probes=(32, 64))
-    n = best["n"]
-    assert best["fits"] and best["shape"] == f"{n}x{n}x3" and n % 16 == 0
-    assert largest_grid.planned_bytes(opt, (n, n, 3)) <= budget
-    assert largest_grid.planned_bytes(opt, (n + 16, n + 16, 3)) > budget  # the next one won't
-    ran = largest_grid.run_steps(opt, (16, 16, 3), steps=2)
-    assert ran["finite"] and ran["s per step (median)"] > 0 and ran["peak RSS GiB"] > 0
-
-
 def test_bench_native_quick_compares_the_kernels_inside_an_update(tmp_path):
     # Checks the script and its outputs, not the numbers (benchmarks are not timed tests).
     from experiments.benchmarks import native as bench_native
