@@ -1,8 +1,8 @@
 """Shared pieces of the Mitsuba 3 experiments: variant set-up, the methods of the
-``SceneOptimizer`` experiments (``mitsuba_texture``, ``mitsuba_volume``, ``mitsuba_timing``)
+``SceneOptimizer`` experiments (``texture``, ``volume``, ``timing`` beside this module)
 and their runs; :mod:`experiments.mitsuba.runner` runs and reports every experiment.
 
-A ``SceneOptimizer`` problem (``mitsuba_texture.Problem``, ``mitsuba_volume.Problem``) owns
+A ``SceneOptimizer`` problem (``texture.Problem``, ``volume.Problem``) owns
 one scene and its ``mi.SceneParameters`` and provides, besides the runner's
 ``param_errors`` and ``evaluate``:
 
