@@ -30,7 +30,7 @@ install: $(VENV)/.installed
 install-dev: $(VENV)/.installed-dev
 
 demo: $(VENV)/.installed
-	$(PY) -m experiments.texture
+	$(PY) -m experiments.paper.texture
 
 # pytest exits 5 when it collects no tests; that must fail CI, and it does (non-zero).
 # Two workers (the CI machine has 2 cores), a file per worker (module fixtures and the

@@ -19,7 +19,7 @@ def unavailable() -> str | None:
         import mitsuba  # noqa: F401
     except ImportError as e:
         return f"Mitsuba 3 is not installed ({e}); pip install -e '.[mitsuba]'"
-    from experiments import mitsuba_common as mc
+    from experiments.mitsuba import common as mc
 
     return mc.probe()
 
@@ -31,7 +31,7 @@ def require_mitsuba():
     the other modules still run."""
     reason = unavailable()
     if reason is None:
-        from experiments import mitsuba_common as mc
+        from experiments.mitsuba import common as mc
 
         mi, _ = mc.setup()
         return mi

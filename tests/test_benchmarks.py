@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from experiments import benchmark
+from experiments.benchmarks import suite as benchmark
 
 
 def test_quick_benchmark_runs_and_reports(tmp_path, monkeypatch):
@@ -270,7 +270,7 @@ def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
 
 def test_bench_gpu_quick_times_both_kernels(tmp_path):
     # Runs on the CPU backend here: checks the script, not the numbers.
-    from experiments import bench_gpu
+    from experiments.benchmarks import gpu as bench_gpu
 
     data = bench_gpu.main(["--quick", "--out", str(tmp_path)])
     assert {r["kernel"] for r in data["filter"]} == {"xla_cpu", "plain"}
@@ -298,7 +298,7 @@ def test_auto_cost_quick_times_auto_closed_and_open_against_a_fixed_sigma(tmp_pa
 
 
 def test_bench_sharding_quick_writes_results_and_matches_single_device(tmp_path):
-    """``experiments.bench_sharding --quick`` on 8 virtual CPU devices (a fresh process: the
+    """``experiments.benchmarks.sharding --quick`` on 8 virtual CPU devices (a fresh process: the
     device count is fixed when jax starts): its files, and sharded updates equal to one
     device's without gathering the grid."""
     import os
@@ -311,7 +311,7 @@ def test_bench_sharding_quick_writes_results_and_matches_single_device(tmp_path)
     env["XLA_FLAGS"] = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=8"
     env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")])
     code = (
-        "import json, sys; from experiments import bench_sharding as b; "
+        "import json, sys; from experiments.benchmarks import sharding as b; "
         "s = b.main(['--quick', '--out', sys.argv[1]]); "
         "print(json.dumps({'rows': s['rows'], 'channels': s['channels']}))"
     )
@@ -367,25 +367,9 @@ def test_scale_slopes_fit_time_against_elements():
     assert benchmark.loglog_slopes(linear, min_elements=10**5) == {}  # one grid: no fit
 
 
-def test_largest_grid_is_the_largest_whose_planned_step_fits():
-    import optax
-
-    from experiments import largest_grid
-
-    opt = optax.adam(0.1)  # compiles in a blink; the search is the same for any optimizer
-    budget = 2**20
-    best = largest_grid.largest_n(opt, "texture", budget, multiple=16, probes=(32, 64))
-    n = best["n"]
-    assert best["fits"] and best["shape"] == f"{n}x{n}x3" and n % 16 == 0
-    assert largest_grid.planned_bytes(opt, (n, n, 3)) <= budget
-    assert largest_grid.planned_bytes(opt, (n + 16, n + 16, 3)) > budget  # the next one won't
-    ran = largest_grid.run_steps(opt, (16, 16, 3), steps=2)
-    assert ran["finite"] and ran["s per step (median)"] > 0 and ran["peak RSS GiB"] > 0
-
-
 def test_bench_native_quick_compares_the_kernels_inside_an_update(tmp_path):
     # Checks the script and its outputs, not the numbers (benchmarks are not timed tests).
-    from experiments import bench_native
+    from experiments.benchmarks import native as bench_native
 
     data = bench_native.main(["--quick", "--out", str(tmp_path)])
     assert {(r["kernel"], r["update"]) for r in data["rows"]} == {

@@ -94,7 +94,7 @@ def _final_errors(make, rates, n=24, steps=150):
 
 def test_holography_from_noisy_gradients_beats_optax_adam():
     """Each at its best of three learning rates: the filtered complex field's error is well
-    below Adam's (0.0152 against 0.0438 at 32x32, 200 steps: experiments/pytrees.py)."""
+    below Adam's (0.0152 against 0.0438 at 32x32, 200 steps: experiments/paper/pytrees.py)."""
     adam = _final_errors(optax.adam, [0.005, 0.01, 0.02])
     filtered = functools.partial(ob.bilateral_adam, spatial_axes=(0, 1))
     ours = _final_errors(filtered, [0.01, 0.02, 0.04])

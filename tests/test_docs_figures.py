@@ -2,7 +2,7 @@
 
 import pathlib
 
-from experiments import figures
+from experiments.paper import figures
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

@@ -8,15 +8,23 @@ the Markdown cells of every notebook (notebooks/*.ipynb, whose pages the docs si
   ``docs/notebooks/<name>.md``, which the docs build generates from
   ``notebooks/<name>.ipynb``), and none points into ``results/``;
 * every path written in the text (``dir/name.ext``, with at least one folder, as in
-  ``experiments/benchmark.py`` or ``figures/x.png``) exists, read from the repository root,
+  ``experiments/benchmarks/suite.py`` or ``figures/x.png``) exists, read from the repository root,
   from the page's folder or from ``optax_bilateral/`` (docs name ``_src/optimizer/step.py``);
 * a path of *another* repository is cited as such: its paragraph names the repository
   (``github owner/name``, as docs/method.md cites the authors' code);
 * paths under ``results/`` are what the experiments write (git-ignored): they are generated
   outputs, so they appear only as code (in backticks or a code block, next to the command
-  that writes them), never as a link or as plain text.
+  that writes them), never as a link or as plain text;
+* every module of ``experiments`` or ``tools`` they name (``python -m experiments.tuning``,
+  ``experiments.tuning.scenes.RENDERED``, ``experiments.tuning:sure_factory``), and the
+  Makefile's, is in the repository: ``python -m`` names a module or a package with a
+  ``__main__``, and a name after the module is defined in it. A finished study's command
+  stays only where its table row or paragraph says its script left the repository.
+  CHANGELOG.md keeps the names of its time.
 """
 
+import ast
+import functools
 import json
 import pathlib
 import re
@@ -127,8 +135,8 @@ def test_the_rule_catches_what_it_should():
     page = ROOT / "docs" / "example.md"
     assert _links("see [x](missing.md) and [y](https://a.b/c) and [z](#here)") == ["missing.md"]
     assert _links("`[x](in-code.md)`") == []
-    assert PATH.findall("run `experiments/benchmark.py`, see docs/x.md.") == [
-        "experiments/benchmark.py",
+    assert PATH.findall("run `experiments/benchmarks/suite.py`, see docs/x.md.") == [
+        "experiments/benchmarks/suite.py",
         "docs/x.md",
     ]
     assert PATH.findall("`OUT/cache/<scene>/<family>.json` and `processes/*/m.json`") == []
@@ -157,3 +165,101 @@ def test_api_pages_document_every_public_name(module, page):
         "triangle_mesh",
     }  # submodules: their own page
     assert documented == public, (sorted(public - documented), sorted(documented - public))
+
+
+MODULE = re.compile(r"(?<![\w./(-])(python -m )?((?:experiments|tools)(?:\.\w+)+)(?::(\w+))?")
+FINISHED = re.compile(r"left the repository|git keeps it|kept at commit")
+
+
+@functools.cache
+def _defined(path: pathlib.Path) -> frozenset[str]:
+    """The names a module defines or imports at its top level."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names.update(n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name))
+    return frozenset(names)
+
+
+def _module_problem(dotted: str, attr: str | None, run: bool) -> str | None:
+    """Why ``dotted`` (``python -m`` if ``run``; ``:attr`` if given) names nothing of the
+    repository, or None."""
+    parts, path = dotted.split("."), ROOT / dotted.split(".")[0]
+    i = 1
+    while i < len(parts) and (
+        (path / parts[i]).with_suffix(".py").is_file()
+        or (path / parts[i] / "__init__.py").is_file()
+    ):
+        path, i = path / parts[i], i + 1
+    if i == 1:
+        return "no such module"
+    file = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    rest = parts[i:] + ([attr] if attr else [])
+    if run and (rest or (path.is_dir() and not (path / "__main__.py").is_file())):
+        return "not a module python -m can run"
+    if rest and rest[0] not in _defined(file):
+        return f"{'.'.join(parts[:i])} defines no {rest[0]}"
+    return None
+
+
+def _scope(text: str, start: int) -> str:
+    """The table row (a line starting with ``|``) or the paragraph holding ``text[start]``."""
+    line_start = text.rfind("\n", 0, start) + 1
+    line = text[line_start : text.find("\n", start) % (len(text) + 1)]
+    if line.lstrip().startswith("|"):
+        return line
+    begin = text.rfind("\n\n", 0, start) + 1
+    end = text.find("\n\n", start)
+    return text[begin : end if end >= 0 else len(text)]
+
+
+def _unknown_modules(text: str) -> list[str]:
+    out = []
+    for m in MODULE.finditer(text):
+        run, dotted, attr = m.groups()
+        if re.search(rf"\.(?:{EXTENSIONS})$", dotted):  # a file name, such as experiments.md
+            continue
+        problem = _module_problem(dotted, attr, bool(run))
+        if problem and not FINISHED.search(_scope(text, m.start())):
+            out.append(f"{m.group(0)}: {problem}")
+    return out
+
+
+@pytest.mark.parametrize(
+    "page",
+    [p for p in DOCUMENTS if p.name != "CHANGELOG.md"] + NOTEBOOKS + [ROOT / "Makefile"],
+    ids=_ids([p for p in DOCUMENTS if p.name != "CHANGELOG.md"] + NOTEBOOKS + [ROOT / "Makefile"]),
+)
+def test_cited_experiments_and_tools_exist(page):
+    unknown = _unknown_modules(_text(page))
+    assert not unknown, f"{page.name}: names modules that are not in the repository: {unknown}"
+
+
+def test_the_module_rule_catches_what_it_should():
+    assert (
+        _unknown_modules("`python -m experiments.tuning --quick`, `python -m tools.ab_update`")
+        == []
+    )
+    assert (
+        _unknown_modules("`experiments.tuning.scenes.RENDERED`, `experiments.tuning:sure_factory`")
+        == []
+    )
+    assert _unknown_modules("[page](experiments.md), `experiments.benchmarks.suite.main`") == []
+    assert _unknown_modules("`python -m experiments.paper`") == [
+        "python -m experiments.paper: not a module python -m can run"
+    ]
+    assert _unknown_modules("`experiments.tuning:no_such`") == [
+        "experiments.tuning:no_such: experiments.tuning defines no no_such"
+    ]
+    gone = "`python -m experiments.gone` (a study; its script left the repository)"
+    assert _unknown_modules(gone) == []
+    assert _unknown_modules("`python -m experiments.gone`") == [
+        "python -m experiments.gone: no such module"
+    ]
+    row = "| a | `python -m experiments.gone`, left the repository |\n| b | `experiments.gone` |"
+    assert _unknown_modules(row) == ["experiments.gone: no such module"]

@@ -1,14 +1,14 @@
-"""The tuning suite's Mitsuba scenes (issue #47, :mod:`experiments.camera_distance`): a texture
-seen from three camera distances and from two cameras in turn, rendered at the quick size.
+"""The tuning suite's Mitsuba scenes (issue #47, :mod:`experiments.tuning.camera_distance`): a
+texture seen from three camera distances and from two cameras in turn, rendered at the quick size.
 Without a usable Mitsuba this module is skipped with one line saying why, and fails under CI
 (tests/mitsuba_env.py)."""
 
 import numpy as np
 import pytest
 
-from experiments import camera_distance as cd
-from experiments import scenes as sc
 from experiments import tuning as T
+from experiments.tuning import camera_distance as cd
+from experiments.tuning import scenes as sc
 from mitsuba_env import fail_under_ci, require_mitsuba
 
 MI = require_mitsuba()  # skips this module without a usable Mitsuba; None under CI

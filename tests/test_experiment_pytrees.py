@@ -1,10 +1,10 @@
-"""``python -m experiments.pytrees --quick``: every problem and method gives a finite error at
+"""``python -m experiments.paper.pytrees --quick``: every problem and method gives a finite error at
 each learning rate it tried, and the files are written."""
 
 import json
 import math
 
-from experiments import pytrees as E
+from experiments.paper import pytrees as E
 
 
 def test_quick_run_writes_every_problem_and_method(tmp_path):

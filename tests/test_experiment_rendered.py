@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments import camera_distance as cd
-from experiments import scenes as sc
 from experiments import tuning as T
+from experiments.tuning import camera_distance as cd
+from experiments.tuning import scenes as sc
 
 MC = dict(density=4.0, length=1.5)
 

@@ -1,4 +1,4 @@
-"""End to end: ``python -m experiments.texture --quick`` writes a valid summary and figures;
+"""End to end: ``python -m experiments.paper.texture --quick`` writes a valid summary and figures;
 the demo (``make demo``) and ``--full`` settings run the methods they name."""
 
 import inspect
@@ -8,7 +8,7 @@ import math
 import pytest
 
 import optax_bilateral as ob
-from experiments import texture as E
+from experiments.paper import texture as E
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

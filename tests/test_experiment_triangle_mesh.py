@@ -1,9 +1,9 @@
-"""End-to-end: ``python -m experiments.triangle_mesh --quick`` and its ``--overhead`` mode."""
+"""End-to-end: ``python -m experiments.paper.triangle_mesh --quick`` and its ``--overhead`` mode."""
 
 import json
 import math
 
-from experiments import triangle_mesh as exp
+from experiments.paper import triangle_mesh as exp
 
 
 def test_mesh_experiment_quick(tmp_path):

@@ -12,8 +12,9 @@ import pytest
 
 import docs_blocks
 import optax_bilateral as ob
-from experiments import scenes as sc
 from experiments import tuning as T
+from experiments.tuning import scenes as sc
+from experiments.tuning import store
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 METHODS = ("best_tuned", "auto", "defaults", "adam", "pyramid")
@@ -160,9 +161,9 @@ def test_reference_that_does_not_match_is_refused(quick_run, tmp_path):
 
 
 def test_committed_reference_matches_the_scenes():
-    """experiments/tuning_reference.json was run on today's scenes and settings: a change to
+    """experiments/tuning/reference.json was run on today's scenes and settings: a change to
     a scene or a grid makes it stale, and this fails until it is regenerated."""
-    path = pathlib.Path(__file__).parents[1] / "experiments" / "tuning_reference.json"
+    path = pathlib.Path(__file__).parents[1] / "experiments" / "tuning" / "reference.json"
     names = [*sc.SCENES, *sc.HELD_OUT]
     ref = T.load_reference(path, names, quick=False)
     s = T.settings(False)
@@ -171,7 +172,8 @@ def test_committed_reference_matches_the_scenes():
         grids = T.families(scene, s)
         for fam in T.REFERENCE_FAMILIES:
             stored = ref["scenes"][name]["families"][fam]
-            assert stored["key"] == T._cache_key(scene, grids[fam], s, library=False), (name, fam)
+            key = store.cache_key(scene, grids[fam], s, library=False)
+            assert stored["key"] == key, (name, fam)
             assert stored["records"], (name, fam)
 
 

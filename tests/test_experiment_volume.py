@@ -1,4 +1,5 @@
-"""``python -m experiments.volume --quick`` end to end: outputs exist and say something true."""
+"""``python -m experiments.paper.volume --quick`` end to end: outputs exist and say something
+true."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 
 import pytest
 
-from experiments import volume as experiment
+from experiments.paper import volume as experiment
 
 
 @pytest.fixture(scope="module")

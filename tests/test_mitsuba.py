@@ -451,7 +451,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 def _check_summary(out, module):
-    from experiments import mitsuba_common as mc
+    from experiments.mitsuba import common as mc
 
     data = json.loads((out / "summary.json").read_text())
     cfg = module.default_config(quick=True)
@@ -478,7 +478,7 @@ def _check_summary(out, module):
 
 @pytest.fixture(scope="module")
 def texture_run(mi, tmp_path_factory):
-    from experiments import mitsuba_texture as E
+    from experiments.mitsuba import texture as E
 
     out = tmp_path_factory.mktemp("mitsuba_texture")
     E.main(["--quick", "--out", str(out)])
@@ -486,7 +486,7 @@ def texture_run(mi, tmp_path_factory):
 
 
 def test_texture_experiment_writes_summary_table_and_figures(texture_run):
-    from experiments import mitsuba_texture as E
+    from experiments.mitsuba import texture as E
 
     data = _check_summary(texture_run, E)
     methods = data["methods"]
@@ -515,7 +515,7 @@ def test_texture_experiment_writes_summary_table_and_figures(texture_run):
 
 
 def test_volume_experiment_writes_summary_table_and_figures(mi, tmp_path):
-    from experiments import mitsuba_volume as E
+    from experiments.mitsuba import volume as E
 
     E.main(["--quick", "--out", str(tmp_path)])
     data = _check_summary(tmp_path, E)
@@ -530,7 +530,7 @@ def test_volume_experiment_writes_summary_table_and_figures(mi, tmp_path):
 def test_timing_table_has_adam_and_both_filter_sizes(mi, tmp_path):
     # The texture scene only: the volume's rows come from the same code (time_scene), and
     # its 3-D filters at F = 3 and 5 would add two compilations to the test suite.
-    from experiments import mitsuba_timing as E
+    from experiments.mitsuba import timing as E
 
     result = E.main(["--quick", "--rounds", "1", "--scenes", "texture", "--out", str(tmp_path)])
     data = json.loads((tmp_path / "timing.json").read_text())
@@ -556,7 +556,7 @@ def _docs_block(name):
 def docs_setup(mi, tmp_path, monkeypatch):
     """The namespace after docs/mitsuba.md's setup block, run on the quick configuration
     (32^2 texture and image, 6 iterations) in a temporary folder; the blocks run unchanged."""
-    from experiments import mitsuba_texture
+    from experiments.mitsuba import texture as mitsuba_texture
 
     quick = mitsuba_texture.default_config(quick=True)
     monkeypatch.setattr(mitsuba_texture, "default_config", lambda quick_=False: quick)

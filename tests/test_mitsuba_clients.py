@@ -1,6 +1,6 @@
 """Mitsuba users' own loops with this library: Mitsuba's tutorials as clients
-(experiments/mitsuba_tutorials.py) and meshes against mi.ad.LargeSteps
-(experiments/mitsuba_mesh.py). The one-line swap of docs/mitsuba.md runs verbatim in
+(experiments/mitsuba/tutorials.py) and meshes against mi.ad.LargeSteps
+(experiments/mitsuba/mesh.py). The one-line swap of docs/mitsuba.md runs verbatim in
 tests/test_mitsuba.py, beside the docs' other blocks.
 
 The experiments run in their quick form (tiny films and grids, a few iterations), so the
@@ -39,7 +39,7 @@ def _pngs(summary):
 
 @pytest.fixture(scope="module")
 def tutorials(mi, tmp_path_factory):
-    from experiments import mitsuba_tutorials as E
+    from experiments.mitsuba import tutorials as E
 
     out = tmp_path_factory.mktemp("mitsuba_tutorials")
     E.main(["--quick", "--out", str(out)])
@@ -47,7 +47,7 @@ def tutorials(mi, tmp_path_factory):
 
 
 def test_every_tutorial_runs_with_both_optimizers_and_writes_its_outputs(tutorials):
-    from experiments import mitsuba_tutorials as E
+    from experiments.mitsuba import tutorials as E
 
     for tutorial in E.TUTORIALS:
         data = json.loads((tutorials / tutorial / "summary.json").read_text())
@@ -77,7 +77,7 @@ def test_the_swap_changes_nothing_on_the_red_walls_colour(tutorials):
 
 
 def test_the_volume_tutorials_upsampling_restarts_the_keys_state(mi):
-    from experiments import mitsuba_tutorials as E
+    from experiments.mitsuba import tutorials as E
 
     cfg = E.default_config("volume", quick=True)
     problem = E.Volume(cfg)
@@ -95,7 +95,7 @@ def test_the_volume_tutorials_upsampling_restarts_the_keys_state(mi):
 
 
 def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
-    from experiments import mitsuba_mesh as E
+    from experiments.mitsuba import mesh as E
 
     result = E.main(["--quick", "--out", str(tmp_path)])
     cfg = E.default_config(quick=True)
@@ -116,7 +116,7 @@ def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
 def test_hausdorff_distance_to_the_rounded_cube(mi):
     # The target mesh is on the surface (to its triangles' sag); a sphere of radius R around
     # the cube's centre is at least R - (its corner distance) away, measured exactly.
-    from experiments import mitsuba_mesh as E
+    from experiments.mitsuba import mesh as E
     from optax_bilateral.toy import triangle_mesh as toy
 
     cfg = E.default_config(quick=True)
@@ -131,7 +131,7 @@ def test_hausdorff_distance_to_the_rounded_cube(mi):
 
 def test_docs_mesh_block_runs_verbatim(mi, monkeypatch):
     # Its names mi and dr come from the docs' setup block, which runs in tests/test_mitsuba.py.
-    from experiments import mitsuba_mesh
+    from experiments.mitsuba import mesh as mitsuba_mesh
 
     block = docs_blocks.by("docs/mitsuba.md", "mesh").code
     quick = mitsuba_mesh.default_config(quick=True)

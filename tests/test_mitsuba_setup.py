@@ -35,7 +35,7 @@ def test_an_unusable_mitsuba_fails_under_ci_and_skips_otherwise(monkeypatch):
 
 
 def test_probe_reports_a_variant_that_cannot_render():
-    from experiments import mitsuba_common as mc
+    from experiments.mitsuba import common as mc
 
     reason = mc.probe("llvm_ad_no_such_variant")
     assert reason is not None and "cannot render" in reason and "\n" not in reason

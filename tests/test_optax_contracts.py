@@ -20,7 +20,7 @@ import optax
 import pytest
 
 import optax_bilateral as ob
-from tools.compiles import CompileCounter
+from experiments.benchmarks.compiles import CompileCounter
 
 # (name, factory of learning_rate -> optimizer)
 SETTINGS = {

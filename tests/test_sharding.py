@@ -44,7 +44,7 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
     from jax.sharding import PartitionSpec as P
 
     import optax_bilateral as ob
-    from tools import collectives
+    from experiments.benchmarks import collectives
 
     assert jax.device_count() == 8, jax.device_count()
     records = []

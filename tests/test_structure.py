@@ -7,6 +7,8 @@ import ast
 import inspect
 import pathlib
 import re
+import sys
+from collections.abc import Mapping
 
 import optax_bilateral as ob
 
@@ -19,6 +21,9 @@ MAX_LINES, MAX_PRIVATE_PARAMS = 60, 8
 EXPERIMENT_TESTS = re.compile(
     r"(test_(experiment_\w+|benchmarks|mitsuba\w*|notebook\w*|docs_\w+|readme)|mitsuba_env)\.py$"
 )
+#: The measuring instruments under experiments/ that the library's tests use too: they import
+#: JAX, NumPy and the standard library only (checked below), so no experiment reaches those tests.
+INSTRUMENTS = ("experiments.benchmarks.compiles", "experiments.benchmarks.collectives")
 
 
 def _functions():
@@ -91,14 +96,101 @@ def test_no_test_or_experiment_changes_a_library_constant():
     assert not found, found
 
 
-def test_library_tests_do_not_import_the_experiments():
-    imports = re.compile(r"^\s*(from experiments\b|import experiments\b)", re.M)
-    found = [
-        path.name
-        for path in (ROOT / "tests").glob("*.py")
-        if not EXPERIMENT_TESTS.search(path.name) and imports.search(path.read_text())
-    ]
+def _modules(*folders: str) -> dict[str, pathlib.Path]:
+    """Dotted name -> file of every module under ``folders`` (a package's is its ``__init__``)."""
+    out = {}
+    for folder in folders:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _imports(path: pathlib.Path, modules: Mapping[str, pathlib.Path]) -> set[str]:
+    """The modules ``path`` imports anywhere (inside functions too), as dotted names:
+    ``from a.b import c`` names ``a.b.c`` where that is one of ``modules``, else ``a.b``."""
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    package = parts if parts[-1] == "__init__" else parts[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else ()
+            module = ".".join([*base, *([node.module] if node.module else [])])
+            for a in node.names:
+                found.add(f"{module}.{a.name}" if f"{module}.{a.name}" in modules else module)
+    return found
+
+
+def test_library_tests_import_no_experiment_but_its_instruments():
+    """The library's tests must survive any change of the experiments; the instruments they
+    share with the benchmarks (compile counting, HLO collectives) are the one exception."""
+    modules = _modules("experiments")
+    found = {
+        path.name: sorted(bad)
+        for path in sorted((ROOT / "tests").glob("*.py"))
+        if not EXPERIMENT_TESTS.search(path.name)
+        if (bad := {m for m in _imports(path, modules) if m.split(".")[0] == "experiments"})
+        - set(INSTRUMENTS)
+    }
     assert not found, found
+
+
+def test_the_instruments_import_only_jax_numpy_and_the_standard_library():
+    allowed = {"jax", "numpy", *sys.stdlib_module_names}
+    modules = _modules("experiments")
+    found = {
+        name: sorted(bad)
+        for name in INSTRUMENTS
+        if (bad := {m for m in _imports(modules[name], modules) if m.split(".")[0] not in allowed})
+    }
+    assert not found, found
+
+
+def test_no_experiment_imports_tools():
+    """``tools/`` may import the experiments; the experiments never import ``tools/``."""
+    modules = _modules("experiments")
+    found = {
+        name: sorted(m for m in _imports(path, modules) if m.split(".")[0] == "tools")
+        for name, path in modules.items()
+    }
+    found = {k: v for k, v in found.items() if v}
+    assert not found, found
+
+
+def _cycle(graph: Mapping[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (module -> the modules it imports), or None."""
+    done: set[str] = set()
+
+    def visit(node: str, path: list[str]) -> list[str] | None:
+        if node in path:
+            return path[path.index(node) :] + [node]
+        if node in done:
+            return None
+        for nxt in sorted(graph[node]):
+            if cycle := visit(nxt, [*path, node]):
+                return cycle
+        done.add(node)
+        return None
+
+    return next((c for node in sorted(graph) if (c := visit(node, []))), None)
+
+
+def test_no_import_cycle_among_the_experiments_and_tools():
+    """Read from every ``import`` (a function's too): a module imported lazily to dodge a
+    cycle is still a cycle. Importing a package's module does not count as importing the
+    package's ``__init__``."""
+    modules = _modules("experiments", "tools")
+    graph = {
+        name: (_imports(path, modules) & set(modules)) - {name} for name, path in modules.items()
+    }
+    assert _cycle(graph) is None, " -> ".join(_cycle(graph))
+
+
+def test_the_cycle_check_finds_a_cycle_and_passes_a_chain():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
 
 
 def test_the_library_imports_neither_experiments_nor_tools():

@@ -586,7 +586,7 @@ def _eqns(jx):
 def test_eager_update_compiles_nothing_after_the_first_call(kind):
     """Without jax.jit around it, an update must reuse its compiled programs (it recompiled a
     lax.cond every call: 1-3 s per step); and it equals the jitted update."""
-    from tools.compiles import CompileCounter
+    from experiments.benchmarks.compiles import CompileCounter
 
     opt = {
         "bilateral_adam": ob.bilateral_adam(0.1, levels=2),

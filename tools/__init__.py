@@ -1,2 +1,2 @@
-"""Developer tools: A/B timing, profiling, cost probes, and helpers the tests and
-benchmarks share (compile counting, HLO collectives). Not installed; run from a checkout."""
+"""Developer tools: A/B timing, profiling and cost probes. Not installed; run from a checkout.
+They may import ``experiments`` (its instruments and setups); ``experiments`` never imports them."""

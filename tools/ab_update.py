@@ -33,8 +33,8 @@ import numpy as np
 import optax
 
 import optax_bilateral as ob
-from experiments import benchmark as bm
 from experiments import common
+from experiments.benchmarks import suite as bm
 
 AB_PACKAGE = "optax_bilateral_ab"
 

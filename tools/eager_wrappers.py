@@ -18,7 +18,7 @@ import optax
 
 import optax_bilateral as ob
 from experiments import common
-from tools.compiles import CompileCounter
+from experiments.benchmarks.compiles import CompileCounter
 
 WRAPPERS = {
     "bare": lambda opt: opt,

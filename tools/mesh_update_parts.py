@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments import common
-from experiments.mitsuba_mesh import rounded_cube
+from experiments.mitsuba.mesh import rounded_cube
 from optax_bilateral import triangle_mesh as obm
 
 LAMBDA = 19.0  # the mesh experiment's

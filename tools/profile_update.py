@@ -34,8 +34,8 @@ import jax
 import optax
 
 import optax_bilateral as ob
-from experiments import benchmark as bm
 from experiments import common
+from experiments.benchmarks import suite as bm
 from tools import ab_update
 
 _KERNEL = re.compile(r"%([\w.\-]+) = [^=]*? (?:fusion|custom-call)\(")

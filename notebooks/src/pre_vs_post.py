@@ -217,7 +217,7 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s")
 #
 # How often the self-guided filter breaks the bound depends on its σ_d. A second full-size run
 # the same day (`SIGMA_D_SELF = 2`, the best of the bilateral sweep 0.5 / 1 / 2 / 4 / 8 of
-# `python -m experiments.texture --full` on this scene; 1718 s, load 10–16; this page shows
+# `python -m experiments.paper.texture --full` on this scene; 1718 s, load 10–16; this page shows
 # the σ_d = 1 run) gave the same rows for Adam, prefilter, postfilter and both, a self-guided
 # error of **0.00787** at lr 0.04 (the lowest of all, image loss 0.026), and **65 of 1050**
 # steps over the bound, up to

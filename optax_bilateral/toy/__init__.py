@@ -3,7 +3,7 @@
 Each module models only what one of the paper's experiments needs:
 
 * ``optax_bilateral.toy.texture``: a glossy plane with a GGX roughness texture lit
-  by an environment (main paper Fig. 5; ``experiments/texture.py``).
+  by an environment (main paper Fig. 5; ``experiments/paper/texture.py``).
 * ``optax_bilateral.toy.volume``: a heterogeneous participating medium (main paper Figs. 8-9).
 * ``optax_bilateral.toy.triangle_mesh``: the mesh scenes (main paper Fig. 10).
 

@@ -1,7 +1,7 @@
 """Mesh recovery: Large Steps vs the paper's cross-bilateral normal filter (supplement §3-4).
 
-    python -m experiments.triangle_mesh [--quick] [--out DIR]             # Fig. 2 grid, Fig. 6
-    python -m experiments.triangle_mesh --overhead [--quick] [--out DIR]  # Table 2 analogue
+    python -m experiments.paper.triangle_mesh [--quick] [--out DIR]            # Fig. 2 grid, 6
+    python -m experiments.paper.triangle_mesh --overhead [--quick] [--out DIR] # Table 2 analogue
 
 The first runs the Fig. 2 grid and Fig. 6 (lambda=999); the second times both methods
 with each solver.

@@ -1,7 +1,7 @@
 """The native kernel against the pure-JAX ``xla_cpu`` kernel, inside one ``bilateral_adam``
 update, each as a ratio to ``optax.adam`` measured side by side in this process.
 
-    python -m experiments.bench_native [--quick] [--out DIR] [--rounds N]
+    python -m experiments.benchmarks.native [--quick] [--out DIR] [--rounds N]
 
 Per grid and kernel: cold compile seconds of one update (defaults and a fixed sigma_d), the
 update's median time (interleaved rounds), and XLA's planned temporaries over the
@@ -29,7 +29,7 @@ import optax
 
 import optax_bilateral as ob
 from experiments import common
-from experiments.benchmark import (
+from experiments.benchmarks.suite import (
     FIXED_SIGMA_D,
     cold_compile_seconds,
     interleaved,
@@ -129,7 +129,7 @@ _RSS_CHILD = textwrap.dedent(
     import jax, optax
     import optax_bilateral as ob
     from experiments import common
-    from experiments.benchmark import FIXED_SIGMA_D, update_arrays
+    from experiments.benchmarks.suite import FIXED_SIGMA_D, update_arrays
 
     def peak_kib():
         # Linux's VmHWM: this program's own peak (ru_maxrss keeps the parent's across exec).

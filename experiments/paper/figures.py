@@ -1,17 +1,18 @@
 """The small figures the README and the docs show (docs/figures/).
 
-    python -m experiments.figures texture [--quick] [--out DIR]
-    python -m experiments.figures speed_accuracy [--source BENCHMARKS.md|accuracy.json] [--out DIR]
+    python -m experiments.paper.figures texture [--quick] [--out DIR]
+    python -m experiments.paper.figures speed_accuracy [--source BENCHMARKS.md|accuracy.json]
+                                        [--out DIR]
 
 ``texture``: the texture experiment's problem (512² GGX roughness, 1/1 spp, 150 iterations;
 ``--quick``: 64², 30 iterations) solved by Adam and by ``bilateral_adam``, each with the
-setting that was best in ``python -m experiments.texture``; writes ``texture_recovery.png``
+setting that was best in ``python -m experiments.paper.texture``; writes ``texture_recovery.png``
 (target, Adam, ours) and prints the final errors.
 
 ``speed_accuracy``: final texture error against the filter's time per update for F = 1…6,
 separable and full, float32 and bfloat16 first moments, from the accuracy section of the
 benchmark: the tables of BENCHMARKS.md (the committed numbers, the default) or an
-``accuracy.json`` written by ``python -m experiments.benchmark --only accuracy``;
+``accuracy.json`` written by ``python -m experiments.benchmarks --only accuracy``;
 writes ``speed_accuracy.png``.
 
 Figures go to ``results/figures`` unless ``--out`` says otherwise (``--out docs/figures``
@@ -31,10 +32,10 @@ import optax
 
 import optax_bilateral as ob
 from experiments import common
-from experiments import texture as texp
+from experiments.paper import texture as texp
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-# The best settings of `python -m experiments.texture --full` (docs/experiments.md).
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+# The best settings of `python -m experiments.paper.texture --full` (docs/experiments.md).
 ADAM = dict(learning_rate=0.01, b1=0.9)
 OURS = dict(learning_rate=0.02, sigma_d=0.05, log_guide=True)
 FILTER_TABLE = "Filter time and error vs the full float64 filter"

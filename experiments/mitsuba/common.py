@@ -1,8 +1,8 @@
 """Shared pieces of the Mitsuba 3 experiments: variant set-up, the methods of the
-``SceneOptimizer`` experiments (``mitsuba_texture``, ``mitsuba_volume``, ``mitsuba_timing``)
-and their runs; :mod:`experiments.mitsuba_runner` runs and reports every experiment.
+``SceneOptimizer`` experiments (``texture``, ``volume``, ``timing`` beside this module)
+and their runs; :mod:`experiments.mitsuba.runner` runs and reports every experiment.
 
-A ``SceneOptimizer`` problem (``mitsuba_texture.Problem``, ``mitsuba_volume.Problem``) owns
+A ``SceneOptimizer`` problem (``texture.Problem``, ``volume.Problem``) owns
 one scene and its ``mi.SceneParameters`` and provides, besides the runner's
 ``param_errors`` and ``evaluate``:
 
@@ -28,8 +28,8 @@ import optax
 
 import optax_bilateral as ob
 from experiments import common
-from experiments import mitsuba_runner as runner
-from experiments.mitsuba_runner import Entry
+from experiments.mitsuba import runner
+from experiments.mitsuba.runner import Entry
 
 VARIANT = "llvm_ad_rgb"
 
@@ -202,7 +202,7 @@ def hyperparameters(method: str, entry: dict, *, b1: float, levels: int, log_gui
 
 
 class SceneOptimizerRun:
-    """A :class:`experiments.mitsuba_runner.Run` of one transform with
+    """A :class:`experiments.mitsuba.runner.Run` of one transform with
     :class:`SceneOptimizer` on ``problem``, from ``problem.init``.
 
     Its step's parts: ``render`` (render, loss, ``dr.backward``, gradients evaluated),

@@ -1,8 +1,8 @@
 """The one runner of the Mitsuba 3 experiments: run every entry, time the best interleaved,
 write ``summary.json``, ``table.md`` and the curves.
 
-An experiment (``mitsuba_texture``, ``mitsuba_volume``, ``mitsuba_tutorials``,
-``mitsuba_mesh``) supplies
+An experiment (``texture``, ``volume``, ``tutorials``, ``mesh`` beside this module)
+supplies
 
 * a *problem*: its scene and ``mi.SceneParameters``, with ``param_errors(values) ->
   {metric: float}`` (cheap enough to call every ``record_every`` iterations) and

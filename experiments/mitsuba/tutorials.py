@@ -1,7 +1,7 @@
 """Mitsuba's own tutorials as clients: their loops, run with ``mi.ad.Adam`` and with
 ``BilateralAdam`` (one line changed).
 
-    python -m experiments.mitsuba_tutorials [--quick] [--out DIR] [--tutorials NAME ...]
+    python -m experiments.mitsuba.tutorials [--quick] [--out DIR] [--tutorials NAME ...]
 
 The loops are those of mitsuba-renderer/mitsuba-tutorials' ``inverse_rendering``
 notebooks, written as they write them (``opt = mi.ad.Adam(lr=...)``, ``opt[key] =
@@ -31,7 +31,7 @@ builds ``opt``. Scenes are built in code, no downloads:
 
 Every method runs the same iterations with the same render seeds. All runs of one
 tutorial advance together, one iteration of each in turn, each timed
-(:func:`experiments.mitsuba_runner.run_interleaved`): error against iteration and
+(:func:`experiments.mitsuba.runner.run_interleaved`): error against iteration and
 against time, side by side. Outputs in ``--out/<tutorial>`` (default
 ``results/mitsuba_tutorials``): ``summary.json``, ``table.md``, curves, ``images.png``;
 ``--out/summary.md`` gathers the tables of every tutorial in ``--out``.
@@ -47,8 +47,8 @@ from collections.abc import Callable
 import numpy as np
 
 from experiments import common
-from experiments import mitsuba_common as mc
-from experiments import mitsuba_runner as runner
+from experiments.mitsuba import common as mc
+from experiments.mitsuba import runner
 
 TUTORIALS = ("cbox", "cbox-texture", "volume")
 REFERENCE_SEED = 1 << 20
@@ -113,7 +113,7 @@ def make_optimizer(name: str, lr: float):
 
 
 class TutorialRun:
-    """A :class:`experiments.mitsuba_runner.Run`: the tutorial's loop with one optimizer."""
+    """A :class:`experiments.mitsuba.runner.Run`: the tutorial's loop with one optimizer."""
 
     def __init__(self, problem, optimizer: str, lr: float):
         problem.reset()

@@ -1,6 +1,6 @@
 """Benchmarks: what the filter costs, what it buys, and how it scales.
 
-    python -m experiments.benchmark [--quick] [--out DIR] [--only SECTION,...]
+    python -m experiments.benchmarks [--quick] [--out DIR] [--only SECTION,...]
 
 Five sections, each written to ``DIR`` (default ``results/bench``) as ``<section>.json``
 and ``<section>.md`` (plus PNG plots), and summarised in ``summary.md``:
@@ -8,8 +8,8 @@ and ``<section>.md`` (plus PNG plots), and summarised in ``summary.md``:
 * ``overhead`` (supplement Table 1): the update alone, ``bilateral_adam`` against
   ``optax.adam`` on the same arrays (512x512x3 texture, 64^3x1 volume; F = 3 and 5,
   separable and full), and the whole iteration (render + gradient + update) of the
-  texture experiment (:mod:`experiments.texture`, 512^2) and the volume experiment
-  (:mod:`experiments.volume`, 64^3), Adam against ours with F = 3 and F = 5.
+  texture experiment (:mod:`experiments.paper.texture`, 512^2) and the volume experiment
+  (:mod:`experiments.paper.volume`, 64^3), Adam against ours with F = 3 and F = 5.
 * ``accuracy``: the speed-for-accuracy trade. For F = 1..6, separable or full,
   float32 or bfloat16 fields: the filter's time, its error against the *full*
   filter evaluated in float64 (on a noisy texture gradient guided by a texture with
@@ -54,7 +54,7 @@ from tqdm import tqdm
 
 import optax_bilateral as ob
 from experiments import common
-from tools.compiles import CompileCounter
+from experiments.benchmarks.compiles import CompileCounter
 
 SECTIONS = ("overhead", "accuracy", "scaling", "compile", "scale")
 # Run order: compile first, so that its cold compile times cannot profit from anything
@@ -261,7 +261,7 @@ def channel_rows(quick: bool, rounds: int, place: Callable = lambda a: a) -> lis
     """The filter alone (F = 3, fixed sigma_d) on a field of one channel against the same
     grid with two: XLA's CPU backend once fused the weights into one channel's passes and
     made them 2-14x slower than two channels' (BENCHMARKS.md, "Design decisions").
-    ``place`` puts each array on the devices (``experiments.bench_sharding``: split)."""
+    ``place`` puts each array on the devices (``experiments.benchmarks.sharding``: split)."""
     grids = {"16x16": (16, 16)} if quick else {"512x512": (512, 512), "64^3": (64, 64, 64)}
     modes = {"separable": True} if quick else {"separable": True, "full": False}
     rows = []
@@ -299,7 +299,7 @@ def channel_rows(quick: bool, rounds: int, place: Callable = lambda a: a) -> lis
 
 def _texture_problem(cfg):
     """The texture experiment's problem (scene, target, reference render), built once."""
-    from experiments import texture as texp
+    from experiments.paper import texture as texp
 
     key = (cfg.size, cfg.target, cfg.reference_spp, cfg.seed, cfg.spp, cfg.spp_grad)
     if key not in _PROBLEMS:
@@ -324,7 +324,7 @@ def texture_iterations(
     to the update). The target uses ``split``: there the methods differ by their update
     only.
     """
-    from experiments import texture as texp
+    from experiments.paper import texture as texp
 
     cfg = texp.default_config(quick)
     prob = _texture_problem(cfg)
@@ -370,7 +370,7 @@ def texture_iterations(
 
 def volume_iterations(quick: bool, repeats: int, steps: int, levels: Sequence[int]) -> list[dict]:
     """Per-iteration time of the volume experiment (its own interleaved timing table)."""
-    from experiments import volume as vexp
+    from experiments.paper import volume as vexp
 
     cfg = vexp.config(quick)
     prob = vexp.Problem(cfg)
@@ -538,7 +538,7 @@ def filter_accuracy(size: int, levels: Sequence[int], sigma_d: float, rounds: in
 
 def texture_runs(quick: bool, levels: Sequence[int], iterations: int | None) -> list[dict]:
     """Final texture error of the texture experiment's cross-bilateral method per setting."""
-    from experiments import texture as texp
+    from experiments.paper import texture as texp
 
     cfg = texp.default_config(quick)
     if iterations is not None:
@@ -1332,12 +1332,12 @@ def repeated_targets(out: pathlib.Path, quick: bool, processes: int) -> list[dic
     per_process = []
     for i in tqdm(range(processes), desc="target processes"):
         d = out / "processes" / str(i)
-        cmd = [sys.executable, "-m", "experiments.benchmark", "--worker", "--out", str(d)]
+        cmd = [sys.executable, "-m", "experiments.benchmarks", "--worker", "--out", str(d)]
         subprocess.run(
             cmd + (["--quick"] if quick else []),
             check=True,
             env=env,
-            cwd=pathlib.Path(__file__).resolve().parent.parent,
+            cwd=pathlib.Path(__file__).resolve().parents[2],
         )
         per_process.append(json.loads((d / "measurements.json").read_text())["targets"])
     return aggregate_targets(per_process)
@@ -1415,7 +1415,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     info["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     info["seconds"] = time.perf_counter() - t0
     info["command"] = (
-        "python -m experiments.benchmark"
+        "python -m experiments.benchmarks"
         + (" --quick" if quick else "")
         + (f" --only {args.only}" if args.only != ",".join(SECTIONS) else "")
         + (f" --processes {args.processes}" if args.processes > 1 else "")
@@ -1445,7 +1445,3 @@ def main(argv: Sequence[str] | None = None) -> dict:
     (out / "summary.md").write_text("\n".join(md))
     (out / "machine.json").write_text(json.dumps(common.jsonable(info), indent=1) + "\n")
     return {"machine": info, **{s: r["data"] for s, r in results.items()}}
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """The defaults on the pytrees users pass: grids beside weights, scalars and curves.
 
-    python -m experiments.pytrees [--quick] [--out DIR]
+    python -m experiments.paper.pytrees [--quick] [--out DIR]
 
 Five problems a new user brings, each optimiser at its best learning rate of
 ``0.0025 * 2^k`` (k = 0..7; median of 3 seeds):
@@ -275,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             f"# The defaults on mixed pytrees ({'quick: not meaningful' if quick else 'full'})",
             "",
             f"Best learning rate of 0.0025 * 2^k per method, median of {len(data['seeds'])} "
-            f"seed(s), {data['steps']} steps; `python -m experiments.pytrees`.",
+            f"seed(s), {data['steps']} steps; `python -m experiments.paper.pytrees`.",
             "",
             common.markdown_table([{k: common.fmt(v) for k, v in r.items()} for r in data["rows"]]),
         ]

@@ -30,7 +30,7 @@ Honest caveat, printed with the table: the devices are *virtual* CPU devices
 2 cores, so more devices cannot run faster here; the timings show the overhead
 of splitting, the byte counts show what a real multi-device run would move.
 
-``python -m experiments.bench_sharding [--quick] [--out DIR] [--only cases,channels]``
+``python -m experiments.benchmarks.sharding [--quick] [--out DIR] [--only cases,channels]``
 writes ``summary.json``, ``table.md`` and ``step_time.png`` to DIR (default
 ``results/bench_sharding``). ``channels``: the filter of a one-channel field against a
 two-channel one on 2 devices (the one-channel fix, BENCHMARKS.md "Design decisions").
@@ -58,7 +58,7 @@ from jax.sharding import AxisType, Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from experiments import common
-from tools.collectives import collective_stats, halo_bytes
+from experiments.benchmarks.collectives import collective_stats, halo_bytes
 
 # ----------------------------------------------------------------------------------------
 # The benchmark
@@ -286,7 +286,7 @@ SECTIONS = ("cases", "channels")
 def channel_rows(quick: bool) -> list[dict]:
     """The filter of one channel against two, each array split over 2 devices along its
     first axis (explicit mesh): the sharded kernel's side of benchmark.channel_rows."""
-    from experiments import benchmark as bm
+    from experiments.benchmarks import suite as bm
 
     mesh = _device_mesh((2, 1), AxisType.Explicit)
     split = NamedSharding(mesh, P("x"))

@@ -39,7 +39,9 @@ cross-bilateral filter; :func:`demo_config`), ``--full`` (the paper-like 512^2 r
 every baseline and wider sweeps; :func:`default_config`) and ``--quick`` (64^2, for the
 tests).
 
-``python -m experiments.texture [--full | --quick] [--out DIR] [--target camera|noise|phantom]``
+    python -m experiments.paper.texture [--full | --quick] [--out DIR]
+                                        [--target camera|noise|phantom]
+
 writes to DIR (default ``results/texture``): ``summary.json``, ``table.md``, ``images.png``
 (renders, error images, recovered textures), ``{loss,param_error}_vs_{iteration,time}.png``.
 """

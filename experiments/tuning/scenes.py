@@ -38,7 +38,7 @@ Scenes (:data:`SCENES`; ``quick`` is the test-suite size):
 
 =======================  ========================================================================
 ``mitsuba_close``        a Mitsuba 3 diffuse plane, 192^2 RGB albedo, 96^2 film, spp 1, seen at
-``mitsuba_mid``          0.5, 2 and 12 texels per pixel (:mod:`experiments.camera_distance`;
+``mitsuba_mid``          0.5, 2 and 12 texels per pixel (:mod:`experiments.tuning.camera_distance`;
 ``mitsuba_far``          error at the resolution the camera resolves)
 ``mitsuba_two_cameras``  the same plane from the close and the far camera in turn
 ``absorption_mc``        a 64^2 piecewise-constant absorption map with sharp edges in [0, 1],
@@ -59,69 +59,15 @@ mean absolute albedo error (:func:`optax_bilateral.toy.volume.param_errors`);
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-Params = Any
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class Scene:
-    """One inverse problem of the benchmark (see the module docstring).
-
-    Attributes:
-      name: short identifier (``SCENES`` key).
-      description: one line for tables and plots.
-      init: the starting parameters (a pytree of arrays).
-      data: arrays the functions below read (targets, reference images, ...).
-      grad: ``(data, params, key) -> grads``, a noisy unbiased gradient.
-      project: ``(data, params) -> params`` in the valid domain.
-      error: ``(data, params) -> scalar`` parameter error.
-      iterations: steps of every run.
-      learning_rates: the first learning-rate grid of every method (the benchmark
-        extends it where the best value lies at an edge).
-      scale: the parameters' unit: the ``sigma_d`` grid of a linear guide is
-        multiplied by it (1 for unit-range parameters).
-      log_guide: the parameters are positive and span decades; the grid then also
-        covers ``log_guide=True`` (as the paper's texture runs).
-      error_name: what ``error`` measures, for tables.
-      config: JSON-able settings that identify the problem (the cache key).
-      spatial_axes: the parameters' spatial axes, passed to every filtered method, where
-        the library's default leaf rule would not filter them (a 1-D (N, 1) signal).
-      batch: runs advanced together (their gradients in one vmapped program).
-    """
-
-    name: str
-    description: str
-    init: Params
-    data: Any
-    grad: Callable[[Any, Params, jax.Array], Params]
-    project: Callable[[Any, Params], Params]
-    error: Callable[[Any, Params], jax.Array]
-    iterations: int
-    learning_rates: tuple[float, ...]
-    scale: float = 1.0
-    log_guide: bool = False
-    error_name: str = "mean |theta - theta_target|"
-    config: dict = dataclasses.field(default_factory=dict)
-    batch: int = 24
-    spatial_axes: Any = None
-
-    def initial_error(self) -> float:
-        return float(self.error(self.data, self.init))
-
-
-def around(lr: float) -> tuple[float, ...]:
-    """The first learning-rate grid: ``lr`` and a factor of 2 either side (the benchmark
-    extends it by factors of 2 where the best value lies at an edge)."""
-    return (lr / 2, lr, 2 * lr)
-
+from experiments.tuning import camera_distance
+from experiments.tuning.problem import Scene, around
 
 # ----------------------------------------------------------------------------- texture
 
@@ -573,8 +519,6 @@ HELD_OUT: dict[str, Callable[[bool], Scene]] = {
 
 def _camera_distance(cameras: tuple[str, ...], name: str) -> Callable[[bool], Scene]:
     def make(quick: bool) -> Scene:
-        from experiments import camera_distance
-
         return camera_distance.scene(quick, cameras, name)
 
     return make
@@ -582,7 +526,7 @@ def _camera_distance(cameras: tuple[str, ...], name: str) -> Callable[[bool], Sc
 
 #: Problems whose gradients are a renderer's Monte Carlo estimates (issue #47): a Mitsuba 3
 #: texture seen from three camera distances and from two cameras in turn
-#: (:mod:`experiments.camera_distance`; Mitsuba required), and a sharp-edged absorption map
+#: (:mod:`experiments.tuning.camera_distance`; Mitsuba required), and a sharp-edged absorption map
 #: from ratio-tracking transmittances; outside the default run (``--only-scenes``).
 RENDERED: dict[str, Callable[[bool], Scene]] = {
     "mitsuba_close": _camera_distance(("close",), "mitsuba_close"),

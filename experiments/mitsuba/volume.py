@@ -1,6 +1,6 @@
 """Volume recovery in Mitsuba 3 (main paper Figs. 8-9 analogue): density and RGB albedo grids.
 
-    python -m experiments.mitsuba_volume [--quick] [--out DIR]
+    python -m experiments.mitsuba.volume [--quick] [--out DIR]
 
 The scene, built in code (no downloads): a ``cube`` with a ``null`` BSDF whose
 interior is a ``heterogeneous`` medium: extinction ``scale * density`` from a
@@ -18,7 +18,7 @@ same for every method), takes the loss ``mean((I - I_ref)^2)``, ``dr.backward``,
 one :class:`optax_bilateral.mitsuba.SceneOptimizer` step on both grids, which clamps
 density and albedo to ``[0, 1]``.
 
-Methods (as experiments/volume.py; both grids, ``sigma_d`` given per key):
+Methods (as experiments/paper/volume.py; both grids, ``sigma_d`` given per key):
 
 * ``adam``: ``optax.adam`` (b1 0.9, b2 0.999), a small learning-rate sweep.
 * ``low-pass``: ``bilateral_adam`` with ``sigma_d = inf``.
@@ -28,7 +28,7 @@ Methods (as experiments/volume.py; both grids, ``sigma_d`` given per key):
 * ``auto``: cross-bilateral with ``sigma_d="auto"`` (the library's default).
 
 Filtered methods: ``b1 = 0.2, b2 = 1 - (1 - b1)^2``, ``levels = 3``. The learning-rate
-``decay`` (:func:`experiments.mitsuba_common.learning_rate`) is part of the sweeps.
+``decay`` (:func:`experiments.mitsuba.common.learning_rate`) is part of the sweeps.
 
 ``final_param_error`` is :func:`optax_bilateral.toy.volume.param_errors`'s: the mean
 of the density's mean absolute error and the density-weighted mean absolute albedo
@@ -48,8 +48,8 @@ import time
 import numpy as np
 
 from experiments import common
-from experiments import mitsuba_common as mc
-from experiments import mitsuba_runner as runner
+from experiments.mitsuba import common as mc
+from experiments.mitsuba import runner
 from optax_bilateral.toy import volume as toy
 
 DENSITY = "cube.interior_medium.sigma_t.data"

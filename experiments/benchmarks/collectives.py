@@ -1,6 +1,6 @@
 """What a compiled SPMD program moves between devices, and what a halo exchange must move.
 
-Shared by ``experiments/bench_sharding.py`` and ``tests/test_sharding.py``: the bytes of
+Shared by ``experiments/benchmarks/sharding.py`` and ``tests/test_sharding.py``: the bytes of
 every collective, read from the compiled HLO text (:func:`collective_stats`), and the
 halo volumes a split grid needs per filter call (:func:`halo_bytes`).
 """

@@ -1,9 +1,9 @@
 """Per-iteration time with the real renderer (supplement Table 1 analogue), Mitsuba 3 on the CPU.
 
-    python -m experiments.mitsuba_timing [--quick] [--out DIR] [--rounds N]
+    python -m experiments.mitsuba.timing [--quick] [--out DIR] [--rounds N]
 
-For the texture scene of :mod:`experiments.mitsuba_texture` and the volume scene of
-:mod:`experiments.mitsuba_volume` (their default sizes), one process times Adam
+For the texture scene of :mod:`experiments.mitsuba.texture` and the volume scene of
+:mod:`experiments.mitsuba.volume` (their default sizes), one process times Adam
 (``optax.adam``) and ours (``bilateral_adam``, the experiments' cross-bilateral
 settings) at F = 3 and F = 5 levels. Each method runs its own optimization on the
 scene (its values written in before its iteration, untimed); a round runs one
@@ -32,9 +32,11 @@ import time
 import optax
 
 import optax_bilateral as ob
-from experiments import common, mitsuba_texture, mitsuba_volume
-from experiments import mitsuba_common as mc
-from experiments import mitsuba_runner as runner
+from experiments import common
+from experiments.mitsuba import common as mc
+from experiments.mitsuba import runner
+from experiments.mitsuba import texture as mitsuba_texture
+from experiments.mitsuba import volume as mitsuba_volume
 
 LEVELS = (3, 5)
 TIMED_PARTS = (

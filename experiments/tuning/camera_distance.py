@@ -3,7 +3,7 @@ distances, where the best filter settings move with how many texels a pixel sees
 
 The scene, built in code: a diffuse square plane (Mitsuba's ``rectangle``, side
 :data:`PLANE_SIDE`, normal +y) whose RGB albedo is a ``bitmap`` texture of ``T x T``
-texels (``raw=True``), lit by :func:`experiments.mitsuba_texture.environment_map` (a sky
+texels (``raw=True``), lit by :func:`experiments.mitsuba.texture.environment_map` (a sky
 and a sun: the shading of every 1-spp sample is noisy), seen straight down by perspective
 cameras of field of view :data:`FOV` and film ``R x R``. A camera at distance ``d`` sees
 a square of side ``2 d tan(FOV / 2)`` of the plane, so a pixel covers
@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import scenes as sc
+from experiments.tuning.problem import Scene, around
 
 #: The plane's side in scene units (Mitsuba's ``rectangle`` spans [-1, 1]^2).
 PLANE_SIDE = 2.0
@@ -137,8 +137,8 @@ class Renderer:
     """One Mitsuba scene and its reference renders; :meth:`grad` is the callback."""
 
     def __init__(self, target: np.ndarray, cameras: Sequence[str], film: int, cfg: dict):
-        from experiments import mitsuba_common as mc
-        from experiments.mitsuba_texture import environment_map
+        from experiments.mitsuba import common as mc
+        from experiments.mitsuba.texture import environment_map
 
         mi, dr = mc.setup()
         self.spp = cfg["spp"]
@@ -166,7 +166,7 @@ class Renderer:
         return np.array(dr.grad(self.params[KEY]), np.float32)
 
 
-def scene(quick: bool, cameras: Sequence[str], name: str) -> sc.Scene:
+def scene(quick: bool, cameras: Sequence[str], name: str) -> Scene:
     """The plane seen from ``cameras`` (names of :data:`CAMERAS`, taken in turn)."""
     for c in cameras:
         if c not in CAMERAS:
@@ -192,7 +192,7 @@ def scene(quick: bool, cameras: Sequence[str], name: str) -> sc.Scene:
         return sum(resolved_error(x, data["target"], t, film) for t in tpps) / len(tpps)
 
     views = ", ".join(f"{c} ({CAMERAS[c]:g} texels/px)" for c in cameras)
-    return sc.Scene(
+    return Scene(
         name=name,
         description=(
             f"Mitsuba diffuse plane, {texture}^2 RGB albedo, {film}^2 film, spp {cfg['spp']}, "
@@ -204,7 +204,7 @@ def scene(quick: bool, cameras: Sequence[str], name: str) -> sc.Scene:
         project=lambda data, x: jnp.clip(x, 0.0, 1.0),
         error=error,
         iterations=cfg["iterations"],
-        learning_rates=sc.around(max(LEARNING_RATES[c] for c in cameras)),
+        learning_rates=around(max(LEARNING_RATES[c] for c in cameras)),
         error_name="mean |albedo - target| at the resolution each camera resolves",
         config=dict(kind="mitsuba_plane", cameras=list(cameras), tpp=tpps, fov=FOV, **cfg),
         batch=8,

@@ -1,6 +1,6 @@
 """Volume recovery: Adam vs low-pass, bilateral and cross-bilateral gradient filtering.
 
-    python -m experiments.volume [--quick] [--out DIR]
+    python -m experiments.paper.volume [--quick] [--out DIR]
 
 The paper's second grid application (main paper Figs. 8-9, supplement Table 1
 volume row) on the toy participating medium of :mod:`optax_bilateral.toy.volume`:

@@ -1,6 +1,6 @@
 """Texture recovery in Mitsuba 3 (main paper Fig. 5 analogue): a GGX roughness texture.
 
-    python -m experiments.mitsuba_texture [--quick] [--out DIR]
+    python -m experiments.mitsuba.texture [--quick] [--out DIR]
 
 The scene, built in code (no downloads): a square plane (``rectangle``) with a
 ``roughconductor`` BSDF (GGX, perfect conductor) whose ``alpha`` is a ``bitmap``
@@ -17,24 +17,24 @@ method), takes the loss ``mean((I - I_ref)^2 / (I_ref^2 + 1e-2))``, ``dr.backwar
 and one :class:`optax_bilateral.mitsuba.SceneOptimizer` step, which clamps the
 roughness to ``[0.005, 0.5]``. Every run starts from a constant ``alpha = 0.1``.
 
-Methods (as experiments/texture.py; best of each sweep reported, every entry listed):
+Methods (as experiments/paper/texture.py; best of each sweep reported, every entry listed):
 
 * ``adam``: ``optax.adam`` (b1 0.9, b2 0.999), a small learning-rate sweep.
 * ``low-pass``: ``bilateral_adam`` with ``sigma_d = inf``.
 * ``bilateral``: ``bilateral_adam``'s chain with ``postfilter(guide="self", log_guide=True)``.
 * ``cross-bilateral``: ``bilateral_adam(log_guide=True)`` (guided by the parameters), the paper's.
 * ``auto``: as cross-bilateral with ``sigma_d="auto"``; run only once the library
-  has it (:func:`experiments.mitsuba_common.auto_unavailable`).
+  has it (:func:`experiments.mitsuba.common.auto_unavailable`).
 
 Filtered methods use ``b1 = 0.2, b2 = 1 - (1 - b1)^2`` and ``levels = 5``. The
 learning-rate ``decay`` (``constant``, ``cosine``, ``hold-cosine``:
-:func:`experiments.mitsuba_common.learning_rate`) is part of the sweeps.
+:func:`experiments.mitsuba.common.learning_rate`) is part of the sweeps.
 
 Outputs in ``--out`` (default ``results/mitsuba_texture``): ``summary.json``,
 ``table.md``, ``images.png`` (renders, error images, recovered textures) and
 ``{loss,param_error}_vs_{iteration,time}.png``. ``seconds_per_iteration`` and the
 time axis come from the methods' steps timed interleaved in one process
-(:func:`experiments.mitsuba_runner.time_interleaved`).
+(:func:`experiments.mitsuba.runner.time_interleaved`).
 """
 
 from __future__ import annotations
@@ -48,8 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments import common
-from experiments import mitsuba_common as mc
-from experiments import mitsuba_runner as runner
+from experiments.mitsuba import common as mc
+from experiments.mitsuba import runner
 from optax_bilateral.toy import texture as tex
 
 #: The optimized parameter: the roughness bitmap of the plane's BSDF.

@@ -1,6 +1,6 @@
 """The filter and the update on an accelerator, with both single-device kernels.
 
-``python -m experiments.bench_gpu [--quick] [--out DIR]`` times, side by side in one
+``python -m experiments.benchmarks.gpu [--quick] [--out DIR]`` times, side by side in one
 process:
 
 * ``filter``: :func:`optax_bilateral.atrous_bilateral` alone, ``kernel="xla_cpu"`` against
@@ -28,7 +28,8 @@ import matplotlib
 import optax
 
 import optax_bilateral as ob
-from experiments import benchmark, common
+from experiments import common
+from experiments.benchmarks import suite
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -66,7 +67,7 @@ def filter_rows(quick: bool, levels: int, rounds: int, inner: int) -> list[dict]
     """The filter alone, both kernels side by side."""
     rows = []
     for name, shape in _grids(quick).items():
-        params, grad = benchmark.update_arrays(shape)
+        params, grad = suite.update_arrays(shape)
         axes = tuple(range(len(shape) - 1))
         fns = {}
         for separable in _modes(quick):
@@ -103,11 +104,9 @@ def filter_rows(quick: bool, levels: int, rounds: int, inner: int) -> list[dict]
 
 
 def common_interleaved(fns, rounds, inner, desc):
-    """benchmark.interleaved with any hashable names."""
+    """suite.interleaved with any hashable names."""
     keys = list(fns)
-    res = benchmark.interleaved(
-        {str(i): fns[k] for i, k in enumerate(keys)}, rounds, inner, desc=desc
-    )
+    res = suite.interleaved({str(i): fns[k] for i, k in enumerate(keys)}, rounds, inner, desc=desc)
     return {k: res[str(i)] for i, k in enumerate(keys)}
 
 
@@ -115,16 +114,16 @@ def update_rows(quick: bool, levels: int, rounds: int, inner: int) -> list[dict]
     """bilateral_adam's update against optax.adam's, each kernel and sigma_d side by side."""
     rows = []
     for name, shape in _grids(quick).items():
-        params, grad = benchmark.update_arrays(shape)
-        adam = optax.adam(1e-2, b1=benchmark.B1, b2=benchmark.B2)
-        fns = {"adam": (benchmark.update_program(adam), (grad, adam.init(params), params))}
+        params, grad = suite.update_arrays(shape)
+        adam = optax.adam(1e-2, b1=suite.B1, b2=suite.B2)
+        fns = {"adam": (suite.update_program(adam), (grad, adam.init(params), params))}
         for kernel in KERNELS:
             for separable in _modes(quick):
                 for sigma_d in (0.1,) if quick else (0.1, "auto"):
                     opt = common.filtered_adam(
                         1e-2, sigma_d=sigma_d, levels=levels, separable=separable
                     )
-                    prog = benchmark.update_program(opt)
+                    prog = suite.update_program(opt)
                     with kernel_env(kernel):  # traced here, under this kernel
                         state = opt.init(params)
                         for _ in range(2):
@@ -157,7 +156,7 @@ def texture_rows(quick: bool, levels: int, rounds: int) -> list[dict]:
     # --quick: the plain kernel only (benchmark's own --quick test runs the CPU one).
     for kernel in KERNELS[1:] if quick else KERNELS:
         with kernel_env(kernel):
-            for r in benchmark.texture_iterations(quick, rounds=rounds, levels=(levels,)):
+            for r in suite.texture_iterations(quick, rounds=rounds, levels=(levels,)):
                 rows.append({"kernel": kernel, **r})
     return rows
 
@@ -196,7 +195,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "update": lambda: update_rows(quick, levels, rounds, inner),
         "texture": lambda: texture_rows(quick, levels, 2 if quick else 30),
     }
-    data = {"machine": benchmark.machine()}
+    data = {"machine": suite.machine()}
     for section, rows in sections.items():
         data[section] = rows()
         # Written after each section: a run cut short on a lent machine keeps what it has.

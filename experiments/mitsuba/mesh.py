@@ -1,7 +1,7 @@
 """Meshes in Mitsuba 3: ``optax_bilateral.triangle_mesh`` against ``mi.ad.LargeSteps``
 (supplement Table 2 analogue, on the CPU).
 
-    python -m experiments.mitsuba_mesh [--quick] [--out DIR]
+    python -m experiments.mitsuba.mesh [--quick] [--out DIR]
 
 A sphere (an icosphere built in code) recovers a rounded cube (built in code: a fine
 icosphere pushed radially onto a box with rounded edges) from renders of it at several
@@ -26,7 +26,7 @@ Methods, at the same lambda and learning rate:
 Geometry error: the symmetric Hausdorff distance to the rounded cube (exact distance of the
 mesh's surface samples to the target's signed distance function; the target's surface
 samples to the nearest mesh sample). All runs at one vertex count advance together, one
-iteration of each in turn, each timed (:func:`experiments.mitsuba_runner.run_interleaved`).
+iteration of each in turn, each timed (:func:`experiments.mitsuba.runner.run_interleaved`).
 Outputs in ``--out`` (default ``results/mitsuba_mesh``): per vertex count a folder with
 ``summary.json``, ``table.md``, Hausdorff / loss curves against iteration and time and
 ``views.png``; ``summary.json`` and ``table.md`` at the top gather the vertex counts (the
@@ -45,8 +45,8 @@ from typing import Any
 import numpy as np
 
 from experiments import common
-from experiments import mitsuba_common as mc
-from experiments import mitsuba_runner as runner
+from experiments.mitsuba import common as mc
+from experiments.mitsuba import runner
 from optax_bilateral.toy import triangle_mesh as toy
 
 KEY = "shape.vertex_positions"
