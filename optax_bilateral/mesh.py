@@ -6,7 +6,13 @@ also mean a JAX device mesh, hence the new name).
 """
 
 from optax_bilateral import triangle_mesh as _triangle_mesh
+from optax_bilateral._src.mesh import deprecated as _deprecated
 from optax_bilateral.triangle_mesh import *
 
 __all__: tuple[str, ...] = ()
 __all__ += _triangle_mesh.__all__
+
+
+def __getattr__(name: str):
+    """The names deprecated after 0.1.0 (``scale_by_uniform_adam``), with a warning."""
+    return _deprecated.lookup(__name__, name)

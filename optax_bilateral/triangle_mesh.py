@@ -5,10 +5,17 @@ these transforms filter Adam's moments with the mesh's Laplacian instead (see
 docs/triangle_mesh.md for the method and the measured results)::
 
     import optax_bilateral.triangle_mesh as obm
-    opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=0.5, sigma_phi=0.4)
+    opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=0.5)
+    opt = obm.bilateral_large_steps(
+        1e-2, faces, 19.0, obm.NormalFilter(sigma_d=0.5, sigma_phi=0.4, directions=32),
+        solver=obm.CG(tol=1e-4),
+    )
 """
 
-from optax_bilateral._src.mesh.triangle_mesh import (
+from optax_bilateral._src.mesh import deprecated as _deprecated
+from optax_bilateral._src.mesh.alias import bilateral_large_steps, large_steps
+from optax_bilateral._src.mesh.config import (
+    CG,
     DEFAULT_DIRECTIONS,
     DEFAULT_LAMBDA,
     DEFAULT_MAXITER,
@@ -19,25 +26,26 @@ from optax_bilateral._src.mesh.triangle_mesh import (
     POSTFILTERS_V,
     PREFILTERS,
     SOLVERS,
-    MeshLaplacian,
-    MeshPostfilterState,
-    ScaleByUniformAdamState,
-    SmoothingState,
-    bilateral_large_steps,
+    Cholesky,
+    NormalFilter,
+)
+from optax_bilateral._src.mesh.laplacian import MeshLaplacian, mesh_laplacian, smoothing_solve
+from optax_bilateral._src.mesh.normals import (
     bilateral_normal_filter,
-    bilateral_smoothing,
-    laplacian_smoothing,
-    large_steps,
-    mesh_laplacian,
-    mesh_postfilter,
-    scale_by_uniform_adam,
-    smoothing_solve,
     sphere_directions,
     vertex_normals,
+)
+from optax_bilateral._src.mesh.transforms import (
+    MeshPostfilterState,
+    SmoothingState,
+    bilateral_smoothing,
+    laplacian_smoothing,
+    mesh_postfilter,
     weld_gradients,
 )
 
 __all__ = (
+    "CG",
     "DEFAULT_DIRECTIONS",
     "DEFAULT_LAMBDA",
     "DEFAULT_MAXITER",
@@ -48,9 +56,10 @@ __all__ = (
     "POSTFILTERS_V",
     "PREFILTERS",
     "SOLVERS",
+    "Cholesky",
     "MeshLaplacian",
     "MeshPostfilterState",
-    "ScaleByUniformAdamState",
+    "NormalFilter",
     "SmoothingState",
     "bilateral_large_steps",
     "bilateral_normal_filter",
@@ -59,9 +68,13 @@ __all__ = (
     "large_steps",
     "mesh_laplacian",
     "mesh_postfilter",
-    "scale_by_uniform_adam",
     "smoothing_solve",
     "sphere_directions",
     "vertex_normals",
     "weld_gradients",
 )
+
+
+def __getattr__(name: str):
+    """The names deprecated after 0.1.0 (``scale_by_uniform_adam``), with a warning."""
+    return _deprecated.lookup(__name__, name)

@@ -456,12 +456,13 @@ def test_filter_m_filter_v_match_mtfilter_vtfilter(filter_m, filter_v):
     )
 
 
-def test_uniform_second_moment_matches_scale_by_uniform_adam():
-    """The uniform step (max of v over the whole leaf) = the library's mesh AdamUniform;
-    the Dr.Jit port's version puts eps on the uncorrected root: eps / sqrt(1 - b2^t)."""
+def test_uniform_second_moment_matches_the_mesh_adam_uniform():
+    """The uniform step (max of v over the whole leaf) = the mesh AdamUniform (Large Steps'
+    optimizer, the shared postfilter unfiltered); the Dr.Jit port's version puts eps on the
+    uncorrected root: eps / sqrt(1 - b2^t)."""
     b1, b2, eps = 0.2, 0.36, 1e-3
     g = [rand((7, 6, 3), 50 + i) * 1e-3 for i in range(3)]
-    tx = ob.triangle_mesh.scale_by_uniform_adam(b1, b2, eps)
+    tx = ob.postfilter(b1, b2, eps, levels=0, second_moment="uniform")
     state = tx.init(jnp.zeros((7, 6, 3)))
     m = v = 0.0
     for t, gt in enumerate(g, 1):
@@ -588,12 +589,8 @@ def test_bilateral_filter_splat_sigma_d_slice_sigma_phi(cube, solver):
         jnp.asarray(normals),
         cube["mesh"],
         lambda_=LAM,
-        sigma_d=0.5,
-        sigma_phi=0.4,
-        directions=dirs,
-        solver=solver,
-        tol=1e-15,
-        maxiter=400,
+        sigma_d=ob.triangle_mesh.NormalFilter(0.5, sigma_phi=0.4, directions=dirs),
+        solver=ob.triangle_mesh.CG(tol=1e-15, maxiter=400) if solver == "cg" else solver,
     )
     close(ours, theirs)
     # sigma_phi is not sigma_d: slicing with 0.5 gives another operator.
@@ -621,14 +618,11 @@ def test_mesh_optimizer_matches(cube, prefilter, postfilter_v):
         lr,
         cube["mesh"],
         LAM,
-        0.5,
+        ob.triangle_mesh.NormalFilter(0.5, sigma_phi=0.4, directions=dirs, normals="uniform"),
         *betas,
         eps,
-        sigma_phi=0.4,
         prefilter=prefilter,
         postfilter_v=postfilter_v,
-        directions=dirs,
-        normals="uniform",
         solver="cholesky",
     )
     ours = run_library(opt, jnp.asarray(cube["v"]), [jnp.asarray(g) for g in grads])

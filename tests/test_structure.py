@@ -11,10 +11,11 @@ import sys
 from collections.abc import Mapping
 
 import optax_bilateral as ob
+import optax_bilateral.triangle_mesh as obm
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SRC = ROOT / "optax_bilateral" / "_src"
-MAX_LINES, MAX_PRIVATE_PARAMS = 60, 8
+MAX_LINES, MAX_PRIVATE_PARAMS, MAX_MODULE_LINES = 60, 8, 800
 
 # Tests of the experiments, the notebooks, the docs and the benchmarks may import experiments;
 # the library's own tests may not (they must survive any change of the experiments).
@@ -79,6 +80,27 @@ def test_bilateral_adam_takes_at_most_ten_parameters_with_precise_types():
         for name in ("sigma_d", "levels"):
             annotation = str(params[name].annotation)
             assert annotation in ("SigmaSetting", "LevelsSetting"), (fn.__name__, annotation)
+
+
+def test_mesh_functions_take_at_most_ten_named_parameters():
+    """More settings than that are objects (``NormalFilter``, ``CG``); 0.1.0's keywords pass
+    through ``**deprecated``."""
+    wide = {}
+    for name in obm.__all__:
+        if inspect.isfunction(fn := getattr(obm, name)):
+            params = inspect.signature(fn).parameters.values()
+            wide[name] = len([p for p in params if p.kind is not p.VAR_KEYWORD])
+    assert "bilateral_large_steps" in wide and "mesh_postfilter" in wide
+    assert {name: n for name, n in wide.items() if n > 10} == {}
+
+
+def test_no_mesh_module_is_longer_than_800_lines():
+    long = {
+        path.name: n
+        for path in sorted((SRC / "mesh").glob("*.py"))
+        if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES
+    }
+    assert not long, long
 
 
 def test_no_test_or_experiment_changes_a_library_constant():

@@ -1,12 +1,15 @@
 """Triangle-mesh transforms (Large Steps, bilateral normal filter) and the toy mesh scene."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
-from optax_bilateral._src.mesh import triangle_mesh as M
+import optax_bilateral as ob
+from optax_bilateral import triangle_mesh as M
 from optax_bilateral.toy import triangle_mesh as toy
 
 LAM = 7.0
@@ -46,9 +49,8 @@ def filter_matrix(small, normals, sigma_d, **kw):
         normals,
         small["mesh"],
         lambda_=LAM,
-        sigma_d=sigma_d,
-        tol=1e-7,
-        **kw,
+        sigma_d=M.NormalFilter(sigma_d, **kw),
+        solver=M.CG(tol=1e-7),
     )
     return np.asarray(b, np.float64)
 
@@ -68,7 +70,7 @@ def test_solve_agrees_with_dense_solve(small, lam):
     n = len(small["v"])
     b = np.random.default_rng(0).standard_normal((n, 4)).astype(np.float32)
     b[:, 3] *= 1e-4  # a tiny column must be solved as accurately (columns are normalised)
-    x = np.asarray(M.smoothing_solve(small["mesh"], b, lam, tol=1e-6))
+    x = np.asarray(M.smoothing_solve(small["mesh"], b, lam, solver=M.CG(tol=1e-6)))
     ref = np.linalg.solve(np.eye(n) + lam * small["lap"], b.astype(np.float64))
     # tol=1e-6 relative residual, times cond(M) <= 1 + 12 lam would be loose;
     # 2e-5 of each column's scale is float32 accuracy with margin.
@@ -78,7 +80,7 @@ def test_solve_agrees_with_dense_solve(small, lam):
 
 def test_solve_1d_and_traced_lambda(small):
     b = np.asarray(small["v"][:, 0])
-    solve = jax.jit(lambda b, lam: M.smoothing_solve(small["mesh"], b, lam, tol=1e-6))
+    solve = jax.jit(lambda b, lam: M.smoothing_solve(small["mesh"], b, lam, solver=M.CG(tol=1e-6)))
     np.testing.assert_allclose(solve(b, LAM), small["minv"] @ b, atol=1e-5)
 
 
@@ -149,7 +151,7 @@ def test_filtered_moments_keep_step_bounded(small):
     m = (np.sqrt(v) * rng.uniform(-1, 1, (n, 3))).astype(np.float32)
     normals = M.vertex_normals(cubified(small["v"]), small["f"])
     bm, bv = M.bilateral_normal_filter(
-        [m, v], normals, small["mesh"], lambda_=LAM, sigma_d=0.3, tol=1e-7
+        [m, v], normals, small["mesh"], lambda_=LAM, sigma_d=0.3, solver=M.CG(tol=1e-7)
     )
     # 1e-5 relative slack: float32 and CG tolerance on a bound that holds exactly.
     assert np.all(np.abs(bm) <= np.sqrt(np.maximum(bv, 0)) * (1 + 1e-5) + 1e-7)
@@ -163,9 +165,14 @@ def _grads(v, steps, seed=0):
     return [rng.standard_normal(v.shape).astype(np.float32) * 0.1 for _ in range(steps)]
 
 
-def test_scale_by_uniform_adam_matches_reference(small):
+def uniform_adam(b1=0.9, b2=0.999, eps=1e-8):
+    """Large Steps' AdamUniform: the shared postfilter, unfiltered, with one second moment."""
+    return ob.postfilter(b1, b2, eps, levels=0, second_moment="uniform")
+
+
+def test_uniform_adam_matches_reference(small):
     b1, b2, eps = 0.8, 0.95, 1e-8
-    tx = M.scale_by_uniform_adam(b1, b2, eps)
+    tx = uniform_adam(b1, b2, eps)
     g = _grads(small["v"], 4)
     state = tx.init(jnp.asarray(small["v"]))
     m = v = 0.0
@@ -182,7 +189,7 @@ def test_large_steps_is_uniform_adam_on_u(small):
     lr, b1, b2 = 0.05, 0.9, 0.999
     x0 = small["v"].astype(np.float64)
     mm = np.eye(len(x0)) + LAM * small["lap"]
-    tx = M.large_steps(lr, small["f"], LAM, b1, b2, tol=1e-7)
+    tx = M.large_steps(lr, small["f"], LAM, b1, b2, solver=M.CG(tol=1e-7))
     x = jnp.asarray(small["v"])
     state = tx.init(x)
     u = mm @ x0
@@ -200,8 +207,8 @@ def test_large_steps_is_uniform_adam_on_u(small):
 
 @pytest.mark.parametrize("sigma_d", [np.inf, 1e5])
 def test_bilateral_large_steps_reduces_to_large_steps(small, sigma_d):
-    ls = M.large_steps(0.02, small["mesh"], LAM, tol=1e-7)
-    ours = M.bilateral_large_steps(0.02, small["mesh"], LAM, sigma_d, tol=1e-7)
+    ls = M.large_steps(0.02, small["mesh"], LAM, solver=M.CG(tol=1e-7))
+    ours = M.bilateral_large_steps(0.02, small["mesh"], LAM, sigma_d, solver=M.CG(tol=1e-7))
     xa = xb = jnp.asarray(cubified(small["v"]))
     sa, sb = ls.init(xa), ours.init(xb)
     for g in _grads(small["v"], 3):
@@ -213,9 +220,8 @@ def test_bilateral_large_steps_reduces_to_large_steps(small, sigma_d):
 
 
 def test_filtered_second_moment_step_is_bounded(small):
-    tx = M.bilateral_large_steps(
-        1.0, small["mesh"], LAM, 0.3, postfilter_v="bilateral", directions=M.sphere_directions(16)
-    )
+    data_term = M.NormalFilter(0.3, directions=M.sphere_directions(16))
+    tx = M.bilateral_large_steps(1.0, small["mesh"], LAM, data_term, postfilter_v="bilateral")
     x = jnp.asarray(cubified(small["v"]))
     state = tx.init(x)
     for g in _grads(small["v"], 3):
@@ -226,9 +232,14 @@ def test_filtered_second_moment_step_is_bounded(small):
 
 
 def test_inject_hyperparams_jit_and_pytree_params(small):
-    mesh = small["mesh"]
-    tx = optax.inject_hyperparams(M.bilateral_large_steps, static_args=("directions",))(
-        learning_rate=0.01, faces=mesh, lambda_=LAM, sigma_d=0.5, directions=M.sphere_directions(8)
+    mesh, dirs = small["mesh"], M.sphere_directions(8)
+
+    def factory(learning_rate, lambda_, sigma_d, sigma_phi):  # the normal filter's widths
+        data_term = M.NormalFilter(sigma_d, sigma_phi, directions=dirs)
+        return M.bilateral_large_steps(learning_rate, mesh, lambda_, data_term)
+
+    tx = optax.inject_hyperparams(factory)(
+        learning_rate=0.01, lambda_=LAM, sigma_d=0.5, sigma_phi=0.4
     )
     params = {"shape": jnp.asarray(cubified(small["v"]))}
     state = tx.init(params)
@@ -257,8 +268,8 @@ def test_bad_arguments_raise_clear_errors(small):
     with pytest.raises(ValueError, match="postfilter_v"):
         M.mesh_postfilter(mesh, postfilter_v="max")
     with pytest.raises(ValueError, match="directions"):
-        M.mesh_postfilter(mesh, directions=np.ones((4, 2)))
-    tx = M.mesh_postfilter(mesh, directions=M.sphere_directions(4))
+        M.NormalFilter(directions=np.ones((4, 2)))
+    tx = M.mesh_postfilter(mesh, sigma_d=M.NormalFilter(directions=M.sphere_directions(4)))
     x = jnp.asarray(small["v"])
     with pytest.raises(ValueError, match="needs params"):
         tx.update(x, tx.init(x))
@@ -281,10 +292,8 @@ def _filter_loss(small, solver):
             normals,
             mesh,
             lambda_=lam,
-            sigma_d=0.4,
-            directions=dirs,
-            solver=solver,
-            tol=1e-7,
+            sigma_d=M.NormalFilter(0.4, directions=dirs),
+            solver=M.CG(tol=1e-7) if solver == "cg" else solver,
         )
         return jnp.sum(out * r)
 
@@ -332,11 +341,12 @@ def test_cholesky_lambda_gradient_matches_finite_difference(small):
 @pytest.mark.parametrize("opt", ["large_steps", "bilateral_large_steps"])
 def test_warm_start_changes_the_trajectory_only_within_the_tolerance(small, opt):
     make = getattr(M, opt)
-    kw = dict(directions=M.sphere_directions(8)) if opt != "large_steps" else {}
+    data_term = M.NormalFilter(directions=M.sphere_directions(8))
+    kw = dict(sigma_d=data_term) if opt != "large_steps" else {}
     x0 = jnp.asarray(cubified(small["v"]))
     runs = []
     for warm in (False, True):
-        tx = make(0.02, small["mesh"], LAM, tol=1e-6, warm_start=warm, **kw)
+        tx = make(0.02, small["mesh"], LAM, solver=M.CG(tol=1e-6, warm_start=warm), **kw)
         x, state = x0, tx.init(x0)
         update = jax.jit(tx.update)
         for g in _grads(small["v"], 4):
@@ -373,13 +383,15 @@ def test_welded_seam_does_not_open_and_equals_the_closed_mesh(small):
     assert len(loop) > 0 and len(v2) > len(v)
     welded = M.mesh_laplacian(f2, weld_positions=v2)
     assert welded.num_vertices == len(v2) and welded.num_merged == len(v)
+    data_term = M.NormalFilter(directions=M.sphere_directions(8))
+    cg = M.CG(tol=1e-7)
     for make, kw in (
         (M.large_steps, {}),
-        (M.bilateral_large_steps, dict(directions=M.sphere_directions(8))),
+        (M.bilateral_large_steps, dict(sigma_d=data_term)),
     ):
-        closed = make(0.02, small["mesh"], LAM, tol=1e-7, **kw)
-        cut = make(0.02, welded, LAM, tol=1e-7, **kw)
-        opened = make(0.02, M.mesh_laplacian(f2), LAM, tol=1e-7, **kw)
+        closed = make(0.02, small["mesh"], LAM, solver=cg, **kw)
+        cut = make(0.02, welded, LAM, solver=cg, **kw)
+        opened = make(0.02, M.mesh_laplacian(f2), LAM, solver=cg, **kw)
         xa, xb, xc = jnp.asarray(v), jnp.asarray(v2), jnp.asarray(v2)
         sa, sb, sc = closed.init(xa), cut.init(xb), opened.init(xc)
         for g in _grads(v, 3):
@@ -405,13 +417,13 @@ def test_update_accepts_extra_args_and_pytrees(small):
     x = {"a": jnp.asarray(cubified(small["v"]))}
     g = {"a": jnp.asarray(_grads(small["v"], 1)[0])}
     mesh = small["mesh"]
-    dirs = M.sphere_directions(4)
+    data_term = M.NormalFilter(directions=M.sphere_directions(4))
     for tx in (
         M.large_steps(0.1, mesh),
-        M.bilateral_large_steps(0.1, mesh, prefilter="bilateral", directions=dirs),
-        M.scale_by_uniform_adam(),
+        M.bilateral_large_steps(0.1, mesh, sigma_d=data_term, prefilter="bilateral"),
+        uniform_adam(),
         M.weld_gradients(mesh),
-        M.bilateral_smoothing(mesh, directions=dirs),
+        M.bilateral_smoothing(mesh, sigma_d=data_term),
     ):
         u, _ = tx.update(g, tx.init(x), x, value=jnp.float32(1.0), grad=g)
         assert np.all(np.isfinite(u["a"]))
@@ -421,7 +433,7 @@ def test_uniform_adam_bias_correction_for_b2_near_one():
     """b2 = 1 - 1e-9 rounds to 1 in float32; the first step must still be g / max|g|."""
     g = jnp.asarray(np.random.default_rng(2).standard_normal((10, 3)), jnp.float32)
     for b2 in (1 - 1e-9, 1 - 1e-5):
-        tx = M.scale_by_uniform_adam(0.9, b2, eps=0.0)
+        tx = uniform_adam(0.9, b2, eps=0.0)
         u, _ = tx.update(g, tx.init(g))
         np.testing.assert_allclose(u, g / jnp.abs(g).max(), rtol=1e-4)
 
@@ -435,10 +447,9 @@ def test_normals_options_and_callable(small):
     assert np.abs(ns["area"] - ns["uniform"]).max() > 1e-3  # they differ on a cube
     g = jnp.asarray(_grads(small["v"], 1)[0])
     dirs = M.sphere_directions(8)
-    by_name = M.mesh_postfilter(small["mesh"], normals="angle", directions=dirs)
-    by_fn = M.mesh_postfilter(
-        small["mesh"], normals=lambda x: M.vertex_normals(x, f, "angle"), directions=dirs
-    )
+    by_name = M.NormalFilter(normals="angle", directions=dirs)
+    by_fn = M.NormalFilter(normals=lambda x: M.vertex_normals(x, f, "angle"), directions=dirs)
+    by_name, by_fn = (M.mesh_postfilter(small["mesh"], sigma_d=d) for d in (by_name, by_fn))
     ua, _ = by_name.update(g, by_name.init(v), v)
     ub, _ = by_fn.update(g, by_fn.init(v), v)
     np.testing.assert_allclose(ua, ub, rtol=1e-6)
@@ -458,17 +469,123 @@ def test_directions_lloyd_option():
 def test_new_options_reject_bad_values(small):
     mesh = small["mesh"]
     with pytest.raises(ValueError, match="sigma_phi"):
-        M.bilateral_large_steps(0.1, mesh, sigma_phi=0.0)
+        M.bilateral_large_steps(0.1, mesh, sigma_d=M.NormalFilter(sigma_phi=0.0))
     with pytest.raises(ValueError, match="prefilter"):
         M.bilateral_large_steps(0.1, mesh, prefilter="gauss")
     with pytest.raises(ValueError, match="normals"):
-        M.mesh_postfilter(mesh, normals="cotan")
+        M.mesh_postfilter(mesh, sigma_d=M.NormalFilter(normals="cotan"))
     with pytest.raises(ValueError, match="solver"):
         M.large_steps(0.1, mesh, solver="lu")
-    with pytest.raises(ValueError, match="warm_start"):
-        M.bilateral_large_steps(0.1, mesh, solver="cholesky", warm_start=True)
+    with pytest.raises(ValueError, match="tol"):
+        M.large_steps(0.1, mesh, solver=M.CG(tol=0.0))
+    with pytest.raises(ValueError, match="maxiter"):
+        M.CG(maxiter=0)
     with pytest.raises(ValueError, match="weld_positions"):
         M.mesh_laplacian(small["f"], weld_positions=np.zeros((3, 3)))
+
+
+# --- settings objects and the keywords of 0.1.0 ----------------------------------
+
+
+def test_settings_are_frozen_hashable_and_named_by_shorthands():
+    dirs = M.sphere_directions(8)
+    data_term = M.NormalFilter(0.3, directions=dirs)
+    # An array of directions is kept as a tuple: equal settings compare equal, hash alike.
+    assert data_term == M.NormalFilter(0.3, directions=dirs.copy())
+    assert hash(data_term) == hash(M.NormalFilter(0.3, directions=dirs.copy()))
+    np.testing.assert_array_equal(np.asarray(data_term.directions), dirs)
+    assert M.CG() == M.CG(M.DEFAULT_TOL, M.DEFAULT_MAXITER, False) and hash(M.Cholesky())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        data_term.sigma_d = 1.0  # type: ignore[misc]
+    with pytest.raises(ValueError, match="sigma_d"):
+        M.NormalFilter(0.0)
+    with pytest.raises(TypeError, match="warm_start"):
+        M.CG(warm_start=1)
+
+
+def _steps(tx, x, grads):
+    state, out = tx.init(x), []
+    for g in grads:
+        u, state = tx.update(jnp.asarray(g), state, x)
+        out.append(np.asarray(u))
+    return out
+
+
+OLD_KEYWORDS = dict(
+    sigma_phi=0.3, directions=M.sphere_directions(8), normals="uniform", tol=1e-6, maxiter=500
+)
+
+
+@pytest.mark.parametrize(
+    "name", ["bilateral_large_steps", "mesh_postfilter", "bilateral_smoothing"]
+)
+def test_old_keywords_warn_naming_their_field_and_give_the_same_steps(small, name):
+    make = getattr(M, name)
+    head = (0.02, small["mesh"]) if name == "bilateral_large_steps" else (small["mesh"],)
+    fields = {k: OLD_KEYWORDS[k] for k in ("sigma_phi", "directions", "normals")}
+    new = make(*head, LAM, M.NormalFilter(0.4, **fields), solver=M.CG(tol=1e-6, maxiter=500))
+    with pytest.warns(DeprecationWarning) as caught:
+        old = make(*head, LAM, 0.4, **OLD_KEYWORDS)
+    said = " ".join(str(w.message) for w in caught)
+    for field in ("NormalFilter.sigma_phi", "NormalFilter.directions", "NormalFilter.normals"):
+        assert field in said
+    assert "CG.tol" in said and "CG.maxiter" in said and f"{name}(tol=...)" in said
+    x, grads = jnp.asarray(cubified(small["v"])), _grads(small["v"], 3)
+    for a, b in zip(_steps(old, x, grads), _steps(new, x, grads)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_old_solver_keywords_of_the_other_functions_still_apply(small):
+    mesh, x, grads = small["mesh"], jnp.asarray(cubified(small["v"])), _grads(small["v"], 3)
+    cg = M.CG(tol=1e-6, warm_start=True)
+    field = r"large_steps\((tol|warm_start)=...\).* the field CG\.(tol|warm_start);"
+    with pytest.warns(DeprecationWarning, match=field):
+        old = M.large_steps(0.02, mesh, LAM, tol=1e-6, warm_start=True)
+    new = M.large_steps(0.02, mesh, LAM, solver=cg)
+    for a, b in zip(_steps(old, x, grads), _steps(new, x, grads)):
+        np.testing.assert_array_equal(a, b)
+    b = jnp.asarray(grads[0])
+    with pytest.warns(DeprecationWarning, match=r"CG\.(tol|maxiter)"):
+        old = M.smoothing_solve(mesh, b, LAM, tol=1e-6, maxiter=50)
+    new = M.smoothing_solve(mesh, b, LAM, solver=M.CG(tol=1e-6, maxiter=50))
+    np.testing.assert_array_equal(old, new)
+    normals = M.vertex_normals(x, mesh)
+    with pytest.warns(DeprecationWarning, match=r"NormalFilter\.(directions|sigma_phi)"):
+        (old,) = M.bilateral_normal_filter([b], normals, mesh, directions=8, sigma_phi=0.3)
+    data_term = M.NormalFilter(directions=8, sigma_phi=0.3)
+    (new,) = M.bilateral_normal_filter([b], normals, mesh, sigma_d=data_term)
+    np.testing.assert_array_equal(old, new)
+    # optax.inject_hyperparams binds them as one keyword, `deprecated`.
+    with pytest.warns(DeprecationWarning, match="CG.tol"):
+        M.laplacian_smoothing(mesh, deprecated={"tol": 1e-6})
+
+
+def test_old_keywords_keep_their_checks_and_unknown_ones_raise(small):
+    mesh = small["mesh"]
+    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match="warm_start"):
+        M.bilateral_large_steps(0.1, mesh, solver="cholesky", warm_start=True)
+    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match="sigma_phi"):
+        M.bilateral_large_steps(0.1, mesh, sigma_phi=0.0)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'sigma_phi'"):
+        M.large_steps(0.1, mesh, sigma_phi=0.3)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'tolerance'"):
+        M.bilateral_large_steps(0.1, mesh, tolerance=1e-3)
+
+
+def test_scale_by_uniform_adam_is_a_deprecated_alias_of_the_shared_uniform_adam():
+    import optax_bilateral.mesh as old_name
+
+    g = jnp.asarray(np.random.default_rng(4).standard_normal((10, 3)), jnp.float32)
+    for module in (M, old_name):
+        with pytest.warns(DeprecationWarning, match="second_moment=.uniform"):
+            tx = module.scale_by_uniform_adam(0.8, 0.95, 1e-8)
+        ref = uniform_adam(0.8, 0.95, 1e-8)
+        np.testing.assert_array_equal(tx.update(g, tx.init(g))[0], ref.update(g, ref.init(g))[0])
+        with pytest.warns(DeprecationWarning, match="PostfilterState"):
+            assert module.ScaleByUniformAdamState._fields == ("count", "mu", "nu")
+        assert "scale_by_uniform_adam" not in module.__all__
+    with pytest.raises(AttributeError):
+        M.scale_by_uniform_adams  # noqa: B018
 
 
 # --- the toy scene --------------------------------------------------------------

@@ -95,9 +95,8 @@ class Problem:
     def transform(self, method: str, lam, sigma_d=None):
         if method == "large-steps":
             return triangle_mesh.large_steps(self.lr, self.mesh, lam)
-        return triangle_mesh.bilateral_large_steps(
-            self.lr, self.mesh, lam, sigma_d, directions=self.directions
-        )
+        data_term = triangle_mesh.NormalFilter(sigma_d, directions=self.directions)
+        return triangle_mesh.bilateral_large_steps(self.lr, self.mesh, lam, data_term)
 
     def _update_large_steps(self, g, state, params, lam, sigma_d):
         del sigma_d
@@ -451,16 +450,16 @@ def run_overhead(args) -> dict:
         x0 = jnp.asarray(problem.v0)
         runs = {}
         for name, (method, sd, opts) in OVERHEAD_METHODS.items():
+            solver = triangle_mesh.CG(warm_start=True) if opts.get("warm_start") else opts["solver"]
             if method == "large-steps":
-                tx = triangle_mesh.large_steps(problem.lr, problem.mesh, lam, **opts)
+                tx = triangle_mesh.large_steps(problem.lr, problem.mesh, lam, solver=solver)
             else:
                 tx = triangle_mesh.bilateral_large_steps(
                     problem.lr,
                     problem.mesh,
                     lam,
-                    jnp.float32(sd),
-                    directions=problem.directions,
-                    **opts,
+                    triangle_mesh.NormalFilter(jnp.float32(sd), directions=problem.directions),
+                    solver=solver,
                 )
             update = jax.jit(lambda g, s, p, tx=tx: _apply(tx, g, s, p))
             runs[name] = {

@@ -110,13 +110,28 @@ def check_decay(x: Any, name: str) -> None:
         raise ValueError(f"{name} must be in [0, 1), got {v}")
 
 
-def check_nonnegative(x: Any, name: str) -> None:
-    """Raises for a concrete value that is negative or NaN."""
+def check_nonnegative(x: Any, name: str, *, finite: bool = False) -> None:
+    """Raises for a concrete value that is negative or NaN (with ``finite``, or infinite)."""
     if x is None or not is_concrete(x):
         return
     v = float(np.asarray(x))
-    if not v >= 0.0:
-        raise ValueError(f"{name} must be >= 0, got {v}")
+    if not v >= 0.0 or (finite and math.isinf(v)):
+        raise ValueError(f"{name} must be {'finite and ' if finite else ''}>= 0, got {v}")
+
+
+def check_positive(x: Any, name: str, why: str = "") -> None:
+    """Raises for a concrete value that is not > 0 (NaN included); ``why`` ends the message."""
+    if x is None or not is_concrete(x):
+        return
+    v = float(np.asarray(x))
+    if not v > 0.0:
+        raise ValueError(f"{name} must be > 0{f' ({why})' if why else ''}, got {v}")
+
+
+def check_choice(value: Any, name: str, choices: tuple) -> None:
+    """Raises unless ``value`` is one of ``choices``."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
 
 
 def check_mu_dtype(mu_dtype: Any) -> jnp.dtype | None:

@@ -1,0 +1,455 @@
+"""The mesh and its linear system: the Laplacian ``L``, ``M = I + lambda L`` and its solves.
+
+Vertex positions ``x`` (``(V, 3)``, static triangle ``faces``), the combinatorial
+Laplacian ``L = D - A`` (``D`` the vertex degrees, ``A`` the adjacency) and the
+Large Steps system matrix ``M = I + lambda L`` (Nicolet et al. 2021). ``M`` is an
+M-matrix with ``M 1 = 1``, so ``M^-1`` is non-negative and row-stochastic.
+
+Solvers (``solver=``, :mod:`.config`): :class:`CG` (default), Jacobi-preconditioned
+conjugate gradients on all right-hand sides at once (columns scaled to unit norm share one
+Krylov iteration), jit-able on any backend with a traced ``lambda``; :class:`Cholesky`, a
+sparse Cholesky factor of ``M`` computed once per (mesh, lambda) on the host by CHOLMOD
+through ``cholespy`` (the ``cholesky`` extra) and called through ``jax.pure_callback``
+inside ``lax.custom_linear_solve``, so ``jit``, ``grad`` (w.r.t. the right-hand side, the
+vertices and lambda) and ``vmap`` keep working. docs/triangle_mesh.md has the measured
+costs of each.
+
+Seams: a mesh with duplicated vertices (UV or normal seams) is welded by
+``mesh_laplacian(faces, weld_positions=vertices)``: the Laplacian, the normals and the
+filters act on the merged vertices (:func:`merge`, :func:`spread`).
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import numbers
+import threading
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from optax_bilateral._src.mesh.config import (
+    CG,
+    DEFAULT_MAXITER,
+    DEFAULT_TOL,
+    LinearSolver,
+    SolverSetting,
+    deprecated_keywords,
+    solver_of,
+)
+
+
+class MeshLaplacian(NamedTuple):
+    """The combinatorial Laplacian of a triangle mesh, built once by :func:`mesh_laplacian`.
+
+    Attributes:
+      neighbors: ``(U, D)`` int32, the one-ring of every (merged) vertex padded with
+        ``U`` (which indexes an appended zero row), ``D`` the maximum degree.
+      degree: ``(U,)`` float32 vertex degrees.
+      faces: ``(F, 3)`` int32 triangles over the merged vertices (for the normals).
+      index: ``(V,)`` int32 merged vertex of every input vertex, or None (no welding).
+      first: ``(U,)`` int32 one input vertex of every merged vertex, or None.
+
+    ``V`` is the number of input vertices, ``U <= V`` of merged ones (``U = V`` without
+    welding). A NamedTuple of arrays, so it can be passed through ``jax.jit``; the mesh
+    transforms accept it as ``faces`` (the table is then built once).
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import triangle_mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> mesh = obm.mesh_laplacian(faces)
+        >>> mesh.neighbors.shape, mesh.degree.tolist(), mesh.index is None
+        ((6, 4), [4.0, 4.0, 4.0, 4.0, 4.0, 4.0], True)
+    """
+
+    neighbors: jax.Array
+    degree: jax.Array
+    faces: jax.Array
+    index: jax.Array | None = None
+    first: jax.Array | None = None
+
+    @property
+    def num_vertices(self) -> int:
+        """``V``, the number of rows of the fields (input vertices, seams included)."""
+        return self.degree.shape[0] if self.index is None else self.index.shape[0]
+
+    @property
+    def num_merged(self) -> int:
+        """``U``, the number of distinct vertices the Laplacian acts on."""
+        return self.degree.shape[0]
+
+
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float, Int
+
+    Faces = Int[ArrayLike, "F 3"] | MeshLaplacian
+    Positions = Float[ArrayLike, "V 3"]  # vertex positions or unit normals
+    Field = Float[ArrayLike, "V *C"]
+    FieldOut = Float[Array, "V *C"]
+else:
+    Faces = Positions = Field = FieldOut = Any
+
+
+def _concrete_faces(faces) -> np.ndarray:
+    try:
+        return np.asarray(faces)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        raise TypeError(
+            "faces must be concrete (a NumPy/JAX array, not traced); build "
+            "mesh_laplacian(faces) outside jit, or pass static_args=('faces',) "
+            "to optax.inject_hyperparams"
+        ) from None
+
+
+def mesh_laplacian(
+    faces: Faces, num_vertices: int | None = None, *, weld_positions: Positions | None = None
+) -> MeshLaplacian:
+    """Builds the combinatorial Laplacian ``L = D - A`` of a triangle mesh.
+
+    Args:
+      faces: ``(F, 3)`` integer array of vertex indices (concrete, not traced).
+      num_vertices: number of vertices ``V``; default ``faces.max() + 1``.
+      weld_positions: optional ``(V, 3)`` vertex positions; vertices at exactly the
+        same position (the duplicates a renderer keeps at UV or normal seams) are
+        merged for the Laplacian, the normals and the filters, so that a seam does
+        not open. Use it with :func:`weld_gradients` first in the chain (the
+        aliases add it).
+
+    Returns:
+      A :class:`MeshLaplacian`, to pass as ``faces`` to the mesh transforms so the
+      table is built once (and, with ``optax.inject_hyperparams``, treated as static).
+
+    Raises:
+      ValueError: ``faces`` is not a concrete ``(F, 3)`` integer array of indices in
+        ``[0, V)``, or ``weld_positions`` is not ``(V, 3)``.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import triangle_mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> obm.mesh_laplacian(faces).degree.tolist()       # every vertex has 4 neighbours
+        [4.0, 4.0, 4.0, 4.0, 4.0, 4.0]
+        >>> seam = jnp.concatenate([verts, verts[:1]])      # vertex 6 duplicates vertex 0
+        >>> welded = obm.mesh_laplacian(np.where(faces == 0, 6, faces), 7, weld_positions=seam)
+        >>> welded.degree.shape, bool(welded.index[0] == welded.index[6])   # 6 merged vertices
+        ((6,), True)
+    """
+    if isinstance(faces, MeshLaplacian):
+        return faces
+    f = _checked_faces(faces)
+    n = _vertex_count(f, num_vertices)
+    index = first = None
+    if weld_positions is not None:
+        pos = np.asarray(weld_positions)
+        if pos.shape != (n, 3):
+            raise ValueError(f"weld_positions must have shape (V, 3) = ({n}, 3), got {pos.shape}")
+        _, first, index = np.unique(pos, axis=0, return_index=True, return_inverse=True)
+        index = index.reshape(-1)
+        f = index[f]
+        n = len(first)
+    if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])):
+        raise ValueError(
+            "faces contains a degenerate triangle (a repeated vertex index"
+            + (", after welding equal positions)" if index is not None else ")")
+        )
+    neighbors, degree = _one_rings(f, n)
+    as_index = lambda a: None if a is None else jnp.asarray(a, jnp.int32)
+    return MeshLaplacian(
+        jnp.asarray(neighbors),
+        jnp.asarray(degree, jnp.float32),
+        jnp.asarray(f, jnp.int32),
+        as_index(index),
+        as_index(first),
+    )
+
+
+def _checked_faces(faces) -> np.ndarray:
+    f = _concrete_faces(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
+        raise ValueError(f"faces must have shape (F, 3) with F >= 1 (triangles), got {f.shape}")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise TypeError(f"faces must be an integer array of vertex indices, got dtype {f.dtype}")
+    if f.min() < 0:
+        raise ValueError(f"faces must hold vertex indices >= 0, got {f.min()}")
+    return f
+
+
+def _vertex_count(f: np.ndarray, num_vertices) -> int:
+    n = int(f.max()) + 1 if num_vertices is None else num_vertices
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < int(f.max()) + 1:
+        raise ValueError(
+            f"num_vertices must be an int > max(faces) = {int(f.max())}, got {num_vertices!r}"
+        )
+    return int(n)
+
+
+def _one_rings(f: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``(n, D)`` neighbour table (padded with ``n``) and the degrees."""
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    # An interior edge appears in two faces; the Laplacian counts it once.
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    src = np.concatenate([edges[:, 0], edges[:, 1]])
+    dst = np.concatenate([edges[:, 1], edges[:, 0]])
+    order = np.argsort(src, kind="stable")
+    src, dst = src[order], dst[order]
+    degree = np.bincount(src, minlength=n)
+    start = np.concatenate([[0], np.cumsum(degree)[:-1]])
+    width = max(int(degree.max()), 1)
+    neighbors = np.full((n, width), n, dtype=np.int32)
+    neighbors[src, np.arange(len(src)) - start[src]] = dst
+    return neighbors, degree
+
+
+def merge(mesh: MeshLaplacian, x):
+    """A field on the input vertices -> the merged vertices (copies hold equal values)."""
+    return x if mesh.first is None else x[mesh.first]
+
+
+def spread(mesh: MeshLaplacian, x):
+    """A field on the merged vertices -> every input vertex (copies get the same value)."""
+    return x if mesh.index is None else x[mesh.index]
+
+
+def check_field(x, mesh: MeshLaplacian, what: str, channels: int | None = None) -> None:
+    """Raises unless ``x`` is ``(V, C)`` (``(V, channels)`` if given) on this mesh."""
+    if x.ndim != 2 or x.shape[0] != mesh.num_vertices or (channels and x.shape[1] != channels):
+        want = f"({mesh.num_vertices}, {channels})" if channels else f"({mesh.num_vertices}, C)"
+        raise ValueError(
+            f"{what}: every leaf must have shape {want} (one row per mesh vertex), got {x.shape}"
+        )
+
+
+def _matvec(neighbors, degree, lambda_, x):
+    """``(I + lambda L) x`` for ``x`` of shape ``(U, C)``."""
+    padded = jnp.concatenate([x, jnp.zeros((1, x.shape[1]), x.dtype)])
+    # One row gather per neighbour slot, summed: XLA:CPU runs this 5-10x faster
+    # than gathering the (U, D, C) block and reducing it.
+    neighbour_sum = padded[neighbors[:, 0]]
+    for j in range(1, neighbors.shape[1]):
+        neighbour_sum = neighbour_sum + padded[neighbors[:, j]]
+    return x + lambda_ * (degree.astype(x.dtype)[:, None] * x - neighbour_sum)
+
+
+class _Cholesky:
+    """Host-side sparse Cholesky factors of ``I + lambda L`` (CHOLMOD through cholespy).
+
+    One per mesh (see :func:`_host_cholesky`), with the factors of the last few lambda
+    values, so a schedule over a few values does not refactorise every step.
+    """
+
+    MAX_FACTORS = 4
+
+    def __init__(self, neighbors: np.ndarray, degree: np.ndarray):
+        try:
+            import cholespy
+        except ImportError as e:
+            raise ImportError(
+                "solver='cholesky' needs cholespy: pip install "
+                "'optax_bilateral[cholesky]' (or use solver='cg')"
+            ) from e
+        self._cholespy: Any = cholespy  # a compiled extension without type information
+        u = len(degree)
+        rows = np.repeat(np.arange(u), neighbors.shape[1])
+        keep = neighbors.ravel() < u
+        diag = np.arange(u)
+        self._ii = np.concatenate([diag, rows[keep]]).astype(np.int32)
+        self._jj = np.concatenate([diag, neighbors.ravel()[keep]]).astype(np.int32)
+        self._degree = np.asarray(degree, np.float64)
+        self._off = int(keep.sum())
+        self._factors: collections.OrderedDict = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def factor(self, lam: float):
+        with self._lock:
+            if lam in self._factors:
+                self._factors.move_to_end(lam)
+                return self._factors[lam]
+            values = np.concatenate([1.0 + lam * self._degree, np.full(self._off, -lam)])
+            fac = self._cholespy.CholeskySolverD(
+                len(self._degree), self._ii, self._jj, values, self._cholespy.MatrixType.COO
+            )
+            self._factors[lam] = fac
+            while len(self._factors) > self.MAX_FACTORS:
+                self._factors.popitem(last=False)
+            return fac
+
+    def solve(self, b: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """``b``: ``(*batch, U, C)``; ``lam``: ``(*batch)`` (vmap broadcasts both)."""
+        b, lam = np.asarray(b), np.asarray(lam, np.float64)
+        batch = b.shape[:-2]
+        flat_b = b.reshape((-1,) + b.shape[-2:])
+        flat_lam = np.broadcast_to(lam, batch).reshape(-1)
+        out = np.empty(flat_b.shape, b.dtype)
+        for value in np.unique(flat_lam):
+            which = np.nonzero(flat_lam == value)[0]
+            # All batch members with this lambda as the columns of one solve.
+            rhs = (
+                flat_b[which[0]] if len(which) == 1 else np.concatenate(list(flat_b[which]), axis=1)
+            )
+            rhs = np.require(rhs, np.float64, ["C", "W"])  # cholespy takes writable C arrays
+            x = np.empty_like(rhs)
+            self.factor(float(value)).solve(rhs, x)
+            out[which] = np.stack(np.split(x, len(which), axis=1))
+        return out.reshape(b.shape)
+
+
+_HOSTS: collections.OrderedDict[bytes, _Cholesky] = collections.OrderedDict()
+_HOSTS_LOCK = threading.Lock()
+
+
+def _host_cholesky(mesh: MeshLaplacian) -> _Cholesky:
+    """The factor cache of this mesh's Laplacian (shared by every transform built on it)."""
+    try:
+        nb = np.asarray(mesh.neighbors)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        raise TypeError(
+            "solver='cholesky' needs a concrete MeshLaplacian (built outside jit)"
+        ) from None
+    key = hashlib.blake2b(nb.tobytes() + str(nb.shape).encode(), digest_size=16).digest()
+    with _HOSTS_LOCK:
+        if key not in _HOSTS:
+            _HOSTS[key] = _Cholesky(nb, np.asarray(mesh.degree))
+            while len(_HOSTS) > 8:
+                _HOSTS.popitem(last=False)
+        _HOSTS.move_to_end(key)
+        return _HOSTS[key]
+
+
+def solve_columns(host, neighbors, degree, b, lambda_, tol, maxiter, x0):
+    """``(I + lambda L)^-1 b`` for ``b`` of shape ``(U, C)``; ``host`` None means CG."""
+    matvec = lambda v: _matvec(neighbors, degree, lambda_, v)
+    if host is not None:
+
+        def solve(_, rhs):
+            return jax.pure_callback(
+                host.solve,
+                jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                rhs,
+                lambda_,
+                vmap_method="broadcast_all",
+            )
+
+        return lax.custom_linear_solve(matvec, b, solve, symmetric=True)
+    scale = jnp.sqrt(jnp.sum(b * b, axis=0))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    inv_diag = (1.0 / (1.0 + lambda_ * degree.astype(b.dtype)))[:, None]
+    b = b / scale
+    # The Jacobi guess rather than zeros (a constant x0 makes XLA constant-fold the
+    # first matvec's gathers, seconds at 166k vertices), or the previous solution.
+    guess = inv_diag * b
+    if x0 is not None:
+        guess = jnp.where(jnp.any(x0 != 0), x0 / scale, guess)  # all zeros: the first step
+    x, _ = jax.scipy.sparse.linalg.cg(
+        matvec, b, x0=guess, tol=tol, atol=0.0, maxiter=maxiter, M=lambda r: inv_diag * r
+    )
+    return x * scale
+
+
+# One compilation per shape and solver, shared by every transform and eager call.
+solve_jit = jax.jit(solve_columns, static_argnums=0)
+
+
+class System(NamedTuple):
+    """``M = I + lambda L`` on a mesh and how to solve it: what every solve needs but ``b``."""
+
+    mesh: MeshLaplacian
+    host: Any  # the factorised solver (Cholesky), or None (CG)
+    lambda_: Any
+    tol: Any
+    maxiter: Any
+
+    @classmethod
+    def of(cls, mesh: MeshLaplacian, solver: LinearSolver, lambda_) -> System:
+        if isinstance(solver, CG):
+            return cls(mesh, None, lambda_, solver.tol, solver.maxiter)
+        return cls(mesh, _host_cholesky(mesh), lambda_, DEFAULT_TOL, DEFAULT_MAXITER)
+
+    def solve(self, b, x0=None):
+        """``M^-1 b`` on the merged vertices; ``b`` and ``x0`` are ``(U, C)``."""
+        dtype = b.dtype
+        return solve_jit(
+            self.host,
+            self.mesh.neighbors,
+            self.mesh.degree,
+            b,
+            jnp.asarray(self.lambda_, dtype),
+            jnp.asarray(self.tol, dtype),
+            jnp.asarray(self.maxiter, jnp.int32),
+            x0,
+        )
+
+
+def smoothing_solve(
+    mesh: MeshLaplacian,
+    b: Field,
+    lambda_: jax.typing.ArrayLike,
+    *,
+    solver: SolverSetting = "cg",
+    x0: Field | None = None,
+    **deprecated: Any,
+) -> FieldOut:
+    """Solves ``(I + lambda L) x = b`` (Large Steps' "smooth").
+
+    Args:
+      mesh: a :class:`MeshLaplacian`.
+      b: ``(V,)`` or ``(V, C)`` right-hand sides (one system per column). On a welded
+        mesh the copies of a vertex must hold equal values (one is read).
+      lambda_: smoothing weight ``>= 0``; may be traced (with :class:`Cholesky`, each new
+        value is factorised on the host, the last four are kept).
+      solver: ``"cg"`` or a :class:`CG` (Jacobi-preconditioned CG, columns scaled to unit
+        norm share one Krylov iteration; its ``warm_start`` is for the transforms), or
+        ``"cholesky"`` / :class:`Cholesky` (needs ``cholespy``).
+      x0: optional CG starting point with the shape of ``b`` (e.g. the last solution).
+      **deprecated: ``tol`` and ``maxiter``, the fields of :class:`CG` now: still applied
+        for one release, with a ``DeprecationWarning``.
+
+    Returns:
+      ``x`` with the shape and dtype of ``b``.
+
+    Example::
+
+        >>> import numpy as np, jax.numpy as jnp
+        >>> from optax_bilateral import triangle_mesh as obm
+        >>> verts = jnp.array([[1., 0, 0], [-1, 0, 0], [0, 1, 0],
+        ...                    [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+        >>> faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+        ...                   [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])   # an octahedron
+        >>> mesh = obm.mesh_laplacian(faces)
+        >>> b = jnp.zeros(6).at[4].set(1.0)
+        >>> x = obm.smoothing_solve(mesh, b, lambda_=1.0)
+        >>> print(np.round(np.asarray(x, float), 3))  # M^-1 is row-stochastic: sums stay 1
+        [0.143 0.143 0.143 0.143 0.314 0.114]
+    """
+    old = deprecated_keywords("smoothing_solve", deprecated, ("tol", "maxiter"))
+    system = System.of(mesh, solver_of(solver, old), lambda_)
+    b = jnp.asarray(b)
+    if b.ndim not in (1, 2) or b.shape[0] != mesh.num_vertices:
+        raise ValueError(
+            f"b must have shape (V,) or (V, C) with V = {mesh.num_vertices}, got {b.shape}"
+        )
+    squeeze = b.ndim == 1
+    if squeeze:
+        b = b[:, None]
+        x0 = None if x0 is None else jnp.asarray(x0)[:, None]
+    dtype = b.dtype if jnp.issubdtype(b.dtype, jnp.floating) else jnp.float32
+    b = b.astype(dtype)
+    if x0 is not None:
+        x0 = jnp.asarray(x0, dtype)
+        if x0.shape != b.shape:
+            raise ValueError(f"x0 must have the shape of b, {b.shape}, got {x0.shape}")
+        x0 = merge(mesh, x0)
+    x = spread(mesh, system.solve(merge(mesh, b), x0))
+    return x[:, 0] if squeeze else x
