@@ -19,7 +19,8 @@ Methods, at the same lambda and learning rate:
   and every iteration ``params[key] = ls.from_differential(opt["u"])`` before the render
   (CHOLMOD through cholespy).
 * ``bilateral``: the paper's mesh variant, ``optax_bilateral.triangle_mesh.
-  bilateral_large_steps(lr, mesh, lambda_, sigma_d, sigma_phi, solver="cholesky")`` driving
+  bilateral_large_steps(lr, mesh, lambda_, NormalFilter(sigma_d, sigma_phi),
+  solver="cholesky")`` driving
   the mesh's ``vertex_positions`` through ``OptaxOptimizer(..., shapes={key: (-1, 3)})``:
   ``opt[key] = params[key]``, ``params.update(opt)`` (one key, the scene's own).
 
@@ -339,8 +340,7 @@ class BilateralRun(MeshRun):
             lr,
             obm.mesh_laplacian(problem.faces),
             lambda_,
-            cfg.sigma_d,
-            cfg.sigma_phi,
+            obm.NormalFilter(cfg.sigma_d, cfg.sigma_phi),
             solver="cholesky",
         )
         self.opt = OptaxOptimizer(transform, shapes={KEY: (-1, 3)})
