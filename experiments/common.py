@@ -57,16 +57,19 @@ def filtered_adam(
     mask_unobserved=False,
     mu_dtype=None,
 ):
-    """``bilateral_adam``'s chain for grids with the postfilter's knobs: ``optax.chain(
-    ob.prefilter(...)?, ob.postfilter(b1, b2, eps, ...), optax.scale_by_learning_rate(
-    learning_rate))``, every leaf by the settings' leaf rule (``bilateral_adam`` gives the
-    leaves it does not filter to Adam). Every argument is named, so that
-    ``optax.inject_hyperparams(filtered_adam, static_args=(...))`` takes any of them."""
-    import optax
+    """``bilateral_adam``'s chain for grids with the postfilter's knobs: the library's one
+    builder (``filtered_chain``: ``optax.chain(prefilter(...)?, postfilter(b1, b2, eps, ...),
+    optax.scale_by_learning_rate(learning_rate))``), every leaf by the settings' leaf rule
+    (``bilateral_adam`` gives the leaves it does not filter to Adam). Every argument is named,
+    so that ``optax.inject_hyperparams(filtered_adam, static_args=(...))`` takes any of them."""
+    from optax_bilateral._src.optimizer.alias import filtered_chain
 
-    import optax_bilateral as ob
-
-    shared = dict(
+    return filtered_chain(
+        learning_rate,
+        b1,
+        b2,
+        eps,
+        prefilter=prefilter,
         sigma_d=sigma_d,
         levels=levels,
         separable=separable,
@@ -74,10 +77,8 @@ def filtered_adam(
         log_guide=log_guide,
         spatial_axes=spatial_axes,
         mask_unobserved=mask_unobserved,
+        mu_dtype=mu_dtype,
     )
-    parts = [ob.prefilter(**shared)] if prefilter else []
-    parts.append(ob.postfilter(b1, b2, eps, mu_dtype=mu_dtype, **shared))
-    return optax.chain(*parts, optax.scale_by_learning_rate(learning_rate))
 
 
 def quick_from_env() -> bool:

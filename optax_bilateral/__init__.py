@@ -6,7 +6,7 @@ for Inverse Rendering". SIGGRAPH Asia 2024.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from optax_bilateral import mesh, triangle_mesh
+from optax_bilateral import triangle_mesh
 from optax_bilateral._src.filter.front import atrous_bilateral
 from optax_bilateral._src.filter.native import status as native_status
 from optax_bilateral._src.optimizer.alias import bilateral_adam
@@ -59,7 +59,6 @@ __all__ = (
     "filtered_axes",
     "laplacian_pyramid",
     "load_state",
-    "mesh",
     "native_status",
     "postfilter",
     "prefilter",
@@ -69,3 +68,13 @@ __all__ = (
     "sure_sigma",
     "triangle_mesh",
 )
+
+
+def __getattr__(name: str):
+    # optax_bilateral.mesh, the deprecated former name of triangle_mesh: imported (and
+    # warning) only when asked for.
+    if name == "mesh":
+        import importlib
+
+        return importlib.import_module("optax_bilateral.mesh")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,13 +1,23 @@
-"""Alias of :mod:`optax_bilateral.triangle_mesh`, the module's former name.
+"""Deprecated alias of :mod:`optax_bilateral.triangle_mesh`, the module's former name.
 
-Kept so that code written as ``import optax_bilateral.mesh`` keeps working: every name
-here is the very object of :mod:`optax_bilateral.triangle_mesh` ("mesh" alone could
-also mean a JAX device mesh, hence the new name).
+Kept for one release so that code written as ``import optax_bilateral.mesh`` keeps working,
+with a ``DeprecationWarning`` at its first import: every name here is the very object of
+:mod:`optax_bilateral.triangle_mesh` ("mesh" alone also means a JAX device mesh, hence the
+new name).
 """
+
+import warnings as _warnings
 
 from optax_bilateral import triangle_mesh as _triangle_mesh
 from optax_bilateral._src.mesh import deprecated as _deprecated
 from optax_bilateral.triangle_mesh import *
+
+_warnings.warn(
+    "optax_bilateral.mesh is deprecated and will be removed in a future release: import "
+    "optax_bilateral.triangle_mesh (the same objects)",
+    DeprecationWarning,
+    stacklevel=2,
+)
 
 __all__: tuple[str, ...] = ()
 __all__ += _triangle_mesh.__all__

@@ -572,6 +572,7 @@ def test_old_keywords_keep_their_checks_and_unknown_ones_raise(small):
         M.bilateral_large_steps(0.1, mesh, tolerance=1e-3)
 
 
+@pytest.mark.filterwarnings("ignore:optax_bilateral.mesh is deprecated:DeprecationWarning")
 def test_scale_by_uniform_adam_is_a_deprecated_alias_of_the_shared_uniform_adam():
     import optax_bilateral.mesh as old_name
 
@@ -622,11 +623,19 @@ def test_render_target_and_gradient_are_finite():
     assert 0 < (img.sum(-1) > 0).mean() < 1
 
 
-def test_public_module_exports_the_transforms_and_mesh_is_its_alias():
+def test_public_module_exports_the_transforms_and_mesh_is_its_deprecated_alias():
+    import importlib
+
     import optax_bilateral as ob
-    import optax_bilateral.mesh as obm
     import optax_bilateral.triangle_mesh as obtm
+
+    with pytest.warns(DeprecationWarning, match="import optax_bilateral.triangle_mesh"):
+        obm = importlib.reload(importlib.import_module("optax_bilateral.mesh"))
     from optax_bilateral.mesh import large_steps  # the former spelling keeps working
+
+    assert "mesh" not in ob.__all__
+    with pytest.warns(DeprecationWarning, match="DEFAULT_NORMAL_SIGMA_D"):
+        assert obtm.DEFAULT_SIGMA_D == obtm.DEFAULT_NORMAL_SIGMA_D == 0.5
 
     assert ob.triangle_mesh is obtm and ob.mesh is obm
     assert obm.__all__ == obtm.__all__

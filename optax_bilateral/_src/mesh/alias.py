@@ -10,7 +10,7 @@ import optax
 
 from optax_bilateral._src.mesh.config import (
     DEFAULT_LAMBDA,
-    DEFAULT_SIGMA_D,
+    DEFAULT_NORMAL_SIGMA_D,
     FILTER_FIELDS,
     PREFILTERS,
     SOLVER_FIELDS,
@@ -108,7 +108,7 @@ def bilateral_large_steps(
     learning_rate: optax.ScalarOrSchedule,
     faces: Faces,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
     b1: jax.typing.ArrayLike = 0.9,
     b2: jax.typing.ArrayLike = 0.999,
     eps: jax.typing.ArrayLike = 1e-8,

@@ -34,7 +34,7 @@ DEFAULT_LAMBDA = 19.0
 """The default smoothing weight ``lambda`` of ``M = I + lambda L`` (the authors' mesh run)."""
 # The paper's default data term (supplement §3: "sigma_d around 0.5"); the authors'
 # code splats with sigma_d and slices with sigma_phi = 0.4.
-DEFAULT_SIGMA_D = 0.5
+DEFAULT_NORMAL_SIGMA_D = 0.5
 """The default splat width ``sigma_d`` on normals of the mesh filter (supplement §3)."""
 DEFAULT_SIGMA_PHI = 0.4
 """The default slice width ``sigma_phi`` on normals (the authors' code)."""
@@ -107,7 +107,7 @@ class NormalFilter:
         >>> opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=data_term)
     """
 
-    sigma_d: jax.typing.ArrayLike = DEFAULT_SIGMA_D
+    sigma_d: jax.typing.ArrayLike = DEFAULT_NORMAL_SIGMA_D
     sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI
     directions: Directions = DEFAULT_DIRECTIONS
     normals: Normals = "area"

@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 import jax
 import optax
 
+from optax_bilateral._src.mesh import config
 from optax_bilateral._src.mesh.alias import uniform_adam
 
 REPLACEMENT = 'optax_bilateral.postfilter(b1, b2, eps, levels=0, second_moment="uniform")'
@@ -45,6 +46,8 @@ def scale_by_uniform_adam(
 
 
 NAMES = {"scale_by_uniform_adam": scale_by_uniform_adam}
+# Renamed: the grid transforms' DEFAULT_SIGMA_D is "auto", a different idea.
+RENAMED = {"DEFAULT_SIGMA_D": "DEFAULT_NORMAL_SIGMA_D"}
 STATES = {"ScaleByUniformAdamState": ScaleByUniformAdamState}
 
 
@@ -61,4 +64,13 @@ def lookup(module: str, name: str):
         return STATES[name]
     if name in NAMES:
         return NAMES[name]
+    if name in RENAMED:
+        warnings.warn(
+            f"{module}.{name} is deprecated and will be removed in a future release: it is "
+            f"{module}.{RENAMED[name]} (optax_bilateral.DEFAULT_SIGMA_D is the grid "
+            "transforms' default, 'auto')",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        return getattr(config, RENAMED[name])
     raise AttributeError(f"module {module!r} has no attribute {name!r}")

@@ -32,7 +32,7 @@ import numpy as np
 from optax_bilateral._src.mesh.config import (
     DEFAULT_DIRECTIONS,
     DEFAULT_LAMBDA,
-    DEFAULT_SIGMA_D,
+    DEFAULT_NORMAL_SIGMA_D,
     NORMALS,
     FilterSetting,
     NormalFilter,
@@ -273,7 +273,7 @@ def bilateral_normal_filter(
     mesh: MeshLaplacian,
     *,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
     solver: SolverSetting = "cg",
     **deprecated: Any,
 ) -> list[jax.Array]:

@@ -30,7 +30,7 @@ from optax_bilateral._src import numerics
 from optax_bilateral._src.mesh.config import (
     CG,
     DEFAULT_LAMBDA,
-    DEFAULT_SIGMA_D,
+    DEFAULT_NORMAL_SIGMA_D,
     FILTER_FIELDS,
     POSTFILTERS_V,
     SOLVER_FIELDS,
@@ -236,7 +236,7 @@ def _needs_params(name: str) -> ValueError:
 def bilateral_smoothing(
     faces: Faces,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
     *,
     solver: SolverSetting = "cg",
     **deprecated: Any,
@@ -344,7 +344,7 @@ class MeshPostfilterState(NamedTuple):
 def mesh_postfilter(
     faces: Faces,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
     b1: jax.typing.ArrayLike = 0.9,
     b2: jax.typing.ArrayLike = 0.999,
     eps: jax.typing.ArrayLike = 1e-8,
