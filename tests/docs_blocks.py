@@ -47,8 +47,10 @@ class Block:
 
 
 def pages() -> list[pathlib.Path]:
-    """README.md and every Markdown page of docs/ (the generated notebook pages aside)."""
-    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    """README.md, every Markdown page of docs/ and of docs/research/ (the generated notebook
+    pages aside)."""
+    docs = ROOT / "docs"
+    return [ROOT / "README.md", *sorted(docs.glob("*.md")), *sorted(docs.glob("research/*.md"))]
 
 
 def _marker(text: str, start: int) -> re.Match | None:
