@@ -101,7 +101,7 @@ lint: $(VENV)/.installed-dev
 # The docs site (mkdocs.yml) into site/; --strict: any warning (a broken link or anchor, a
 # docstring griffe cannot parse) fails the build.
 docs: $(VENV)/.installed-dev
-	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 clean:
 	rm -rf $(VENV) $(VENV_MIN) build dist results site .pytest_cache

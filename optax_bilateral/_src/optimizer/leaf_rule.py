@@ -49,8 +49,7 @@ class LeafRuleWarning(UserWarning):
     ``spatial_axes="default"`` accepts the rule's guesses silently;
     ``warnings.simplefilter("error", LeafRuleWarning)`` turns every guess into an error.
 
-    Args:
-      *args: the message, as for any ``UserWarning``.
+    Its arguments are the message's, as for any ``UserWarning``.
 
     Example::
 

@@ -605,9 +605,9 @@ def postfilter(
       mu_dtype: dtype of the first moment buffer (default: the parameters').
         The second moment always has the parameters' dtype.
       eps_root: added inside the square root, as in optax's Adam.
-      filter_m, filter_v: filter ``m`` / ``v`` (the authors' ``mtfilter`` /
-        ``vtfilter``); the other is used unfiltered. With only one of them
-        filtered the bound above no longer holds.
+      filter_m: filter ``m`` (the authors' ``mtfilter``); False uses it unfiltered. With
+        only one of ``m``, ``v`` filtered the bound above no longer holds.
+      filter_v: filter ``v`` (the authors' ``vtfilter``); False uses it unfiltered.
       second_moment: ``"elementwise"`` (Adam's: each entry's own ``B v``) or
         ``"uniform"``: one second moment per leaf, the max of ``B v`` over it
         (Large Steps' ``AdamUniform``; the Dr.Jit port's ``uniform``, which puts
