@@ -52,7 +52,7 @@ from optax_bilateral._src.mesh.laplacian import (
     spread,
 )
 from optax_bilateral._src.mesh.normals import Operator, bilateral_fields, normals_of
-from optax_bilateral._src.optimizer.step import AdamHyper, Seen, adam_moments
+from optax_bilateral._src.optimizer.step import AdamHyper, Observed, adam_moments
 from optax_bilateral._src.validation import check_choice, check_decay, check_nonnegative
 
 
@@ -474,7 +474,7 @@ class _Post(NamedTuple):
         mesh = self.op.system.mesh
         check_field(x, mesh, "mesh_postfilter params", channels=3)
         check_field(g, mesh, "mesh_postfilter updates")
-        every = Seen(None, jnp.asarray(True))
+        every = Observed(None, jnp.asarray(True))
         m, v = adam_moments(g, (m_old, v_old), every, self.adam, jnp.result_type(g, m_old))
         c1 = numerics.bias_correction(self.adam.b1, count).astype(m.dtype)
         c2 = numerics.bias_correction(self.adam.b2, count).astype(v.dtype)

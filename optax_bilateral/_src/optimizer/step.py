@@ -81,7 +81,7 @@ class Clock(NamedTuple):
     c2: jax.Array
 
 
-class Seen(NamedTuple):
+class Observed(NamedTuple):
     """Which entries of a leaf's gradient this step uses."""
 
     texels: jax.Array | None  # per texel, in the filter's axes order (None: not filtered)
@@ -98,21 +98,21 @@ def postfilter_leaf(
     (None if self-guided or not filtered); ``state`` its sigma_d rule's state.
     """
     ctx = StepContext(clock.count, adam.b1, clock.c1, clock.c2)
-    seen = observe(g, plan)
-    g_obs = jnp.where(seen.entries, g, 0).astype(plan.compute_dtype)
+    observed = observe(g, plan)
+    g_obs = jnp.where(observed.entries, g, 0).astype(plan.compute_dtype)
     g_obs = jnp.clip(g_obs, -plan.limit, plan.limit)
-    m, v = adam_moments(g_obs, moments, seen, adam, plan.compute_dtype, plan.complex_view)
+    m, v = adam_moments(g_obs, moments, observed, adam, plan.compute_dtype, plan.complex_view)
     if plan.filter is None:
-        d = bounded_step(m, v, v, seen, adam, ctx, plan.uniform).astype(g.dtype)
+        d = bounded_step(m, v, v, observed, adam, ctx, plan.uniform).astype(g.dtype)
     else:
-        op = operators.operator(plan.filter, guide, cast(jax.Array, seen.texels))
+        op = operators.operator(plan.filter, guide, cast(jax.Array, observed.texels))
         sigma, state = rule.sigma(guide, plan.filter, state, ctx)
-        index, ways = rule.combine(Moments(m, v, g_obs, seen.entries), op, sigma, state, ctx)
+        index, ways = rule.combine(Moments(m, v, g_obs, observed.entries), op, sigma, state, ctx)
 
         def finish(way):
             f = way()
             m_t, v_t = blend(f.lam, m, f.m), blend(f.lam, v, f.v)
-            d = bounded_step(m_t, v_t, v, seen, adam, ctx, plan.uniform)
+            d = bounded_step(m_t, v_t, v, observed, adam, ctx, plan.uniform)
             return d.astype(g.dtype), f.state
 
         if index is None:
@@ -131,15 +131,15 @@ def prefilter_leaf(g, guide, state, rule: SigmaRule, count, *, plan):
     """One filtered leaf of :func:`~optax_bilateral.prefilter`: ``(A g, state)``. Unobserved
     texels pass through as they came, so that a following postfilter still sees them."""
     ctx = StepContext(count)
-    seen = observe(g, plan)
-    g_obs = jnp.clip(jnp.where(seen.entries, g, 0), -plan.limit, plan.limit)
-    op = operators.operator(plan.filter, guide, cast(jax.Array, seen.texels))
+    observed = observe(g, plan)
+    g_obs = jnp.clip(jnp.where(observed.entries, g, 0), -plan.limit, plan.limit)
+    op = operators.operator(plan.filter, guide, cast(jax.Array, observed.texels))
     sigma, state = rule.sigma(guide, plan.filter, state, ctx)
     out, state = rule.prefilter(g_obs, op, sigma, state, ctx)
-    return rule.guard(jnp.where(seen.entries, out, g), sigma), state
+    return rule.guard(jnp.where(observed.entries, out, g), sigma), state
 
 
-def observe(g: jax.Array, plan: LeafPlan) -> Seen:
+def observe(g: jax.Array, plan: LeafPlan) -> Observed:
     """The entries with a finite gradient (and, with ``mask_unobserved``, not all-zero); on a
     filtered leaf a texel counts as a whole (all its channels)."""
     if plan.filter is None:
@@ -147,15 +147,15 @@ def observe(g: jax.Array, plan: LeafPlan) -> Seen:
         ok = ok & (g != 0) if plan.mask_unobserved else ok
         if plan.complex_view:  # a complex entry counts as a whole
             ok = jnp.all(ok, axis=-1, keepdims=True)
-        return Seen(None, ok)
+        return Observed(None, ok)
     axes = plan.filter.axes
     texels = layout.texel_mask(jnp.isfinite(g), axes)
     if plan.mask_unobserved:
         texels = texels & ~layout.texel_mask(g == 0, axes)
-    return Seen(texels, layout.expand_mask(texels, g.ndim, axes))
+    return Observed(texels, layout.expand_mask(texels, g.ndim, axes))
 
 
-def adam_moments(g, moments, seen: Seen, adam: AdamHyper, dtype, complex_view=False):
+def adam_moments(g, moments, observed: Observed, adam: AdamHyper, dtype, complex_view=False):
     """Adam's ``(m, v)`` in the arithmetic ``dtype``, kept at unobserved entries (supplement
     eqs. 2, 4); without stored moments (memoryless, supplement §1.1) ``(g, g^2)``. On a
     complex leaf's real view ``g^2`` is ``|g|^2``, the same for both parts (optax.adam's)."""
@@ -168,15 +168,15 @@ def adam_moments(g, moments, seen: Seen, adam: AdamHyper, dtype, complex_view=Fa
     m_old, v_old = (x.astype(dtype) for x in moments)
     m = adam.one_minus_b1 * g + adam.b1 * m_old
     v = adam.one_minus_b2 * g2 + adam.b2 * v_old
-    return jnp.where(seen.entries, m, m_old), jnp.where(seen.entries, v, v_old)
+    return jnp.where(observed.entries, m, m_old), jnp.where(observed.entries, v, v_old)
 
 
-def bounded_step(m_f, v_f, v, seen: Seen, adam: AdamHyper, ctx: StepContext, uniform: bool):
+def bounded_step(m_f, v_f, v, observed: Observed, adam: AdamHyper, ctx: StepContext, uniform: bool):
     """``(m~ / c1) / (sqrt(v~ / c2 + eps_root) + eps)`` where observed, else 0 (eq. 10);
     ``uniform``: one second moment for the leaf, the max of ``v~`` (unobserved entries by
     the moments they keep), as Large Steps' and the Dr.Jit port's ``uniform``."""
     if uniform:
-        v_f = jnp.where(seen.entries, v_f, v)
+        v_f = jnp.where(observed.entries, v_f, v)
         v_f = jnp.broadcast_to(jnp.max(v_f), v_f.shape)
     d = numerics.safe_step(m_f, v_f, ctx.c1, ctx.c2, adam.eps, adam.eps_root)
-    return jnp.where(seen.entries, d, 0)
+    return jnp.where(observed.entries, d, 0)
