@@ -276,9 +276,10 @@ class Problem:
 class MeshRun:
     """Both methods' loop: write the positions, render a view, ``dr.backward``, step.
 
-    Parts: ``render`` (render, loss, ``dr.backward``; Mitsuba's Large Steps solves once
-    more in it, for ``u``'s gradient) and ``update`` (writing the positions, a solve for
-    Mitsuba's Large Steps, and ``opt.step()``)."""
+    Parts: ``render`` (render, loss, ``dr.backward``, and the optimized variable's gradient
+    evaluated, so that what Dr.Jit left lazy is not counted as the update; Mitsuba's Large
+    Steps solves once more in it, for ``u``'s gradient) and ``update`` (writing the
+    positions, a solve for Mitsuba's Large Steps, and ``opt.step()``)."""
 
     problem: Problem
     opt: Any
@@ -289,6 +290,10 @@ class MeshRun:
     def activate(self) -> None:
         pass  # every step writes its positions first
 
+    def variable(self):
+        """The Dr.Jit variable the optimizer steps (its gradient is what ``step`` reads)."""
+        raise NotImplementedError
+
     def step(self, i: int) -> tuple[float, dict[str, float]]:
         import drjit as dr
 
@@ -297,6 +302,7 @@ class MeshRun:
         dr.sync_thread()
         t1 = time.perf_counter()
         loss = self.problem.render_and_backward(i)
+        dr.eval(dr.grad(self.variable()))
         dr.sync_thread()
         t2 = time.perf_counter()
         self.opt.step()
@@ -321,6 +327,9 @@ class LargeStepsRun(MeshRun):
     def write(self) -> None:
         self.problem.params[KEY] = self.ls.from_differential(self.opt["u"])
         self.problem.params.update()
+
+    def variable(self):
+        return self.opt["u"]
 
     def values(self):
         return {KEY: np.array(self.ls.from_differential(self.opt["u"]))}
@@ -348,6 +357,9 @@ class BilateralRun(MeshRun):
 
     def write(self) -> None:
         self.problem.params.update(self.opt)
+
+    def variable(self):
+        return self.opt[KEY]
 
     def values(self):
         return {KEY: np.array(self.opt[KEY])}
