@@ -40,7 +40,7 @@ from jax import lax
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import log_transform
 from optax_bilateral._src.filter.local import every, local_average_subgrid
-from optax_bilateral._src.rules.sigma import Filtered, Moments, SigmaRule, StepContext
+from optax_bilateral._src.rules.sigma import Filtered, Moments, SigmaRule, StepContext, cast_like
 from optax_bilateral._src.validation import check_integer, check_number
 
 SKIP, CHECK, BLEND = 0, 1, 2  # what a postfilter step computes of the blend (blend_phase)
@@ -204,26 +204,28 @@ class Auto(SigmaRule):
             return super().combine(moments, op, sigma, state, ctx)
         axes = op.plan.axes
         phase = self._blend_phase(state.gate, ctx.count)
-        heavy, learned = jnp.zeros([], bool), {}
+        heavy, learned = jnp.zeros([], bool), state
         if op.plan.one_operator:  # self-guided: each field's own sigma_d, never heavier
-            learned["correlated"] = self._check_correlation(moments, axes, state, ctx)
+            correlated = self._check_correlation(moments, axes, state, ctx)
+            learned = learned._replace(correlated=correlated)
             heavy = state.correlated > 0
             sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
         # One cascade for both ways: the ways differ only in the blend after it.
         m_f, v_f = self._cascade(op, moments, sigma, heavy)
-        learned["residual"] = residual = update_residual(self, moments, m_f, state.residual, ctx.c1)
+        residual = update_residual(self, moments, m_f, state.residual, ctx.c1)
+        learned = learned._replace(residual=residual)
         weights = functools.partial(blend_weights, self, moments, residual, ctx, axes)
         zero = functools.partial(jnp.zeros, [], moments.m.dtype)
 
         def plain():  # no blend; at a CHECK step the gate's check alone
             check = (phase == CHECK) & ~heavy
             gate = lax.cond(check, lambda: weights()[1], zero)
-            return Filtered(m_f, v_f, None, _replace_cast(state, dict(learned, gate=gate)))
+            return Filtered(m_f, v_f, None, cast_like(learned._replace(gate=gate), state))
 
         def blended():
             lam, gate = weights()
             lam = upsample(self, lam, moments.m.shape, axes)
-            return Filtered(m_f, v_f, lam, _replace_cast(state, dict(learned, gate=gate)))
+            return Filtered(m_f, v_f, lam, cast_like(learned._replace(gate=gate), state))
 
         return ((phase == BLEND) & ~heavy).astype(jnp.int32), (plain, blended)
 
@@ -241,7 +243,8 @@ class Auto(SigmaRule):
     def after_step(self, d, state, plan):
         if state is None or state.direction is None:
             return state
-        return _replace_cast(state, {"direction": _direction_norm(d, plan.axes, self)})
+        direction = _direction_norm(d, plan.axes, self)
+        return state._replace(direction=direction.astype(state.direction.dtype))
 
     # ------------------------------------------------------------------ the parts
 
@@ -436,11 +439,6 @@ def upsample(rule: Auto, lam: jax.Array, shape: tuple[int, ...], axes) -> jax.Ar
 
 
 # ---------------------------------------------------------------------- shared statistics
-
-
-def _replace_cast(state, new: dict):
-    """``state`` with the fields in ``new``, each cast to the state's dtype for it."""
-    return state._replace(**{k: x.astype(getattr(state, k).dtype) for k, x in new.items()})
 
 
 def _guide_axes(guide: jax.Array, axes: tuple[int, ...]) -> tuple[int, ...]:

@@ -40,7 +40,7 @@ from optax_bilateral._src.rules.auto import (
     update_residual,
     upsample,
 )
-from optax_bilateral._src.rules.sigma import Filtered, Setting, SigmaRule
+from optax_bilateral._src.rules.sigma import Filtered, Setting, SigmaRule, cast_like
 from optax_bilateral._src.validation import check_integer, check_number
 
 # With "sure", F is chosen per step among 2 .. levels; 5 is the suite's best bound.
@@ -177,21 +177,20 @@ class Sure(SigmaRule):
     def _filtered(self, moments, op, sigma, state, ctx):
         """The chosen candidate's ``B m``, ``B v``, then ``"auto"``'s blend (:class:`Filtered`)."""
         axes = op.plan.axes
-        m_f, v_f, new = self._select(moments, op, sigma, state, ctx)
-        new["residual"] = residual = update_residual(
-            self.auto, moments, m_f, state.residual, ctx.c1
-        )
+        m_f, v_f, chosen = self._select(moments, op, sigma, state, ctx)
+        residual = update_residual(self.auto, moments, m_f, state.residual, ctx.c1)
         lam, gate = blend_weights(self.auto, moments, residual, ctx, axes)
         lam = upsample(self.auto, lam, moments.m.shape, axes)
         # Sticky: the bias it saw persists, the gate's view of it does not.
-        new["opened"] = jnp.maximum(state.opened, (gate >= 1).astype(moments.m.dtype))
-        new = {k: x.astype(getattr(state, k).dtype) for k, x in new.items()}
-        return Filtered(m_f, v_f, lam, state._replace(**new))
+        opened = jnp.maximum(state.opened, (gate >= 1).astype(moments.m.dtype))
+        new = chosen._replace(residual=residual, opened=opened)
+        return Filtered(m_f, v_f, lam, cast_like(new, state))
 
     def _select(self, moments, op, scale, state, ctx):
         """Per candidate sigma_d one cascade of (m, noise sample), read after each candidate
         F; the candidate of least moving-average risk; then v filtered with the chosen
-        operator. Returns ``(B m, B v, what the state learned)``."""
+        operator. Returns ``(B m, B v, the state with the choice)``, its fields not yet cast
+        to the state's dtypes."""
         m, v, levels = moments.m, moments.v, op.plan.levels
         b1 = jnp.asarray(ctx.b1, m.dtype)
         ratio, usable = noise_ratio(b1, ctx.c1, ctx.count)
@@ -212,7 +211,7 @@ class Sure(SigmaRule):
         v_f = lax.switch(
             chosen - choices[0], [lambda n=n: op.apply(v, sigma_d, levels=n) for n in choices]
         )
-        new = {"previous_gradient": g, "sigma_d": sigma_d, "levels": chosen, "risks": risks}
+        new = state._replace(previous_gradient=g, sigma_d=sigma_d, levels=chosen, risks=risks)
         return m_f, v_f, new
 
     # ------------------------------------------------------------------ candidates
