@@ -343,7 +343,7 @@ def test_a_closed_gate_skips_the_blend_and_changes_no_update(iid_and_smooth_targ
 def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step(iid_and_smooth_targets):
     """A noise-free gradient toward an i.i.d. target opens the gate at the second step when
     it is checked every step; with the default period the opening waits for the first
-    multiple of ``CHECK_PERIOD``, and from then on the blend runs at every step."""
+    multiple of ``check_period``, and from then on the blend runs at every step."""
     iid, _ = iid_and_smooth_targets
     every = _run_auto(3 * AUTO.check_period, iid, 0.0, period=1)
     assert every[0][1] == 0 and all(gate > 0 for _, gate, _ in every[1:])
@@ -598,7 +598,7 @@ def test_stride_leaves_at_least_min_texels(shape, axes, expected):
 
 
 def test_a_large_leaf_keeps_a_sub_grid_of_its_guide_and_sigma_is_its_full_mean():
-    """Above MIN_TEXELS the state keeps every s-th texel; the guide's mean step over it is
+    """Above ``min_texels`` the state keeps every s-th texel; the guide's mean step over it is
     the full grid's to a fraction of a percent, and an unprojected step still gives sqrt(C) lr."""
     rng = np.random.default_rng(0)
     shape = (300, 260, 2)  # 78000 texels: stride 2, not dividing 300 or 260 evenly
@@ -657,7 +657,7 @@ def _correlated(g, m_hat, t=5, b1=0.2, observed=None):
 
 def _tells_blurred_from_white(shape, scale=1.0):
     """``correlated`` on white noise, noise blurred over 1.5 texels (lag-1 correlation
-    exp(-1/9) = 0.89) and over half a texel (exp(-1) = 0.37, below ``CORRELATED``)."""
+    exp(-1/9) = 0.89) and over half a texel (exp(-1) = 0.37, below ``correlated``)."""
     rng = np.random.default_rng(0)
     noise = rng.normal(size=shape)
     signal = 0.1 * np.ones(shape)
@@ -684,7 +684,7 @@ def test_correlated_reads_pairs_on_the_subgrid_of_a_large_leaf():
 
 def test_correlated_needs_the_difference_to_be_noise_not_the_signals_drift():
     """A smooth gradient that moved a little since the first moment (a noise-free run's
-    first steps) is perfectly correlated but not noise: ``NOISY`` keeps the step as it is."""
+    first steps) is perfectly correlated but not noise: ``noisy`` keeps the step as it is."""
     x = np.linspace(0, 1, 64)
     signal = np.sin(3 * x)[:, None, None] * np.cos(2 * x)[None, :, None] * np.ones((1, 1, 3))
     drift = np.cos(5 * x)[:, None, None] * np.ones((1, 64, 3))
@@ -745,7 +745,7 @@ def _with_correlated(state, flag: int):
 
 def test_a_correlated_step_is_the_filter_at_heavy_factor_with_extra_levels_and_no_blend():
     """With ``AutoState.correlated`` set, the update is the one of ``levels + 1`` levels at
-    ``HEAVY_FACTOR`` times sigma_d without the blend (clean and masked gradients alike)."""
+    ``heavy_factor`` times sigma_d without the blend (clean and masked gradients alike)."""
     _, state, x = _correlated_problem(2)
     heavy, light = _with_correlated(state, 1), _with_correlated(state, 0)
     g = jnp.asarray(_blurred(np.random.default_rng(3).normal(size=SHAPE), 1.5), jnp.float32)
