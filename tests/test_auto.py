@@ -17,9 +17,7 @@ from hypothesis import strategies as st
 
 import optax_bilateral as ob
 from optax_bilateral._src.filter import local
-from optax_bilateral._src.rules import auto
-from optax_bilateral._src.rules.sigma import blend
-from states import filtered_state, with_filtered_state
+from states import at_step, filtered_state, with_filtered_state
 
 AUTO, SURE = ob.Auto(), ob.Sure()
 EVERY_TEXEL = ob.auto_sigma(min_texels=2**40)  # statistics over every texel (no sub-grid)
@@ -106,34 +104,80 @@ def test_auto_beats_adam_on_a_noisy_denoising_problem():
     assert auto_err < 0.9 * adam, (auto_err, adam)
 
 
+# sigma_d="sure" with one factor of 1 records "auto"'s step scale itself (SureState.sigma_d):
+# the prefilter's sigma_d, and the scale of "sure"'s candidates.
+STEP_SCALE = ob.sure_sigma(factors=(1.0,), first_factor=1.0)
+
+
+def _step_scales(guides, rule=STEP_SCALE):
+    """The step scale (``SureState.sigma_d``) of each update of a postfilter whose guide, its
+    parameters, is the next of ``guides``."""
+    opt = ob.postfilter(sigma_d=rule, levels=2)
+    update, state, out = jax.jit(opt.update), opt.init(guides[0]), []
+    for i, guide in enumerate(guides):
+        g = jax.random.normal(jax.random.PRNGKey(i), guide.shape)
+        _, state = update(g, state, guide)
+        out.append(float(state.sigma_state.sigma_d))
+    return out
+
+
 def test_sigma_follows_the_guide_step_and_starts_from_its_contrast():
     guide = jnp.asarray(np.random.default_rng(1).random((8, 8, 2)), jnp.float32)
     axes = (0, 1)
-    first = AUTO.scale(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
+    moved = guide + 0.01
+    # The first step, the same guide again (at rest), then moved by 0.01 * (1, 1).
+    first, rest, later = _step_scales([guide, guide, moved])
     local = ob.atrous_bilateral(guide, guide, sigma_d=math.inf, levels=1, spatial_axes=axes)
     deviation = np.linalg.norm(np.asarray(guide - local), axis=-1).mean()
     np.testing.assert_allclose(first, AUTO.contrast_factor * deviation, rtol=1e-5)
     # On white noise that is about the mean neighbour difference.
     diffs = [np.linalg.norm(np.diff(np.asarray(guide), axis=a), axis=-1).mean() for a in axes]
     assert 0.7 < float(first) / np.mean(diffs) < 1.3
-    moved = guide + 0.01
-    later = AUTO.scale(moved, guide, jnp.asarray(2), axes)
     np.testing.assert_allclose(later, AUTO.step_factor * 0.01 * math.sqrt(2), rtol=1e-4)
     # A guide that did not move falls back to the contrast.
-    np.testing.assert_allclose(AUTO.scale(guide, guide, jnp.asarray(5), axes), first)
+    np.testing.assert_allclose(rest, first)
+    # The prefilter filters the gradient at that sigma_d, step after step.
+    pre = ob.prefilter()
+    state = pre.init(guide)
+    for i, (params, sigma) in enumerate(zip([guide, guide, moved], [first, rest, later])):
+        g = jax.random.normal(jax.random.PRNGKey(i), guide.shape)
+        u, state = pre.update(g, state, params)
+        fixed = ob.prefilter(sigma_d=sigma)
+        np.testing.assert_allclose(u, fixed.update(g, fixed.init(params), params)[0], rtol=1e-5)
+
+
+# Moments and a gradient for one postfilter step on an 8 x 8 x 2 leaf.
+_RNG = np.random.default_rng(5)
+_G, _MU = (jnp.asarray(_RNG.normal(size=(8, 8, 2)), jnp.float32) for _ in range(2))
+_NU = _MU**2 + jnp.asarray(_RNG.random((8, 8, 2)), jnp.float32)
+
+
+def _second_update(sigma_d, params, **rule_state):
+    """The postfilter's second update (``_MU``, ``_NU`` its moments before it) with
+    ``sigma_d`` and the fields of its rule's state given."""
+    opt = ob.postfilter(sigma_d=sigma_d)
+    return opt.update(_G, at_step(opt.init(params), 1, mu=_MU, nu=_NU, **rule_state), params)[0]
 
 
 def test_postfilter_sigma_is_one_learning_rate_in_the_guides_units():
+    """The postfilter's sigma_d is sqrt(C) times the guide's mean step per unit of its last
+    direction (AutoState.direction): its step is the step at that number."""
     guide = jnp.asarray(np.random.default_rng(1).random((8, 8, 2)), jnp.float32)
-    axes = (0, 1)
     # Each texel moved by 0.01 * (1, 1): 0.01 sqrt(2) per step, along a direction of norm 0.5.
     moved = guide + 0.01
-    rate = AUTO.scale(moved, guide, jnp.asarray(2), axes, jnp.asarray(0.5))
-    np.testing.assert_allclose(rate, math.sqrt(2) * 0.01 * math.sqrt(2) / 0.5, rtol=1e-5)
-    first = AUTO.scale(guide, jnp.zeros_like(guide), jnp.asarray(1), axes)
-    # No direction yet (0), or a guide at rest: the contrast.
-    np.testing.assert_allclose(AUTO.scale(moved, guide, jnp.asarray(2), axes, 0.0 * rate), first)
-    np.testing.assert_allclose(AUTO.scale(guide, guide, jnp.asarray(3), axes, 1 + 0 * rate), first)
+    u = _second_update("auto", moved, previous_guide=guide, direction=0.5)
+    rate = math.sqrt(2) * 0.01 * math.sqrt(2) / 0.5
+    # Here the step moves 10x as much as sigma_d (relative): rtol 1e-4 holds sigma_d to
+    # 1e-5, and a sigma_d 3e-5 off fails.
+    np.testing.assert_allclose(u, _second_update(rate, moved), rtol=1e-4)
+    assert not np.allclose(u, _second_update(rate * (1 + 3e-5), moved), rtol=1e-4, atol=0)
+    # No direction yet (0), or a guide at rest: the contrast (the first step's scale).
+    (contrast_moved,) = _step_scales([moved])
+    (contrast,) = _step_scales([guide])
+    u = _second_update("auto", moved, previous_guide=guide, direction=0.0)
+    np.testing.assert_allclose(u, _second_update(jnp.float32(contrast_moved), moved), rtol=1e-6)
+    u = _second_update("auto", guide, previous_guide=guide, direction=1.0)
+    np.testing.assert_allclose(u, _second_update(jnp.float32(contrast), guide), rtol=1e-6)
 
 
 @pytest.mark.parametrize("learning_rate", [1e-3, 0.5])
@@ -168,88 +212,84 @@ def blend_problems(draw):
     return m, m.astype(np.float64) ** 2 + extra, residual, guide, count
 
 
-def _assert_bounded(m, v, mt, vt):
+B1, B2 = 0.2, 0.36  # the postfilter's moments in the blend's tests
+
+
+def _blend_step(sigma_d, m, v, params, count, levels=None, **rule_state):
+    """``(update, state)`` of step ``count`` of a postfilter (``B1``, ``B2``) from the moments
+    ``m, v`` with the gradient ``m`` (the first moment stays ``m``) and its rule's state's
+    fields given."""
+    opt = ob.postfilter(B1, B2, sigma_d=sigma_d, levels=levels, spatial_axes=(0, 1))
+    state = at_step(opt.init(params), count - 1, mu=m, nu=v, **rule_state)
+    return opt.update(jnp.asarray(m), state, params)
+
+
+def _assert_bounded(u, state):
+    """``|u| <=`` the largest ``|m_hat| / sqrt(v_hat)`` of the moments ``state`` keeps."""
+    t = int(state.count)
+    m = np.asarray(state.mu, np.float64) / (1 - B1**t)
+    v = np.asarray(state.nu, np.float64) / (1 - B2**t)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.abs(np.asarray(m, np.float64)) / np.sqrt(np.asarray(v, np.float64))
-        got = np.abs(np.asarray(mt, np.float64)) / np.sqrt(np.asarray(vt, np.float64))
-    bound = np.nanmax(ratio) if np.any(np.isfinite(ratio)) else 0.0
-    assert np.all(got[np.isfinite(got)] <= bound * (1 + 1e-5) + 1e-6)
-
-
-def _blend(m, v, bm, bv, residual, **statistics):
-    """``(m~, v~, gate)``: the moments mixed by ``auto.weights``, as the step does it."""
-    lam, gate = AUTO.weights(m, v, residual, **statistics)
-    lam = AUTO.upsample(lam, m.shape, statistics["axes"])
-    return blend(lam, m, bm), blend(lam, v, bv), gate
+        ratio = np.abs(m) / np.sqrt(v)
+    bound = np.max(ratio[np.isfinite(ratio)], initial=0.0)
+    got = np.abs(np.asarray(u, np.float64))
+    assert np.all(np.isfinite(got)) and np.all(got <= bound * (1 + 1e-5) + 1e-6)
 
 
 @given(problem=blend_problems())
 def test_the_blend_keeps_the_bounded_step(problem):
     # Supplement 1.3: m~ and v~ come from one non-negative row-stochastic operator, so
-    # |m~| / sqrt(v~) <= the largest |m| / sqrt(v) of the texels they mix.
+    # |m~| / sqrt(v~) <= the largest |m| / sqrt(v) of the texels they mix. The gate was open
+    # at the last step: this step blends.
     m, v, residual, guide, count = problem
-    m, v = jnp.asarray(m), jnp.asarray(v, jnp.float32)
-    bm, bv = ob.atrous_bilateral(
-        (m, v), jnp.asarray(guide), sigma_d=0.5, levels=2, spatial_axes=(0, 1)
-    )
-    new_residual = AUTO.update_residual(m, bm, jnp.asarray(residual), 1.0, None)
-    mt, vt, _ = _blend(
-        m,
-        v,
-        bm,
-        bv,
-        new_residual,
-        b1=0.2,
-        c1=1.0,
-        c2=1.0,
-        count=jnp.asarray(count),
-        axes=(0, 1),
-    )
-    assert np.all(np.isfinite(np.asarray(new_residual)))
-    _assert_bounded(m, v, mt, vt)
+    params = jnp.broadcast_to(jnp.asarray(guide)[..., None], m.shape)
+    state = dict(residual=residual, gate=0.5, previous_guide=params)
+    u, new = _blend_step("auto", m, v.astype(np.float32), params, count, **state)
+    assert np.all(np.isfinite(np.asarray(new.sigma_state.residual)))
+    _assert_bounded(u, new)
 
 
-def _blend_after(bias, steps=60, b1=0.2, b2=0.36, seed=0):
-    """The blended moments after ``steps`` steps whose filter misses ``bias`` every
-    step (B m_hat = m_hat - bias) under unit gradient noise: the last ``(m~, B m)``."""
+def _persistent_bias(bias, steps=60, seed=0):
+    """A postfilter (``B1``, ``B2``, the gate checked every step) on ``bias + N(0, 1)`` under a
+    constant guide, where the filter is a plain low-pass and misses a checkerboard ``bias``
+    (B m_hat = m_hat - bias, nearly). Each step's gate, and the share of Adam's last step
+    (the moments unfiltered) beyond the filter's along ``bias`` that the last step keeps."""
+    opt = ob.postfilter(B1, B2, sigma_d=ob.auto_sigma(check_period=1), spatial_axes=(0, 1))
+    x = jnp.zeros(bias.shape)
+    update, state, gates = jax.jit(opt.update), opt.init(x), []
     key = jax.random.PRNGKey(seed)
-    m = v = residual = jnp.zeros_like(bias)
     for t in range(1, steps + 1):
         g = bias + jax.random.normal(jax.random.fold_in(key, t), bias.shape)
-        m, v = b1 * m + (1 - b1) * g, b2 * v + (1 - b2) * g * g
-        c1, c2 = 1 - b1**t, 1 - b2**t
-        bm = m - bias * c1
-        residual = AUTO.update_residual(m, bm, residual, c1, None)
-        mt, _, _ = _blend(
-            m,
-            v,
-            bm,
-            v,
-            residual,
-            b1=b1,
-            c1=c1,
-            c2=c2,
-            count=jnp.asarray(t),
-            axes=(0, 1),
-        )
-    return mt, bm
+        before = state
+        u, state = update(g, state, x)
+        gates.append(float(state.sigma_state.gate))
+    filtered, _ = update(g, at_step(before, steps - 1, gate=0.0), x)  # gate closed: no blend
+    m, v = state.mu / (1 - B1**steps), state.nu / (1 - B2**steps)
+    sign = np.sign(np.asarray(bias))
+    along = lambda d: float(np.mean((np.asarray(d) - np.asarray(filtered)) * sign))
+    return gates, along(u) / along(m / (jnp.sqrt(v) + 1e-8))
+
+
+def _checkerboard(n=32):
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    return jnp.asarray(((i + j) % 2 * 2.0 - 1.0)[..., None], jnp.float32)
 
 
 def test_the_blend_opens_where_a_bias_below_the_noise_persists_across_the_leaf():
-    # The filter's bias, 0.7 of one gradient's noise, everywhere (the i.i.d. noise target):
-    # the residual's ~33-step average sees it and the leaf blends back most of m_hat
-    # (0.66 of the bias; the former 10-step average and gate at 0.2: 0.23).
-    mt, bm = _blend_after(jnp.full((32, 32, 1), 0.7))
-    assert float(jnp.mean(jnp.abs(mt - bm))) > 0.5 * 0.7
+    # The filter's bias, 0.7 of one gradient's noise, on every texel (the i.i.d. noise
+    # target): the residual's ~33-step average sees it, the gate opens fully and the step
+    # keeps most of what Adam's would beyond the filter's (0.67 here).
+    gates, kept = _persistent_bias(0.7 * _checkerboard())
+    assert gates[-1] == 1 and kept > 0.5, (gates[-1], kept)
 
 
 def test_the_blend_stays_closed_where_the_bias_persists_on_half_the_leaf():
     # A bias at the noise level on half the texels (a piecewise-smooth target's edges are
     # fewer): the leaf's gate stays shut and the filtered moments pass unchanged (the
     # former gate at 0.2 opened here).
-    bias = jnp.zeros((32, 32, 1)).at[:, :16].set(1.0)
-    mt, bm = _blend_after(bias)
-    np.testing.assert_array_equal(np.asarray(mt), np.asarray(bm))
+    half = _checkerboard() * (jnp.arange(32)[None, :, None] < 16)
+    gates, _ = _persistent_bias(half)
+    assert all(gate == 0 for gate in gates)  # checked every step: no step blends
 
 
 def _run_auto(steps, target, noise, period=None, seed=0):
@@ -303,7 +343,7 @@ def test_a_closed_gate_skips_the_blend_and_changes_no_update(iid_and_smooth_targ
 def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step(iid_and_smooth_targets):
     """A noise-free gradient toward an i.i.d. target opens the gate at the second step when
     it is checked every step; with the default period the opening waits for the first
-    multiple of ``CHECK_PERIOD``, and from then on the blend runs at every step."""
+    multiple of ``check_period``, and from then on the blend runs at every step."""
     iid, _ = iid_and_smooth_targets
     every = _run_auto(3 * AUTO.check_period, iid, 0.0, period=1)
     assert every[0][1] == 0 and all(gate > 0 for _, gate, _ in every[1:])
@@ -313,82 +353,88 @@ def test_the_gate_opens_at_a_check_step_and_is_then_computed_every_step(iid_and_
     assert all(gate > 0 for gate in gates[first:])
 
 
-def test_stage_is_the_blend_on_an_open_gate_and_a_check_at_a_multiple_of_the_period():
-    counts = jnp.arange(1, 3 * AUTO.check_period + 1)
-    closed = np.asarray(AUTO.blend_phase(jnp.zeros([]), counts))
-    expected = np.where(np.asarray(counts) % AUTO.check_period == 0, auto.CHECK, auto.SKIP)
-    np.testing.assert_array_equal(closed, expected)
-    assert bool(jnp.all(AUTO.blend_phase(jnp.asarray(0.1), counts) == auto.BLEND))
+def test_a_step_blends_on_an_open_gate_and_checks_a_closed_one_at_multiples_of_the_period(
+    iid_and_smooth_targets,
+):
+    """What a step computes of the blend, against a rule that checks every step: with the
+    gate open at the last step, the blend (the same step and gate); closed, at a multiple of
+    ``check_period`` the gate alone (the same gate, the step unblended), else nothing (gate
+    0, the step unblended)."""
+    iid, _ = iid_and_smooth_targets
+    every = ob.auto_sigma(check_period=1)
+    opt, every_opt = (ob.postfilter(sigma_d=r, spatial_axes=(0, 1)) for r in (AUTO, every))
+    update, every_update = jax.jit(opt.update), jax.jit(every_opt.update)
+    # Three noise-free steps toward the i.i.d. target, where the gate opens.
+    x = jnp.full((32, 32, 1), 0.5, jnp.float32)
+    state = opt.init(x)
+    for _ in range(3):
+        u, state = every_update(x - iid, state, x)
+        x = x - 0.02 * u
+    g, period = x - iid, AUTO.check_period
+    for count in range(1, 3 * period + 1):
+        steps = {}
+        for gate in (0.0, 0.5):
+            start = at_step(state, count, gate=gate)  # this step: count + 1
+            (u, new), (u_every, new_every) = update(g, start, x), every_update(g, start, x)
+            scale = float(jnp.max(jnp.abs(u_every)))
+            np.testing.assert_allclose(u, u_every, rtol=1e-6, atol=1e-6 * scale)
+            checked = gate > 0 or (count + 1) % period == 0
+            expected = float(new_every.sigma_state.gate) if checked else 0.0
+            assert float(new_every.sigma_state.gate) > 0
+            assert float(new.sigma_state.gate) == pytest.approx(expected, rel=1e-5)
+            steps[gate] = np.asarray(u)
+        assert np.max(np.abs(steps[0.5] - steps[0.0])) > 1e-3 * scale  # the open gate blends
 
 
 def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
     """A closed gate's check computes the local averages at the sub-grid's entries only
-    (:func:`auto.stride`); they are the full local averages' sub-grid, and on leaves whose
-    blend weight is uniform in distribution the gate agrees with the full one."""
+    (every s-th texel, test_stride_leaves_at_least_min_texels); they are the full local
+    averages' sub-grid, and on leaves whose blend weight is uniform in distribution the
+    gate the step writes agrees with the one from every texel."""
     rng = np.random.default_rng(3)
-    for shape, axes in [
-        ((512, 512, 3), (0, 1)),
-        ((300, 7, 2), (0, 1)),
-        ((64, 64, 64, 1), (0, 1, 2)),
+    for shape, axes, stride in [
+        ((512, 512, 3), (0, 1), 4),
+        ((300, 7, 2), (0, 1), 1),
+        ((64, 64, 64, 1), (0, 1, 2), 2),
     ]:
         a = jnp.asarray(rng.normal(size=shape), jnp.float32)
-        full = [AUTO.subgrid(x, axes) for x in local.local_average((a, a * a), axes)]
-        for x, y in zip(
-            local.local_average_subgrid((a, a * a), axes, AUTO.stride(shape, axes)), full
-        ):
+        full = [local.every(x, axes, stride) for x in local.local_average((a, a * a), axes)]
+        for x, y in zip(local.local_average_subgrid((a, a * a), axes, stride), full):
             np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
-    shape, axes = (256, 256, 2), (0, 1)
-    assert AUTO.stride(shape, axes) > 1
+    # A check step (8) whose moments are m_hat = m, v_hat = v, under a constant guide.
+    shape, b, t = (256, 256, 2), 0.9, 8
+    c = 1 - b**t
     key = jax.random.PRNGKey(0)
     m = jax.random.normal(key, shape)
     v = m * m + jax.random.uniform(jax.random.fold_in(key, 1), shape)
-    stats = dict(b1=0.9, c1=jnp.asarray(1.0), c2=jnp.asarray(1.0), count=jnp.asarray(8))
-    gates = []
-    for scale in (0.0, 0.2, 0.22, 0.3):  # the gate closed, opening, and open
+    moments = dict(mu=c * m, nu=c * (v - (1 - b) * c * m * m) / b)
+    x, gates = jnp.zeros(shape), []
+    for scale in (0.0, 0.33, 0.37, 0.45):  # the gate closed, opening, and open
         residual = scale * jax.random.normal(jax.random.fold_in(key, 2), shape)
-        _, full_gate = EVERY_TEXEL.weights(m, v, residual, axes=axes, **stats)
-        _, sub_gate = AUTO.weights(m, v, residual, axes=axes, **stats)
-        assert abs(float(sub_gate) - float(full_gate)) < 0.02, (scale, sub_gate, full_gate)
-        gates.append(float(full_gate))
+        gate = {}
+        for rule in (AUTO, EVERY_TEXEL):
+            opt = ob.postfilter(b, b, sigma_d=rule, spatial_axes=(0, 1))
+            _, new = opt.update(c * m, at_step(opt.init(x), t - 1, residual=residual, **moments), x)
+            gate[rule] = float(new.sigma_state.gate)
+        assert abs(gate[AUTO] - gate[EVERY_TEXEL]) < 0.02, (scale, gate)
+        gates.append(gate[EVERY_TEXEL])
     assert gates[0] == 0 and 0 < gates[1] < gates[2] < 1 and gates[3] == 1
-
-
-@jax.jit
-def _sure_step(m, v, zeta, guide, scale):
-    """sigma_d="sure"'s moments: the chosen candidate among every factor at F = 2 .. levels
-    (v through its operator, as the step does it), then the blend."""
-    levels = 3
-    filt = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=(0, 1))
-    cands = SURE.candidates(
-        (m, zeta), levels, scale, lambda x, s, n, k: filt(x, sigma_d=s, levels=n, first_level=k)
-    )
-    mc, pick, _ = SURE.choose(m, zeta, cands, 1.0, True, None, SURE.first(levels))
-    sigmas, chosen = SURE.labels(levels, jnp.asarray(scale, jnp.float32))
-    sigma_d, choices = sigmas[pick], SURE.level_choices(levels)
-    branches = [lambda n=n: filt(v, sigma_d=sigma_d, levels=n) for n in choices]
-    vc = jax.lax.switch(chosen[pick] - choices[0], branches)
-    mt, vt, _ = _blend(
-        m,
-        v,
-        mc,
-        vc,
-        AUTO.update_residual(m, mc, m * 0, 1.0, None),
-        b1=0.2,
-        c1=1.0,
-        c2=1.0,
-        count=jnp.asarray(5),
-        axes=(0, 1),
-    )
-    return mt, vt, sigma_d
+    kept = lambda rule: ob.postfilter(sigma_d=rule).init(x).sigma_state.previous_guide.shape
+    assert kept(AUTO) == (128, 128, 2) and kept(EVERY_TEXEL) == shape  # sub-grid, every texel
 
 
 @given(problem=blend_problems(), scale=st.floats(0.5**13, 2.0**13, width=32))
 def test_sure_choice_and_blend_keep_the_bounded_step(problem, scale):
-    # Whichever candidate sigma_d="sure" chooses, m~ and v~ come from one operator.
+    # Whichever candidate sigma_d="sure" chooses (its scale the guide's step times 3), m~ and
+    # v~ come from one operator.
     m, v, zeta, guide, _ = problem
-    mt, vt, sigma_d = _sure_step(m, v.astype(np.float32), zeta, guide, scale)
-    assert np.isfinite(float(sigma_d)) and float(sigma_d) >= 0
-    _assert_bounded(m, v, mt, vt)
+    params = jnp.broadcast_to(jnp.asarray(guide)[..., None], m.shape)
+    shift = scale / (SURE.auto.step_factor * math.sqrt(m.shape[-1]))  # each texel's step
+    state = dict(previous_guide=params - shift, previous_gradient=m - zeta)
+    u, new = _blend_step("sure", m, v.astype(np.float32), params, 5, levels=3, **state)
+    sigma_d = float(new.sigma_state.sigma_d)
+    assert np.isfinite(sigma_d) and sigma_d >= 0
+    _assert_bounded(u, new)
 
 
 def test_state_holds_the_previous_guide_and_residual_and_checkpoints(tmp_path):
@@ -540,24 +586,25 @@ def test_the_filter_itself_takes_numbers_only():
     ],
 )
 def test_stride_leaves_at_least_min_texels(shape, axes, expected):
-    s = AUTO.stride(shape, axes)
-    assert s == expected
+    """The state keeps every s-th texel of the guide along each spatial axis: the largest
+    power of two s that leaves at least ``min_texels`` texels (1 below that)."""
+    opt = ob.postfilter(spatial_axes=axes)
+    kept = jax.eval_shape(opt.init, jax.ShapeDtypeStruct(shape, jnp.float32))
+    kept = kept.sigma_state.previous_guide.shape
     count = lambda s: math.prod(-(-shape[a] // s) for a in axes)
-    assert count(s) >= AUTO.min_texels or s == 1
-    assert count(2 * s) < AUTO.min_texels
+    assert kept == tuple(-(-n // expected) if a in axes else n for a, n in enumerate(shape))
+    assert count(expected) >= AUTO.min_texels or expected == 1
+    assert count(2 * expected) < AUTO.min_texels
 
 
 def test_a_large_leaf_keeps_a_sub_grid_of_its_guide_and_sigma_is_its_full_mean():
-    """Above MIN_TEXELS the state keeps every s-th texel; the guide's mean step over it is
+    """Above ``min_texels`` the state keeps every s-th texel; the guide's mean step over it is
     the full grid's to a fraction of a percent, and an unprojected step still gives sqrt(C) lr."""
     rng = np.random.default_rng(0)
-    shape, axes = (300, 260, 2), (0, 1)  # 78000 texels: stride 2, not dividing 300 or 260 evenly
-    assert AUTO.stride(shape, axes) == 2
+    shape = (300, 260, 2)  # 78000 texels: stride 2, not dividing 300 or 260 evenly
     guide = jnp.asarray(rng.random(shape), jnp.float32)
     step = jnp.asarray(rng.standard_normal(shape) * rng.random(shape[:2])[..., None], jnp.float32)
-    kept = AUTO.kept_guide(guide, axes)
-    np.testing.assert_array_equal(kept, guide[::2, ::2])
-    sub = AUTO.scale(guide + 0.01 * step, kept, jnp.asarray(2), axes)
+    _, sub = _step_scales([guide, guide + 0.01 * step])
     full = AUTO.step_factor * 0.01 * np.linalg.norm(np.asarray(step), axis=-1).mean()
     np.testing.assert_allclose(sub, full, rtol=5e-3)
     opt = ob.bilateral_adam(0.02)
@@ -593,14 +640,24 @@ def _blurred(noise: np.ndarray, width: float) -> np.ndarray:
 
 
 def _correlated(g, m_hat, t=5, b1=0.2, observed=None):
+    """``AutoState.correlated`` after step ``t`` (a check step: ``check_period=t``) of a
+    postfilter whose gradient is ``g`` and whose first moment is then ``m_hat (1 - b1^t)``;
+    texels where ``observed`` is False get a NaN gradient (unobserved)."""
     c1 = 1 - b1**t
     g, m = jnp.asarray(g, jnp.float32), jnp.asarray(m_hat * c1, jnp.float32)
-    return bool(AUTO.correlated_noise(g, m, b1=b1, c1=c1, axes=(0, 1), observed=observed))
+    mu = (m - (1 - b1) * g) / b1 if b1 else jnp.zeros_like(m)  # m = b1 mu + (1 - b1) g
+    if observed is not None:
+        g = jnp.where(observed, g, jnp.nan)
+    rule = ob.auto_sigma(check_period=t)
+    opt = ob.postfilter(b1, 0.36, sigma_d=rule, spatial_axes=(0, 1))
+    params = jnp.zeros(g.shape)
+    _, state = opt.update(g, at_step(opt.init(params), t - 1, mu=mu), params)
+    return bool(state.sigma_state.correlated)
 
 
 def _tells_blurred_from_white(shape, scale=1.0):
     """``correlated`` on white noise, noise blurred over 1.5 texels (lag-1 correlation
-    exp(-1/9) = 0.89) and over half a texel (exp(-1) = 0.37, below ``CORRELATED``)."""
+    exp(-1/9) = 0.89) and over half a texel (exp(-1) = 0.37, below ``correlated``)."""
     rng = np.random.default_rng(0)
     noise = rng.normal(size=shape)
     signal = 0.1 * np.ones(shape)
@@ -619,13 +676,15 @@ def test_correlated_tells_blurred_noise_from_white_noise_at_every_scale(scale):
 def test_correlated_reads_pairs_on_the_subgrid_of_a_large_leaf():
     """On a leaf with a sub-grid (stride 4 at 512x512) the pairs are texels 4i and 4i + 1:
     the same lag-1 correlation, from an eighth of the texels."""
-    assert AUTO.stride((512, 512, 1), (0, 1)) == 4
+    init = ob.postfilter(spatial_axes=(0, 1)).init
+    kept = jax.eval_shape(init, jax.ShapeDtypeStruct((512, 512, 1), jnp.float32))
+    assert kept.sigma_state.previous_guide.shape == (128, 128, 1)
     _tells_blurred_from_white((512, 512, 1))
 
 
 def test_correlated_needs_the_difference_to_be_noise_not_the_signals_drift():
     """A smooth gradient that moved a little since the first moment (a noise-free run's
-    first steps) is perfectly correlated but not noise: ``NOISY`` keeps the step as it is."""
+    first steps) is perfectly correlated but not noise: ``noisy`` keeps the step as it is."""
     x = np.linspace(0, 1, 64)
     signal = np.sin(3 * x)[:, None, None] * np.cos(2 * x)[None, :, None] * np.ones((1, 1, 3))
     drift = np.cos(5 * x)[:, None, None] * np.ones((1, 64, 3))
@@ -640,9 +699,9 @@ def test_correlated_is_false_without_memory_a_first_step_or_a_gradient():
     blurred = _blurred(rng.normal(size=(32, 32, 1)), 1.5)
     g = jnp.asarray(blurred, jnp.float32)
     # First step: m = (1 - b1) g and c1 = 1 - b1, so g - m_hat = 0.
-    assert not bool(AUTO.correlated_noise(g, 0.8 * g, b1=0.2, c1=0.8, axes=(0, 1)))
+    assert not _correlated(g, g, t=1)
     # b1 = 0: m_hat is g.
-    assert not bool(AUTO.correlated_noise(g, g, b1=0.0, c1=1.0, axes=(0, 1)))
+    assert not _correlated(g, g, b1=0.0)
     assert not _correlated(np.zeros((32, 32, 1)), np.zeros((32, 32, 1)))
     # Unobserved texels are left out: blurred noise only on a masked-out half counts for nothing.
     observed = jnp.asarray(np.arange(32)[:, None, None] < 16) * jnp.ones((1, 32, 1), bool)
@@ -686,7 +745,7 @@ def _with_correlated(state, flag: int):
 
 def test_a_correlated_step_is_the_filter_at_heavy_factor_with_extra_levels_and_no_blend():
     """With ``AutoState.correlated`` set, the update is the one of ``levels + 1`` levels at
-    ``HEAVY_FACTOR`` times sigma_d without the blend (clean and masked gradients alike)."""
+    ``heavy_factor`` times sigma_d without the blend (clean and masked gradients alike)."""
     _, state, x = _correlated_problem(2)
     heavy, light = _with_correlated(state, 1), _with_correlated(state, 0)
     g = jnp.asarray(_blurred(np.random.default_rng(3).normal(size=SHAPE), 1.5), jnp.float32)

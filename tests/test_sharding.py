@@ -340,16 +340,19 @@ def _child() -> None:  # pragma: no cover - runs in the subprocess
             init_sharding_kept=init_sharding_kept(tx, p_s),
         )
 
-    # A closed gate's check on the sub-grid (stride 4 here), sharded and on one device.
-    def gate_of(m, v, residual, axes):
-        stats = dict(b1=0.9, c1=jnp.asarray(1.0), c2=jnp.asarray(1.0), count=jnp.asarray(8))
-        return subgrid.weights(m, v, residual, axes=axes, **stats)[1]
+    # A closed gate's check on the sub-grid (stride 4 here), sharded and on one device: the
+    # gate a check step (8) writes, its moments m_hat = m, v_hat = m^2 + 0.1.
+    def gate_of(m):
+        b, c = 0.9, 1 - 0.9**8
+        tx = ob.postfilter(b, b, sigma_d=subgrid, levels=2)
+        state = tx.init(m)
+        mu, nu = c * m, c * (m * m + 0.1 - (1 - b) * c * m * m) / b
+        rule = state.sigma_state._replace(residual=0.2 * jnp.sin(9 * m))
+        state = state._replace(count=jnp.asarray(7, jnp.int32), mu=mu, nu=nu, sigma_state=rule)
+        return tx.update(c * m, state, m)[1].sigma_state.gate
 
-    gate = jax.jit(gate_of, static_argnames="axes")
-    gates = [
-        float(gate(m, m * m + 0.1, 0.12 * jnp.sin(9 * m), axes=(0, 1)))  # half open
-        for m in (params["tex"], p_s["tex"])
-    ]
+    gate = jax.jit(gate_of)
+    gates = [float(gate(m)) for m in (params["tex"], p_s["tex"])]  # half open
     emit(check="subgrid_gate", gates=gates)
 
     # --- save_state / load_state: each device's block restored, under another mesh too.

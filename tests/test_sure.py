@@ -6,8 +6,6 @@ checked beside "auto"'s in test_auto.py.
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,37 +13,57 @@ import optax
 import pytest
 
 import optax_bilateral as ob
-from states import filtered_state
+from states import at_step, filtered_state
 
 SURE = ob.Sure()
+STEP_SCALE = ob.sure_sigma(factors=(1.0,), first_factor=1.0)  # sigma_d: the step scale itself
 
 SHAPE = (16, 16, 3)
 AXES = (0, 1)
 
 
 LEVELS = 5  # the candidates' F: 2, 3, 4, 5
+SCALE = 0.1  # the candidates' sigma_d per factor (their step scale)
+T = 20  # the step: 1 - 0.2^20 is 1 in float32, so m_hat = m
+
+
+def _labels(levels=LEVELS, rule=SURE):
+    """``(factor, F)`` of every candidate, in the order of ``SureState.risks``: factor-major,
+    F from ``min_levels`` (or ``levels``, if fewer) to ``levels``."""
+    choices = range(min(rule.min_levels, levels), levels + 1)
+    return [(f, n) for f in rule.factors for n in choices]
+
+
+def _step(params, m, zeta, *, rule=SURE, levels=LEVELS, b1=0.2, count=T, **rule_state):
+    """``(update, SureState)`` of step ``count`` of a postfilter with ``sigma_d=rule`` whose
+    first moment is then ``m`` (the gradient is ``m``; ``v`` before it ``m^2 + 1``, the noise
+    of ``v - m^2`` keeping the blend shut), whose noise sample is ``zeta``, and
+    whose candidates' step scale is ``SCALE`` (the guide, ``params``, moved by ``SCALE / 3``
+    per texel and channel: ``C = 1``); ``rule_state``: fields of its ``SureState``."""
+    opt = ob.postfilter(b1, 0.36, sigma_d=rule, levels=levels, spatial_axes=AXES)
+    m, zeta = jnp.asarray(m, jnp.float32), jnp.asarray(zeta, jnp.float32)
+    c1 = 1 - b1**count
+    rho = (1 - b1) * (2 - c1) / ((1 + b1) * c1)  # Var m_hat per unit gradient variance
+    shift = SCALE / (rule.auto.step_factor * np.sqrt(m.shape[-1]))
+    fields = dict(previous_guide=params - shift, previous_gradient=m - zeta / np.sqrt(rho / 2))
+    state = at_step(opt.init(params), count - 1, mu=m, nu=m * m + 1, **(fields | rule_state))
+    u, state = opt.update(m, state, params)
+    return u, state.sigma_state
+
+
+def _label(state):
+    """``(factor, F)`` of the candidate ``state`` records (its sigma_d over ``SCALE``)."""
+    return round(float(state.sigma_d) / SCALE, 3), int(state.levels)
 
 
 def _choice(mean, noise, guide, probe=None, seed=0):
-    """``(sigma_d / scale, F)`` that sure.choose picks for ``m_hat = mean + noise N(0, 1)``
-    with a probe of the same noise (default: an independent draw), the candidates built as
-    the step builds them: one cascade per factor, read after every F."""
+    """``(factor, F)`` that sigma_d="sure" picks for ``m_hat = mean + noise N(0, 1)`` with a
+    probe of the same noise (default: an independent draw) from no evidence before."""
     rng = np.random.default_rng(seed)
-    n = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32)
-    m = jnp.asarray(mean, jnp.float32) + n
-    zeta = jnp.asarray(noise * rng.normal(size=mean.shape), jnp.float32) if probe is None else n
-    guide, scale = jnp.asarray(guide, jnp.float32), jnp.asarray(0.1, jnp.float32)
-    filter_at = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
-    cands = SURE.candidates(
-        (m, zeta),
-        LEVELS,
-        scale,
-        lambda x, s, n, k: filter_at(x, sigma_d=s, levels=n, first_level=k),
-    )
-    m_f, pick, _ = SURE.choose(m, zeta, cands, 1.0, jnp.asarray(True), None, SURE.first(LEVELS))
-    np.testing.assert_array_equal(m_f, cands[int(pick)][0])
-    sigma_d, levels = SURE.labels(LEVELS, scale)
-    return round(float(sigma_d[pick] / scale), 3), int(levels[pick])
+    n = noise * rng.normal(size=mean.shape)
+    zeta = noise * rng.normal(size=mean.shape) if probe is None else n
+    guide = jnp.asarray(guide, jnp.float32)[..., None]
+    return _label(_step(guide, mean + n, zeta)[1])
 
 
 def test_the_risk_estimate_filters_noise_and_keeps_detail():
@@ -62,64 +80,79 @@ def test_the_risk_estimate_filters_noise_and_keeps_detail():
     assert _choice(checker, noise=1e-3, guide=checker[..., 0])[0] == SURE.factors[0]
 
 
+def _fixed_update(params, m, sigma_d, levels, count=T, b1=0.2):
+    """The update of a postfilter at ``sigma_d`` and ``levels`` from the moments ``_step``
+    sets."""
+    opt = ob.postfilter(b1, 0.36, sigma_d=sigma_d, levels=levels, spatial_axes=AXES)
+    m = jnp.asarray(m, jnp.float32)
+    state = at_step(opt.init(params), count - 1, mu=m, nu=m * m + 1)
+    return opt.update(m, state, params)[0]
+
+
 def test_the_first_step_takes_the_middle_factor_at_the_middle_level():
-    m = jnp.ones((8, 8, 1))
-    cands = [(m * k, m * 0) for k in range(len(SURE.factors) * 4)]
-    first = SURE.first(LEVELS)
-    m_f, pick, risks = SURE.choose(m, m * 0, cands, 1.0, False, None, first)
-    sigma_d, levels = SURE.labels(LEVELS, jnp.asarray(0.5))
-    assert int(pick) == first and float(sigma_d[pick]) == SURE.first_factor * 0.5
-    assert int(levels[pick]) == 4
-    np.testing.assert_array_equal(m_f, cands[first][0])
-    np.testing.assert_array_equal(risks, np.zeros(len(cands)))  # no evidence yet
+    """Before the noise can be estimated: ``first_factor`` times the step scale (the
+    contrast, read with a single factor of 1) at the middle F, no evidence in the risks,
+    and the step is that candidate's filter."""
+    rng = np.random.default_rng(1)
+    params = jnp.asarray(rng.random((16, 16, 1)), jnp.float32)
+    g = jnp.asarray(rng.normal(size=params.shape), jnp.float32)
+    opt, one = (ob.postfilter(sigma_d=r) for r in (SURE, STEP_SCALE))
+    u, state = opt.update(g, opt.init(params), params)
+    _, scale = one.update(g, one.init(params), params)
+    sure, scale = state.sigma_state, float(scale.sigma_state.sigma_d)
+    assert int(sure.levels) == 4
+    assert float(sure.sigma_d) == pytest.approx(SURE.first_factor * scale, rel=1e-6)
+    np.testing.assert_array_equal(sure.risks, np.zeros(len(_labels())))  # no evidence yet
+    fixed = ob.postfilter(sigma_d=sure.sigma_d, levels=4)
+    np.testing.assert_allclose(u, fixed.update(g, fixed.init(params), params)[0], rtol=1e-5)
 
 
-def _bias_candidates(m):
-    """Candidates ``(k m, 0)``: with a zero noise sample the risk of k is ``(1 - k)^2 |m|^2``,
-    least for k = 1."""
-    return [(m * k, m * 0) for k in range(len(SURE.factors) * 4)]
+def _evidence():
+    """A leaf, its moment and noise sample, on which every step's risks favour one
+    candidate (a noisy checkerboard under a random guide)."""
+    rng = np.random.default_rng(4)
+    params = jnp.asarray(rng.random((16, 16, 1)), jnp.float32)
+    i, j = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
+    mean = ((i + j) % 2 * 2.0 - 1.0)[..., None]
+    return params, mean + 0.5 * rng.normal(size=mean.shape), 0.5 * rng.normal(size=mean.shape)
 
 
 def test_the_choice_follows_the_moving_average_of_the_risks():
-    # An average that favours candidate 3 outvotes one step's evidence for candidate 1; the
-    # same evidence step after step moves the choice there.
-    m = jnp.ones((8, 8, 1))
-    cands = _bias_candidates(m)
-    risks = jnp.zeros(len(cands)).at[3].set(-1.0)
-    picks = []
+    # An average that favours another candidate outvotes one step's evidence; the same
+    # evidence step after step moves the choice to the candidate it favours.
+    params, m, zeta = _evidence()
+    labels = _labels()
+    _, once = _step(params, m, zeta)
+    best = labels.index(_label(once))
+    other = (best + len(labels) // 2) % len(labels)
+    risks, picks = jnp.zeros(len(labels)).at[other].set(-1.0), []
     for _ in range(40):
-        _, pick, risks = SURE.choose(m, m * 0, cands, 1.0, True, None, 0, risks)
-        picks.append(int(pick))
-    assert picks[0] == 3 and picks[-1] == 1, picks
-    switch = picks.index(1)
-    assert all(p == 3 for p in picks[:switch]) and all(p == 1 for p in picks[switch:])
-    # Steps without a usable noise sample leave the average as it is.
-    _, pick, kept = SURE.choose(m, m * 0, cands, 1.0, False, None, 0, risks)
-    np.testing.assert_array_equal(kept, risks)
-    assert int(pick) == 0
+        _, state = _step(params, m, zeta, risks=risks)
+        picks.append(labels.index(_label(state)))
+        risks = state.risks
+    assert picks[0] == other and picks[-1] == best, picks
+    switch = picks.index(best)
+    assert all(p == other for p in picks[:switch]) and all(p == best for p in picks[switch:])
+    # Steps without a usable noise sample (b1 = 0: no memory) leave the average as it is
+    # and take the first candidate.
+    _, kept = _step(params, m, zeta, b1=0.0, risks=risks)
+    np.testing.assert_array_equal(kept.risks, risks)
+    assert _label(kept) == (SURE.first_factor, 4)
 
 
 def test_once_opened_the_mildest_candidate_is_taken():
     """``opened`` > 0 overrides the least risk with the first candidate (the smallest factor at
     the least F) once the noise is usable; before that the first pick stands."""
-    m = jnp.asarray(np.random.default_rng(0).normal(size=(32, 32, 1)), jnp.float32)
-    guide = jnp.zeros((32, 32), jnp.float32)
-    filter_at = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
-    cands = SURE.candidates(
-        (m, m), LEVELS, 0.1, lambda x, s, n, k: filter_at(x, sigma_d=s, levels=n, first_level=k)
-    )
-    first = SURE.first(LEVELS)
+    m = np.random.default_rng(0).normal(size=(32, 32, 1))
+    guide = jnp.zeros((32, 32, 1), jnp.float32)
 
     def pick(usable, opened):
-        u = jnp.asarray(usable)
-        m_f, p, _ = SURE.choose(m, m, cands, 1.0, u, None, first, None, jnp.asarray(opened))
-        np.testing.assert_array_equal(m_f, cands[int(p)][0])
-        return int(p)
+        return _label(_step(guide, m, m, b1=0.2 if usable else 0.0, opened=opened)[1])
 
     # All noise, and a constant guide (every factor filters alike): the deepest F.
-    assert int(SURE.labels(LEVELS, 0.1)[1][pick(True, 0.0)]) == LEVELS
-    assert pick(True, 1.0) == 0
-    assert pick(False, 1.0) == first
+    assert pick(True, 0.0)[1] == LEVELS
+    assert pick(True, 1.0) == (SURE.factors[0], 2)
+    assert pick(False, 1.0) == (SURE.first_factor, 4)
 
 
 def _run_sure(steps, target, noise, then=None, seed=0):
@@ -163,47 +196,57 @@ def test_the_gate_opens_on_an_iid_target_and_the_choice_stays_mild(iid_and_smoot
 def test_every_step_casts_one_vote_whatever_the_gradients_scale(c):
     # Each step's risks are divided by their largest magnitude: the average does not let
     # the large early gradients outweigh the small late ones.
-    m = jnp.linspace(0.5, 1.5, 64, dtype=jnp.float32).reshape(8, 8, 1)
-    _, _, unit = SURE.choose(m, m * 0, _bias_candidates(m), 1.0, True, None, 0)
-    mc = m * jnp.float32(c)
-    _, _, scaled = SURE.choose(mc, mc * 0, _bias_candidates(mc), 1.0, True, None, 0)
-    np.testing.assert_allclose(scaled, unit, rtol=1e-5)
-    assert float(jnp.max(jnp.abs(unit))) == pytest.approx(1 - SURE.risk_decay)
+    m = np.linspace(0.5, 1.5, 64).reshape(8, 8, 1)
+    guide = jnp.asarray(np.random.default_rng(0).random((8, 8, 1)), jnp.float32)
+    _, unit = _step(guide, m, 0 * m)
+    _, scaled = _step(guide, c * m, 0 * m)
+    np.testing.assert_allclose(scaled.risks, unit.risks, rtol=1e-5)
+    assert float(jnp.max(jnp.abs(unit.risks))) == pytest.approx(1 - SURE.risk_decay)
 
 
 def test_an_overflowing_risk_votes_against_its_candidate():
-    m = jnp.ones((8, 8, 1))
-    cands = _bias_candidates(m)
-    cands[1] = (m * jnp.inf, m * 0)  # the otherwise least risk, now inf
-    cands[2] = (m * jnp.nan, m * 0)
-    _, pick, risks = SURE.choose(m, m * 0, cands, 1.0, True, None, 0)
-    assert int(pick) == 0 and np.all(np.isfinite(risks))
-    assert float(risks[1]) == float(risks[2]) == pytest.approx(2 * (1 - SURE.risk_decay))
+    """A noise sample near float32's limit: the risks of the candidates that filter little
+    overflow to +inf (the noise's variance), of those that filter much to -inf (the noise
+    they remove), which a least risk would choose. Each such vote is 2, worse than any
+    finite one (at most 1): the average stays finite and takes neither."""
+    rng = np.random.default_rng(0)
+    guide = jnp.asarray(5 * rng.random((32, 32, 1)), jnp.float32)  # edges stop sigma_d = 0.1
+    zeta = 7e17 * rng.normal(size=(32, 32, 1))
+    _, state = _step(guide, np.ones((32, 32, 1)), zeta)
+    risks, overflowed = np.asarray(state.risks), 2 * (1 - SURE.risk_decay)
+    assert np.all(np.isfinite(risks))
+    worst = np.isclose(risks, overflowed)
+    assert worst[0] and worst[-1]  # the mildest (+inf) and the heaviest (-inf)
+    assert not worst.all() and not worst[_labels().index(_label(state))]
 
 
 @pytest.mark.parametrize("levels, choices", [(1, (1,)), (2, (2,)), (5, (2, 3, 4, 5))])
 def test_the_candidates_are_every_factor_at_every_level_from_two(levels, choices):
-    assert SURE.level_choices(levels) == choices
-    sigma_d, f = SURE.labels(levels, jnp.asarray(2.0))
-    expected = [(k * 2.0, n) for k in SURE.factors for n in choices]
-    assert [(float(s), int(n)) for s, n in zip(sigma_d, f)] == expected
-    assert int(f[SURE.first(levels)]) == choices[len(choices) // 2]
+    """The risks hold one entry per factor and F in ``choices``; the first step takes the
+    middle F, and a usable one the label of the least average risk (factor-major order)."""
+    params, m, zeta = _evidence()
+    _, first = _step(params, m, zeta, levels=levels, count=1)
+    assert first.risks.shape == (len(SURE.factors) * len(choices),)
+    assert int(first.levels) == choices[len(choices) // 2]
+    _, state = _step(params, m, zeta, levels=levels)
+    labels = [(k, n) for k in SURE.factors for n in choices]
+    assert _label(state) == labels[int(jnp.argmin(state.risks))]
 
 
 def test_each_candidate_is_the_filter_at_its_labels():
-    # sure.candidates reads one cascade per factor after each F: candidate i is the whole
-    # filter at labels(levels)[i].
+    # sure's candidates read one cascade per factor after each F: whichever the average
+    # favours, the step is the whole filter at that candidate's sigma_d and F (the blend
+    # shut: noise alone, no residual).
     rng = np.random.default_rng(2)
-    x = jnp.asarray(rng.normal(size=(24, 20, 2)), jnp.float32)
-    guide, scale = jnp.asarray(rng.random((24, 20)), jnp.float32), jnp.asarray(0.2, jnp.float32)
-    filt = functools.partial(ob.atrous_bilateral, guide=guide, spatial_axes=AXES)
-    cands = SURE.candidates(
-        x, 4, scale, lambda y, s, n, k: filt(y, sigma_d=s, levels=n, first_level=k)
-    )
-    sigma_d, levels = SURE.labels(4, scale)
-    assert len(cands) == len(sigma_d)
-    for c, s, n in zip(cands, sigma_d, levels):
-        np.testing.assert_allclose(c, filt(x, sigma_d=s, levels=int(n)), atol=1e-6)
+    params = jnp.asarray(rng.random((24, 20, 2)), jnp.float32)
+    m = rng.normal(size=params.shape)
+    labels = _labels(4)
+    for i in range(len(labels)):
+        risks = jnp.zeros(len(labels)).at[i].set(-10.0)
+        u, state = _step(params, m, m, levels=4, risks=risks)
+        assert _label(state) == labels[i]
+        fixed = _fixed_update(params, m, state.sigma_d, int(state.levels))
+        np.testing.assert_allclose(u, fixed, rtol=1e-5, atol=1e-6)
 
 
 def _target(block=4):
@@ -241,11 +284,11 @@ def test_sure_beats_adam_and_records_its_choice_and_checkpoints(tmp_path):
     tex = post.sigma_state["tex"]
     assert isinstance(tex, ob.SureState) and tex.residual.shape == target.shape
     assert float(tex.sigma_d) > 0  # the noise dominates: it filtered
-    assert int(tex.levels) in SURE.level_choices(ob.SURE_LEVELS)
+    labels = _labels(ob.SURE_LEVELS)
+    assert int(tex.levels) in {n for _, n in labels}
     # The chosen F is the label of the least averaged risk.
-    assert tex.risks.shape == (SURE.n_candidates(ob.SURE_LEVELS),)
-    best = int(jnp.argmin(tex.risks))
-    assert int(tex.levels) == int(SURE.labels(ob.SURE_LEVELS, jnp.asarray(1.0))[1][best])
+    assert tex.risks.shape == (len(labels),)
+    assert int(tex.levels) == labels[int(jnp.argmin(tex.risks))][1]
     path = tmp_path / "state.npz"
     ob.save_state(path, state)
     restored = ob.load_state(path, opt.init(params))
@@ -274,7 +317,7 @@ def test_a_sure_leaf_defaults_to_sure_levels_and_the_others_keep_default_levels(
     params = {"tex": jnp.full((16, 16, 3), 0.5), "other": jnp.full((16, 16, 3), 0.5)}
     opt = ob.bilateral_adam(0.05, sigma_d={"tex": "sure", "other": 0.1}, levels=levels)
     state = opt.init(params)
-    assert filtered_state(state).sigma_state["tex"].risks.shape == (SURE.n_candidates(expected),)
+    assert filtered_state(state).sigma_state["tex"].risks.shape == (len(_labels(expected)),)
     # The leaf with a number filters exactly as with levels=3 (or the levels given).
     alone = ob.bilateral_adam(0.05, sigma_d=0.1, levels=levels or ob.DEFAULT_LEVELS)
     rng = np.random.default_rng(0)

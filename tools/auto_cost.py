@@ -30,7 +30,7 @@ from experiments import common
 GRIDS = {"texture 512^2x3": (512, 512, 3), "volume 64^3x1": (64, 64, 64, 1)}
 QUICK_GRIDS = {"texture 64^2x3": (64, 64, 3)}  # one grid: the test compiles every program once
 TARGET = 1.2
-NOISE_SAMPLES = 16  # two of auto's check periods (auto.CHECK_PERIOD = 8)
+NOISE_SAMPLES = 16  # two of auto's check periods (Auto.check_period = 8)
 
 
 def _step(opt, params, grads):

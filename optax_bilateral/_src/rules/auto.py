@@ -9,15 +9,15 @@ their constants are the fields of :class:`Auto` (``"auto"`` is ``Auto()``):
   A prefilter, which does not see the step it leads to, uses ``step_factor`` times the mean
   guide step instead. Before the guide has moved (the first step) ``contrast_factor`` times
   the guide's mean deviation from its local average stands in. On a leaf of more than
-  ``min_texels`` texels both means run over a strided sub-grid of at least that many
-  (:meth:`Auto.stride`), and only that sub-grid of the guide is kept.
+  ``min_texels`` texels both means run over a strided sub-grid of at least that many (every
+  ``s``-th texel along each spatial axis, ``s`` the largest power of two that leaves that
+  many), and only that sub-grid of the guide is kept.
 * **The blend** (postfilter with moments). Texels where the residual ``r = m_hat - B m_hat``
   persists over time beyond what the moments' noise (supplement eq. 24, ``v - m^2``)
   explains keep more of their unfiltered moments, ``m~ = lam m_hat + (1 - lam) B m_hat`` and
   likewise ``v``, with one ``lam`` for both, so the step stays bounded (supplement §1.3). A
   leaf blends only where persistent residuals are widespread (``gate``); while its gate is
-  closed it is checked only every ``check_period``-th step, from the sub-grid
-  (:func:`blend_phase`).
+  closed it is checked only every ``check_period``-th step, from the sub-grid.
 * **Correlated noise** (postfilter with moments, cross-guided). Where the lag-1 correlation
   of ``g - m_hat`` between neighbours is at least ``correlated`` and that difference is
   noise, not the signal's drift (``noisy``), the step filters at ``heavy_factor`` times
@@ -40,7 +40,7 @@ from jax import lax
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import log_transform
 from optax_bilateral._src.filter.local import every, local_average_subgrid
-from optax_bilateral._src.rules.sigma import Filtered, SigmaRule
+from optax_bilateral._src.rules.sigma import Filtered, Moments, SigmaRule, StepContext, cast_like
 from optax_bilateral._src.validation import check_integer, check_number
 
 SKIP, CHECK, BLEND = 0, 1, 2  # what a postfilter step computes of the blend (blend_phase)
@@ -57,7 +57,8 @@ class AutoState(NamedTuple):
     Attributes:
       previous_guide: the guide the last update saw, with the guide's shape, or on a leaf of
         more than ``min_texels`` (16384) texels its sub-grid (every ``s``-th texel along each
-        spatial axis, :meth:`Auto.stride`); None for ``guide="self"``.
+        spatial axis, ``s`` the largest power of two that leaves at least ``min_texels``);
+        None for ``guide="self"``.
       residual: the exponential moving average (decay 0.97) of ``m_hat - B m_hat``, with
         the leaf's shape; None in a :func:`prefilter` or a memoryless postfilter (no
         moments).
@@ -67,9 +68,9 @@ class AutoState(NamedTuple):
       gate: how far the blend was open at the last step (a scalar in [0, 1]; 0 at a step
         that skipped the blend's statistics); None where ``residual`` is. While it is 0,
         it is checked only every ``check_period`` (8) steps, from a sub-grid of the leaf,
-        and a gate that opens there blends from the next step (:func:`blend_phase`).
+        and a gate that opens there blends from the next step.
       correlated: 1 where the gradient's noise was spatially correlated at the last check
-        (:meth:`Auto.correlated`; the second step and every ``check_period``-th), else 0
+        (the second step and every ``check_period``-th), else 0
         (a scalar): until the next check the postfilter filters at ``heavy_factor`` times
         sigma_d with :attr:`Auto.heavy_levels` more levels and without the blend. None where
         ``residual`` is.
@@ -126,9 +127,10 @@ class Auto(SigmaRule):
 
         >>> import jax.numpy as jnp, optax_bilateral as ob
         >>> rule = ob.auto_sigma(check_period=4)         # the gate's check every 4th step
-        >>> rule.stride((512, 512, 3), (0, 1))   # a 512x512 leaf's statistics: every 4th texel
-        4
         >>> opt = ob.bilateral_adam(0.02, sigma_d=rule)
+        >>> state = ob.postfilter(sigma_d=rule).init(jnp.ones((512, 512, 3)))
+        >>> state.sigma_state.previous_guide.shape   # a 512x512 leaf's statistics: every 4th texel
+        (128, 128, 3)
     """
 
     rate_factor: float = 1.0
@@ -181,7 +183,7 @@ class Auto(SigmaRule):
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         previous_guide = None
         if guide is not None:
-            previous_guide = self.zero_guide(guide, plan.axes)
+            previous_guide = self._zero_guide(guide, plan.axes)
         # Every field its own buffer: a state that holds one twice cannot be donated.
         scalar = functools.partial(jnp.zeros, [], dtype)
         direction = None if kind == "prefilter" else scalar()
@@ -193,38 +195,37 @@ class Auto(SigmaRule):
     def sigma(self, guide, plan, state, ctx):
         if guide is None:  # self-guided: each field's own contrast
             return functools.partial(self._own_contrast, plan=plan), state
-        sigma = self.scale(guide, state.previous_guide, ctx.count, plan.axes, state.direction)
-        keep = self.kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
+        sigma = self._scale(guide, state.previous_guide, ctx.count, plan.axes, state.direction)
+        keep = self._kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
         return sigma, state._replace(previous_guide=keep)
 
     def combine(self, moments, op, sigma, state, ctx):
         if state.residual is None or not (op.plan.filter_m and op.plan.filter_v):
             return super().combine(moments, op, sigma, state, ctx)
         axes = op.plan.axes
-        phase = self.blend_phase(state.gate, ctx.count)
-        heavy, learned = jnp.zeros([], bool), {}
+        phase = self._blend_phase(state.gate, ctx.count)
+        heavy, learned = jnp.zeros([], bool), state
         if op.plan.one_operator:  # self-guided: each field's own sigma_d, never heavier
-            learned["correlated"] = self._check_correlation(moments, axes, state, ctx)
+            correlated = self._check_correlation(moments, axes, state, ctx)
+            learned = learned._replace(correlated=correlated)
             heavy = state.correlated > 0
             sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
         # One cascade for both ways: the ways differ only in the blend after it.
         m_f, v_f = self._cascade(op, moments, sigma, heavy)
-        learned["residual"] = residual = self.update_residual(
-            moments.m, m_f, state.residual, ctx.c1, moments.observed
-        )
-        statistics = dict(b1=ctx.b1, c1=ctx.c1, c2=ctx.c2, count=ctx.count, axes=axes)
-        weights = functools.partial(self.weights, moments.m, moments.v, residual, **statistics)
+        residual = update_residual(self, moments, m_f, state.residual, ctx.c1)
+        learned = learned._replace(residual=residual)
+        weights = functools.partial(blend_weights, self, moments, residual, ctx, axes)
         zero = functools.partial(jnp.zeros, [], moments.m.dtype)
 
         def plain():  # no blend; at a CHECK step the gate's check alone
             check = (phase == CHECK) & ~heavy
             gate = lax.cond(check, lambda: weights()[1], zero)
-            return Filtered(m_f, v_f, None, _replace_cast(state, dict(learned, gate=gate)))
+            return Filtered(m_f, v_f, None, cast_like(learned._replace(gate=gate), state))
 
         def blended():
             lam, gate = weights()
-            lam = self.upsample(lam, moments.m.shape, axes)
-            return Filtered(m_f, v_f, lam, _replace_cast(state, dict(learned, gate=gate)))
+            lam = upsample(self, lam, moments.m.shape, axes)
+            return Filtered(m_f, v_f, lam, cast_like(learned._replace(gate=gate), state))
 
         return ((phase == BLEND) & ~heavy).astype(jnp.int32), (plain, blended)
 
@@ -242,29 +243,34 @@ class Auto(SigmaRule):
     def after_step(self, d, state, plan):
         if state is None or state.direction is None:
             return state
-        return _replace_cast(state, {"direction": direction_norm(d, plan.axes, self)})
+        direction = _direction_norm(d, plan.axes, self)
+        return state._replace(direction=direction.astype(state.direction.dtype))
 
     # ------------------------------------------------------------------ the parts
 
     def _own_contrast(self, field, plan):
         guide = log_transform(field) if plan.log_guide else field
-        return self.contrast_factor * self.contrast(guide, plan.axes)
+        return self.contrast_factor * self._contrast(guide, plan.axes)
 
-    def contrast(self, guide, axes):
-        """:func:`contrast` over the sub-grid of a large leaf (:meth:`stride`)."""
-        stride = self.stride(guide.shape, _guide_axes(guide, axes))
-        return contrast(guide, axes, stride)
+    def _contrast(self, guide, axes):
+        """The guide's mean distance from its local average (one low-pass level of the
+        filter): the scale of its texel-to-texel variation; over the sub-grid of a large leaf
+        (:meth:`_stride`; the local averages computed there only, so a large leaf's first
+        step holds no full-size temporaries)."""
+        guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
+        axes = _guide_axes(guide, axes)
+        stride = self._stride(guide.shape, axes)
+        (local,) = local_average_subgrid((jnp.nan_to_num(guide),), axes, stride)
+        return _finite_mean(_texel_norm(every(guide, axes, stride) - local, axes))
 
     def _check_correlation(self, moments, axes, state, ctx):
-        """The new :attr:`AutoState.correlated`: :meth:`correlated` at the second step (the
-        first with a noise estimate) and every ``check_period``-th, else the stored one."""
+        """The new :attr:`AutoState.correlated`: :meth:`_correlated_noise` at the second step
+        (the first with a noise estimate) and every ``check_period``-th, else the stored
+        one."""
         m = moments.m
 
         def check():
-            now = self.correlated_noise(
-                moments.g, m, b1=ctx.b1, c1=ctx.c1, axes=axes, observed=moments.observed
-            )
-            return now.astype(m.dtype)
+            return self._correlated_noise(moments, axes, ctx).astype(m.dtype)
 
         stored = lambda: state.correlated.astype(m.dtype)
         count = ctx.count
@@ -273,7 +279,7 @@ class Auto(SigmaRule):
 
     # ------------------------------------------------------------------ statistics
 
-    def stride(self, shape: tuple[int, ...], axes: tuple[int, ...]) -> int:
+    def _stride(self, shape: tuple[int, ...], axes: tuple[int, ...]) -> int:
         """The sub-grid's stride along every spatial axis: the largest power of two that
         leaves at least ``min_texels`` texels (1 for a leaf with fewer)."""
         s = 1
@@ -281,26 +287,26 @@ class Auto(SigmaRule):
             s *= 2
         return s
 
-    def subgrid(self, x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    def _subgrid(self, x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
         """Every ``stride``-th texel of ``x`` along each of its spatial ``axes``."""
-        return every(x, axes, self.stride(x.shape, axes))
+        return every(x, axes, self._stride(x.shape, axes))
 
-    def kept_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    def _kept_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
         """What :attr:`AutoState.previous_guide` keeps of a guide: its sub-grid."""
-        return self.subgrid(guide, _guide_axes(guide, axes))
+        return self._subgrid(guide, _guide_axes(guide, axes))
 
-    def zero_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
-        """Zeros shaped (and sharded) like :meth:`kept_guide`: the first ``previous_guide``."""
-        return numerics.zeros(self.kept_guide(jnp.asarray(guide), axes))
+    def _zero_guide(self, guide: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+        """Zeros shaped (and sharded) like :meth:`_kept_guide`: the first ``previous_guide``."""
+        return numerics.zeros(self._kept_guide(jnp.asarray(guide), axes))
 
-    def scale(self, guide, previous, count, axes, direction=None) -> jax.Array:
+    def _scale(self, guide, previous, count, axes, direction=None) -> jax.Array:
         """The leaf's sigma_d at step ``count`` (1 = first); ``direction`` (a postfilter's
         :attr:`AutoState.direction`) or None for the prefilter's and ``"sure"``'s step scale."""
         if previous is None:
-            return self.contrast_factor * self.contrast(guide, axes)
+            return self.contrast_factor * self._contrast(guide, axes)
         guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
         guide_axes = _guide_axes(guide, axes)
-        now = self.subgrid(guide, guide_axes)
+        now = self._subgrid(guide, guide_axes)
         step = _finite_mean(_texel_norm(now - previous.astype(guide.dtype), guide_axes))
         moved = (count > 1) & (step > 0)
         if direction is None:
@@ -314,28 +320,28 @@ class Auto(SigmaRule):
         return lax.cond(
             moved,
             lambda: scale,
-            lambda: (self.contrast_factor * self.contrast(guide, axes)).astype(step.dtype),
+            lambda: (self.contrast_factor * self._contrast(guide, axes)).astype(step.dtype),
         )
 
-    def correlated_noise(self, g, m, *, b1, c1, axes, observed=None) -> jax.Array:
+    def _correlated_noise(self, moments, axes, ctx) -> jax.Array:
         """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
-        between neighbours of ``z = g - m_hat`` (``m`` the updated first moment, ``c1`` its
-        bias correction), averaged over the spatial ``axes``, is at least ``correlated``, and
+        between neighbours of ``z = g - m_hat`` (``m_hat = m / c1``, the updated first moment
+        bias-corrected), averaged over the spatial ``axes``, is at least ``correlated``, and
         ``z`` is noise: ``z = (1 - (1 - b1) / c1) (g - m_hat_{t-1})``, whose energy is at
-        least ``noisy`` times ``m_hat``'s. Sums run over the sub-grid and the ``observed``
-        entries (a leaf-shaped mask); False at the first step or with ``b1 = 0``."""
+        least ``noisy`` times ``m_hat``'s. Sums run over the sub-grid and the observed
+        entries; False at the first step or with ``b1 = 0``."""
+        g, m = moments.g, moments.m
         dtype = jnp.promote_types(m.dtype, jnp.float32)
-        c1 = jnp.asarray(c1, dtype)
+        c1 = jnp.asarray(ctx.c1, dtype)
         m_hat = m.astype(dtype) / c1
         z = g.astype(dtype) - m_hat
-        if observed is not None:
-            z, m_hat = jnp.where(observed, z, 0), jnp.where(observed, m_hat, 0)
+        z, m_hat = jnp.where(moments.observed, z, 0), jnp.where(moments.observed, m_hat, 0)
         corr = [_lag_correlation(*self._neighbours(z, axes, a)) for a in axes if g.shape[a] > 1]
         if not corr:
             return jnp.zeros([], bool)
-        lag = 1 - (1 - jnp.asarray(b1, dtype)) / c1
-        noise = jnp.sum(jnp.square(self.subgrid(z, axes)))
-        signal = jnp.sum(jnp.square(self.subgrid(m_hat, axes)))
+        lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / c1
+        noise = jnp.sum(jnp.square(self._subgrid(z, axes)))
+        signal = jnp.sum(jnp.square(self._subgrid(m_hat, axes)))
         return (jnp.mean(jnp.stack(corr)) >= self.correlated) & (
             noise > self.noisy * lag * lag * signal
         )
@@ -344,7 +350,7 @@ class Auto(SigmaRule):
         """``x[p]`` and ``x[p + 1 along axis]`` for every ``p`` on the sub-grid (every even
         ``p`` along ``axis`` where the stride is 1). Pairs from a reshape, not shifted
         slices, which a grid sharded along ``axis`` cannot take."""
-        s = self.stride(x.shape, axes)
+        s = self._stride(x.shape, axes)
         x = x[
             tuple(
                 slice(None, None, s) if a in axes and a != axis else slice(None)
@@ -357,21 +363,14 @@ class Auto(SigmaRule):
         blocks = x.reshape(x.shape[:axis] + (n, q) + x.shape[axis + 1 :])
         return jnp.take(blocks, 0, axis=axis + 1), jnp.take(blocks, 1, axis=axis + 1)
 
-    def update_residual(self, m, bm, residual, c1, observed=None):
-        """The residual's EMA with this step's ``m_hat - B m_hat`` (kept where ``observed``,
-        a leaf-shaped mask, is False)."""
-        decay = jnp.asarray(self.residual_decay, m.dtype)
-        residual = residual.astype(m.dtype)
-        new = decay * residual + (1 - decay) * (m - bm) / jnp.asarray(c1, m.dtype)
-        return new if observed is None else jnp.where(observed, new, residual)
-
-    def _blend_weight(self, m, v, residual, smooth, *, b1, c1, c2, count):
+    def _blend_weight(self, m, v, residual, smooth, ctx):
         """The blend's weight of the unfiltered moments per entry, before the gate; ``smooth``
         takes the local averages (:func:`local_average`, or the
         sub-grid's)."""
         dtype = m.dtype
-        b1 = jnp.asarray(b1, dtype)
-        c1, c2 = jnp.asarray(c1, dtype), jnp.asarray(c2, dtype)
+        b1 = jnp.asarray(ctx.b1, dtype)
+        c1, c2 = jnp.asarray(ctx.c1, dtype), jnp.asarray(ctx.c2, dtype)
+        count = ctx.count
         t = count.astype(dtype)
         decay = jnp.asarray(self.residual_decay, dtype)
         residual_hat = residual / (1 - decay**t)
@@ -389,45 +388,57 @@ class Auto(SigmaRule):
         low, high = self.gate_bounds
         return jnp.clip((jnp.mean(lam) - low) / (high - low), 0, 1)
 
-    def weights(self, m, v, residual, *, b1, c1, c2, count, axes) -> tuple[jax.Array, jax.Array]:
-        """``(lam, gate)``: the blend's weight of the unfiltered moments (the gate applied) at
-        every entry of the sub-grid (:meth:`stride`; every entry on a leaf of at most
-        ``min_texels`` texels; :meth:`upsample` spreads it over the leaf), and how far the
-        leaf's blend is open (a scalar in [0, 1], ``gate``).
-
-        ``m, v`` are the moments before bias correction (``c1``, ``c2``); ``residual`` is the
-        residual's EMA with this step's (:meth:`update_residual`). The local averages are
-        taken at the sub-grid's entries only, over the B-spline's taps at its stride: the
-        weight is a smooth field, which a large leaf's sub-grid samples finely enough.
-        """
-        stride = self.stride(m.shape, axes)
-        sub = functools.partial(local_average_subgrid, axes=axes, stride=stride)
-        lam = self._blend_weight(m, v, residual, sub, b1=b1, c1=c1, c2=c2, count=count)
-        gate = self._gate(lam)
-        return lam * gate, gate
-
-    def upsample(self, lam: jax.Array, shape: tuple[int, ...], axes) -> jax.Array:
-        """The sub-grid's ``lam`` (:meth:`weights`) over the whole leaf of ``shape``: each
-        entry repeated over the ``stride`` x ... block it samples (fused into the step)."""
-        s = self.stride(shape, axes)
-        for a in axes if s > 1 else ():
-            lam = lax.slice_in_dim(jnp.repeat(lam, s, axis=a), 0, shape[a], axis=a)
-        return lam
-
-    def blend_phase(self, gate: jax.Array, count: jax.Array) -> jax.Array:
+    def _blend_phase(self, gate: jax.Array, count: jax.Array) -> jax.Array:
         """What this step computes of the blend: ``BLEND`` (its statistics and the blend) if
         the gate was open at the last step; else ``CHECK`` (the gate alone,
-        :meth:`weights`) at a multiple of ``check_period``; else ``SKIP`` (nothing)."""
+        :func:`blend_weights`) at a multiple of ``check_period``; else ``SKIP`` (nothing)."""
         check = jnp.where(count % self.check_period == 0, CHECK, SKIP)
         return jnp.where(gate > 0, BLEND, check).astype(jnp.int32)
 
 
+# ---------------------------------------------------------------------- the blend (auto, sure)
+
+
+def update_residual(rule: Auto, moments: Moments, bm: jax.Array, residual, c1) -> jax.Array:
+    """The residual's EMA with this step's ``m_hat - B m_hat`` (``bm``: ``B m``), kept where
+    the entry is not observed."""
+    m = moments.m
+    decay = jnp.asarray(rule.residual_decay, m.dtype)
+    residual = residual.astype(m.dtype)
+    new = decay * residual + (1 - decay) * (m - bm) / jnp.asarray(c1, m.dtype)
+    return jnp.where(moments.observed, new, residual)
+
+
+def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes):
+    """``(lam, gate)``: the blend's weight of the unfiltered moments (the gate applied) at
+    every entry of the sub-grid (every entry on a leaf of at most ``min_texels`` texels;
+    :func:`upsample` spreads it over the leaf), and how far the leaf's blend is open (a
+    scalar in [0, 1], ``gate``).
+
+    ``moments.m, moments.v`` are the moments before bias correction (``ctx.c1``, ``ctx.c2``);
+    ``residual`` is the residual's EMA with this step's (:func:`update_residual`). The local
+    averages are taken at the sub-grid's entries only, over the B-spline's taps at its
+    stride: the weight is a smooth field, which a large leaf's sub-grid samples finely
+    enough.
+    """
+    m, v = moments.m, moments.v
+    stride = rule._stride(m.shape, axes)
+    sub = functools.partial(local_average_subgrid, axes=axes, stride=stride)
+    lam = rule._blend_weight(m, v, residual, sub, ctx)
+    gate = rule._gate(lam)
+    return lam * gate, gate
+
+
+def upsample(rule: Auto, lam: jax.Array, shape: tuple[int, ...], axes) -> jax.Array:
+    """The sub-grid's ``lam`` (:func:`blend_weights`) over the whole leaf of ``shape``: each
+    entry repeated over the ``stride`` x ... block it samples (fused into the step)."""
+    s = rule._stride(shape, axes)
+    for a in axes if s > 1 else ():
+        lam = lax.slice_in_dim(jnp.repeat(lam, s, axis=a), 0, shape[a], axis=a)
+    return lam
+
+
 # ---------------------------------------------------------------------- shared statistics
-
-
-def _replace_cast(state, new: dict):
-    """``state`` with the fields in ``new``, each cast to the state's dtype for it."""
-    return state._replace(**{k: x.astype(getattr(state, k).dtype) for k, x in new.items()})
 
 
 def _guide_axes(guide: jax.Array, axes: tuple[int, ...]) -> tuple[int, ...]:
@@ -451,21 +462,10 @@ def _lag_correlation(x0: jax.Array, x1: jax.Array) -> jax.Array:
     return jnp.where(den > 0, jnp.sum(x0 * x1) / jnp.where(den > 0, den, 1), 0)
 
 
-def contrast(guide: jax.Array, axes: tuple[int, ...], stride: int = 1) -> jax.Array:
-    """The guide's mean distance from its local average (one low-pass level of the filter):
-    the scale of its texel-to-texel variation; over every ``stride``-th texel along each
-    spatial axis (the local averages computed there only, so a large leaf's first step holds
-    no full-size temporaries)."""
-    guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
-    axes = _guide_axes(guide, axes)
-    (local,) = local_average_subgrid((jnp.nan_to_num(guide),), axes, stride)
-    return _finite_mean(_texel_norm(every(guide, axes, stride) - local, axes))
-
-
-def direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
+def _direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
     """The mean norm per texel of a step's direction (:attr:`AutoState.direction`), over the
     same sub-grid as the guide's step; ``d`` is finite (unobserved entries step by 0)."""
-    return jnp.mean(_texel_norm(rule.subgrid(d, axes), axes))
+    return jnp.mean(_texel_norm(rule._subgrid(d, axes), axes))
 
 
 def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:

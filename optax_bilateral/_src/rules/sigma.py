@@ -150,3 +150,13 @@ def blend(lam: jax.Array | None, x: jax.Array, bx: jax.Array) -> jax.Array:
     """``lam x + (1 - lam) B x`` (``B x`` where ``lam`` is None): with one ``lam`` for ``m`` and
     ``v``, one non-negative, row-stochastic operator for both (supplement §1.3)."""
     return bx if lam is None else lam * x + (1 - lam) * bx
+
+
+def cast_like(state: Any, like: Any) -> Any:
+    """``state``, a rule's state ``NamedTuple`` with fields computed in the moments' arithmetic
+    dtype, with every field cast to the dtype of the same field of ``like`` (the state the
+    step received), so that a rule's state keeps its dtypes from step to step; None stays."""
+    fields = state._asdict().items()
+    return state._replace(
+        **{k: x.astype(getattr(like, k).dtype) for k, x in fields if x is not None}
+    )

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from numbers import Real
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -32,8 +32,15 @@ from jax import lax
 
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.local import sum_of_squares
-from optax_bilateral._src.rules.auto import Auto, noise_ratio
-from optax_bilateral._src.rules.sigma import Filtered, Setting, SigmaRule
+from optax_bilateral._src.rules.auto import (
+    Auto,
+    AutoState,
+    blend_weights,
+    noise_ratio,
+    update_residual,
+    upsample,
+)
+from optax_bilateral._src.rules.sigma import Filtered, Setting, SigmaRule, cast_like
 from optax_bilateral._src.validation import check_integer, check_number
 
 # With "sure", F is chosen per step among 2 .. levels; 5 is the suite's best bound.
@@ -56,7 +63,8 @@ class SureState(NamedTuple):
         where the guide is constant, which every sigma_d filters alike).
       levels: the F the last update chose (int32 scalar; 0 before the first update).
       risks: the moving average of every candidate's estimated risk, each step's over its
-        largest magnitude, in :meth:`Sure.labels`' order (0 before the noise is known).
+        largest magnitude (0 before the noise is known), factor-major: ``factors[0]`` at
+        F = ``min_levels`` .. ``levels``, then ``factors[1]``, ...
       opened: 1 once the blend's gate has been fully open at a step, else 0 (a scalar); from
         then on the leaf takes the mildest candidate.
 
@@ -98,11 +106,12 @@ class Sure(SigmaRule):
 
     Example::
 
-        >>> import optax_bilateral as ob
+        >>> import jax.numpy as jnp, optax_bilateral as ob
         >>> rule = ob.sure_sigma(factors=(1.0, 3.0), first_factor=3.0)
-        >>> rule.n_candidates(5)              # candidates at F = 2 .. 5, two factors each
-        8
         >>> opt = ob.postfilter(sigma_d=rule)
+        >>> state = opt.init(jnp.ones((16, 16, 3)))
+        >>> state.sigma_state.risks.shape     # candidates at F = 2 .. 5, two factors each
+        (8,)
     """
 
     factors: tuple[float, ...] = (1.0, 3.0, 10.0)
@@ -144,128 +153,126 @@ class Sure(SigmaRule):
     def init(self, leaf, guide, plan, kind):
         dtype = jnp.promote_types(jnp.result_type(leaf), jnp.float32)
         zeros = lambda shape, dt=dtype: jnp.zeros(shape, dt)  # every field its own buffer
+        # "auto"'s guide and residual (this is a cross-guided postfilter's leaf: check()).
+        auto = self.auto.init(leaf, guide, plan, kind)
         return SureState(
-            self.auto.zero_guide(jnp.asarray(guide), plan.axes),
+            cast(jax.Array, auto.previous_guide),
+            cast(jax.Array, auto.residual),
             numerics.zeros(leaf, dtype),  # the leaf's sharding too
-            numerics.zeros(leaf, dtype),
             zeros([]),
             zeros([], jnp.int32),
-            zeros([self.n_candidates(plan.levels)]),
+            zeros([self._n_candidates(plan.levels)]),
             zeros([]),
         )
 
     def sigma(self, guide, plan, state, ctx):
-        scale = self.auto.scale(guide, state.previous_guide, ctx.count, plan.axes)
-        keep = self.auto.kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
-        return scale, state._replace(previous_guide=keep)
+        # "auto"'s step scale: its sigma_d where no direction is kept (a prefilter's).
+        auto = AutoState(state.previous_guide, None, None, None)
+        scale, auto = self.auto.sigma(guide, plan, auto, ctx)
+        return scale, state._replace(previous_guide=auto.previous_guide)
 
     def combine(self, moments, op, sigma, state, ctx):
         return None, (functools.partial(self._filtered, moments, op, sigma, state, ctx),)
 
     def _filtered(self, moments, op, sigma, state, ctx):
         """The chosen candidate's ``B m``, ``B v``, then ``"auto"``'s blend (:class:`Filtered`)."""
-        m, v = moments.m, moments.v
-        m_f, v_f, new = self._choose(moments, op, sigma, state, ctx)
-        new["residual"] = residual = self.auto.update_residual(
-            m, m_f, state.residual, ctx.c1, moments.observed
-        )
-        statistics = dict(b1=ctx.b1, c1=ctx.c1, c2=ctx.c2, count=ctx.count, axes=op.plan.axes)
-        lam, gate = self.auto.weights(m, v, residual, **statistics)
-        lam = self.auto.upsample(lam, m.shape, op.plan.axes)
+        axes = op.plan.axes
+        m_f, v_f, chosen = self._select(moments, op, sigma, state, ctx)
+        residual = update_residual(self.auto, moments, m_f, state.residual, ctx.c1)
+        lam, gate = blend_weights(self.auto, moments, residual, ctx, axes)
+        lam = upsample(self.auto, lam, moments.m.shape, axes)
         # Sticky: the bias it saw persists, the gate's view of it does not.
-        new["opened"] = jnp.maximum(state.opened, (gate >= 1).astype(m.dtype))
-        new = {k: x.astype(getattr(state, k).dtype) for k, x in new.items()}
-        return Filtered(m_f, v_f, lam, state._replace(**new))
+        opened = jnp.maximum(state.opened, (gate >= 1).astype(moments.m.dtype))
+        new = chosen._replace(residual=residual, opened=opened)
+        return Filtered(m_f, v_f, lam, cast_like(new, state))
 
-    def _choose(self, moments, op, scale, state, ctx):
+    def _select(self, moments, op, scale, state, ctx):
         """Per candidate sigma_d one cascade of (m, noise sample), read after each candidate
         F; the candidate of least moving-average risk; then v filtered with the chosen
-        operator. Returns ``(B m, B v, what the state learned)``."""
-        m, v = moments.m, moments.v
+        operator. Returns ``(B m, B v, the state with the choice)``, its fields not yet cast
+        to the state's dtypes."""
+        m, v, levels = moments.m, moments.v, op.plan.levels
         b1 = jnp.asarray(ctx.b1, m.dtype)
         ratio, usable = noise_ratio(b1, ctx.c1, ctx.count)
         previous = state.previous_gradient.astype(m.dtype)
         # An unobserved texel's last gradient waits for its next one.
         g = jnp.where(moments.observed, moments.g.astype(m.dtype), previous)
-        zeta = noise_sample(g, previous, ratio, usable)
-        cascades = self.candidates((m, zeta), op.plan.levels, scale, op.apply)
+        zeta = _noise_sample(g, previous, ratio, usable)
+        cascades = self._candidates((m, zeta), levels, scale, op.apply)
         c1 = jnp.asarray(ctx.c1, m.dtype)
-        first = self.first(op.plan.levels)
-        m_f, pick, risks = self.choose(
-            m, zeta, cascades, c1, usable, moments.observed, first, state.risks, state.opened
+        first = self._first(levels)
+        m_f, pick, risks = self._choose(
+            m, zeta, cascades, c1, usable, moments.observed, first, state
         )
-        sigmas, levels = self.labels(op.plan.levels, scale)
-        sigma_d, chosen = sigmas[pick], levels[pick]
-        choices = self.level_choices(op.plan.levels)
+        sigmas, chosen_levels = self._labels(levels, scale)
+        sigma_d, chosen = sigmas[pick], chosen_levels[pick]
+        choices = self._level_choices(levels)
         # Only the chosen F's branch runs.
         v_f = lax.switch(
             chosen - choices[0], [lambda n=n: op.apply(v, sigma_d, levels=n) for n in choices]
         )
-        new = {"previous_gradient": g, "sigma_d": sigma_d, "levels": chosen, "risks": risks}
+        new = state._replace(previous_gradient=g, sigma_d=sigma_d, levels=chosen, risks=risks)
         return m_f, v_f, new
 
     # ------------------------------------------------------------------ candidates
 
-    def level_choices(self, levels: int) -> tuple[int, ...]:
+    def _level_choices(self, levels: int) -> tuple[int, ...]:
         """The candidates' F for a leaf filtered with ``levels`` levels at most."""
         return tuple(range(min(self.min_levels, levels), levels + 1))
 
-    def n_candidates(self, levels: int) -> int:
+    def _n_candidates(self, levels: int) -> int:
         """How many candidates a leaf filtered with ``levels`` levels at most has."""
-        return len(self.factors) * len(self.level_choices(levels))
+        return len(self.factors) * len(self._level_choices(levels))
 
-    def labels(self, levels: int, scale) -> tuple[jax.Array, jax.Array]:
-        """``(sigma_d, F)`` of every candidate, in :meth:`choose`'s order (factor-major)."""
-        choices = self.level_choices(levels)
+    def _labels(self, levels: int, scale) -> tuple[jax.Array, jax.Array]:
+        """``(sigma_d, F)`` of every candidate, in :meth:`_choose`'s order (factor-major)."""
+        choices = self._level_choices(levels)
         sigma_d = jnp.stack([f * scale for f in self.factors for _ in choices])
         return sigma_d, jnp.asarray([n for _ in self.factors for n in choices], jnp.int32)
 
-    def first(self, levels: int) -> int:
+    def _first(self, levels: int) -> int:
         """The candidate taken before the noise can be estimated: ``first_factor`` at the
         middle F."""
-        choices = self.level_choices(levels)
+        choices = self._level_choices(levels)
         return self.factors.index(self.first_factor) * len(choices) + len(choices) // 2
 
-    def candidates(self, fields, levels: int, scale, apply) -> list:
-        """Every candidate's filter of ``fields``, in :meth:`choose`'s order: per factor one
+    def _candidates(self, fields, levels: int, scale, apply) -> list:
+        """Every candidate's filter of ``fields``, in :meth:`_choose`'s order: per factor one
         cascade, read after each F. ``apply(fields, sigma_d, levels, first_level)`` runs levels
         ``first_level .. levels - 1`` of the leaf's filter."""
         out = []
         for factor in self.factors:
             x, done = fields, 0
-            for n in self.level_choices(levels):
+            for n in self._level_choices(levels):
                 x = apply(x, factor * scale, n, done)
                 out.append(x)
                 done = n
         return out
 
-    def choose(
-        self, m, zeta, candidates, c1, usable, observed, first_pick, risks=None, opened=None
-    ):
+    def _choose(self, m, zeta, candidates, c1, usable, observed, first_pick, state):
         """``(B m, pick, risks)``: the candidate ``(B m, B zeta)`` of least moving-average risk
         (``first_pick`` until ``usable``) and the new average.
 
-        ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``observed`` (full shape) or
-        None leaves unobserved entries out of the sums; ``risks`` is the average so far (None:
-        none); ``opened`` (a scalar, :attr:`SureState.opened`) > 0 takes the mildest candidate
-        once usable. The caller filters ``v`` with the chosen operator.
+        ``m`` is the raw first moment (``m / c1`` is ``m_hat``); ``observed`` (full shape)
+        leaves unobserved entries out of the sums; ``state.risks`` is the average so far, and
+        ``state.opened`` > 0 takes the mildest candidate once usable. The caller filters ``v``
+        with the chosen operator.
         """
-        keep = (lambda x: x) if observed is None else (lambda x: jnp.where(observed, x, 0))
+        keep = lambda x: jnp.where(observed, x, 0)
         step = []
         for bm, bz in candidates:
             bias = sum_of_squares(keep(m - bm)) / c1**2 - sum_of_squares(keep(zeta - bz))
             step.append(bias + self.variance_weight * sum_of_squares(keep(bz)))
         step = _votes(jnp.stack(step))
-        previous = jnp.zeros_like(step) if risks is None else risks.astype(step.dtype)
+        previous = state.risks.astype(step.dtype)
         new = jnp.where(usable, self.risk_decay * previous + (1 - self.risk_decay) * step, previous)
-        best = jnp.argmin(new)
-        if opened is not None:  # the mildest candidate, the first: factors[0] at the least F
-            best = jnp.where(opened > 0, 0, best)
+        # Opened: the mildest candidate, the first (factors[0] at the least F).
+        best = jnp.where(state.opened > 0, 0, jnp.argmin(new))
         pick = jnp.where(usable, best, first_pick).astype(jnp.int32)
         return lax.select_n(pick, *(c[0] for c in candidates)), pick, new
 
 
-def noise_sample(g, previous, ratio, usable):
+def _noise_sample(g, previous, ratio, usable):
     """A sample of the noise of ``m_hat``: ``sqrt(ratio / 2) (g_t - g_{t-1})`` (0 until the
     noise can be estimated)."""
     return jnp.where(usable, jnp.sqrt(ratio / 2) * (g - previous), 0).astype(g.dtype)
