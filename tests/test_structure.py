@@ -20,7 +20,7 @@ MAX_LINES, MAX_PRIVATE_PARAMS, MAX_MODULE_LINES = 60, 8, 800
 # Tests of the experiments, the notebooks, the docs and the benchmarks may import experiments;
 # the library's own tests may not (they must survive any change of the experiments).
 EXPERIMENT_TESTS = re.compile(
-    r"(test_(experiment_\w+|benchmarks|mitsuba\w*|notebook\w*|docs_\w+|readme)|mitsuba_env)\.py$"
+    r"(test_(experiment_\w+|benchmarks|mitsuba\w*|notebook\w*|docs_\w+|recipes_\w+|readme)|mitsuba_env)\.py$"
 )
 #: The measuring instruments under experiments/ that the library's tests use too: they import
 #: JAX, NumPy and the standard library only (checked below), so no experiment reaches those tests.
