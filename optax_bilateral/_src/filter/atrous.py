@@ -191,19 +191,19 @@ def _pair_weights(grid: _Grid, gpad, vpad, lead: int, sigma_d, off, h: int) -> j
     else:
         d2 = channel_sq_dist(a, b)
     i = _coord(grid.shape, rows, 0) - h
-    keep = (i >= 0) & (i < grid.n0 - off[0])  # p and p + off both on the grid
+    pairs = (i >= 0) & (i < grid.n0 - off[0])  # p and p + off both on the grid
     inner = _inner_ok(off, grid, rows)
     if inner is not None:
-        keep = keep & inner
+        pairs = pairs & inner
     if grid.padded:  # p itself in a pitch column
-        keep = keep & (_coord(grid.shape, rows, len(grid.shape) - 1) < grid.bounds[-1])
+        pairs = pairs & (_coord(grid.shape, rows, len(grid.shape) - 1) < grid.bounds[-1])
     if vpad is not None:
-        keep = (
-            keep
+        pairs = (
+            pairs
             & (_window(vpad, start, rows, grid.shape)[0] > 0)
             & (_window(vpad, start + f, rows, grid.shape)[0] > 0)
         )
-    return weight(d2, sigma_d, keep, is_dist=one).reshape(1, -1)  # (1, L): read by _window only
+    return weight(d2, sigma_d, pairs, is_dist=one).reshape(1, -1)  # (1, L): read by _window only
 
 
 def _opaque_one(a: jax.Array) -> jax.Array:

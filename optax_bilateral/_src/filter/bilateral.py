@@ -38,13 +38,13 @@ def log_transform(x):
 
 
 def weight(
-    d2: jax.Array, sigma_d: jax.Array, keep: jax.Array | None = None, *, is_dist: bool = False
+    d2: jax.Array, sigma_d: jax.Array, mask: jax.Array | None = None, *, is_dist: bool = False
 ) -> jax.Array:
     """exp(-sqrt(d2) / sigma_d), with equal guides weighing 1 for every sigma_d.
 
     With ``is_dist``, ``d2`` already is the distance (one guide channel: ``|a - b|``).
-    ``keep`` (bool, optional) zeroes the weight where False; a NaN ``d2`` (a non-finite
-    guide) weighs 0.
+    ``mask`` (bool, optional: the pairs to weigh) zeroes the weight where False; a NaN
+    ``d2`` (a non-finite guide) weighs 0.
 
     Written so that sigma_d = 0 (only equal guides), sigma_d = inf (all 1), an
     overflowing d2 and reverse-mode derivatives at d2 = 0 are all well defined.
@@ -60,8 +60,8 @@ def weight(
     arg = jnp.where(jnp.isposinf(sigma_d), 0.0, arg)  # inf/inf would be NaN
     arg = jnp.where(pos, arg, 0.0)  # equal guides: 1 for any sigma_d
     drop = jnp.isnan(d2)  # a non-finite guide is nobody's neighbour
-    if keep is not None:
-        drop = drop | ~keep
+    if mask is not None:
+        drop = drop | ~mask
     return jnp.exp(jnp.where(drop, -jnp.inf, arg))
 
 

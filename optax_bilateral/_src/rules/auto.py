@@ -196,8 +196,8 @@ class Auto(SigmaRule):
         if guide is None:  # self-guided: each field's own contrast
             return functools.partial(self._own_contrast, plan=plan), state
         sigma = self._scale(guide, state.previous_guide, ctx.count, plan.axes, state.direction)
-        keep = self._kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
-        return sigma, state._replace(previous_guide=keep)
+        kept = self._kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
+        return sigma, state._replace(previous_guide=kept)
 
     def combine(self, moments, op, sigma, state, ctx):
         if state.residual is None or not (op.plan.filter_m and op.plan.filter_v):

@@ -258,11 +258,13 @@ class Sure(SigmaRule):
         ``state.opened`` > 0 takes the mildest candidate once usable. The caller filters ``v``
         with the chosen operator.
         """
-        keep = lambda x: jnp.where(observed, x, 0)
+        observed_only = lambda x: jnp.where(observed, x, 0)
         step = []
         for bm, bz in candidates:
-            bias = sum_of_squares(keep(m - bm)) / c1**2 - sum_of_squares(keep(zeta - bz))
-            step.append(bias + self.variance_weight * sum_of_squares(keep(bz)))
+            bias = sum_of_squares(observed_only(m - bm)) / c1**2 - sum_of_squares(
+                observed_only(zeta - bz)
+            )
+            step.append(bias + self.variance_weight * sum_of_squares(observed_only(bz)))
         step = _votes(jnp.stack(step))
         previous = state.risks.astype(step.dtype)
         new = jnp.where(usable, self.risk_decay * previous + (1 - self.risk_decay) * step, previous)
