@@ -80,17 +80,24 @@ dist: $(VENV)/.installed-dev
 	$(DIST_VENV)/bin/python -m pip install --quiet "$$(ls dist/*.whl)[dev]"
 	cd $(DIST_VENV) && bin/python $(CURDIR)/tests/check_dist.py extras
 
-# `make sanitize`: the native kernel's C++ test (csrc/test_atrous.cc: every grid rank, mode,
-# mask and extreme against a float64 loop) built with AddressSanitizer and
-# UndefinedBehaviorSanitizer, any finding fatal, then run once per instruction set.
+# `make sanitize`: the native kernels' C++ tests (csrc/test_atrous.cc: every grid rank, mode,
+# mask and extreme against a float64 loop; csrc/test_ldl.cc: the mesh solves' LDL^T sweeps
+# against dense float64 products) built with AddressSanitizer and UndefinedBehaviorSanitizer,
+# any finding fatal, then run once per instruction set.
 SANITIZE := -fsanitize=address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer
+KERNELS := csrc/isa.cc csrc/passes.cc csrc/kernel_baseline.cc csrc/kernel_avx2.cc csrc/kernel_avx512.cc
 sanitize:
 	mkdir -p build
-	$(CXX) -std=c++17 -O1 -g $(SANITIZE) -fno-math-errno -fno-trapping-math -Wall -Wextra \
-		-Werror -Icsrc csrc/test_atrous.cc csrc/atrous.cc csrc/passes.cc csrc/kernel_baseline.cc \
-		csrc/kernel_avx2.cc csrc/kernel_avx512.cc -pthread -o build/test_atrous_sanitized
+	for t in atrous ldl; do \
+		$(CXX) -std=c++17 -O1 -g $(SANITIZE) -fno-math-errno -fno-trapping-math -Wall -Wextra \
+			-Werror -Icsrc csrc/test_$$t.cc csrc/$$t.cc $(KERNELS) -pthread \
+			-o build/test_$${t}_sanitized || exit 1; \
+	done
 	for isa in baseline avx2 avx512; do \
-		OPTAX_BILATERAL_ISA=$$isa ASAN_OPTIONS=detect_leaks=1 build/test_atrous_sanitized || exit 1; \
+		for t in atrous ldl; do \
+			OPTAX_BILATERAL_ISA=$$isa ASAN_OPTIONS=detect_leaks=1 build/test_$${t}_sanitized \
+				|| exit 1; \
+		done; \
 	done
 
 lint: $(VENV)/.installed-dev

@@ -14,6 +14,7 @@
 #include <thread>
 #include <type_traits>
 
+#include "isa.h"
 #include "kernel_isa.h"
 #include "passes.h"
 
@@ -26,27 +27,7 @@ constexpr int64_t kBlockBytes = 256 * 1024;
 // threads costs more than they save.
 constexpr int64_t kMinParallelWork = 1 << 15;
 
-enum class Isa { kBaseline, kAvx2, kAvx512 };
-
-// The widest instruction set the CPU has, or a narrower one that $OPTAX_BILATERAL_ISA names
-// ("baseline", "avx2"; for tests and benchmarks).
-Isa detect_isa() {
-  const char* env = std::getenv("OPTAX_BILATERAL_ISA");
-  const std::string cap = env ? env : "";
-  if (cap == "baseline") return Isa::kBaseline;
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-  __builtin_cpu_init();
-  const bool avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-  if (cap == "avx2") return avx2 ? Isa::kAvx2 : Isa::kBaseline;
-  if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
-      __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512bw"))
-    return Isa::kAvx512;
-  if (avx2) return Isa::kAvx2;
-#endif
-  return Isa::kBaseline;
-}
-
-const Isa kIsa = detect_isa();
+const Isa kIsa = cpu_isa();
 
 // The instruction set's build of one block (kernel.h, run_block) or of one level's slabs.
 template <typename T>
@@ -329,15 +310,6 @@ void run(const Cascade<T>& c) {
 void run_cascade(const Cascade<float>& c) { run(c); }
 void run_cascade(const Cascade<double>& c) { run(c); }
 
-std::string instruction_set() {
-  switch (kIsa) {
-    case Isa::kAvx512:
-      return "avx512";
-    case Isa::kAvx2:
-      return "avx2";
-    default:
-      return "baseline";
-  }
-}
+std::string instruction_set() { return isa_name(kIsa); }
 
 }  // namespace optax_bilateral

@@ -4,6 +4,7 @@
 #include <cstdint>
 
 #include "kernel.h"
+#include "ldl_kernel.h"
 
 namespace optax_bilateral {
 
@@ -17,6 +18,8 @@ namespace optax_bilateral {
                Scratch<float>&);                                                            \
   void slabs64(const PassArgs<double>&, const SlabLevel<double>&, int64_t, int64_t,          \
                Scratch<double>&);                                                           \
+  void ldl32(const LdlFactor<float>&, float*, int64_t, int64_t, int64_t, float*);           \
+  void ldl64(const LdlFactor<double>&, double*, int64_t, int64_t, int64_t, double*);        \
   }
 
 OB_DECLARE_ISA(baseline)
@@ -45,5 +48,13 @@ OB_DECLARE_ISA(avx512)
   void slabs64(const PassArgs<double>& a, const SlabLevel<double>& l, int64_t i0,           \
                int64_t i1, Scratch<double>& s) {                                            \
     run_slabs(a, l, i0, i1, s);                                                             \
+  }                                                                                         \
+  void ldl32(const LdlFactor<float>& f, float* b, int64_t k, int64_t c0, int64_t c1,         \
+             float* z) {                                                                    \
+    ldl_block(f, b, k, c0, c1, z);                                                          \
+  }                                                                                         \
+  void ldl64(const LdlFactor<double>& f, double* b, int64_t k, int64_t c0, int64_t c1,       \
+             double* z) {                                                                   \
+    ldl_block(f, b, k, c0, c1, z);                                                          \
   }                                                                                         \
   }

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "atrous.h"
+#include "ldl.h"
 
 // The FFI headers' own warnings are not this project's (they are checked with -Wall -Wextra).
 #pragma GCC diagnostic push
@@ -216,6 +217,103 @@ PyObject* registrations(PyObject*, PyObject*) {
   return dict;
 }
 
+// A buffer of the Python object, C-contiguous, released when this goes out of scope.
+class Buffer {
+ public:
+  Buffer(PyObject* obj, bool writable, const char* name) : name_(name) {
+    const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    ok_ = PyObject_GetBuffer(obj, &view_, flags) == 0;
+  }
+  ~Buffer() {
+    if (ok_) PyBuffer_Release(&view_);
+  }
+  Buffer(const Buffer&) = delete;
+  Buffer& operator=(const Buffer&) = delete;
+
+  bool ok() const { return ok_; }
+  // 'i' (int32), 'q' (int64), 'f' (float32) or 'd' (float64) when the buffer holds that
+  // type, else 0.
+  char kind() const {
+    const std::string f = view_.format ? view_.format : "B";
+    const std::string code = f.size() == 2 && (f[0] == '=' || f[0] == '<' || f[0] == '@')
+                                 ? f.substr(1) : f;
+    if ((code == "i" || code == "l") && view_.itemsize == 4) return 'i';
+    if ((code == "q" || code == "l") && view_.itemsize == 8) return 'q';
+    if (code == "f" && view_.itemsize == 4) return 'f';
+    if (code == "d" && view_.itemsize == 8) return 'd';
+    return 0;
+  }
+  int64_t size() const { return static_cast<int64_t>(view_.len / view_.itemsize); }
+  void* data() const { return view_.buf; }
+  const char* name() const { return name_; }
+
+ private:
+  Py_buffer view_{};
+  bool ok_ = false;
+  const char* name_;
+};
+
+PyObject* value_error(const std::string& message) {
+  PyErr_SetString(PyExc_ValueError, ("ldl_solve: " + message).c_str());
+  return nullptr;
+}
+
+struct LdlArgs {
+  const Buffer &first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm, &b;
+};
+
+template <typename T>
+PyObject* ldl_typed(const LdlArgs& a, int threads) {
+  ob::LdlFactor<T> f;
+  f.n = a.dinv.size();
+  f.supernodes = a.first.size() - 1;
+  f.first = static_cast<const int32_t*>(a.first.data());
+  f.row_ptr = static_cast<const int32_t*>(a.row_ptr.data());
+  f.rows = static_cast<const int32_t*>(a.rows.data());
+  f.block_ptr = static_cast<const int64_t*>(a.block_ptr.data());
+  f.values = static_cast<const T*>(a.values.data());
+  f.dinv = static_cast<const T*>(a.dinv.data());
+  f.perm = static_cast<const int32_t*>(a.perm.data());
+  const std::string problem = ob::check_factor(f, a.rows.size(), a.values.size());
+  if (!problem.empty()) return value_error(problem);
+  const int64_t k = f.n == 0 ? 0 : a.b.size() / f.n;
+  T* x = static_cast<T*>(a.b.data());
+  Py_BEGIN_ALLOW_THREADS ob::ldl_solve(f, x, k, threads);
+  Py_END_ALLOW_THREADS Py_RETURN_NONE;
+}
+
+// ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, b, threads): b (n, k) <-
+// A^-1 b in place (ldl.h).
+PyObject* ldl_solve(PyObject*, PyObject* args) {
+  PyObject *o_first, *o_row_ptr, *o_rows, *o_block_ptr, *o_values, *o_dinv, *o_perm, *o_b;
+  int threads = 1;
+  if (!PyArg_ParseTuple(args, "OOOOOOOOi", &o_first, &o_row_ptr, &o_rows, &o_block_ptr,
+                        &o_values, &o_dinv, &o_perm, &o_b, &threads))
+    return nullptr;
+  const Buffer first(o_first, false, "first"), row_ptr(o_row_ptr, false, "row_ptr"),
+      rows(o_rows, false, "rows"), block_ptr(o_block_ptr, false, "block_ptr"),
+      values(o_values, false, "values"), dinv(o_dinv, false, "dinv"), perm(o_perm, false, "perm"),
+      b(o_b, true, "b");
+  for (const Buffer* buf : {&first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm, &b})
+    if (!buf->ok()) return nullptr;  // the buffer protocol's own error (e.g. b read-only)
+  for (const Buffer* buf : {&first, &row_ptr, &rows, &perm})
+    if (buf->kind() != 'i') return value_error(std::string(buf->name()) + " must be int32");
+  if (block_ptr.kind() != 'q') return value_error("block_ptr must be int64");
+  const char t = b.kind();
+  if (t != 'f' && t != 'd') return value_error("b must be float32 or float64");
+  if (values.kind() != t || dinv.kind() != t)
+    return value_error("values and dinv must have b's dtype");
+  const int64_t n = dinv.size();
+  if (first.size() < 1 || row_ptr.size() != first.size() || block_ptr.size() != first.size())
+    return value_error("first, row_ptr and block_ptr must have one entry per supernode, plus one");
+  if (perm.size() != n) return value_error("perm must have n entries, n = len(dinv)");
+  if (n == 0 ? b.size() != 0 : b.size() % n != 0)
+    return value_error("b must be (n, k), n = len(dinv)");
+  if (threads < 1) return value_error("threads must be >= 1");
+  const LdlArgs a{first, row_ptr, rows, block_ptr, values, dinv, perm, b};
+  return t == 'f' ? ldl_typed<float>(a, threads) : ldl_typed<double>(a, threads);
+}
+
 PyObject* instruction_set(PyObject*, PyObject*) {
   return PyUnicode_FromString(ob::instruction_set().c_str());
 }
@@ -225,6 +323,9 @@ PyMethodDef methods[] = {
      "{target name: capsule} of the XLA FFI handlers this extension defines."},
     {"instruction_set", instruction_set, METH_NOARGS,
      "The instruction set the kernel runs with on this CPU."},
+    {"ldl_solve", ldl_solve, METH_VARARGS,
+     "ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, b, threads): b (n, k) <- "
+     "A^-1 b in place, A = P (I + L) D (I + L)^T P^T, L by supernodes (csrc/ldl.h)."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native",

@@ -100,8 +100,12 @@ def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
     result = E.main(["--quick", "--out", str(tmp_path)])
     cfg = E.default_config(quick=True)
     rows = json.loads((tmp_path / "summary.json").read_text())["rows"]
-    assert [r["vertices"] for r in rows] == [10 * f * f + 2 for f in cfg.frequencies]
+    assert [(r["target"], r["vertices"]) for r in rows] == [
+        (t, 10 * f * f + 2) for t in cfg.targets for f in cfg.frequencies
+    ]
+    assert set(cfg.targets) == {"rounded_cube", "bumpy_box"}
     for r in rows:
+        assert 0 < r["ours update share"] < 1 and 0 < r["Large Steps update share"] < 1
         assert (
             r["Large Steps ms/iter"] > 0 and r["ours ms/iter"] > 0 and r["ours / Large Steps"] > 0
         )
@@ -127,6 +131,38 @@ def test_hausdorff_distance_to_the_rounded_cube(mi):
     corner = np.sqrt(3) * (cfg.half - cfg.radius) + cfg.radius
     assert E.hausdorff(sphere, faces, target, cfg) == pytest.approx(2.0 - cfg.half, abs=0.01)
     assert 2.0 - corner < E.hausdorff(sphere, faces, target, cfg)
+
+
+def test_bumpy_box_has_sharp_edges_bumps_and_a_distance(mi):
+    # The second target: a bump rises out of each face's centre, an edge's midpoint is on the
+    # (nearly) sharp box, and the signed distance is the distance along the normal nearby.
+    from experiments.mitsuba import mesh as E
+
+    cfg = E.default_config(quick=True)
+    sdf = E.target_sdf("bumpy_box", cfg)
+    h = cfg.half
+
+    def radius(direction):
+        d = np.asarray(direction, float) / np.linalg.norm(direction)
+        r = np.linspace(0.1, 2.0, 200001)
+        return r[np.argmax(sdf(r[:, None] * d) > 0)]
+
+    for axis in ([1, 0, 0], [0, 0, -1]):
+        assert h + 0.5 * cfg.bump < radius(axis) < h + cfg.bump
+    assert np.sqrt(2) * h - 0.01 < radius([1, 1, 0]) <= np.sqrt(2) * h
+    top = np.array([radius([1, 0, 0]), 0, 0])
+    for d in (-0.02, 0.01, 0.03):
+        np.testing.assert_allclose(sdf((top + [d, 0, 0])[None]), d, rtol=0.05)
+    # The mesh's vertices are on the surface; its triangles cut the sharp edges, less so as
+    # they shrink.
+    gaps = []
+    for frequency in (16, 48):
+        vertices, faces = E.radial_surface(frequency, sdf)
+        assert np.abs(sdf(vertices)).max() < 1e-6
+        gaps.append(E.hausdorff(vertices, faces, (vertices, faces), cfg, sdf=sdf))
+    assert gaps[1] < 0.5 * gaps[0] and gaps[1] < 0.025
+    with pytest.raises(ValueError, match="target must be one of"):
+        E.target_sdf("teapot", cfg)
 
 
 def test_docs_mesh_block_runs_verbatim(mi, monkeypatch):

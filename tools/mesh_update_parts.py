@@ -4,11 +4,14 @@ their parts, jitted, on the mesh experiment's vertex counts (issue #55, "profile
     python -m tools.mesh_update_parts [--quick] [--out DIR]
 
 For icosphere meshes pushed onto the mesh experiment's rounded cube (10 f^2 + 2 vertices,
-f = 16 and 32: 2562 and 10242 vertices) and each solver, the median milliseconds of: the whole
-jitted update of ``bilateral_large_steps`` (the defaults: 32 directions, the prefilter
-``M^-1 g``, ``postfilter_v="uniform"``) and of ``large_steps``; and of their parts,
+f = 16, 32 and 64: 2562, 10242 and 40962 vertices) and each solver, the median milliseconds
+of: the whole jitted update of ``bilateral_large_steps`` (the defaults: 32 directions, the
+prefilter ``M^-1 g``, ``postfilter_v="uniform"``) and of ``large_steps``; and of their parts,
 ``smoothing_solve`` (``M^-1`` on 3 columns) and ``bilateral_normal_filter`` (``B`` on one
-3-channel field: a solve of 32 x 4 columns). Writes ``mesh_update_parts.json`` and ``.md``.
+3-channel field: a solve of 32 x 4 columns). Then the solves alone, on the host, float32, with
+3 and 128 columns: ``solver="cholesky"``'s factor (qdldl) swept by the extension, and CHOLMOD
+through cholespy (Mitsuba's Large Steps' solver, float64), with the seconds each takes to
+factorise. Writes ``mesh_update_parts.json`` and ``.md``.
 """
 
 from __future__ import annotations
@@ -63,13 +66,49 @@ def parts(frequency: int, solver: str, repeats: int) -> dict:
     return row
 
 
+def solves(frequency: int, repeats: int) -> dict:
+    """The host solves alone: this library's factor and sweeps against cholespy's."""
+    import cholespy
+
+    from optax_bilateral._src.mesh import laplacian
+
+    vertices, faces = rounded_cube(frequency, 0.6, 0.08)
+    host = laplacian._host_cholesky(obm.mesh_laplacian(faces))
+    t = time.perf_counter()
+    factor = host.factor(LAMBDA)
+    row: dict = {"vertices": len(vertices), "factorise s": time.perf_counter() - t}
+    u = len(factor.dinv)
+    values = np.concatenate([1.0 + LAMBDA * host._degree, np.full(host._off, -LAMBDA)])
+    t = time.perf_counter()
+    chol = cholespy.CholeskySolverF(
+        u, host._ii, host._jj, values.astype(np.float32), cholespy.MatrixType.COO
+    )
+    row["cholespy factorise s"] = time.perf_counter() - t
+    rng = np.random.default_rng(0)
+    for columns in (3, 128):
+        b = rng.normal(size=(u, columns)).astype(np.float32)
+        out = np.empty_like(b)
+        row[f"sweeps {columns} ms"] = median_ms(lambda b=b: factor.solve(b), repeats)
+        row[f"cholespy {columns} ms"] = median_ms(lambda b=b, out=out: chol.solve(b, out), repeats)
+    return row
+
+
 def main(argv=None) -> list[dict]:
     args = common.parse_args("the mesh update's parts", "results/mesh_update_parts", argv)
-    frequencies, repeats = ((3,), 2) if args.quick else ((16, 32), 7)
+    frequencies, repeats = ((3,), 2) if args.quick else ((16, 32, 64), 7)
     rows = [parts(f, s, repeats) for f in frequencies for s in ("cholesky", "cg")]
-    intro = "Jitted, medians; `python -m tools.mesh_update_parts`."
-    common.write_rows(args.out, "mesh_update_parts", rows, intro, args.quick)
-    return rows
+    host = [solves(f, repeats) for f in frequencies]
+    md = (
+        "Jitted, medians; `python -m tools.mesh_update_parts`.\n\n"
+        + common.markdown_table(rows)
+        + "\n\nThe host solves alone (float32, medians):\n\n"
+        + common.markdown_table(host)
+    )
+    print(md)
+    common.write_results(
+        args.out, "mesh_update_parts", {"rows": rows, "solves": host, "quick": args.quick}, md
+    )
+    return rows + host
 
 
 if __name__ == "__main__":

@@ -52,6 +52,8 @@ from optax_bilateral.toy import triangle_mesh as toy
 
 KEY = "shape.vertex_positions"
 METHODS = ("mi.ad.LargeSteps", "bilateral")
+# The shapes recovered: a cube with rounded edges, and a box with sharp edges and smooth bumps.
+TARGETS = ("rounded_cube", "bumpy_box")
 HAUSDORFF = runner.Metric("hausdorff", "Hausdorff")
 REFERENCE_SEED = 1 << 20
 EVAL_SEED = 1 << 21
@@ -70,8 +72,12 @@ class Config:
     learning_rates: tuple
     sigma_d: float = 0.5
     sigma_phi: float = 0.4
-    half: float = 0.6  # the rounded cube's half side
-    radius: float = 0.08  # its edges' radius
+    targets: tuple = TARGETS
+    half: float = 0.6  # the cubes' half side
+    radius: float = 0.08  # the rounded cube's edge radius
+    edge: float = 0.01  # the bumpy box's edge radius
+    bump: float = 0.1  # the bumpy box's bumps: height
+    bump_width: float = 0.18  # and width (a Gaussian's standard deviation)
     target_frequency: int = 48  # the target mesh's icosphere
     samples: int = 20000  # Hausdorff surface samples on each side
     record_every: int = 10
@@ -96,7 +102,8 @@ def default_config(quick: bool = False) -> Config:
             record_every=2,
         )
     return Config(
-        frequencies=(16, 32),
+        frequencies=(16, 32, 64),
+        target_frequency=96,
         iterations=240,
         n_views=8,
         resolution=64,
@@ -119,29 +126,67 @@ def rounded_cube_sdf(points: np.ndarray, half: float, radius: float) -> np.ndarr
     return outside + np.minimum(q.max(axis=-1), 0.0) - radius
 
 
-def rounded_cube(frequency: int, half: float, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """The target mesh: an icosphere's vertices pushed along their directions onto the
-    rounded cube's surface (bisection on the signed distance)."""
+def bumpy_box_sdf(points: np.ndarray, cfg: Config) -> np.ndarray:
+    """The second target: the cube ``[-half, half]^3`` with nearly sharp edges (rounded to
+    ``edge``) and a smooth bump of height ``bump`` and width ``bump_width`` out of each face's
+    centre. The implicit function ``f = box - bumps`` divided by its gradient's norm (a
+    first-order distance, exact on the surface and where the bumps vanish)."""
+    half, width = cfg.half, cfg.bump_width
+    centres = np.concatenate([np.eye(3), -np.eye(3)]) * half
+    diff = points[:, None, :] - centres[None]  # (N, 6, 3)
+    g = cfg.bump * np.exp(-np.sum(diff * diff, -1) / (2 * width * width))  # (N, 6)
+    f = rounded_cube_sdf(points, half, cfg.edge) - g.sum(-1)
+    eps = 1e-5
+    grad = np.stack(
+        [
+            rounded_cube_sdf(points + eps * e, half, cfg.edge)
+            - rounded_cube_sdf(points - eps * e, half, cfg.edge)
+            for e in np.eye(3)
+        ],
+        -1,
+    ) / (2 * eps) + np.einsum("nk,nkd->nd", g, diff) / (width * width)
+    return f / np.maximum(np.linalg.norm(grad, axis=-1), 1e-6)
+
+
+def target_sdf(name: str, cfg: Config):
+    """``points -> signed distance`` of a target by name (:data:`TARGETS`)."""
+    if name == "rounded_cube":
+        return lambda p: rounded_cube_sdf(p, cfg.half, cfg.radius)
+    if name == "bumpy_box":
+        return lambda p: bumpy_box_sdf(p, cfg)
+    raise ValueError(f"target must be one of {TARGETS}, got {name!r}")
+
+
+def radial_surface(frequency: int, sdf) -> tuple[np.ndarray, np.ndarray]:
+    """A target mesh: an icosphere's vertices pushed along their directions onto the zero set
+    of ``sdf`` (bisection; the targets are star-shaped around the origin)."""
     directions, faces = toy.icosphere(frequency)
     d = directions.astype(np.float64)
-    lo, hi = np.zeros(len(d)), np.full(len(d), 2.0 * half * np.sqrt(3.0))
+    lo, hi = np.zeros(len(d)), np.full(len(d), 3.0)
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        inside = rounded_cube_sdf(mid[:, None] * d, half, radius) < 0
+        inside = sdf(mid[:, None] * d) < 0
         lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
     return (0.5 * (lo + hi))[:, None] * d, faces
 
 
-def hausdorff(vertices, faces, target, cfg: Config, seed: int = 0) -> float:
-    """Symmetric Hausdorff distance between a mesh and the rounded cube."""
+def rounded_cube(frequency: int, half: float, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The first target's mesh: an icosphere pushed onto the rounded cube's surface."""
+    return radial_surface(frequency, lambda p: rounded_cube_sdf(p, half, radius))
+
+
+def hausdorff(vertices, faces, target, cfg: Config, seed: int = 0, sdf=None) -> float:
+    """Symmetric Hausdorff distance between a mesh and a target (``target`` its mesh, ``sdf``
+    its signed distance; default the rounded cube's)."""
     from scipy.spatial import KDTree
 
+    sdf = sdf or target_sdf("rounded_cube", cfg)
     rng = np.random.default_rng(seed)
     a = np.concatenate([toy.sample_surface(vertices, faces, cfg.samples, rng), vertices])
-    mesh_to_cube = np.abs(rounded_cube_sdf(a, cfg.half, cfg.radius)).max()
+    mesh_to_target = np.abs(sdf(a)).max()
     b = toy.sample_surface(*target, cfg.samples, rng)
-    cube_to_mesh = KDTree(a).query(b)[0].max()
-    return float(max(mesh_to_cube, cube_to_mesh))
+    target_to_mesh = KDTree(a).query(b)[0].max()
+    return float(max(mesh_to_target, target_to_mesh))
 
 
 # ----------------------------------------------------------------------------- scene
@@ -215,14 +260,15 @@ def scene_dict(mesh, env: np.ndarray) -> dict:
 class Problem:
     """One vertex count: the sphere's scene, the target's reference renders, the metric."""
 
-    def __init__(self, cfg: Config, frequency: int):
+    def __init__(self, cfg: Config, frequency: int, target: str = "rounded_cube"):
         import drjit as dr
         import mitsuba as mi
 
         mc.setup()
         self.cfg = cfg
         self.init, self.faces = toy.icosphere(frequency)
-        self.target = rounded_cube(cfg.target_frequency, cfg.half, cfg.radius)
+        self.sdf = target_sdf(target, cfg)
+        self.target = radial_surface(cfg.target_frequency, self.sdf)
         self.sensors = sensors(cfg)
         env = environment_map()
         target_scene = mi.load_dict(scene_dict(mesh_object(*self.target), env))
@@ -261,7 +307,7 @@ class Problem:
 
     def param_errors(self, values) -> dict:
         vertices = np.asarray(values[KEY], np.float64).reshape(-1, 3)
-        return {"hausdorff": hausdorff(vertices, self.faces, self.target, self.cfg)}
+        return {"hausdorff": hausdorff(vertices, self.faces, self.target, self.cfg, sdf=self.sdf)}
 
     def evaluate(self, values, run_name: str) -> dict:
         current = np.array(self.params[KEY])
@@ -371,10 +417,12 @@ RUNS = {"mi.ad.LargeSteps": LargeStepsRun, "bilateral": BilateralRun}
 # ----------------------------------------------------------------------------- run, report
 
 
-def run_vertex_count(cfg: Config, frequency: int, out: pathlib.Path, progress: bool) -> dict:
+def run_vertex_count(
+    cfg: Config, frequency: int, out: pathlib.Path, progress: bool, target: str = "rounded_cube"
+) -> dict:
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    problem = Problem(cfg, frequency)
+    problem = Problem(cfg, frequency, target)
     entries = {
         m: [
             runner.Entry(
@@ -401,8 +449,8 @@ def run_vertex_count(cfg: Config, frequency: int, out: pathlib.Path, progress: b
     initial = problem.param_errors({KEY: problem.init})["hausdorff"]
     report = runner.Report(
         title=(
-            f"Mitsuba mesh recovery, {vertices} vertices: sphere -> rounded cube (half "
-            f"{cfg.half}, edge radius {cfg.radius}), {cfg.n_views} views of {cfg.resolution}^2, "
+            f"Mitsuba mesh recovery, {vertices} vertices: sphere -> {target} (half "
+            f"{cfg.half}), {cfg.n_views} views of {cfg.resolution}^2, "
             f"direct_projective spp {cfg.spp}, L1, {cfg.iterations} iterations (one view "
             f"each), lambda {cfg.lambda_}, initial Hausdorff {initial:.4f}."
         ),
@@ -422,6 +470,7 @@ def run_vertex_count(cfg: Config, frequency: int, out: pathlib.Path, progress: b
         setting={
             **dataclasses.asdict(cfg),
             "frequency": frequency,
+            "target": target,
             "vertices": vertices,
             "initial_hausdorff": initial,
             "reference_seconds": problem.reference_seconds,
@@ -430,6 +479,7 @@ def run_vertex_count(cfg: Config, frequency: int, out: pathlib.Path, progress: b
     )
     result = runner.write_report(out, traces, samples, report, started)
     result["vertices"] = vertices
+    result["target"] = target
     result["initial_hausdorff"] = initial
     result["samples"] = samples
     return result
@@ -461,14 +511,19 @@ def plot_views(problem: Problem, best: dict, path: pathlib.Path, views: int = 4)
 
 
 def table2(results: dict) -> list[dict]:
-    """The Table 2 analogue: per vertex count, both methods' time per iteration and the
-    paired ratio, and the final Hausdorff distances."""
+    """The Table 2 analogue: per target and vertex count, both methods' time per iteration and
+    the paired ratio, the update's share of the iteration, and the final Hausdorff distances."""
     rows = []
     for r in results.values():
         m = r["methods"]
         totals = {k: s["total"] for k, s in r["samples"].items()}
+        share = {
+            k: float(np.median(np.asarray(s["update"]) / np.asarray(s["total"])))
+            for k, s in r["samples"].items()
+        }
         rows.append(
             {
+                "target": r["target"],
                 "vertices": r["vertices"],
                 "Large Steps ms/iter": 1e3 * float(np.median(totals["mi.ad.LargeSteps"])),
                 "ours ms/iter": 1e3 * float(np.median(totals["bilateral"])),
@@ -476,6 +531,8 @@ def table2(results: dict) -> list[dict]:
                 "Large Steps update ms": 1e3
                 * float(np.median(r["samples"]["mi.ad.LargeSteps"]["update"])),
                 "ours update ms": 1e3 * float(np.median(r["samples"]["bilateral"]["update"])),
+                "Large Steps update share": share["mi.ad.LargeSteps"],
+                "ours update share": share["bilateral"],
                 "initial Hausdorff": r["initial_hausdorff"],
                 "Large Steps Hausdorff": m["mi.ad.LargeSteps"]["final_hausdorff"],
                 "ours Hausdorff": m["bilateral"]["final_hausdorff"],
@@ -493,9 +550,11 @@ def main(argv=None) -> dict:
     )
     cfg = default_config(args.quick)
     results = {}
-    for f in cfg.frequencies:
-        results[f] = run_vertex_count(cfg, f, args.out / f"v{10 * f * f + 2}", progress=True)
-        print(results[f]["table"])
+    for target in cfg.targets:
+        for f in cfg.frequencies:
+            out = args.out / target / f"v{10 * f * f + 2}"
+            results[target, f] = run_vertex_count(cfg, f, out, progress=True, target=target)
+            print(results[target, f]["table"])
     rows = table2(results)
     text = (
         "Mitsuba mesh recovery: time per iteration (medians over interleaved iterations, one "

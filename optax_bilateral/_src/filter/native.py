@@ -21,9 +21,7 @@ for ``kernel="native"`` raises with that reason.
 from __future__ import annotations
 
 import functools
-import importlib
 import math
-import os
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -31,16 +29,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from optax_bilateral._src import extension
 from optax_bilateral._src.filter import plain
 from optax_bilateral._src.filter.bilateral import level_passes
 
 TARGET = "optax_bilateral_atrous"
 FIELDS_TARGET = "optax_bilateral_atrous_fields"
-# The threads one call uses (default: the CPUs this process may run on). Read when a program
-# is traced: a compiled program keeps the count it was traced with.
-THREADS_ENV = "OPTAX_BILATERAL_THREADS"
-# "0": do not load the extension: the pure-JAX kernels run, as where it was not built.
-NATIVE_ENV = "OPTAX_BILATERAL_NATIVE"
+THREADS_ENV = extension.THREADS_ENV
+NATIVE_ENV = extension.NATIVE_ENV
+threads = extension.threads
 
 
 class Status(NamedTuple):
@@ -51,36 +48,18 @@ class Status(NamedTuple):
     threads: int
 
 
-def _load_module():
-    if os.environ.get(NATIVE_ENV, "") == "0":
-        raise ImportError(f"${NATIVE_ENV}=0")
-    return importlib.import_module("optax_bilateral._native")
-
-
 @functools.cache
 def _registered() -> tuple[bool, str]:
-    """Loads the extension and registers its FFI target once per process."""
+    """Loads the extension and registers its FFI targets once per process."""
+    module, reason = extension.loaded()
+    if module is None:
+        return False, reason
     try:
-        module = _load_module()
         for name, capsule in module.registrations().items():
             jax.ffi.register_ffi_target(name, capsule, platform="cpu")
-        return True, module.instruction_set()
-    except Exception as e:  # any failure to load leaves the pure-JAX kernels
+        return True, reason
+    except Exception as e:  # any failure to register leaves the pure-JAX kernels
         return False, f"{type(e).__name__}: {e}"
-
-
-def threads() -> int:
-    """The threads a call will use: ``$OPTAX_BILATERAL_THREADS``, else the usable CPUs."""
-    env = os.environ.get(THREADS_ENV, "")
-    if env:
-        try:
-            n = int(env)
-        except ValueError:
-            n = 0
-        if n < 1:
-            raise ValueError(f"${THREADS_ENV} must be a positive integer, got {env!r}")
-        return n
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def status() -> Status:

@@ -8,8 +8,9 @@ M-matrix with ``M 1 = 1``, so ``M^-1`` is non-negative and row-stochastic.
 Solvers (``solver=``, :mod:`.config`): :class:`CG` (default), Jacobi-preconditioned
 conjugate gradients on all right-hand sides at once (columns scaled to unit norm share one
 Krylov iteration), jit-able on any backend with a traced ``lambda``; :class:`Cholesky`, a
-sparse Cholesky factor of ``M`` computed once per (mesh, lambda) on the host by CHOLMOD
-through ``cholespy`` (the ``cholesky`` extra) and called through ``jax.pure_callback``
+sparse LDL^T factor of ``M`` computed once per (mesh, lambda) on the host by ``qdldl`` (the
+``cholesky`` extra), swept by the C++ extension for all right-hand sides at once (SciPy's
+triangular solves where it does not load), and called through ``jax.pure_callback``
 inside ``lax.custom_linear_solve``, so ``jit``, ``grad`` (w.r.t. the right-hand side, the
 vertices and lambda) and ``vmap`` keep working. docs/triangle_mesh.md has the measured
 costs of each.
@@ -32,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from optax_bilateral._src import extension
 from optax_bilateral._src.mesh.config import (
     CG,
     DEFAULT_MAXITER,
@@ -243,8 +245,122 @@ def _matvec(neighbors, degree, lambda_, x):
     return x + lambda_ * (degree.astype(x.dtype)[:, None] * x - neighbour_sum)
 
 
+class _Supernodes(NamedTuple):
+    """``L`` by supernodes, as the extension's sweeps read it (``csrc/ldl.h``): runs of
+    consecutive columns whose rows below the run are the same, each an ``(s + r, s)`` block."""
+
+    first: np.ndarray  # (S + 1,) int32 the first column of each supernode, then U
+    row_ptr: np.ndarray  # (S + 1,) int32 where each one's rows below start in ``rows``
+    rows: np.ndarray  # int32
+    block_ptr: np.ndarray  # (S + 1,) int64 where each one's block starts in ``values``
+    values: np.ndarray  # float64
+    single: np.ndarray  # the same in float32
+
+    @classmethod
+    def of(cls, colptr: np.ndarray, rows: np.ndarray, values: np.ndarray) -> _Supernodes:
+        n = len(colptr) - 1
+        counts = np.diff(colptr)
+        # Column j + 1 continues j's supernode when it is j's first row below and j's other
+        # rows are exactly its rows (a fundamental supernode).
+        j = np.arange(max(n - 1, 0))
+        joins = (counts[:-1] == counts[1:] + 1) & (counts[:-1] > 0)
+        joins[joins] &= rows[colptr[j[joins]]] == j[joins] + 1
+        cand = j[joins]
+        lengths = counts[cand + 1]
+        offsets = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        same = (
+            rows[np.repeat(colptr[cand] + 1, lengths) + offsets]
+            == rows[np.repeat(colptr[cand + 1], lengths) + offsets]
+        )
+        mismatch = np.bincount(np.repeat(np.arange(len(cand)), lengths)[~same], minlength=len(cand))
+        joins[cand[mismatch > 0]] = False
+        first = np.flatnonzero(np.concatenate([[True], ~joins])) if n else np.zeros(0, int)
+        first = np.append(first, n).astype(np.int32)
+        widths = np.diff(first).astype(np.int64)
+        last = first[1:] - 1
+        below = counts[last].astype(np.int64)  # the last column's rows are all below the run
+        row_ptr = np.concatenate([[0], np.cumsum(below)]).astype(np.int32)
+        take = np.repeat(colptr[last].astype(np.int64) - row_ptr[:-1], below) + np.arange(
+            row_ptr[-1]
+        )
+        block_ptr = np.concatenate([[0], np.cumsum((widths + below) * widths)]).astype(np.int64)
+        # Entry m of column c = j0 + t is block row t + 1 + m, block column t.
+        column = np.repeat(np.arange(n), counts)
+        k = np.repeat(np.arange(len(widths)), widths)[column]
+        t = column - first[k]
+        m = np.arange(len(rows)) - colptr[column]
+        blocks = np.zeros(block_ptr[-1])
+        blocks[block_ptr[k] + (t + 1 + m) * widths[k] + t] = values
+        return cls(
+            first,
+            row_ptr,
+            rows[take].astype(np.int32),
+            block_ptr,
+            blocks,
+            blocks.astype(np.float32),
+        )
+
+
+class _Factor(NamedTuple):
+    """``M = P (I + L) D (I + L)^T P^T`` (qdldl's LDL^T with its AMD ordering): ``L`` strictly
+    lower in compressed columns (SciPy's sweeps) and by supernodes (the extension's)."""
+
+    colptr: np.ndarray  # (U + 1,) int32
+    rows: np.ndarray  # (nnz,) int32
+    values: np.ndarray  # (nnz,) float64
+    dinv: np.ndarray  # (U,) float64
+    perm: np.ndarray  # (U,) int32
+    supernodes: _Supernodes
+    dinv_single: np.ndarray  # float32, for float32 fields
+
+    @classmethod
+    def of(cls, colptr, rows, values, d, perm) -> _Factor:
+        colptr, rows = np.asarray(colptr, np.int32), np.asarray(rows, np.int32)
+        values, dinv = np.asarray(values, np.float64), 1.0 / np.asarray(d, np.float64)
+        supernodes = _Supernodes.of(colptr, rows, values)
+        perm = np.asarray(perm, np.int32)
+        return cls(colptr, rows, values, dinv, perm, supernodes, dinv.astype(np.float32))
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``M^-1 b`` for ``b`` ``(U, C)`` float32 or float64, in that dtype."""
+        module, _ = extension.loaded()
+        if module is None:
+            return self._solve_scipy(b)
+        sn = self.supernodes
+        single = b.dtype == np.float32
+        values, dinv = (sn.single, self.dinv_single) if single else (sn.values, self.dinv)
+        x = np.array(b, order="C", copy=True)
+        module.ldl_solve(
+            sn.first,
+            sn.row_ptr,
+            sn.rows,
+            sn.block_ptr,
+            values,
+            dinv,
+            self.perm,
+            x,
+            extension.threads(),
+        )
+        return x
+
+    def _solve_scipy(self, b: np.ndarray) -> np.ndarray:
+        """The same sweeps by SciPy, where the extension does not load."""
+        from scipy.sparse import csc_matrix
+        from scipy.sparse.linalg import spsolve_triangular
+
+        n = len(self.dinv)
+        lower = csc_matrix((self.values, self.rows, self.colptr), shape=(n, n))
+        y = spsolve_triangular(lower.tocsr(), b[self.perm], lower=True, unit_diagonal=True)
+        y = y * self.dinv[:, None]
+        y = spsolve_triangular(lower.T.tocsr(), y, lower=False, unit_diagonal=True)
+        x = np.empty_like(y)
+        x[self.perm] = y
+        return x.astype(b.dtype)
+
+
 class _Cholesky:
-    """Host-side sparse Cholesky factors of ``I + lambda L`` (CHOLMOD through cholespy).
+    """Host-side sparse LDL^T factors of ``I + lambda L`` (qdldl), solved by the extension's
+    sweeps (``csrc/ldl.h``: every column of the right-hand side in one pass over the factor).
 
     One per mesh (see :func:`_host_cholesky`), with the factors of the last few lambda
     values, so a schedule over a few values does not refactorise every step.
@@ -254,13 +370,15 @@ class _Cholesky:
 
     def __init__(self, neighbors: np.ndarray, degree: np.ndarray):
         try:
-            import cholespy
+            import qdldl
+            import scipy.sparse
         except ImportError as e:
             raise ImportError(
-                "solver='cholesky' needs cholespy: pip install "
+                "solver='cholesky' needs qdldl and SciPy: pip install "
                 "'optax_bilateral[cholesky]' (or use solver='cg')"
             ) from e
-        self._cholespy: Any = cholespy  # a compiled extension without type information
+        self._qdldl: Any = qdldl  # a compiled extension without type information
+        self._sparse: Any = scipy.sparse
         u = len(degree)
         rows = np.repeat(np.arange(u), neighbors.shape[1])
         keep = neighbors.ravel() < u
@@ -269,27 +387,35 @@ class _Cholesky:
         self._jj = np.concatenate([diag, neighbors.ravel()[keep]]).astype(np.int32)
         self._degree = np.asarray(degree, np.float64)
         self._off = int(keep.sum())
-        self._factors: collections.OrderedDict = collections.OrderedDict()
+        self._factors: collections.OrderedDict[float, _Factor] = collections.OrderedDict()
         self._lock = threading.Lock()
 
-    def factor(self, lam: float):
+    def factor(self, lam: float) -> _Factor:
         with self._lock:
             if lam in self._factors:
                 self._factors.move_to_end(lam)
                 return self._factors[lam]
+            u = len(self._degree)
             values = np.concatenate([1.0 + lam * self._degree, np.full(self._off, -lam)])
-            fac = self._cholespy.CholeskySolverD(
-                len(self._degree), self._ii, self._jj, values, self._cholespy.MatrixType.COO
-            )
+            m = self._sparse.csc_matrix((values, (self._ii, self._jj)), shape=(u, u))
+            lower, d, perm = self._qdldl.Solver(m).factors()
+            lower = lower.tocsc()
+            lower.sort_indices()
+            fac = _Factor.of(lower.indptr, lower.indices, lower.data, d, perm)
             self._factors[lam] = fac
             while len(self._factors) > self.MAX_FACTORS:
                 self._factors.popitem(last=False)
             return fac
 
     def solve(self, b: np.ndarray, lam: np.ndarray) -> np.ndarray:
-        """``b``: ``(*batch, U, C)``; ``lam``: ``(*batch)`` (vmap broadcasts both)."""
+        """``b``: ``(*batch, U, C)``; ``lam``: ``(*batch)`` (vmap broadcasts both). Solved in
+        ``b``'s dtype where it is float32 or float64, else in float32."""
         b, lam = np.asarray(b), np.asarray(lam, np.float64)
+        work = b.dtype if b.dtype in (np.float32, np.float64) else np.dtype(np.float32)
         batch = b.shape[:-2]
+        if not batch:
+            x = self.factor(float(lam)).solve(b.astype(work, copy=False))
+            return x.astype(b.dtype, copy=False)
         flat_b = b.reshape((-1,) + b.shape[-2:])
         flat_lam = np.broadcast_to(lam, batch).reshape(-1)
         out = np.empty(flat_b.shape, b.dtype)
@@ -299,9 +425,7 @@ class _Cholesky:
             rhs = (
                 flat_b[which[0]] if len(which) == 1 else np.concatenate(list(flat_b[which]), axis=1)
             )
-            rhs = np.require(rhs, np.float64, ["C", "W"])  # cholespy takes writable C arrays
-            x = np.empty_like(rhs)
-            self.factor(float(value)).solve(rhs, x)
+            x = self.factor(float(value)).solve(rhs.astype(work, copy=False))
             out[which] = np.stack(np.split(x, len(which), axis=1))
         return out.reshape(b.shape)
 
@@ -411,7 +535,7 @@ def smoothing_solve(
         value is factorised on the host, the last four are kept).
       solver: ``"cg"`` or a :class:`CG` (Jacobi-preconditioned CG, columns scaled to unit
         norm share one Krylov iteration; its ``warm_start`` is for the transforms), or
-        ``"cholesky"`` / :class:`Cholesky` (needs ``cholespy``).
+        ``"cholesky"`` / :class:`Cholesky` (needs ``qdldl``).
       x0: optional CG starting point with the shape of ``b`` (e.g. the last solution).
       **deprecated: ``tol`` and ``maxiter``, the fields of :class:`CG` now: still applied
         for one release, with a ``DeprecationWarning``.

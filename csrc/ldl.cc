@@ -1,0 +1,110 @@
+// The LDL^T solve's driver: the factor's checks, blocks of columns on threads, and the
+// instruction set's build of the sweeps.
+#include "ldl.h"
+
+#include <algorithm>
+#include <thread>
+#include <type_traits>
+#include <vector>
+
+#include "isa.h"
+#include "kernel_isa.h"
+
+namespace optax_bilateral {
+namespace {
+
+// A thread of its own only for at least this many columns: fewer cost more to start than
+// they save.
+constexpr int64_t kMinColumnsPerThread = 16;
+// The widest block one sweep takes: wider blocks read the factor fewer times, and beyond this
+// the rows of a block no longer fit the cache (docs/triangle_mesh.md has the measurements).
+constexpr int64_t kMaxWidth = 64;
+
+template <typename T>
+void sweep(const LdlFactor<T>& f, T* b, int64_t k, int64_t c0, int64_t c1, T* z) {
+  constexpr bool f32 = std::is_same_v<T, float>;
+  switch (cpu_isa()) {
+#if defined(__x86_64__)
+    case Isa::kAvx512:
+      if constexpr (f32) return avx512::ldl32(f, b, k, c0, c1, z);
+      else return avx512::ldl64(f, b, k, c0, c1, z);
+    case Isa::kAvx2:
+      if constexpr (f32) return avx2::ldl32(f, b, k, c0, c1, z);
+      else return avx2::ldl64(f, b, k, c0, c1, z);
+#endif
+    default:
+      if constexpr (f32) return baseline::ldl32(f, b, k, c0, c1, z);
+      else return baseline::ldl64(f, b, k, c0, c1, z);
+  }
+}
+
+template <typename T>
+void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads) {
+  if (f.n == 0 || k == 0) return;
+  const int64_t workers = std::max<int64_t>(
+      1, std::min<int64_t>(threads, k / kMinColumnsPerThread));
+  const int64_t blocks = std::max(workers, (k + kMaxWidth - 1) / kMaxWidth);
+  auto run = [&](int64_t first) {
+    std::vector<T> z(static_cast<size_t>(f.n * std::max<int64_t>(4, (k + blocks - 1) / blocks)));
+    for (int64_t i = first; i < blocks; i += workers)
+      sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z.data());
+  };
+  std::vector<std::thread> others;
+  for (int64_t i = 1; i < workers; ++i) others.emplace_back(run, i);
+  run(0);
+  for (auto& t : others) t.join();
+}
+
+}  // namespace
+
+namespace {
+
+template <typename T>
+const char* check(const LdlFactor<T>& f, int64_t num_rows, int64_t num_values) {
+  const int64_t n = f.n, ns = f.supernodes;
+  if (n < 0 || ns < 0 || num_rows < 0 || num_values < 0) return "sizes must be non-negative";
+  if (f.first[0] != 0 || f.first[ns] != n) return "first must run from 0 to n";
+  if (f.row_ptr[0] != 0 || f.row_ptr[ns] != num_rows)
+    return "row_ptr must run from 0 to the rows' count";
+  if (f.block_ptr[0] != 0 || f.block_ptr[ns] != num_values)
+    return "block_ptr must run from 0 to the values' count";
+  for (int64_t k = 0; k < ns; ++k) {
+    const int64_t s = int64_t{f.first[k + 1]} - f.first[k];
+    const int64_t r = int64_t{f.row_ptr[k + 1]} - f.row_ptr[k];
+    if (s < 1) return "every supernode must have at least one column";
+    if (r < 0) return "row_ptr must not decrease";
+    if (f.block_ptr[k + 1] - f.block_ptr[k] != (s + r) * s)
+      return "each block must hold (columns + rows below) x columns values";
+    int64_t last = int64_t{f.first[k + 1]} - 1;
+    for (int64_t i = f.row_ptr[k]; i < f.row_ptr[k + 1]; ++i) {
+      if (f.rows[i] <= last || f.rows[i] >= n)
+        return "the rows below a supernode must increase, past its columns, within n";
+      last = f.rows[i];
+    }
+  }
+  std::vector<bool> seen(static_cast<size_t>(n), false);
+  for (int64_t i = 0; i < n; ++i) {
+    if (f.perm[i] < 0 || f.perm[i] >= n || seen[static_cast<size_t>(f.perm[i])])
+      return "perm must be a permutation of 0 .. n-1";
+    seen[static_cast<size_t>(f.perm[i])] = true;
+  }
+  return "";
+}
+
+}  // namespace
+
+const char* check_factor(const LdlFactor<float>& f, int64_t num_rows, int64_t num_values) {
+  return check(f, num_rows, num_values);
+}
+const char* check_factor(const LdlFactor<double>& f, int64_t num_rows, int64_t num_values) {
+  return check(f, num_rows, num_values);
+}
+
+void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads) {
+  solve(f, b, k, threads);
+}
+void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads) {
+  solve(f, b, k, threads);
+}
+
+}  // namespace optax_bilateral

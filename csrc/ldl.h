@@ -1,0 +1,41 @@
+// Solves with a sparse LDL^T factor for many right-hand sides at once: the mesh smoothing's
+// M^-1 = (I + lambda L)^-1, factorised once per (mesh, lambda) by qdldl on the Python side.
+//
+//   A = P (I + L) D (I + L)^T P^T,   P[perm[i], i] = 1,
+//
+// L strictly lower triangular, stored by supernodes: runs of consecutive columns that share
+// their rows below the run, each a dense block. Every right-hand side of b (n, k), row-major,
+// goes through the same forward and backward sweeps; a row below a supernode is read once per
+// supernode and block of columns, not once per entry of L.
+#pragma once
+
+#include <cstdint>
+
+namespace optax_bilateral {
+
+template <typename T>
+struct LdlFactor {
+  int64_t n = 0;
+  int64_t supernodes = 0;
+  const int32_t* first = nullptr;      // (supernodes + 1) first column of each; the last is n
+  const int32_t* row_ptr = nullptr;    // (supernodes + 1) where each one's rows start in `rows`
+  const int32_t* rows = nullptr;       // the rows below each supernode, each past its columns
+  const int64_t* block_ptr = nullptr;  // (supernodes + 1) where each one's block starts
+  // Supernode k of s columns and r rows below: an (s + r, s) row-major block, its first s rows
+  // L[j0 + u, j0 + t] for t < u (the diagonal and above unread), then L[rows[i], j0 + t].
+  const T* values = nullptr;
+  const T* dinv = nullptr;        // (n) 1 / D
+  const int32_t* perm = nullptr;  // (n) a permutation of 0 .. n-1
+};
+
+// The first problem found in a factor's index arrays (`rows` of `num_rows` entries, blocks
+// adding up to `num_values`), or "" when it is sound: every later read stays in bounds.
+const char* check_factor(const LdlFactor<float>& f, int64_t num_rows, int64_t num_values);
+const char* check_factor(const LdlFactor<double>& f, int64_t num_rows, int64_t num_values);
+
+// b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (blocks of columns), each
+// with a buffer of n times its block's width. The factor must have passed check_factor.
+void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads);
+void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads);
+
+}  // namespace optax_bilateral

@@ -1,0 +1,195 @@
+"""The mesh solves' sparse LDL^T factor (qdldl) and its sweeps (the extension's ``ldl_solve``,
+SciPy's triangular solves where it does not load): against dense float64 solves, on the
+Laplacian systems the mesh transforms build and on the extremes."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from optax_bilateral import triangle_mesh as M
+from optax_bilateral._src import extension
+from optax_bilateral._src.mesh import laplacian
+from optax_bilateral.toy import triangle_mesh as toy
+
+pytest.importorskip("qdldl")
+native, _ = extension.loaded()
+
+
+def system(frequency: int, lam: float):
+    """(the factor cache, the dense M = I + lam L) of an icosphere."""
+    _, f = toy.icosphere(frequency)
+    mesh = M.mesh_laplacian(f)
+    n = mesh.num_merged
+    dense = np.eye(n)
+    nb = np.asarray(mesh.neighbors)
+    for i in range(n):
+        for j in nb[i]:
+            if j < n:
+                dense[i, j] -= lam
+                dense[i, i] += lam
+    return laplacian._host_cholesky(mesh), dense
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.3, 19.0, 1e4])
+@pytest.mark.parametrize("columns", [1, 3, 4, 5, 64, 130])
+def test_factor_solves_the_laplacian_system(lam, columns):
+    host, dense = system(4, lam)
+    b = np.random.default_rng(columns).normal(size=(len(dense), columns))
+    want = np.linalg.solve(dense, b)
+    fac = host.factor(lam)
+    for solve in (fac.solve, fac._solve_scipy):
+        np.testing.assert_allclose(solve(b), want, rtol=0, atol=1e-10 * np.abs(want).max())
+        got32 = solve(b.astype(np.float32))
+        assert got32.dtype == np.float32
+        # float32 sweeps: the conditioning of M (at most 1 + 2 lam max degree) times rounding.
+        cond = np.linalg.cond(dense)
+        np.testing.assert_allclose(got32, want, atol=3e-7 * cond * np.abs(want).max())
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load: nothing to compare")
+@pytest.mark.parametrize("threads", ["1", "2", "3"])
+def test_native_sweeps_equal_scipy_on_any_thread_count(monkeypatch, threads):
+    monkeypatch.setenv(extension.THREADS_ENV, threads)
+    host, _ = system(8, 19.0)
+    fac = host.factor(19.0)
+    b = np.random.default_rng(0).normal(size=(fac.dinv.size, 128))
+    np.testing.assert_allclose(fac.solve(b), fac._solve_scipy(b), rtol=0, atol=1e-11)
+
+
+def test_smoothing_solve_without_the_extension_equals_with_it(monkeypatch):
+    _, f = toy.icosphere(4)
+    mesh = M.mesh_laplacian(f)
+    b = jnp.asarray(np.random.default_rng(1).normal(size=(mesh.num_vertices, 3)), jnp.float32)
+    with_it = M.smoothing_solve(mesh, b, 7.0, solver="cholesky")
+    monkeypatch.setattr(extension, "loaded", lambda: (None, "ImportError: switched off"))
+    without = M.smoothing_solve(mesh, b, 7.0, solver="cholesky")
+    np.testing.assert_allclose(without, with_it, rtol=1e-5, atol=1e-6)
+
+
+def test_half_precision_fields_are_solved_in_float32():
+    _, f = toy.icosphere(3)
+    mesh = M.mesh_laplacian(f)
+    b = np.random.default_rng(2).normal(size=(mesh.num_vertices, 2))
+    want = M.smoothing_solve(mesh, jnp.asarray(b, jnp.float32), 3.0, solver="cholesky")
+    for dtype in (jnp.bfloat16, jnp.float16):
+        got = M.smoothing_solve(mesh, jnp.asarray(b, dtype), 3.0, solver="cholesky")
+        assert got.dtype == dtype
+        np.testing.assert_allclose(np.asarray(got, np.float32), want, atol=2e-2)
+
+
+def _arrays():
+    """A sound 3 x 3 factor: supernodes {0} with row 2 below it, and {1, 2}."""
+    return dict(
+        first=np.array([0, 1, 3], np.int32),
+        row_ptr=np.array([0, 1, 1], np.int32),
+        rows=np.array([2], np.int32),
+        block_ptr=np.array([0, 2, 6], np.int64),
+        values=np.full(6, 0.5),
+        dinv=np.ones(3),
+        perm=np.array([2, 0, 1], np.int32),
+        b=np.ones((3, 2)),
+    )
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+def test_native_sweeps_take_the_sound_factor():
+    args = _arrays()
+    native.ldl_solve(*args.values(), 1)
+    # A = P (I + L) D (I + L)^T P^T with L[2, 0] = 0.5 (block (0, 1)) and L[2, 1] = 0.5.
+    lower = np.eye(3)
+    lower[2, 0] = lower[2, 1] = 0.5
+    p = np.zeros((3, 3))
+    p[[2, 0, 1], [0, 1, 2]] = 1
+    a = p @ lower @ lower.T @ p.T
+    np.testing.assert_allclose(a @ args["b"], np.ones((3, 2)), atol=1e-12)
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(rows=np.array([0], np.int32)), "past its columns"),
+        (dict(rows=np.array([3], np.int32)), "within n"),
+        (dict(first=np.array([0, 1, 2], np.int32)), "from 0 to n"),
+        (dict(first=np.array([0, 0, 3], np.int32)), "at least one column"),
+        (dict(row_ptr=np.array([0, 1, 2], np.int32)), "from 0 to the rows"),
+        (dict(block_ptr=np.array([0, 2, 7], np.int64)), "from 0 to the values"),
+        (dict(block_ptr=np.array([0, 1, 6], np.int64)), r"rows below\) x columns"),
+        (dict(first=np.array([0, 3], np.int32)), "one entry per supernode"),
+        (dict(perm=np.array([0, 0, 1], np.int32)), "permutation"),
+        (dict(perm=np.array([0, 1, 3], np.int32)), "permutation"),
+        (dict(perm=np.array([0, 1, 2], np.int64)), "perm must be int32"),
+        (dict(block_ptr=np.array([0, 2, 6], np.int32)), "block_ptr must be int64"),
+        (dict(values=np.full(6, 0.5, np.float32)), "b's dtype"),
+        (dict(b=np.ones((3, 2), np.int32)), "float32 or float64"),
+        (dict(b=np.ones(7)), "\\(n, k\\)"),
+        (dict(perm=np.array([0, 1], np.int32)), "perm must have n entries"),
+    ],
+)
+def test_native_sweeps_refuse_a_broken_factor(change, message):
+    args = _arrays() | change
+    with pytest.raises(ValueError, match=message):
+        native.ldl_solve(*args.values(), 1)
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+def test_native_sweeps_refuse_bad_buffers():
+    args = _arrays()
+    with pytest.raises(ValueError, match="threads"):
+        native.ldl_solve(*args.values(), 0)
+    frozen = args["b"].copy()
+    frozen.flags.writeable = False
+    with pytest.raises((ValueError, BufferError), match=r"[Ww]ritable|read-only"):
+        native.ldl_solve(*(args | dict(b=frozen)).values(), 1)
+    with pytest.raises(TypeError):
+        native.ldl_solve(*(args | dict(b=[1.0, 2.0])).values(), 1)
+    strided = np.ones((3, 4))[:, ::2]
+    with pytest.raises((ValueError, BufferError)):
+        native.ldl_solve(*(args | dict(b=strided)).values(), 1)
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+def test_native_sweeps_take_empty_systems():
+    empty = dict(
+        first=np.zeros(1, np.int32),
+        row_ptr=np.zeros(1, np.int32),
+        rows=np.zeros(0, np.int32),
+        block_ptr=np.zeros(1, np.int64),
+        values=np.zeros(0),
+        dinv=np.zeros(0),
+        perm=np.zeros(0, np.int32),
+        b=np.zeros((0, 3)),
+    )
+    native.ldl_solve(*empty.values(), 2)
+    args = _arrays() | dict(b=np.zeros((3, 0)))
+    native.ldl_solve(*args.values(), 2)
+
+
+@pytest.mark.parametrize("frequency", [1, 4, 12])
+def test_supernodes_hold_the_factor_exactly(frequency):
+    """The blocks, read as the sweeps read them, rebuild L's compressed columns; each
+    supernode's columns share their rows below it; a mesh's factor has wide supernodes."""
+    host, _ = system(frequency, 19.0)
+    fac = host.factor(19.0)
+    n, sn = len(fac.dinv), fac.supernodes
+    want = np.zeros((n, n))
+    cols = np.repeat(np.arange(n), np.diff(fac.colptr))
+    want[fac.rows, cols] = fac.values
+    got = np.zeros((n, n))
+    for k in range(len(sn.first) - 1):
+        j0, j1 = sn.first[k], sn.first[k + 1]
+        s = j1 - j0
+        below = sn.rows[sn.row_ptr[k] : sn.row_ptr[k + 1]]
+        block = sn.values[sn.block_ptr[k] : sn.block_ptr[k + 1]].reshape(s + len(below), s)
+        rows = np.concatenate([np.arange(j0, j1), below])
+        for t in range(s):
+            keep = rows > j0 + t
+            got[rows[keep], j0 + t] = block[keep, t]
+            # every column of the run has exactly the rows below the run, and the run below it
+            col = fac.rows[fac.colptr[j0 + t] : fac.colptr[j0 + t + 1]]
+            np.testing.assert_array_equal(col, rows[keep])
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(sn.single, sn.values.astype(np.float32))
+    wide = np.diff(sn.first) >= 4
+    in_wide = (fac.colptr[sn.first[1:]] - fac.colptr[sn.first[:-1]])[wide].sum()
+    assert in_wide > (0.5 if frequency >= 12 else 0) * len(fac.values)
