@@ -3,6 +3,8 @@
 #include "ldl.h"
 
 #include <algorithm>
+#include <mutex>
+#include <unordered_map>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -15,7 +17,7 @@ namespace {
 
 // A thread of its own only for at least this many columns: fewer cost more to start than
 // they save.
-constexpr int64_t kMinColumnsPerThread = 16;
+constexpr int64_t kMinColumnsPerThread = 32;
 // The widest block one sweep takes: wider blocks read the factor fewer times, and beyond this
 // the rows of a block no longer fit the cache (docs/triangle_mesh.md has the measurements).
 constexpr int64_t kMaxWidth = 64;
@@ -98,6 +100,48 @@ const char* check_factor(const LdlFactor<float>& f, int64_t num_rows, int64_t nu
 }
 const char* check_factor(const LdlFactor<double>& f, int64_t num_rows, int64_t num_values) {
   return check(f, num_rows, num_values);
+}
+
+namespace {
+
+template <typename T>
+LdlFactor<T> view_of(const StoredFactor& s, const std::vector<T>& values,
+                     const std::vector<T>& dinv) {
+  LdlFactor<T> f;
+  f.n = static_cast<int64_t>(dinv.size());
+  f.supernodes = static_cast<int64_t>(s.first.size()) - 1;
+  f.first = s.first.data();
+  f.row_ptr = s.row_ptr.data();
+  f.rows = s.rows.data();
+  f.block_ptr = s.block_ptr.data();
+  f.values = values.data();
+  f.dinv = dinv.data();
+  f.perm = s.perm.data();
+  return f;
+}
+
+std::mutex store_mutex;
+std::unordered_map<int64_t, std::shared_ptr<const StoredFactor>>& store() {
+  static auto* factors = new std::unordered_map<int64_t, std::shared_ptr<const StoredFactor>>();
+  return *factors;  // never destroyed: XLA may call after static destructors have run
+}
+
+}  // namespace
+
+LdlFactor<float> StoredFactor::view32() const { return view_of(*this, values32, dinv32); }
+LdlFactor<double> StoredFactor::view64() const { return view_of(*this, values, dinv); }
+
+int64_t store_factor(std::unique_ptr<StoredFactor> factor) {
+  std::lock_guard<std::mutex> lock(store_mutex);
+  const int64_t id = static_cast<int64_t>(store().size()) + 1;
+  store().emplace(id, std::shared_ptr<const StoredFactor>(std::move(factor)));
+  return id;
+}
+
+std::shared_ptr<const StoredFactor> stored_factor(int64_t id) {
+  std::lock_guard<std::mutex> lock(store_mutex);
+  const auto it = store().find(id);
+  return it == store().end() ? nullptr : it->second;
 }
 
 void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads) {

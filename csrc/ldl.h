@@ -10,6 +10,8 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
+#include <vector>
 
 namespace optax_bilateral {
 
@@ -37,5 +39,22 @@ const char* check_factor(const LdlFactor<double>& f, int64_t num_rows, int64_t n
 // with a buffer of n times its block's width. The factor must have passed check_factor.
 void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads);
 void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads);
+
+// A factor held by the extension, in both precisions, for XLA's calls to find by its id.
+struct StoredFactor {
+  std::vector<int32_t> first, row_ptr, rows, perm;
+  std::vector<int64_t> block_ptr;
+  std::vector<double> values, dinv;
+  std::vector<float> values32, dinv32;
+
+  LdlFactor<float> view32() const;
+  LdlFactor<double> view64() const;
+};
+
+// Keeps a factor (which must have passed check_factor) for the life of the process and
+// returns its id (ids count from 1).
+int64_t store_factor(std::unique_ptr<StoredFactor> factor);
+// The factor stored under `id`, or null.
+std::shared_ptr<const StoredFactor> stored_factor(int64_t id);
 
 }  // namespace optax_bilateral

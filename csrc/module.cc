@@ -4,6 +4,8 @@
 #include <Python.h>
 
 #include <cstdint>
+#include <cstring>
+#include <memory>
 #include <functional>
 #include <string>
 #include <vector>
@@ -162,6 +164,37 @@ ffi::Error atrous_fields(ffi::ThreadPool pool, ffi::AnyBuffer guide, ffi::AnyBuf
   }
 }
 
+// b (n, k) -> A^-1 b with the stored factor `factor` (register_factor).
+ffi::Error ldl(ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out, int64_t factor, int64_t threads) {
+  const auto stored = ob::stored_factor(factor);
+  if (!stored) return invalid("no factor is stored under id " + std::to_string(factor));
+  const auto dims = b.dimensions();
+  const int64_t n = static_cast<int64_t>(stored->perm.size());
+  if (dims.size() != 2 || dims[0] != n)
+    return invalid("the right-hand side must be (n, k) with n the factor's size");
+  if (out->element_type() != b.element_type() || out->element_count() != b.element_count())
+    return invalid("the output must match the right-hand side");
+  if (threads < 1) return invalid("threads must be >= 1");
+  const int64_t k = dims[1];
+  const auto bytes = b.size_bytes();
+  switch (b.element_type()) {
+    case ffi::DataType::F32: {
+      auto* x = static_cast<float*>(out->untyped_data());
+      if (x != b.untyped_data()) std::memcpy(x, b.untyped_data(), bytes);
+      ob::ldl_solve(stored->view32(), x, k, static_cast<int>(threads));
+      return ffi::Error::Success();
+    }
+    case ffi::DataType::F64: {
+      auto* x = static_cast<double*>(out->untyped_data());
+      if (x != b.untyped_data()) std::memcpy(x, b.untyped_data(), bytes);
+      ob::ldl_solve(stored->view64(), x, k, static_cast<int>(threads));
+      return ffi::Error::Success();
+    }
+    default:
+      return invalid("the right-hand side must be float32 or float64");
+  }
+}
+
 }  // namespace
 
 #pragma GCC diagnostic push
@@ -192,6 +225,12 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrousFields, atrous_fields,
                                   .Attr<int64_t>("start")
                                   .Attr<bool>("has_valid")
                                   .Attr<int64_t>("threads"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLdl, ldl,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // b (n, k)
+                                  .Ret<ffi::AnyBuffer>()  // A^-1 b
+                                  .Attr<int64_t>("factor")
+                                  .Attr<int64_t>("threads"));
 #pragma GCC diagnostic pop
 
 namespace {
@@ -209,6 +248,13 @@ PyObject* registrations(PyObject*, PyObject*) {
   Py_DECREF(capsule);
   capsule = PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralAtrousFields), nullptr, nullptr);
   if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_atrous_fields", capsule) < 0) {
+    Py_XDECREF(capsule);
+    Py_DECREF(dict);
+    return nullptr;
+  }
+  Py_DECREF(capsule);
+  capsule = PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralLdl), nullptr, nullptr);
+  if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_ldl", capsule) < 0) {
     Py_XDECREF(capsule);
     Py_DECREF(dict);
     return nullptr;
@@ -314,6 +360,49 @@ PyObject* ldl_solve(PyObject*, PyObject* args) {
   return t == 'f' ? ldl_typed<float>(a, threads) : ldl_typed<double>(a, threads);
 }
 
+template <typename T>
+std::vector<T> copy_of(const Buffer& b) {
+  const T* p = static_cast<const T*>(b.data());
+  return std::vector<T>(p, p + b.size());
+}
+
+// register_factor(first, row_ptr, rows, block_ptr, values, dinv, perm) -> id: a float64 factor
+// (ldl.h) checked and kept for the process's life, in float64 and float32, for XLA's calls.
+PyObject* register_factor(PyObject*, PyObject* args) {
+  PyObject *o_first, *o_row_ptr, *o_rows, *o_block_ptr, *o_values, *o_dinv, *o_perm;
+  if (!PyArg_ParseTuple(args, "OOOOOOO", &o_first, &o_row_ptr, &o_rows, &o_block_ptr, &o_values,
+                        &o_dinv, &o_perm))
+    return nullptr;
+  const Buffer first(o_first, false, "first"), row_ptr(o_row_ptr, false, "row_ptr"),
+      rows(o_rows, false, "rows"), block_ptr(o_block_ptr, false, "block_ptr"),
+      values(o_values, false, "values"), dinv(o_dinv, false, "dinv"), perm(o_perm, false, "perm");
+  for (const Buffer* buf : {&first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm})
+    if (!buf->ok()) return nullptr;
+  for (const Buffer* buf : {&first, &row_ptr, &rows, &perm})
+    if (buf->kind() != 'i') return value_error(std::string(buf->name()) + " must be int32");
+  if (block_ptr.kind() != 'q') return value_error("block_ptr must be int64");
+  if (values.kind() != 'd' || dinv.kind() != 'd')
+    return value_error("values and dinv must be float64");
+  if (first.size() < 1 || row_ptr.size() != first.size() || block_ptr.size() != first.size())
+    return value_error("first, row_ptr and block_ptr must have one entry per supernode, plus one");
+  if (perm.size() != dinv.size()) return value_error("perm must have n entries, n = len(dinv)");
+  auto f = std::make_unique<ob::StoredFactor>();
+  f->first = copy_of<int32_t>(first);
+  f->row_ptr = copy_of<int32_t>(row_ptr);
+  f->rows = copy_of<int32_t>(rows);
+  f->block_ptr = copy_of<int64_t>(block_ptr);
+  f->values = copy_of<double>(values);
+  f->dinv = copy_of<double>(dinv);
+  f->perm = copy_of<int32_t>(perm);
+  const std::string problem =
+      ob::check_factor(f->view64(), static_cast<int64_t>(f->rows.size()),
+                       static_cast<int64_t>(f->values.size()));
+  if (!problem.empty()) return value_error(problem);
+  f->values32.assign(f->values.begin(), f->values.end());
+  f->dinv32.assign(f->dinv.begin(), f->dinv.end());
+  return PyLong_FromLongLong(ob::store_factor(std::move(f)));
+}
+
 PyObject* instruction_set(PyObject*, PyObject*) {
   return PyUnicode_FromString(ob::instruction_set().c_str());
 }
@@ -323,6 +412,10 @@ PyMethodDef methods[] = {
      "{target name: capsule} of the XLA FFI handlers this extension defines."},
     {"instruction_set", instruction_set, METH_NOARGS,
      "The instruction set the kernel runs with on this CPU."},
+    {"register_factor", register_factor, METH_VARARGS,
+     "register_factor(first, row_ptr, rows, block_ptr, values, dinv, perm) -> id: a float64 "
+     "factor (csrc/ldl.h), checked and kept for the process's life, for the XLA FFI target "
+     "optax_bilateral_ldl (attribute factor=id)."},
     {"ldl_solve", ldl_solve, METH_VARARGS,
      "ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, b, threads): b (n, k) <- "
      "A^-1 b in place, A = P (I + L) D (I + L)^T P^T, L by supernodes (csrc/ldl.h)."},

@@ -2,6 +2,7 @@
 SciPy's triangular solves where it does not load): against dense float64 solves, on the
 Laplacian systems the mesh transforms build and on the extremes."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -62,6 +63,8 @@ def test_smoothing_solve_without_the_extension_equals_with_it(monkeypatch):
     b = jnp.asarray(np.random.default_rng(1).normal(size=(mesh.num_vertices, 3)), jnp.float32)
     with_it = M.smoothing_solve(mesh, b, 7.0, solver="cholesky")
     monkeypatch.setattr(extension, "loaded", lambda: (None, "ImportError: switched off"))
+    monkeypatch.setattr(extension, "registered", lambda: (False, "ImportError: switched off"))
+    assert type(laplacian.System.of(mesh, M.Cholesky(), 7.0).host) is laplacian._Cholesky
     without = M.smoothing_solve(mesh, b, 7.0, solver="cholesky")
     np.testing.assert_allclose(without, with_it, rtol=1e-5, atol=1e-6)
 
@@ -193,3 +196,73 @@ def test_supernodes_hold_the_factor_exactly(frequency):
     wide = np.diff(sn.first) >= 4
     in_wide = (fac.colptr[sn.first[1:]] - fac.colptr[sn.first[:-1]])[wide].sum()
     assert in_wide > (0.5 if frequency >= 12 else 0) * len(fac.values)
+
+
+# ----------------------------------------------------------------------------- inside XLA
+
+
+def _fixed_and_traced(mesh, b, lam):
+    """The solve with lambda known when traced (the extension's FFI call) and traced (the
+    host callback)."""
+    fixed = jax.jit(lambda b: M.smoothing_solve(mesh, b, lam, solver="cholesky"))(b)
+    traced = jax.jit(lambda b, lam: M.smoothing_solve(mesh, b, lam, solver="cholesky"))(b, lam)
+    return fixed, traced
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+def test_a_known_lambda_is_solved_inside_xla_as_on_the_host():
+    _, f = toy.icosphere(6)
+    mesh = M.mesh_laplacian(f)
+    system = laplacian.System.of(mesh, M.Cholesky(), 19.0)
+    assert isinstance(system.host, laplacian._Pinned)
+    assert system.host is not laplacian.System.of(mesh, M.Cholesky(), 7.0).host
+    rng = np.random.default_rng(3)
+    for dtype, tol in ((jnp.float32, 1e-6), (jnp.float64, 1e-13), (jnp.bfloat16, 0)):
+        with jax.enable_x64(dtype == jnp.float64):
+            b = jnp.asarray(rng.normal(size=(mesh.num_vertices, 5)), dtype)
+            fixed, traced = _fixed_and_traced(mesh, b, 19.0)
+            assert fixed.dtype == traced.dtype == dtype
+            np.testing.assert_allclose(
+                np.asarray(fixed, np.float64), np.asarray(traced, np.float64), atol=tol
+            )
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+def test_the_ffi_solve_keeps_grad_and_vmap():
+    _, f = toy.icosphere(4)
+    mesh = M.mesh_laplacian(f)
+    rng = np.random.default_rng(4)
+    b = jnp.asarray(rng.normal(size=(mesh.num_vertices, 3)), jnp.float32)
+    r = jnp.asarray(rng.normal(size=(mesh.num_vertices, 3)), jnp.float32)
+
+    def loss(b, lam):
+        return jnp.sum(M.smoothing_solve(mesh, b, lam, solver="cholesky") * r)
+
+    # M is symmetric: d/db <M^-1 b, r> = M^-1 r, through the FFI call and the host's alike.
+    g_fixed = jax.jit(jax.grad(lambda b: loss(b, 19.0)))(b)
+    g_traced = jax.jit(jax.grad(loss))(b, jnp.float32(19.0))
+    np.testing.assert_allclose(g_fixed, g_traced, atol=1e-6)
+    np.testing.assert_allclose(
+        g_fixed, M.smoothing_solve(mesh, r, 19.0, solver="cholesky"), atol=1e-6
+    )
+    batch = jnp.stack([b, 2 * b, -b])
+    batched = jax.jit(jax.vmap(lambda b: M.smoothing_solve(mesh, b, 19.0, solver="cholesky")))(
+        batch
+    )
+    for x, y in zip(batched, batch):
+        np.testing.assert_allclose(
+            x, M.smoothing_solve(mesh, y, 19.0, solver="cholesky"), atol=1e-6
+        )
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+def test_the_ffi_solve_names_a_missing_factor_and_register_refuses_a_broken_one():
+    with pytest.raises(Exception, match="no factor is stored under id"):
+        jax.block_until_ready(laplacian._ffi_solve(2**40, jnp.ones((3, 2))))
+    args = _arrays()
+    del args["b"]
+    with pytest.raises(ValueError, match="permutation"):
+        native.register_factor(*(args | dict(perm=np.array([0, 0, 1], np.int32))).values())
+    with pytest.raises(ValueError, match="float64"):
+        native.register_factor(*(args | dict(values=np.full(6, 0.5, np.float32))).values())
+    assert native.register_factor(*args.values()) >= 1

@@ -39,6 +39,23 @@ def loaded() -> tuple[ModuleType | None, str]:
         return None, f"{type(e).__name__}: {e}"
 
 
+@functools.cache
+def registered() -> tuple[bool, str]:
+    """Loads the extension and registers its XLA FFI targets once per process: ``(True,
+    instruction set)``, or ``(False, why not)``."""
+    module, reason = loaded()
+    if module is None:
+        return False, reason
+    try:
+        import jax
+
+        for name, capsule in module.registrations().items():
+            jax.ffi.register_ffi_target(name, capsule, platform="cpu")
+        return True, reason
+    except Exception as e:  # any failure to register leaves the portable paths
+        return False, f"{type(e).__name__}: {e}"
+
+
 def threads() -> int:
     """The threads a call will use: ``$OPTAX_BILATERAL_THREADS``, else the usable CPUs."""
     env = os.environ.get(THREADS_ENV, "")

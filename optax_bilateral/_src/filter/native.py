@@ -48,18 +48,7 @@ class Status(NamedTuple):
     threads: int
 
 
-@functools.cache
-def _registered() -> tuple[bool, str]:
-    """Loads the extension and registers its FFI targets once per process."""
-    module, reason = extension.loaded()
-    if module is None:
-        return False, reason
-    try:
-        for name, capsule in module.registrations().items():
-            jax.ffi.register_ffi_target(name, capsule, platform="cpu")
-        return True, reason
-    except Exception as e:  # any failure to register leaves the pure-JAX kernels
-        return False, f"{type(e).__name__}: {e}"
+_registered = extension.registered
 
 
 def status() -> Status:

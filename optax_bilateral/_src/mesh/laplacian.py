@@ -388,6 +388,7 @@ class _Cholesky:
         self._degree = np.asarray(degree, np.float64)
         self._off = int(keep.sum())
         self._factors: collections.OrderedDict[float, _Factor] = collections.OrderedDict()
+        self._stored: dict[float, int] = {}  # lambda -> the extension's id of its factor
         self._lock = threading.Lock()
 
     def factor(self, lam: float) -> _Factor:
@@ -406,6 +407,22 @@ class _Cholesky:
             while len(self._factors) > self.MAX_FACTORS:
                 self._factors.popitem(last=False)
             return fac
+
+    def pinned(self, lam: float) -> _Pinned | None:
+        """The factor of ``lam`` handed to the extension, for XLA to call without a host round
+        trip (kept for the process's life, one per (mesh, lambda) asked for), or None where
+        the extension's FFI targets did not load."""
+        if not extension.registered()[0]:
+            return None
+        if lam not in self._stored:
+            fac = self.factor(lam)
+            sn = fac.supernodes
+            module, _ = extension.loaded()
+            assert module is not None  # registered
+            self._stored[lam] = module.register_factor(
+                sn.first, sn.row_ptr, sn.rows, sn.block_ptr, sn.values, fac.dinv, fac.perm
+            )
+        return _Pinned(self, self._stored[lam])
 
     def solve(self, b: np.ndarray, lam: np.ndarray) -> np.ndarray:
         """``b``: ``(*batch, U, C)``; ``lam``: ``(*batch)`` (vmap broadcasts both). Solved in
@@ -452,9 +469,35 @@ def _host_cholesky(mesh: MeshLaplacian) -> _Cholesky:
         return _HOSTS[key]
 
 
+class _Pinned(NamedTuple):
+    """A factor the extension holds (``_Cholesky.pinned``): solved inside XLA by its FFI
+    target ``optax_bilateral_ldl``, no host round trip."""
+
+    host: _Cholesky
+    factor: int  # the extension's id
+
+
+def _ffi_solve(factor: int, rhs):
+    """``M^-1 rhs`` by the extension's FFI target, in float32 for narrower floats."""
+    dtype = rhs.dtype
+    work = rhs if dtype in (jnp.float32, jnp.float64) else rhs.astype(jnp.float32)
+    call = jax.ffi.ffi_call(
+        "optax_bilateral_ldl",
+        jax.ShapeDtypeStruct(work.shape, work.dtype),
+        vmap_method="sequential",
+        input_output_aliases={0: 0},
+    )
+    out = call(work, factor=np.int64(factor), threads=np.int64(extension.threads()))
+    return out.astype(dtype)
+
+
 def solve_columns(host, neighbors, degree, b, lambda_, tol, maxiter, x0):
-    """``(I + lambda L)^-1 b`` for ``b`` of shape ``(U, C)``; ``host`` None means CG."""
+    """``(I + lambda L)^-1 b`` for ``b`` of shape ``(U, C)``; ``host`` None means CG, a
+    ``_Pinned`` factor the extension's FFI call, a ``_Cholesky`` a host callback."""
     matvec = lambda v: _matvec(neighbors, degree, lambda_, v)
+    if isinstance(host, _Pinned):
+        solve = lambda _, rhs: _ffi_solve(host.factor, rhs)
+        return lax.custom_linear_solve(matvec, b, solve, symmetric=True)
     if host is not None:
 
         def solve(_, rhs):
@@ -486,11 +529,19 @@ def solve_columns(host, neighbors, degree, b, lambda_, tol, maxiter, x0):
 solve_jit = jax.jit(solve_columns, static_argnums=0)
 
 
+def _concrete(x) -> float | None:
+    """``x`` as a float where it is known at trace time, else None."""
+    try:
+        return float(x)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError, TypeError):
+        return None
+
+
 class System(NamedTuple):
     """``M = I + lambda L`` on a mesh and how to solve it: what every solve needs but ``b``."""
 
     mesh: MeshLaplacian
-    host: Any  # the factorised solver (Cholesky), or None (CG)
+    host: Any  # the factorised solver: _Pinned (in XLA) or _Cholesky (on the host); None: CG
     lambda_: Any
     tol: Any
     maxiter: Any
@@ -499,7 +550,11 @@ class System(NamedTuple):
     def of(cls, mesh: MeshLaplacian, solver: LinearSolver, lambda_) -> System:
         if isinstance(solver, CG):
             return cls(mesh, None, lambda_, solver.tol, solver.maxiter)
-        return cls(mesh, _host_cholesky(mesh), lambda_, DEFAULT_TOL, DEFAULT_MAXITER)
+        host = _host_cholesky(mesh)
+        lam = _concrete(lambda_)
+        # A known lambda: its factor is solved inside XLA; a traced one: on the host, by value.
+        solver_handle = (host.pinned(lam) if lam is not None else None) or host
+        return cls(mesh, solver_handle, lambda_, DEFAULT_TOL, DEFAULT_MAXITER)
 
     def solve(self, b, x0=None):
         """``M^-1 b`` on the merged vertices; ``b`` and ``x0`` are ``(U, C)``."""
