@@ -133,6 +133,24 @@ def test_hausdorff_distance_to_the_rounded_cube(mi):
     assert 2.0 - corner < E.hausdorff(sphere, faces, target, cfg)
 
 
+def test_mesh_experiment_options_reach_the_runs(mi, monkeypatch, tmp_path):
+    from experiments.mitsuba import mesh as E
+
+    seen = []
+
+    def fake(cfg, frequency, out, progress, target):
+        seen.append((cfg.lambda_, cfg.iterations, frequency, target))
+        raise StopIteration  # enough: the settings reached the first run
+
+    monkeypatch.setattr(E, "run_vertex_count", fake)
+    argv = ["--quick", "--out", str(tmp_path), "--frequencies", "5", "--lambda", "76"]
+    with pytest.raises(StopIteration):
+        E.main([*argv, "--targets", "bumpy_box", "--iterations", "3"])
+    assert seen == [(76.0, 3, 5, "bumpy_box")]
+    with pytest.raises(SystemExit):
+        E.main(["--targets", "teapot"])
+
+
 def test_bumpy_box_has_sharp_edges_bumps_and_a_distance(mi):
     # The second target: a bump rises out of each face's centre, an edge's midpoint is on the
     # (nearly) sharp box, and the signed distance is the distance along the normal nearby.
