@@ -266,9 +266,10 @@ PyObject* registrations(PyObject*, PyObject*) {
 // A buffer of the Python object, C-contiguous, released when this goes out of scope.
 class Buffer {
  public:
+  // Not acquired where an earlier buffer failed: the C API is not called with an error set.
   Buffer(PyObject* obj, bool writable, const char* name) : name_(name) {
     const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    ok_ = PyObject_GetBuffer(obj, &view_, flags) == 0;
+    ok_ = !PyErr_Occurred() && PyObject_GetBuffer(obj, &view_, flags) == 0;
   }
   ~Buffer() {
     if (ok_) PyBuffer_Release(&view_);

@@ -27,7 +27,7 @@ struct Factor {
   std::vector<double> dense;  // L (n, n), strictly lower
 };
 
-// Supernodes of 1 to 6 columns, each with a random set of rows below it (about 16, as sparse
+// Supernodes of 1 to 12 columns, each with a random set of rows below it (about 16, as sparse
 // as a mesh's factor, so that the factor stays well conditioned).
 Factor random_factor(int64_t n, unsigned seed) {
   std::mt19937 rng(seed);
@@ -36,7 +36,7 @@ Factor random_factor(int64_t n, unsigned seed) {
   f.dense.assign(static_cast<size_t>(n * n), 0.0);
   while (f.first.back() < n) {
     const int64_t j0 = f.first.back();
-    const int64_t s = std::min<int64_t>(n - j0, 1 + static_cast<int64_t>(rng() % 6));
+    const int64_t s = std::min<int64_t>(n - j0, 1 + static_cast<int64_t>(rng() % 12));
     std::vector<int32_t> below;
     for (int64_t i = j0 + s; i < n; ++i)
       if (rng() % static_cast<unsigned>(std::max<int64_t>(4, n / 16)) == 0)

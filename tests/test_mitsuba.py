@@ -532,9 +532,14 @@ def test_timing_table_has_adam_and_both_filter_sizes(mi, tmp_path):
     # its 3-D filters at F = 3 and 5 would add two compilations to the test suite.
     from experiments.mitsuba import timing as E
 
-    result = E.main(["--quick", "--rounds", "1", "--scenes", "texture", "--out", str(tmp_path)])
+    argv = ["--quick", "--rounds", "1", "--scenes", "texture", "step", "--out", str(tmp_path)]
+    result = E.main(argv)
     data = json.loads((tmp_path / "timing.json").read_text())
     assert set(data["scenes"]) == {"texture"}
+    step = {r["method"]: r for r in data["step"]["rows"]}
+    assert set(step) == {"mi.ad.Adam", "BilateralAdam"} and data["step"]["size"] == 16
+    assert all(r["step ms"] > 0 and r["rounds"] == 10 for r in step.values())
+    assert step["mi.ad.Adam"]["x mi.ad.Adam"] == 1.0
     for scene in data["scenes"].values():
         rows = {r["method"]: r for r in scene["rows"]}
         assert set(rows) == {"Adam", "Ours (F = 3)", "Ours (F = 5)"}
@@ -546,6 +551,7 @@ def test_timing_table_has_adam_and_both_filter_sizes(mi, tmp_path):
             parts = r["render + backward ms"] + r["update ms"]
             assert parts <= r["total ms"] <= 1.02 * parts
     assert "Ours (F = 5)" in result["table"] and (tmp_path / "timing.md").exists()
+    assert "The optimizer's step alone" in result["table"]
 
 
 def _docs_block(name):

@@ -18,6 +18,9 @@ processes hits all alike) and the tables give medians over rounds of
 * the total, and its change against Adam as the median over rounds of the
   per-round ratio (:func:`experiments.common.paired_ratio`).
 
+``--scenes step`` (in the default) times the optimizer's step alone on a 48^2 x 3 texture:
+``mi.ad.Adam`` against ``BilateralAdam`` (the defaults), 10x the rounds.
+
 Writes ``timing.json`` (samples, medians, load averages, versions) and ``timing.md``.
 """
 
@@ -45,6 +48,10 @@ TIMED_PARTS = (
     ("jit", "of which jitted ms"),
 )
 SCENES = ("texture", "volume")
+# The optimizer's step alone, on a texture of the tutorials' size (issue #52's "BilateralAdam.step
+# overhead, 48^2 texture").
+STEP = "step"
+STEP_SIZE = 48
 
 
 def transforms(scene: str, cfg) -> dict[str, optax.GradientTransformation]:
@@ -116,7 +123,60 @@ def markdown(result: dict) -> str:
         f"Load averages (1, 5, 15 min) before -> after: {loads}.\n\n"
         + common.markdown_table(rows, columns=cols, floatfmt=".3g")
         + "\n"
+        + (
+            f"\nThe optimizer's step alone, one {result[STEP]['size']}^2 x 3 texture key "
+            "(`opt.step()`, the gradient evaluated before, the new value after; medians):\n\n"
+            + common.markdown_table(result[STEP]["rows"], floatfmt=".3g")
+            + "\n"
+            if STEP in result
+            else ""
+        )
     )
+
+
+def time_step(quick: bool, rounds: int) -> dict:
+    """``opt.step()`` alone on one ``(48, 48, 3)`` texture key (16 quick): ``mi.ad.Adam`` and
+    ``BilateralAdam`` (the defaults), interleaved; the gradient is evaluated before the clock
+    starts and the new value after it stops. Medians over rounds, and the per-round ratio."""
+    import numpy as np
+
+    mi, dr = mc.setup()
+    from optax_bilateral.mitsuba import BilateralAdam
+
+    size = 16 if quick else STEP_SIZE
+    rng = np.random.default_rng(0)
+    target = mi.TensorXf(rng.random((size, size, 3)).astype(np.float32))
+    opts = {"mi.ad.Adam": mi.ad.Adam(lr=0.01), "BilateralAdam": BilateralAdam(lr=0.02)}
+    for opt in opts.values():
+        opt["texture"] = mi.TensorXf(np.full((size, size, 3), 0.5, np.float32))
+
+    def step(opt) -> float:
+        dr.backward(dr.mean(dr.square(opt["texture"] - target), axis=None))
+        dr.eval(dr.grad(opt["texture"]))
+        dr.sync_thread()
+        t = time.perf_counter()
+        opt.step()
+        dr.eval(opt["texture"])
+        dr.sync_thread()
+        return time.perf_counter() - t
+
+    for opt in opts.values():  # compiles
+        for _ in range(3):
+            step(opt)
+    samples: dict[str, list[float]] = {name: [] for name in opts}
+    for _ in range(rounds):
+        for name, opt in opts.items():
+            samples[name].append(step(opt))
+    rows = [
+        {
+            "method": name,
+            "step ms": 1e3 * float(np.median(samples[name])),
+            "x mi.ad.Adam": common.paired_ratio(samples, name, "mi.ad.Adam"),
+            "rounds": rounds,
+        }
+        for name in opts
+    ]
+    return {"size": size, "rows": rows, "samples": samples}
 
 
 def main(argv=None) -> dict:
@@ -130,9 +190,9 @@ def main(argv=None) -> dict:
         parser.add_argument(
             "--scenes",
             nargs="+",
-            default=list(SCENES),
-            choices=SCENES,
-            help="which scenes to time (default: both)",
+            default=[*SCENES, STEP],
+            choices=[*SCENES, STEP],
+            help=f"which scenes to time, and {STEP!r}: the optimizer's step alone (default: all)",
         )
 
     args = common.parse_args(
@@ -155,8 +215,10 @@ def main(argv=None) -> dict:
             "libllvm": ".".join(map(str, llvm_version() or ())),
             "python": platform.python_version(),
         },
-        "scenes": {s: time_scene(s, args.quick, rounds) for s in args.scenes},
+        "scenes": {s: time_scene(s, args.quick, rounds) for s in args.scenes if s != STEP},
     }
+    if STEP in args.scenes:
+        result[STEP] = time_step(args.quick, 10 * rounds)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "timing.json").write_text(json.dumps(result, indent=2) + "\n")
     table = markdown(result)

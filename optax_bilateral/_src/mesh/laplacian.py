@@ -260,29 +260,13 @@ class _Supernodes(NamedTuple):
     def of(cls, colptr: np.ndarray, rows: np.ndarray, values: np.ndarray) -> _Supernodes:
         n = len(colptr) - 1
         counts = np.diff(colptr)
-        # Column j + 1 continues j's supernode when it is j's first row below and j's other
-        # rows are exactly its rows (a fundamental supernode).
-        j = np.arange(max(n - 1, 0))
-        joins = (counts[:-1] == counts[1:] + 1) & (counts[:-1] > 0)
-        joins[joins] &= rows[colptr[j[joins]]] == j[joins] + 1
-        cand = j[joins]
-        lengths = counts[cand + 1]
-        offsets = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-        same = (
-            rows[np.repeat(colptr[cand] + 1, lengths) + offsets]
-            == rows[np.repeat(colptr[cand + 1], lengths) + offsets]
-        )
-        mismatch = np.bincount(np.repeat(np.arange(len(cand)), lengths)[~same], minlength=len(cand))
-        joins[cand[mismatch > 0]] = False
-        first = np.flatnonzero(np.concatenate([[True], ~joins])) if n else np.zeros(0, int)
-        first = np.append(first, n).astype(np.int32)
+        first = _supernode_starts(colptr, rows)
         widths = np.diff(first).astype(np.int64)
         last = first[1:] - 1
         below = counts[last].astype(np.int64)  # the last column's rows are all below the run
         row_ptr = np.concatenate([[0], np.cumsum(below)]).astype(np.int32)
-        take = np.repeat(colptr[last].astype(np.int64) - row_ptr[:-1], below) + np.arange(
-            row_ptr[-1]
-        )
+        take = np.repeat(colptr[last].astype(np.int64) - row_ptr[:-1], below)
+        take += np.arange(row_ptr[-1])
         block_ptr = np.concatenate([[0], np.cumsum((widths + below) * widths)]).astype(np.int64)
         # Entry m of column c = j0 + t is block row t + 1 + m, block column t.
         column = np.repeat(np.arange(n), counts)
@@ -291,14 +275,29 @@ class _Supernodes(NamedTuple):
         m = np.arange(len(rows)) - colptr[column]
         blocks = np.zeros(block_ptr[-1])
         blocks[block_ptr[k] + (t + 1 + m) * widths[k] + t] = values
-        return cls(
-            first,
-            row_ptr,
-            rows[take].astype(np.int32),
-            block_ptr,
-            blocks,
-            blocks.astype(np.float32),
-        )
+        rows_below = rows[take].astype(np.int32)
+        return cls(first, row_ptr, rows_below, block_ptr, blocks, blocks.astype(np.float32))
+
+
+def _supernode_starts(colptr: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The first column of each fundamental supernode, then ``n``: column ``j + 1`` continues
+    ``j``'s when it is ``j``'s first row below and ``j``'s other rows are exactly its rows."""
+    n = len(colptr) - 1
+    counts = np.diff(colptr)
+    j = np.arange(max(n - 1, 0))
+    joins = (counts[:-1] == counts[1:] + 1) & (counts[:-1] > 0)
+    joins[joins] &= rows[colptr[j[joins]]] == j[joins] + 1
+    cand = j[joins]
+    lengths = counts[cand + 1]
+    offsets = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    same = (
+        rows[np.repeat(colptr[cand] + 1, lengths) + offsets]
+        == rows[np.repeat(colptr[cand + 1], lengths) + offsets]
+    )
+    mismatch = np.bincount(np.repeat(np.arange(len(cand)), lengths)[~same], minlength=len(cand))
+    joins[cand[mismatch > 0]] = False
+    first = np.flatnonzero(np.concatenate([[True], ~joins])) if n else np.zeros(0, int)
+    return np.append(first, n).astype(np.int32)
 
 
 class _Factor(NamedTuple):
