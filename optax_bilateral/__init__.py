@@ -9,7 +9,8 @@ from importlib.metadata import PackageNotFoundError, version
 from optax_bilateral import triangle_mesh
 from optax_bilateral._src.filter.front import atrous_bilateral
 from optax_bilateral._src.filter.native import status as native_status
-from optax_bilateral._src.optimizer.alias import bilateral_adam
+from optax_bilateral._src.optimizer.alias import bilateral_adam, sparse_adam
+from optax_bilateral._src.optimizer.coarse import CoarseLevelsState, coarse_levels
 from optax_bilateral._src.optimizer.leaf_rule import LeafRuleWarning, default_spatial_axes
 from optax_bilateral._src.optimizer.leaves import DEFAULT_LEVELS, filtered_axes
 from optax_bilateral._src.optimizer.pyramid import (
@@ -28,8 +29,14 @@ from optax_bilateral._src.optimizer.transforms import (
 )
 from optax_bilateral._src.rules.auto import Auto, AutoState
 from optax_bilateral._src.rules.fixed import Fixed
-from optax_bilateral._src.rules.registry import DEFAULT_SIGMA_D, auto_sigma, sure_sigma
+from optax_bilateral._src.rules.registry import (
+    DEFAULT_SIGMA_D,
+    auto_sigma,
+    sparse_sigma,
+    sure_sigma,
+)
 from optax_bilateral._src.rules.sigma import SigmaRule
+from optax_bilateral._src.rules.sparse import Sparse, SparseState
 from optax_bilateral._src.rules.sure import SURE_LEVELS, Sure, SureState
 
 try:
@@ -43,6 +50,7 @@ __all__ = (
     "SURE_LEVELS",
     "Auto",
     "AutoState",
+    "CoarseLevelsState",
     "Fixed",
     "LaplacianPyramidState",
     "LeafRuleWarning",
@@ -50,11 +58,14 @@ __all__ = (
     "PrefilterState",
     "ScaleByAdamState",
     "SigmaRule",
+    "Sparse",
+    "SparseState",
     "Sure",
     "SureState",
     "atrous_bilateral",
     "auto_sigma",
     "bilateral_adam",
+    "coarse_levels",
     "default_spatial_axes",
     "filtered_axes",
     "laplacian_pyramid",
@@ -65,6 +76,8 @@ __all__ = (
     "pyramid_adam",
     "save_state",
     "scale_by_adam",
+    "sparse_adam",
+    "sparse_sigma",
     "sure_sigma",
     "triangle_mesh",
 )

@@ -409,3 +409,20 @@ def test_mesh_update_parts_quick_times_every_part(tmp_path):
     for key in ("sweeps 3 ms", "sweeps 128 ms", "cholespy 128 ms", "factorise s"):
         assert np.isfinite(rows[2][key]) and rows[2][key] > 0, key
     assert (tmp_path / "mesh_update_parts.json").exists()
+
+
+def test_bench_sparse_quick_times_sparse_adam_beside_the_defaults(tmp_path):
+    """Issue #54's cost check: every method on a dense and a far camera's gradient, with the
+    ratios to Adam and to the defaults (1 for the defaults themselves) and XLA's temporaries."""
+    from experiments.benchmarks import sparse as bench_sparse
+
+    data = bench_sparse.main(["--quick", "--out", str(tmp_path), "--rounds", "2"])
+    rows = data["rows"]
+    assert {(r["gradient"], r["method"]) for r in rows} == {
+        (g, m) for g in ("dense", "sparse") for m in ("adam", "defaults", "sparse_adam")
+    }
+    for r in rows:
+        assert r["ms (median)"] > 0 and r["compile s"] > 0 and r["temporaries / parameter"] >= 0
+        if r["method"] == "defaults":
+            assert r["x defaults (paired)"] == 1.0
+    assert (tmp_path / "bench_sparse.json").exists() and (tmp_path / "bench_sparse.md").exists()

@@ -72,3 +72,10 @@ def test_rendered_scene_is_reproducible_and_adam_reduces_its_error(two_cameras):
     np.testing.assert_allclose(first, again, rtol=1e-5)
     assert abs(first[0, 0] - first[0, 1]) > 1e-3 * first[0, 0]
     assert np.all(first < 0.75 * scene.initial_error()), (first, scene.initial_error())
+
+
+def test_the_coffee_scene_is_the_far_camera_on_another_photograph(mi):
+    far, coffee = sc.make("mitsuba_far", quick=True), sc.make("mitsuba_far_coffee", quick=True)
+    assert coffee.config["photo"] == "coffee" and "photo" not in far.config
+    assert coffee.config["tpp"] == far.config["tpp"] == [cd.CAMERAS["far"]]
+    np.testing.assert_allclose(coffee.data["target"], cd.target_albedo(48, "coffee"))

@@ -85,3 +85,29 @@ def test_resolved_error_counts_only_what_the_camera_resolves():
     outside = target.at[:18].set(0.9)
     assert float(cd.resolved_error(outside, target, 0.5, 24)) == 0.0
     assert float(cd.resolved_error(outside.at[24, 24].set(0.9), target, 0.5, 24)) > 0
+
+
+def test_absorption_edges_is_the_phantom_with_sharp_high_contrast_edges_and_adam_reduces_it():
+    """``absorption_edges`` (issue #54): the Shepp-Logan phantom's levels, nearest-neighbour
+    so no texel lies between two levels, a 1.0 skull around 0.0 to 0.4 inside; more rays a step
+    than ``absorption_mc`` (its edges stand out of the noise); Adam cuts its error."""
+    scene = sc.make("absorption_edges", quick=True)
+    target = np.asarray(scene.data["target"])
+    levels = np.unique(target)
+    phantom = np.array([0.0, 0.098, 0.2, 0.298, 0.4, 1.0])
+    assert np.all(np.abs(levels[:, None] - phantom).min(axis=1) < 2e-3) and len(levels) >= 4
+    assert target.max() == 1.0 and np.sum(np.abs(np.diff(target, axis=0)) >= 0.6) >= 4
+    full = sc.make("absorption_edges")
+    assert full.config["rays"] > sc.make("absorption_mc").config["rays"]
+    assert full.config["target"] == "absorption_edges" and full.init.shape == (96, 96)
+    errors = T.evaluate(scene, T.adam_factory, {"learning_rate": [0.05], "b1": [0.9]}, seeds=(0,))
+    assert errors[0, 0] < 0.67 * scene.initial_error(), (errors, scene.initial_error())
+
+
+def test_target_albedo_is_a_central_square_of_the_photograph_in_range():
+    a, c = cd.target_albedo(32), cd.target_albedo(32, "coffee")
+    assert a.shape == c.shape == (32, 32, 3)
+    assert 0.02 <= c.min() and c.max() <= 0.98
+    assert np.abs(a - c).mean() > 0.05  # another photograph
+    with pytest.raises(ValueError, match="photo must be one of"):
+        cd.target_albedo(32, "moon")

@@ -4,9 +4,9 @@ The same targets and properties as ``optax/contrib/_common_test.py`` of the inst
 (written here, not copied): the parabola, Rosenbrock's function, a matrix parabola and a
 mixed 1-D + 2-D target; ``optax.tree.map_params``, extra keyword arguments, no
 recompilation, ``inject_hyperparams``, dtype preservation, ``MultiSteps``, a state whose
-shapes and dtypes survive a ``lax.cond``, and learning-rate schedules. Three settings:
+shapes and dtypes survive a ``lax.cond``, and learning-rate schedules. Four settings:
 the defaults (these small leaves are not filtered: Adam's own rule), a numeric ``sigma_d``,
-and ``spatial_axes`` forcing the filter onto every leaf.
+``spatial_axes`` forcing the filter onto every leaf, and ``sparse_adam`` on every leaf.
 """
 
 from __future__ import annotations
@@ -28,6 +28,10 @@ SETTINGS = {
     "sigma_d=0.1": functools.partial(ob.bilateral_adam, sigma_d=0.1),
     "filtered": functools.partial(
         ob.bilateral_adam, sigma_d=0.1, levels=1, spatial_axes=lambda x: tuple(range(x.ndim))
+    ),
+    # sparse_adam with its rule and its coarse path on every leaf.
+    "sparse_adam": functools.partial(
+        ob.sparse_adam, levels=1, coarse_levels=2, spatial_axes=lambda x: tuple(range(x.ndim))
     ),
 }
 
@@ -195,7 +199,7 @@ def test_inject_hyperparams_gives_the_same_updates_and_states(setting):
     # levels (how many passes are compiled) and spatial_axes (a callable here, which
     # inject_hyperparams would take for a schedule) are static, as optax's own test makes
     # its optimizers' structural arguments.
-    static = ("levels", "spatial_axes")
+    static = ("levels", "spatial_axes", "coarse_levels")
     injected = optax.inject_hyperparams(factory, static_args=static)(**hparams)
     u, s = jax.jit(opt.update)(grads, jax.jit(opt.init)(params), params)
     ui, si = jax.jit(injected.update)(grads, jax.jit(injected.init)(params), params)

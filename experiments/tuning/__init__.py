@@ -105,6 +105,7 @@ from experiments.tuning.methods import (
     families,
     pyramid_factory,
     settings,
+    sparse_factory,
     sure_factory,
 )
 from experiments.tuning.report import markdown, plot_scene, sensitivity
@@ -135,6 +136,7 @@ __all__ = [
     "run_scene",
     "sensitivity",
     "settings",
+    "sparse_factory",
     "sure_factory",
     "tune",
 ]

@@ -86,12 +86,22 @@ def resolved_error(x, target, tpp: float, film: int):
     return jnp.mean(jnp.abs(blocks(x) - blocks(target)))
 
 
-def target_albedo(size: int) -> np.ndarray:
-    """``skimage.data.astronaut`` as a ``(size, size, 3)`` albedo in [0.02, 0.98] (anti-aliased
-    resize)."""
+#: The photographs a plane may carry (``skimage.data`` names).
+PHOTOS = ("astronaut", "coffee")
+
+
+def target_albedo(size: int, photo: str = "astronaut") -> np.ndarray:
+    """A photograph of :data:`PHOTOS` (``skimage.data``; its central square) as a
+    ``(size, size, 3)`` albedo in [0.02, 0.98] (anti-aliased resize)."""
     from skimage import data, transform
 
-    img = transform.resize(data.astronaut() / 255.0, (size, size), anti_aliasing=True)
+    if photo not in PHOTOS:
+        raise ValueError(f"photo must be one of {PHOTOS}, got {photo!r}")
+    img = getattr(data, photo)() / 255.0
+    h, w = img.shape[:2]
+    side = min(h, w)
+    img = img[(h - side) // 2 : (h + side) // 2, (w - side) // 2 : (w + side) // 2]
+    img = transform.resize(img, (size, size), anti_aliasing=True)
     return np.clip(img, 0.02, 0.98).astype(np.float32)
 
 
@@ -166,8 +176,9 @@ class Renderer:
         return np.array(dr.grad(self.params[KEY]), np.float32)
 
 
-def scene(quick: bool, cameras: Sequence[str], name: str) -> Scene:
-    """The plane seen from ``cameras`` (names of :data:`CAMERAS`, taken in turn)."""
+def scene(quick: bool, cameras: Sequence[str], name: str, photo: str = "astronaut") -> Scene:
+    """The plane carrying ``photo`` (one of :data:`PHOTOS`) seen from ``cameras`` (names of
+    :data:`CAMERAS`, taken in turn)."""
     for c in cameras:
         if c not in CAMERAS:
             raise ValueError(f"cameras must be names of {sorted(CAMERAS)}, got {c!r}")
@@ -176,7 +187,9 @@ def scene(quick: bool, cameras: Sequence[str], name: str) -> Scene:
     else:
         cfg = dict(texture=192, film=96, spp=1, reference_spp=256, env=128, iterations=60)
     texture, film = cfg["texture"], cfg["film"]
-    target = target_albedo(texture)
+    target = target_albedo(texture, photo)
+    if photo != "astronaut":  # part of the cache key (the astronaut scenes' keys unchanged)
+        cfg["photo"] = photo
     renderer = Renderer(target, cameras, film, cfg)
     tpps = [CAMERAS[c] for c in cameras]
     shape = jax.ShapeDtypeStruct((texture, texture, 3), jnp.float32)
@@ -195,8 +208,8 @@ def scene(quick: bool, cameras: Sequence[str], name: str) -> Scene:
     return Scene(
         name=name,
         description=(
-            f"Mitsuba diffuse plane, {texture}^2 RGB albedo, {film}^2 film, spp {cfg['spp']}, "
-            f"camera{'s in turn' if len(cameras) > 1 else ''} {views}"
+            f"Mitsuba diffuse plane, {texture}^2 RGB albedo ({photo}), {film}^2 film, "
+            f"spp {cfg['spp']}, camera{'s in turn' if len(cameras) > 1 else ''} {views}"
         ),
         init=jnp.full((texture, texture, 3), 0.5, jnp.float32),
         data={"target": jnp.asarray(target)},

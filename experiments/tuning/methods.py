@@ -128,6 +128,12 @@ def sure_factory(learning_rate, spatial_axes=None):
     return ob.bilateral_adam(learning_rate, sigma_d="sure", levels=5, spatial_axes=spatial_axes)
 
 
+def sparse_factory(learning_rate, spatial_axes=None):
+    """:func:`optax_bilateral.sparse_adam` with its defaults (issue #54), as a candidate:
+    ``--candidates sparse=experiments.tuning:sparse_factory``."""
+    return ob.sparse_adam(learning_rate, spatial_axes=spatial_axes)
+
+
 def auto_available() -> bool:
     """Whether the installed library accepts ``sigma_d="auto"`` (tried on a small grid)."""
     try:

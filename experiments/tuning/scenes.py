@@ -34,16 +34,21 @@ Scenes (:data:`SCENES`; ``quick`` is the test-suite size):
                        reported in the units of ``deblur`` (divided by 100)
 =====================  ==========================================================================
 
-:data:`RENDERED` holds the problems of issue #47, outside the default run:
+:data:`RENDERED` holds the problems of issues #47 and #54, outside the default run:
 
 =======================  ========================================================================
-``mitsuba_close``        a Mitsuba 3 diffuse plane, 192^2 RGB albedo, 96^2 film, spp 1, seen at
-``mitsuba_mid``          0.5, 2 and 12 texels per pixel (:mod:`experiments.tuning.camera_distance`;
-``mitsuba_far``          error at the resolution the camera resolves)
+``mitsuba_close``        a Mitsuba 3 diffuse plane, 192^2 RGB albedo (``skimage.data.astronaut``),
+``mitsuba_mid``          96^2 film, spp 1, seen at 0.5, 2 and 12 texels per pixel
+``mitsuba_far``          (:mod:`experiments.tuning.camera_distance`; error at the resolution the
+                         camera resolves)
 ``mitsuba_two_cameras``  the same plane from the close and the far camera in turn
+``mitsuba_far_coffee``   ``mitsuba_far`` with another photograph (``skimage.data.coffee``)
 ``absorption_mc``        a 64^2 piecewise-constant absorption map with sharp edges in [0, 1],
                          1024 random rays per step, the unbiased gradient of the squared error of
                          ratio-tracking transmittance estimates (two independent estimates)
+``absorption_edges``     the same from a 96^2 Shepp-Logan phantom (levels 0 to 1, edges 0.1 to 1
+                         high), 4096 rays per step, 150 iterations: edges that stand out of the
+                         noise
 =======================  ========================================================================
 
 :data:`HELD_OUT` holds ``signal1d`` at 256 and 4096 samples and ``deblur`` at 64x64 and 96x96
@@ -449,9 +454,28 @@ def absorption_grad(sigma, target_t, rays, key, density: float, length: float, m
     return vjp(2.0 * (t_a - target_t) / rays.shape[0])[0]
 
 
-def absorption(quick: bool) -> Scene:
-    """A piecewise-constant absorption map with sharp edges from Monte Carlo transmittances."""
-    size, iterations, rays = (16, 30, 64) if quick else (64, 150, 1024)
+def phantom(size: int) -> np.ndarray:
+    """``skimage.data.shepp_logan_phantom`` at ``size`` x ``size`` (nearest-neighbour, so its
+    edges stay sharp): levels 0, 0.1, 0.2, 0.3, 0.4 and 1 in [0, 1]."""
+    from skimage import data, transform
+
+    img = transform.resize(data.shepp_logan_phantom(), (size, size), order=0, anti_aliasing=False)
+    return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+
+#: The absorption maps: ``(target(size), size, iterations, rays per step)`` at the full size,
+#: then the quick one. ``absorption_edges``' many rays make its edges stand out of the noise.
+ABSORPTION = {
+    "absorption_mc": (lambda n: shapes_image(n, seed=3), (64, 150, 1024), (16, 30, 64)),
+    "absorption_edges": (phantom, (96, 150, 4096), (24, 30, 256)),
+}
+
+
+def absorption(quick: bool, name: str = "absorption_mc") -> Scene:
+    """A piecewise-constant absorption map with sharp edges from Monte Carlo transmittances
+    (:data:`ABSORPTION` names the maps)."""
+    make_target, full, small = ABSORPTION[name]
+    size, iterations, rays = small if quick else full
     cfg = dict(
         size=size,
         iterations=iterations,
@@ -462,8 +486,10 @@ def absorption(quick: bool) -> Scene:
         reference_points=8 * size,  # midpoint rule of the measured transmittances
         init=0.5,
     )
+    if name != "absorption_mc":  # the map's name is part of the cache key (mc's key unchanged)
+        cfg["target"] = name
     reach = 0.5 * math.sqrt(2.0)
-    target = jnp.asarray(shapes_image(size, seed=3))
+    target = jnp.asarray(make_target(size))
     mc = dict(density=cfg["density"], length=cfg["length"])
 
     def grad(data, sigma, key):
@@ -473,7 +499,7 @@ def absorption(quick: bool) -> Scene:
         return absorption_grad(sigma, measured, r, k_mc, max_points=cfg["max_points"], **mc)
 
     return Scene(
-        name="absorption_mc",
+        name=name,
         description=(
             f"absorption {size}^2 (piecewise constant, sharp edges), {rays} random rays per step, "
             f"ratio-tracking transmittance, optical depth up to {cfg['density']:g} a unit chord"
@@ -517,9 +543,11 @@ HELD_OUT: dict[str, Callable[[bool], Scene]] = {
 }
 
 
-def _camera_distance(cameras: tuple[str, ...], name: str) -> Callable[[bool], Scene]:
+def _camera_distance(
+    cameras: tuple[str, ...], name: str, photo: str = "astronaut"
+) -> Callable[[bool], Scene]:
     def make(quick: bool) -> Scene:
-        return camera_distance.scene(quick, cameras, name)
+        return camera_distance.scene(quick, cameras, name, photo)
 
     return make
 
@@ -533,7 +561,9 @@ RENDERED: dict[str, Callable[[bool], Scene]] = {
     "mitsuba_mid": _camera_distance(("mid",), "mitsuba_mid"),
     "mitsuba_far": _camera_distance(("far",), "mitsuba_far"),
     "mitsuba_two_cameras": _camera_distance(("close", "far"), "mitsuba_two_cameras"),
+    "mitsuba_far_coffee": _camera_distance(("far",), "mitsuba_far_coffee", photo="coffee"),
     "absorption_mc": absorption,
+    "absorption_edges": lambda quick: absorption(quick, "absorption_edges"),
 }
 ALL: dict[str, Callable[[bool], Scene]] = {**SCENES, **HELD_OUT, **RENDERED}
 

@@ -1,8 +1,9 @@
 """The ``sigma_d`` settings a transform takes, and the rule each one names.
 
-``sigma_d`` is a number (:class:`~optax_bilateral._src.fixed.Fixed`), ``"auto"`` or
-``"sure"`` (the rules with their default constants), a rule object
-(:func:`auto_sigma`, :func:`sure_sigma`, or a :class:`SigmaRule` of one's own), or a pytree
+``sigma_d`` is a number (:class:`~optax_bilateral._src.fixed.Fixed`), ``"auto"``,
+``"sure"`` or ``"sparse"`` (the rules with their default constants), a rule object
+(:func:`auto_sigma`, :func:`sure_sigma`, :func:`sparse_sigma`, or a :class:`SigmaRule` of
+one's own), or a pytree
 prefix of the parameters holding one of those per subtree.
 """
 
@@ -17,11 +18,12 @@ import jax
 from optax_bilateral._src.rules.auto import Auto
 from optax_bilateral._src.rules.fixed import Fixed
 from optax_bilateral._src.rules.sigma import SigmaRule
+from optax_bilateral._src.rules.sparse import Sparse
 from optax_bilateral._src.rules.sure import Sure
 
-SigmaD: TypeAlias = float | jax.Array | Literal["auto", "sure"] | SigmaRule
+SigmaD: TypeAlias = float | jax.Array | Literal["auto", "sure", "sparse"] | SigmaRule
 """One leaf's ``sigma_d``: a number (>= 0, in the guide's units; ``inf`` is a low-pass),
-``"auto"``, ``"sure"`` or a rule object."""
+``"auto"``, ``"sure"``, ``"sparse"`` or a rule object."""
 SigmaSetting: TypeAlias = "SigmaD | Mapping[str, SigmaSetting] | Sequence[SigmaSetting]"
 """A transform's ``sigma_d``: one :data:`SigmaD` for every leaf, or a pytree prefix of the
 parameters (``{"density": "auto", "albedo": 0.1}``)."""
@@ -29,15 +31,18 @@ LevelsSetting: TypeAlias = "int | Mapping[str, LevelsSetting] | Sequence[LevelsS
 """A transform's ``levels``: F (a non-negative int) for every leaf, None (the default), or a
 pytree prefix of the parameters."""
 
-NAMED = {"auto": Auto(), "sure": Sure()}
+NAMED = {"auto": Auto(), "sure": Sure(), "sparse": Sparse()}
 """The shorthands a ``sigma_d`` may name, and the rules they stand for."""
 # Chosen from the data every step (docs/auto_sigma.md): no number suits every problem.
 DEFAULT_SIGMA_D = "auto"
 """The default ``sigma_d`` of every transform: ``"auto"``, chosen per leaf and step from the
 guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes it."""
+SPARSE_SIGMA_D = "sparse"
+"""The ``sigma_d`` of :func:`optax_bilateral.sparse_adam`: ``"sparse"``, ``"auto"`` corrected
+for gradients that touch few texels a step (:class:`Sparse`)."""
 SETTINGS = (
-    "a number >= 0 (inf for a low-pass), 'auto', 'sure' or a sigma_d rule "
-    "(ob.auto_sigma(), ob.sure_sigma())"
+    "a number >= 0 (inf for a low-pass), 'auto', 'sure', 'sparse' or a sigma_d rule "
+    "(ob.auto_sigma(), ob.sure_sigma(), ob.sparse_sigma())"
 )
 """What a ``sigma_d`` may be, for error messages."""
 
@@ -114,3 +119,28 @@ def sure_sigma(**constants) -> Sure:
         (1.0, 3.0)
     """
     return Sure(**constants)
+
+
+def sparse_sigma(**constants) -> Sparse:
+    """``sigma_d="sparse"`` with other constants: ``sparse_sigma()`` is ``"sparse"``.
+
+    Each keyword is a field of :class:`Sparse` (``block``, ``decay``, ``max_boost``,
+    ``sparse_below``, ``sparse_levels``, and ``auto``: the :func:`auto_sigma` rule it runs).
+
+    Args:
+      **constants: the fields to change.
+
+    Returns:
+      A :class:`Sparse` rule, to pass as a postfilter's ``sigma_d``.
+
+    Raises:
+      TypeError: for a keyword that is not a field.
+      ValueError: naming the field, for a value out of its range.
+
+    Example::
+
+        >>> import optax_bilateral as ob
+        >>> ob.sparse_sigma(sparse_levels=2).sparse_levels
+        2
+    """
+    return Sparse(**constants)
