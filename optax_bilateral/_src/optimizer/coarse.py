@@ -9,11 +9,13 @@ gradient that touches every texel gets the other transform's step alone.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
 import optax
+from jax import lax
 
 from optax_bilateral._src.optimizer import leaf_rule, transforms
 from optax_bilateral._src.optimizer.pyramid import (
@@ -144,29 +146,43 @@ def coarse_levels(
         )
         grads, axes = jax.tree.leaves(updates), _leaf_axes(updates, spatial_axes)
         finite = [jnp.where(jnp.isfinite(g), g, 0) for g in grads]
-        coeffs = [pyramid_transpose(g, levels, ax)[1:] if ax else () for g, ax in zip(finite, axes)]
-        coarse_steps, coarse_state = coarse.update(coeffs, state.coarse_state)
-        coarse_steps = cast(list, coarse_steps)  # the coefficients' list, per leaf
+        covs = [
+            _coverage(g, ax, cov, settings) if ax else None
+            for g, ax, cov in zip(finite, axes, state.coverage)
+        ]
+        weights = [settings.share * jnp.clip(1 - c.mean, 0, 1) if c else 0.0 for c in covs]
         flat, treedef = jax.tree.flatten(steps)
-        out, covered = [], []
-        for u, g, ax, c, cov in zip(flat, finite, axes, coarse_steps, state.coverage):
-            u, cov = _add_coarse(u, g, ax, c, cov, settings) if ax else (u, cov)
-            out.append(u)
-            covered.append(cov)
+
+        def with_coarse():
+            coeffs = [
+                pyramid_transpose(g, levels, a)[1:] if a else () for g, a in zip(finite, axes)
+            ]
+            coarse_steps, coarse_state = coarse.update(coeffs, state.coarse_state)
+            added = [
+                u + _field(u, c, a, w) if a else u
+                for u, c, a, w in zip(flat, cast(list, coarse_steps), axes, weights)
+            ]
+            return added, coarse_state
+
+        # Where no leaf is sparse the coarse path is skipped, its Adam state (count too) kept.
+        used = functools.reduce(jnp.logical_or, [jnp.asarray(w) > 0 for w in weights], False)
+        out, coarse_state = lax.cond(used, with_coarse, lambda: (flat, state.coarse_state))
+        covered = [c.state if c else None for c in covs]
         new = CoarseLevelsState(inner_state, coarse_state, covered)
         return jax.tree.unflatten(treedef, out), new
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
 
-def _add_coarse(u, g, axes, steps, state, settings: _Settings):
-    """A leaf's ``inner`` update ``u`` plus its coarse ``steps`` (levels ``1 ..``), gated by
-    its coverage; and the coverage's new state."""
+def _coverage(g, axes, state, settings: _Settings) -> coverage.Coverage:
     touched = coverage.touched(g, jnp.ones((), bool), axes)
-    cov = coverage.update(state, touched, block=settings.block, decay=settings.decay)
-    weight = settings.share * jnp.clip(1 - cov.mean, 0, 1)
+    return coverage.update(state, touched, block=settings.block, decay=settings.decay)
+
+
+def _field(u, steps, axes, weight):
+    """The coarse ``steps`` (levels ``1 ..``) on the grid of ``u``, times ``weight``."""
     field = pyramid_reconstruct((jnp.zeros_like(steps[0], shape=u.shape),) + tuple(steps), axes)
-    return u + (weight * field).astype(u.dtype), cov.state
+    return (weight * field).astype(u.dtype)
 
 
 def _check(levels, share, block, decay) -> _Settings:

@@ -125,20 +125,39 @@ class Sparse(SigmaRule):
         floor = 1.0 / (self.max_boost * self.max_boost)
         boost = lax.rsqrt(jnp.clip(cov.field, floor, 1.0))
         boost = coverage.expand(boost, moments.m.shape, axes, self.block)
+        if self.sparse_levels:  # a wider filter on a sparse leaf: one more cond, no more ways
+            op = _Widened(op, self.sparse_levels, cov.mean < self.sparse_below)
         index, ways = self.auto.combine(moments, op, sigma, state.auto, ctx)
-        if self.sparse_levels:  # the same ways on a wider filter, taken on a sparse leaf
-            wider = op.plan._replace(levels=op.plan.levels + self.sparse_levels)
-            _, more = self.auto.combine(
-                moments, dataclasses.replace(op, plan=wider), sigma, state.auto, ctx
-            )
-            sparse = (cov.mean < self.sparse_below).astype(jnp.int32)
-            index = (0 if index is None else index) + sparse * len(ways)
-            ways = ways + more
         wrap = functools.partial(_boosted, boost=boost, covered=cov.state)
         return index, tuple(functools.partial(wrap, w) for w in ways)
 
     def after_step(self, d, state, plan):
         return state._replace(auto=self.auto.after_step(d, state.auto, plan))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Widened:
+    """``op`` whose full cascade runs ``extra`` more levels where ``wide`` (a traced bool): one
+    ``lax.cond`` around the extra levels (as ``"auto"``'s heavy levels), far cheaper than a
+    second set of the step's ways in its switch (the commit that made it measured).
+    ``"auto"``'s heavy continuation then restarts at level F of a widened cascade: both, on
+    a leaf that is sparse and correlated at once."""
+
+    op: Any
+    extra: int
+    wide: jax.Array
+
+    @property
+    def plan(self):
+        return self.op.plan
+
+    def apply(self, fields, sigma, levels=None, first_level=0):
+        out = self.op.apply(fields, sigma, levels, first_level)
+        if levels is not None:  # a part of the cascade that the caller chose
+            return out
+        f = self.op.plan.levels
+        more = lambda: self.op.apply(out, sigma, levels=f + self.extra, first_level=f)
+        return lax.cond(self.wide, more, lambda: out)
 
 
 def _boosted(way, *, boost, covered) -> Filtered:
