@@ -225,7 +225,13 @@ def sparse_adam(
     Args:
       learning_rate: a number >= 0 or an optax schedule (the same for the coarse levels,
         times ``coarse_share``).
-      b1, b2, eps, levels, spatial_axes, log_guide, others: as in :func:`bilateral_adam`.
+      b1: as in :func:`bilateral_adam` (the filtered leaves' first-moment decay).
+      b2: as in :func:`bilateral_adam`.
+      eps: as in :func:`bilateral_adam`.
+      levels: as in :func:`bilateral_adam` (F; ``"sparse"`` adds a level on a sparse leaf).
+      spatial_axes: as in :func:`bilateral_adam`, and the pyramid's axes.
+      log_guide: as in :func:`bilateral_adam`.
+      others: as in :func:`bilateral_adam`.
       coarse_levels: the pyramid's levels, the finest included (static, >= 2).
       coarse_share: the coarse steps' share of ``learning_rate`` (> 0).
 

@@ -97,7 +97,8 @@ def coarse_levels(
       learning_rate: the coarse levels' learning rate (``eta``; a number or a schedule).
       levels: ``K >= 2``, the pyramid's levels, the finest included (static).
       share: ``s > 0``, the coarse steps' share of ``learning_rate``.
-      b1, b2: the coarse levels' Adam decay rates.
+      b1: the coarse levels' Adam first-moment decay rate.
+      b2: the coarse levels' Adam second-moment decay rate.
       block: the coverage's blocks, in texels a side.
       decay: the coverage's moving average over steps, in [0, 1).
       spatial_axes: which axes of each leaf are the grid, as in
