@@ -30,7 +30,15 @@ def native_extension() -> list[Extension]:
     if include is None or sys.platform == "win32":
         print("optax_bilateral: no XLA FFI headers or no supported compiler: no native kernel")
         return []
-    sources = ["module.cc", "atrous.cc", "isa.cc", "ldl.cc", "passes.cc", "kernel_baseline.cc"]
+    sources = [
+        "module.cc",
+        "atrous.cc",
+        "isa.cc",
+        "ldl.cc",
+        "local.cc",
+        "passes.cc",
+        "kernel_baseline.cc",
+    ]
     if os.environ.get("OPTAX_BILATERAL_BASELINE_ONLY") != "1":
         sources += ["kernel_avx2.cc", "kernel_avx512.cc"]  # empty on other architectures
     flags = ["-std=c++17", "-O3", "-fno-math-errno", "-fno-trapping-math", "-fvisibility=hidden"]

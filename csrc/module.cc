@@ -8,10 +8,12 @@
 #include <memory>
 #include <functional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "atrous.h"
 #include "ldl.h"
+#include "local.h"
 
 // The FFI headers' own warnings are not this project's (they are checked with -Wall -Wextra).
 #pragma GCC diagnostic push
@@ -195,6 +197,40 @@ ffi::Error ldl(ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out, int64_t factor
   }
 }
 
+// x (*shape) -> its local averages at every `stride`-th entry along `axes` (local.h).
+ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
+                         ffi::Result<ffi::AnyBuffer> work, ffi::Span<const int64_t> axes,
+                         int64_t stride) {
+  ob::Subgrid s;
+  const auto dims = x.dimensions();
+  s.shape.assign(dims.begin(), dims.end());
+  s.axes.assign(axes.begin(), axes.end());
+  s.stride = stride;
+  const std::string problem = ob::check_subgrid(s);
+  if (!problem.empty()) return invalid(problem);
+  const auto type = x.element_type();
+  if (out->element_type() != type || work->element_type() != type)
+    return invalid("the local average's output and scratch must have the input's dtype");
+  if (static_cast<int64_t>(out->element_count()) != ob::subgrid_size(s))
+    return invalid("the local average's output must have the sub-grid's shape");
+  if (static_cast<int64_t>(work->element_count()) < ob::subgrid_work_size(s))
+    return invalid("the local average's scratch is too small");
+  switch (type) {
+    case ffi::DataType::F32:
+      ob::subgrid_average(s, static_cast<const float*>(x.untyped_data()),
+                          static_cast<float*>(out->untyped_data()),
+                          static_cast<float*>(work->untyped_data()));
+      return ffi::Error::Success();
+    case ffi::DataType::F64:
+      ob::subgrid_average(s, static_cast<const double*>(x.untyped_data()),
+                          static_cast<double*>(out->untyped_data()),
+                          static_cast<double*>(work->untyped_data()));
+      return ffi::Error::Success();
+    default:
+      return invalid("the local average takes float32 or float64");
+  }
+}
+
 }  // namespace
 
 #pragma GCC diagnostic push
@@ -231,35 +267,35 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLdl, ldl,
                                   .Ret<ffi::AnyBuffer>()  // A^-1 b
                                   .Attr<int64_t>("factor")
                                   .Attr<int64_t>("threads"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLocalAverage, local_average,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // x (*shape)
+                                  .Ret<ffi::AnyBuffer>()  // the averages at the sub-grid
+                                  .Ret<ffi::AnyBuffer>()  // the scratch between passes
+                                  .Attr<ffi::Span<const int64_t>>("axes")
+                                  .Attr<int64_t>("stride"));
 #pragma GCC diagnostic pop
 
 namespace {
 
 PyObject* registrations(PyObject*, PyObject*) {
+  const std::pair<const char*, void*> targets[] = {
+      {"optax_bilateral_atrous", reinterpret_cast<void*>(&OptaxBilateralAtrous)},
+      {"optax_bilateral_atrous_fields", reinterpret_cast<void*>(&OptaxBilateralAtrousFields)},
+      {"optax_bilateral_ldl", reinterpret_cast<void*>(&OptaxBilateralLdl)},
+      {"optax_bilateral_local_average", reinterpret_cast<void*>(&OptaxBilateralLocalAverage)},
+  };
   PyObject* dict = PyDict_New();
   if (!dict) return nullptr;
-  PyObject* capsule =
-      PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralAtrous), nullptr, nullptr);
-  if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_atrous", capsule) < 0) {
-    Py_XDECREF(capsule);
-    Py_DECREF(dict);
-    return nullptr;
+  for (const auto& [name, handler] : targets) {
+    PyObject* capsule = PyCapsule_New(handler, nullptr, nullptr);
+    if (!capsule || PyDict_SetItemString(dict, name, capsule) < 0) {
+      Py_XDECREF(capsule);
+      Py_DECREF(dict);
+      return nullptr;
+    }
+    Py_DECREF(capsule);
   }
-  Py_DECREF(capsule);
-  capsule = PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralAtrousFields), nullptr, nullptr);
-  if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_atrous_fields", capsule) < 0) {
-    Py_XDECREF(capsule);
-    Py_DECREF(dict);
-    return nullptr;
-  }
-  Py_DECREF(capsule);
-  capsule = PyCapsule_New(reinterpret_cast<void*>(&OptaxBilateralLdl), nullptr, nullptr);
-  if (!capsule || PyDict_SetItemString(dict, "optax_bilateral_ldl", capsule) < 0) {
-    Py_XDECREF(capsule);
-    Py_DECREF(dict);
-    return nullptr;
-  }
-  Py_DECREF(capsule);
   return dict;
 }
 

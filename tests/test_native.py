@@ -264,3 +264,108 @@ def test_float64_fields_match_the_float64_reference():
         [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
     )
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+
+
+# The sigma_d rules' local averages at a sub-grid (csrc/local.h): one FFI call per field.
+
+
+@given(
+    shape=st.sampled_from([(9,), (7, 5), (6, 11), (4, 5, 3)]),
+    channels=st.sampled_from([1, 3]),
+    stride=st.sampled_from([1, 2, 3, 4]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_subgrid_average_equals_the_float64_reference(shape, channels, stride, seed):
+    # The filter's first level at sigma_d = inf (every weight 1) from tests/reference.py's
+    # loop, read at every stride-th entry: what the rules' statistics take.
+    from optax_bilateral._src.filter import local
+
+    x = np.random.default_rng(seed).normal(size=shape + (channels,)).astype(np.float32)
+    axes = tuple(range(len(shape)))
+    want = atrous_reference(x, np.zeros(shape + (1,)), np.inf, levels=1, separable=True)
+    want = want[tuple(slice(None, None, stride) for _ in shape)]
+    got = local._native_taps(jnp.asarray(x), axes, stride)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=RTOL, atol=ATOL)
+    # And the slices it replaces, on any order of the axes.
+    for order in (axes, axes[::-1]):
+        native_out = local._native_taps(jnp.asarray(x), order, stride)
+        np.testing.assert_allclose(
+            native_out, local._taps(jnp.asarray(x), order, stride), rtol=RTOL, atol=ATOL
+        )
+
+
+def test_subgrid_average_takes_axes_anywhere_and_float64():
+    from optax_bilateral._src.filter import local
+
+    x = jax.random.normal(jax.random.PRNGKey(0), (5, 2, 9, 7))
+    for axes, stride in [((0, 2, 3), 2), ((3,), 3), ((2, 0), 1), ((), 2)]:
+        np.testing.assert_allclose(
+            local._native_taps(x, axes, stride),
+            local._taps(x, axes, stride),
+            rtol=RTOL,
+            atol=ATOL,
+        )
+    code = textwrap.dedent(
+        """
+        import jax, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        from optax_bilateral._src.filter import local
+        x = jax.random.normal(jax.random.PRNGKey(0), (13, 6, 2), dtype=np.float64)
+        got, want = local._native_taps(x, (0, 1), 2), local._taps(x, (0, 1), 2)
+        assert got.dtype == np.float64, got.dtype
+        np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-15)
+        print("ok")
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+
+
+def test_subgrid_average_differentiates_and_batches_as_the_slices():
+    from optax_bilateral._src.filter import local
+
+    x = jax.random.normal(jax.random.PRNGKey(1), (16, 12, 3))
+    axes = (0, 1)
+
+    def loss(f):
+        return lambda x: jnp.sum(jnp.sin(f(x, axes, 2)))
+
+    np.testing.assert_allclose(
+        jax.grad(loss(local._native_taps))(x),
+        jax.grad(loss(local._taps))(x),
+        rtol=1e-5,
+        atol=1e-6,
+    )
+    batch = jnp.stack([x, 2 * x, -x])
+    np.testing.assert_allclose(
+        jax.vmap(lambda x: local._native_taps(x, axes, 2))(batch),
+        jax.vmap(lambda x: local._taps(x, axes, 2))(batch),
+        rtol=RTOL,
+        atol=ATOL,
+    )
+
+
+def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monkeypatch):
+    # The default update's program: the guide's contrast, and the blend's two statistics in
+    # each of the two branches that compute them (the gate's check, the blend), are one FFI
+    # call each; with the pure-JAX kernel chosen, none.
+    import optax_bilateral as ob
+    from optax_bilateral._src.filter import local
+
+    x = jnp.ones((40, 40, 3))
+    opt = ob.bilateral_adam(0.02)
+    state = opt.init(x)
+
+    def text():
+        return jax.jit(opt.update).lower(x, state, x).as_text()
+
+    assert text().count(native.SUBGRID_TARGET) == 1 + 2 * 2
+    monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
+    jax.clear_caches()
+    try:
+        assert native.SUBGRID_TARGET not in text()
+        slices = local.local_average_subgrid((x,), (0, 1), 2)[0]
+    finally:
+        monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
+        jax.clear_caches()
+    np.testing.assert_allclose(slices, local._native_taps(x, (0, 1), 2), rtol=RTOL, atol=ATOL)

@@ -4,6 +4,7 @@ sharded like the leaf; and sums of squares that stay fast on one device and vali
 
 from __future__ import annotations
 
+import functools
 from typing import cast
 
 import jax
@@ -11,9 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from optax_bilateral._src.filter import sharded
+from optax_bilateral._src.filter import native, sharded
 from optax_bilateral._src.filter.bilateral import TAPS
-from optax_bilateral._src.filter.front import atrous_bilateral
+from optax_bilateral._src.filter.front import atrous_bilateral, resolve_kernel
 
 
 def local_average(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
@@ -34,15 +35,35 @@ def local_average_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
     only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
     (the filter's weight off the grid is 0). Without a sub-grid, or on a grid split over
     devices in its type (whose axes take no slice of uneven length), the full local
-    averages' sub-grid."""
+    averages' sub-grid. Where the filter runs on the native kernel, one FFI call per field
+    (csrc/local.h; its derivative the slices')."""
     if sharded.is_split(fields[0]):
         return tuple(every(f, axes, stride) for f in local_average(fields, axes))
-    out = []
-    for x in fields:
-        for a in axes:
-            x = _taps_at_stride(x, a, stride)
-        out.append(x)
-    return tuple(out)
+    axes = tuple(axes)
+    return tuple(
+        _native_taps(x, axes, stride)
+        if native.takes_subgrid(x) and resolve_kernel("auto") == "native"
+        else _taps(x, axes, stride)
+        for x in fields
+    )
+
+
+def _taps(x: jax.Array, axes: tuple[int, ...], stride: int) -> jax.Array:
+    for a in axes:
+        x = _taps_at_stride(x, a, stride)
+    return x
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1, 2))
+def _native_taps(x: jax.Array, axes: tuple[int, ...], stride: int) -> jax.Array:
+    return native.subgrid_average(x, axes, stride)
+
+
+@_native_taps.defjvp
+def _native_taps_jvp(axes, stride, primals, tangents):
+    # Linear in x: the tangent is the same average as slices, which jax.grad can transpose.
+    (x,), (t,) = primals, tangents
+    return _native_taps(x, axes, stride), _taps(t, axes, stride)
 
 
 def every(x: jax.Array, axes: tuple[int, ...], s: int) -> jax.Array:

@@ -35,6 +35,7 @@ from optax_bilateral._src.filter.bilateral import level_passes
 
 TARGET = "optax_bilateral_atrous"
 FIELDS_TARGET = "optax_bilateral_atrous_fields"
+SUBGRID_TARGET = "optax_bilateral_local_average"
 THREADS_ENV = extension.THREADS_ENV
 NATIVE_ENV = extension.NATIVE_ENV
 threads = extension.threads
@@ -199,3 +200,31 @@ def _cascade_jvp(levels, separable, start, primals, tangents):
         return plain.filter_planes(x, g, valid, sigma, levels, separable, start)
 
     return jax.jvp(pure, primals, tangents)
+
+
+def takes_subgrid(x: jax.Array) -> bool:
+    """Whether :func:`subgrid_average` runs on ``x``: the extension is loaded, ``x`` is float32
+    or float64 and not empty."""
+    return available() and x.dtype in (jnp.float32, jnp.float64) and x.size > 0
+
+
+def subgrid_average(x: jax.Array, axes: Sequence[int], stride: int) -> jax.Array:
+    """One level of the B-spline (every data weight 1) along each of ``axes`` in turn, read at
+    every ``stride``-th entry: one FFI call for all of them (csrc/local.h). Not differentiable:
+    :func:`optax_bilateral._src.filter.local.local_average_subgrid` gives it a rule."""
+    ok, reason = _registered()
+    if not ok:
+        raise RuntimeError(f"the native local average cannot run here: {reason}")
+    shape, sizes = list(x.shape), []
+    for a in axes:
+        shape[a] = (shape[a] - 1) // stride + 1
+        sizes.append(math.prod(shape))
+    # The passes between the first and the last alternate between two buffers (local.cc).
+    work = sum(sizes[:2]) if len(sizes) > 2 else sum(sizes[:1]) if len(sizes) > 1 else 0
+    call = jax.ffi.ffi_call(
+        SUBGRID_TARGET,
+        (jax.ShapeDtypeStruct(tuple(shape), x.dtype), jax.ShapeDtypeStruct((work,), x.dtype)),
+        vmap_method="sequential",
+    )
+    out, _ = call(x, axes=np.asarray(axes, np.int64), stride=np.int64(stride))
+    return out

@@ -1,0 +1,111 @@
+// csrc/local.h's passes: plain loops (the sub-grid is small: at most ~2^17 texels per field).
+#include "local.h"
+
+#include <algorithm>
+#include <set>
+
+namespace optax_bilateral {
+
+namespace {
+
+constexpr int kRadius = 2;
+constexpr double kTaps[2 * kRadius + 1] = {1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16};
+
+int64_t kept(int64_t n, int64_t stride) { return (n - 1) / stride + 1; }
+
+// The shape after each pass, the input's first.
+std::vector<std::vector<int64_t>> shapes_of(const Subgrid& s) {
+  std::vector<std::vector<int64_t>> out{s.shape};
+  for (int64_t a : s.axes) {
+    auto next = out.back();
+    next[static_cast<size_t>(a)] = kept(next[static_cast<size_t>(a)], s.stride);
+    out.push_back(next);
+  }
+  return out;
+}
+
+int64_t count(const std::vector<int64_t>& shape) {
+  int64_t n = 1;
+  for (int64_t d : shape) n *= d;
+  return n;
+}
+
+// One pass along the middle axis of x (outer, n, inner) into out (outer, kept, inner).
+template <typename T>
+void pass(const T* x, T* out, int64_t outer, int64_t n, int64_t inner, int64_t stride) {
+  const int64_t m = kept(n, stride);
+  for (int64_t i = 0; i < m; ++i) {
+    // The taps of entry i that fall on the grid: k in [lo, hi).
+    const int64_t centre = stride * i;
+    const int lo = static_cast<int>(std::max<int64_t>(0, kRadius - centre));
+    const int hi = static_cast<int>(std::min<int64_t>(2 * kRadius + 1, n - centre + kRadius));
+    double norm = 0;
+    for (int k = lo; k < hi; ++k) norm += kTaps[k];
+    const T scale = static_cast<T>(norm);
+    for (int64_t o = 0; o < outer; ++o) {
+      T* dst = out + (o * m + i) * inner;
+      for (int64_t q = 0; q < inner; ++q) dst[q] = T(0);
+      for (int k = lo; k < hi; ++k) {
+        const T h = static_cast<T>(kTaps[k]);
+        const T* row = x + (o * n + centre + k - kRadius) * inner;
+        for (int64_t q = 0; q < inner; ++q) dst[q] += h * row[q];
+      }
+      for (int64_t q = 0; q < inner; ++q) dst[q] /= scale;
+    }
+  }
+}
+
+template <typename T>
+void run(const Subgrid& s, const T* x, T* out, T* work) {
+  const auto shapes = shapes_of(s);
+  const size_t passes = s.axes.size();
+  // Passes between the first and the last alternate between two regions of `work`.
+  T* regions[2] = {work, work ? work + (passes > 1 ? count(shapes[1]) : 0) : nullptr};
+  const T* src = x;
+  for (size_t p = 0; p < passes; ++p) {
+    const size_t a = static_cast<size_t>(s.axes[p]);
+    const auto& shape = shapes[p];
+    int64_t outer = 1, inner = 1;
+    for (size_t d = 0; d < a; ++d) outer *= shape[d];
+    for (size_t d = a + 1; d < shape.size(); ++d) inner *= shape[d];
+    T* dst = p + 1 == passes ? out : regions[p % 2];
+    pass(src, dst, outer, shape[a], inner, s.stride);
+    src = dst;
+  }
+  if (passes == 0) std::copy(x, x + count(s.shape), out);
+}
+
+}  // namespace
+
+std::string check_subgrid(const Subgrid& s) {
+  if (s.stride < 1) return "stride must be >= 1";
+  std::set<int64_t> seen;
+  for (int64_t a : s.axes) {
+    if (a < 0 || a >= static_cast<int64_t>(s.shape.size())) return "an axis is out of range";
+    if (!seen.insert(a).second) return "an axis is named twice";
+  }
+  for (int64_t d : s.shape)
+    if (d < 0) return "a dimension is negative";
+  for (int64_t a : s.axes)
+    if (s.shape[static_cast<size_t>(a)] < 1) return "an averaged axis is empty";
+  return "";
+}
+
+int64_t subgrid_size(const Subgrid& s) { return count(shapes_of(s).back()); }
+
+int64_t subgrid_work_size(const Subgrid& s) {
+  const auto shapes = shapes_of(s);
+  const size_t passes = s.axes.size();
+  if (passes < 2) return 0;
+  return count(shapes[1]) + (passes > 2 ? count(shapes[2]) : 0);
+}
+
+void subgrid_average(const Subgrid& s, const float* x, float* out, float* work) {
+  run(s, x, out, work);
+}
+
+void subgrid_average(const Subgrid& s, const double* x, double* out, double* work) {
+  run(s, x, out, work);
+}
+
+}  // namespace optax_bilateral
