@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from optax_bilateral import atrous_bilateral
@@ -269,6 +269,7 @@ def test_float64_fields_match_the_float64_reference():
 # The sigma_d rules' local averages at a sub-grid (csrc/local.h): one FFI call per field.
 
 
+@settings(max_examples=8)  # each drawn shape and stride compiles two programs
 @given(
     shape=st.sampled_from([(9,), (7, 5), (6, 11), (4, 5, 3)]),
     channels=st.sampled_from([1, 3]),

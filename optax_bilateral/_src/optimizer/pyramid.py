@@ -31,7 +31,6 @@ samples along an axis of ``n``, so any grid size works.
 from __future__ import annotations
 
 import functools
-import itertools
 import numbers
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple, cast
@@ -40,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax import lax
 
 from optax_bilateral._src.optimizer import leaf_rule
 from optax_bilateral._src.optimizer import leaves as lv
@@ -72,14 +72,40 @@ def level_shapes(shape: Sequence[int], levels: int, axes: Sequence[int]) -> list
 
 
 def _upsample_axis(c, axis: int, size: int):
-    """Linear 2x upsampling on cell centres along ``axis`` (edges clamped), cropped to ``size``."""
-    c = jnp.moveaxis(c, axis, 0)
-    prev = jnp.concatenate([c[:1], c[:-1]], axis=0)
-    nxt = jnp.concatenate([c[1:], c[-1:]], axis=0)
-    even = 0.75 * c + 0.25 * prev
-    odd = 0.75 * c + 0.25 * nxt
-    out = jnp.stack([even, odd], axis=1).reshape((2 * c.shape[0],) + c.shape[1:])
-    return jnp.moveaxis(out[:size], 0, axis)
+    """Linear 2x upsampling on cell centres along ``axis`` (edges clamped), cropped to ``size``:
+    the even and odd outputs interleaved by a reshape, with no transposes."""
+    m = c.shape[axis]
+    prev = _shifted(c, c, axis, 1)  # c[i - 1], c[0] at the edge
+    nxt = _shifted(c, c, axis, -1)  # c[i + 1], c[m - 1] at the edge
+    even, odd = 0.75 * c + 0.25 * prev, 0.75 * c + 0.25 * nxt
+    out = jnp.stack([even, odd], axis=axis + 1)
+    out = out.reshape(c.shape[:axis] + (2 * m,) + c.shape[axis + 1 :])
+    return lax.slice_in_dim(out, 0, size, axis=axis)
+
+
+def _downsample_axis(g, axis: int, size: int):
+    """The transpose of :func:`_upsample_axis` to ``size`` samples: each coarse sample gathers
+    the fine samples its interpolation fed, the clamped edges' included."""
+    n = g.shape[axis]
+    if n < 2 * size:  # the cropped last odd sample: a zero gradient
+        g = jnp.pad(g, [(0, 2 * size - n) if a == axis else (0, 0) for a in range(g.ndim)])
+    even = lax.slice_in_dim(g, 0, 2 * size, stride=2, axis=axis)
+    odd = lax.slice_in_dim(g, 1, 2 * size, stride=2, axis=axis)
+    # even[i + 1] fed c[i] (as its left neighbour), odd[i - 1] fed c[i] (its right one).
+    return 0.75 * (even + odd) + 0.25 * (
+        _shifted(even, odd, axis, -1) + _shifted(odd, even, axis, 1)
+    )
+
+
+def _shifted(x, edge, axis: int, by: int):
+    """``x`` moved ``by`` = +1 (``x[i - 1]``) or -1 (``x[i + 1]``) samples along ``axis``, the
+    sample that enters taken from ``edge`` at the same end."""
+    m = x.shape[axis]
+    if by > 0:
+        parts = (lax.slice_in_dim(edge, 0, 1, axis=axis), lax.slice_in_dim(x, 0, m - 1, axis=axis))
+    else:
+        parts = (lax.slice_in_dim(x, 1, m, axis=axis), lax.slice_in_dim(edge, m - 1, m, axis=axis))
+    return jnp.concatenate(parts, axis=axis)
 
 
 def upsample(c, shape: Sequence[int], axes: Sequence[int]):
@@ -117,11 +143,10 @@ def pyramid_transpose(grid, levels: int, axes: Sequence[int]) -> tuple:
 def _transpose(grid, levels, axes):
     shapes = level_shapes(np.shape(grid), levels, axes)
     out = [grid]
-    for fine, coarse in itertools.pairwise(shapes):
-        up_t = jax.linear_transpose(
-            lambda c, fine=fine: upsample(c, fine, axes), jax.ShapeDtypeStruct(coarse, grid.dtype)
-        )
-        (g,) = up_t(out[-1])
+    for coarse in shapes[1:]:
+        g = out[-1]
+        for a in axes:
+            g = _downsample_axis(g, a, coarse[a])
         out.append(g)
     return tuple(out)
 
