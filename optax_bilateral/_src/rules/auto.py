@@ -214,18 +214,19 @@ class Auto(SigmaRule):
         m_f, v_f = self._cascade(op, moments, sigma, heavy)
         residual = update_residual(self, moments, m_f, state.residual, ctx.c1)
         learned = learned._replace(residual=residual)
-        weights = functools.partial(blend_weights, self, moments, residual, ctx, axes)
-        zero = functools.partial(jnp.zeros, [], moments.m.dtype)
+        # The blend's statistics once, for both ways: the gate's check and the blend.
+        lam, gate = lax.cond(
+            (phase != SKIP) & ~heavy,
+            functools.partial(blend_weights, self, moments, residual, ctx, axes),
+            functools.partial(_no_weights, self, moments.m, axes),
+        )
 
         def plain():  # no blend; at a CHECK step the gate's check alone
-            check = (phase == CHECK) & ~heavy
-            gate = lax.cond(check, lambda: weights()[1], zero)
             return Filtered(m_f, v_f, None, cast_like(learned._replace(gate=gate), state))
 
         def blended():
-            lam, gate = weights()
-            lam = upsample(self, lam, moments.m.shape, axes)
-            return Filtered(m_f, v_f, lam, cast_like(learned._replace(gate=gate), state))
+            up = upsample(self, lam, moments.m.shape, axes)
+            return Filtered(m_f, v_f, up, cast_like(learned._replace(gate=gate), state))
 
         return ((phase == BLEND) & ~heavy).astype(jnp.int32), (plain, blended)
 
@@ -427,6 +428,12 @@ def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes
     lam = rule._blend_weight(m, v, residual, sub, ctx)
     gate = rule._gate(lam)
     return lam * gate, gate
+
+
+def _no_weights(rule: Auto, m: jax.Array, axes) -> tuple[jax.Array, jax.Array]:
+    """:func:`blend_weights`' zeros, at a step that computes neither the gate nor the blend."""
+    shape = every(m, axes, rule._stride(m.shape, axes)).shape
+    return jnp.zeros(shape, m.dtype), jnp.zeros([], m.dtype)
 
 
 def upsample(rule: Auto, lam: jax.Array, shape: tuple[int, ...], axes) -> jax.Array:
