@@ -432,7 +432,8 @@ def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes
 
 def _no_weights(rule: Auto, m: jax.Array, axes) -> tuple[jax.Array, jax.Array]:
     """:func:`blend_weights`' zeros, at a step that computes neither the gate nor the blend."""
-    shape = every(m, axes, rule._stride(m.shape, axes)).shape
+    s = rule._stride(m.shape, axes)
+    shape = tuple((n - 1) // s + 1 if a in axes else n for a, n in enumerate(m.shape))
     return jnp.zeros(shape, m.dtype), jnp.zeros([], m.dtype)
 
 
