@@ -186,6 +186,15 @@ def test_without_the_extension_the_pure_jax_kernels_run():
             assert "OPTAX_BILATERAL_NATIVE=0" in str(e), e
         else:
             raise AssertionError("kernel='native' ran without the extension")
+        # The default update: the rules' local averages fall back to slices too.
+        import jax
+        p = jnp.ones((40, 40, 3))
+        opt = ob.bilateral_adam(0.02)
+        state = opt.init(p)
+        for i in range(9):  # past a gate check (step 8)
+            u, state = opt.update(p * 0.1 + 0.01 * i, state, p)
+        assert bool(jnp.all(jnp.isfinite(u)))
+        assert native.SUBGRID_TARGET not in jax.jit(opt.update).lower(p, state, p).as_text()
         print("ok")
         """
     )
