@@ -606,3 +606,16 @@ def test_docs_one_line_swap_runs_verbatim_and_resumes(docs_setup):
     assert ns["opt"] is not opt and ns["opt"].state[key][3].count == ns["config"].iterations
     np.testing.assert_array_equal(np.array(ns["opt"][key]), values[key])
     np.testing.assert_array_equal(np.array(params[key]), values[key])
+
+
+def test_mesh_update_parts_times_the_update_after_a_render(mi):
+    # Checks the tool's --after-render rows, not the numbers (benchmarks are not timed tests).
+    from tools import mesh_update_parts
+
+    (row,) = mesh_update_parts.after_render(3, 2, quick=True)
+    assert row["vertices"] == 92 and row["threads"] >= 1
+    for delay in mesh_update_parts.DELAYS_MS:
+        value = row[f"update ms, {delay} ms after"]
+        assert np.isfinite(value) and value > 0, (delay, value)
+    busy = row["workers' CPU ms in 50 ms after"]
+    assert np.isnan(busy) if not pathlib.Path("/proc/self/task").is_dir() else busy >= 0
