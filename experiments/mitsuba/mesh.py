@@ -2,7 +2,7 @@
 (supplement Table 2 analogue, on the CPU).
 
     python -m experiments.mitsuba.mesh [--quick] [--out DIR] [--frequencies F ...]
-        [--targets rounded_cube bumpy_box] [--lambda L] [--iterations N]
+        [--targets rounded_cube bumpy_box] [--lambda L] [--iterations N] [--directions K ...]
 
 A sphere (an icosphere built in code) recovers a target built in code (a fine icosphere
 pushed radially onto its surface: a cube with rounded edges, and a box with nearly sharp
@@ -25,6 +25,8 @@ Methods, at the same lambda and learning rate:
   solver="cholesky")`` driving
   the mesh's ``vertex_positions`` through ``OptaxOptimizer(..., shapes={key: (-1, 3)})``:
   ``opt[key] = params[key]``, ``params.update(opt)`` (one key, the scene's own).
+* ``bilateral, K directions`` (``--directions K``): the same with ``NormalFilter(...,
+  directions=K)`` (the normal filter's solve takes ``4 K`` columns; the default K is 32).
 
 Geometry error: the symmetric Hausdorff distance to the target (the distance of the mesh's
 surface samples to the target's signed distance function, exact for the rounded cube and to
@@ -83,6 +85,7 @@ class Config:
     bump_width: float = 0.18  # and width (a Gaussian's standard deviation)
     target_frequency: int = 48  # the target mesh's icosphere
     samples: int = 20000  # Hausdorff surface samples on each side
+    directions: tuple = ()  # ours again with these many normal-filter directions (not 32)
     record_every: int = 10
 
 
@@ -385,9 +388,10 @@ class LargeStepsRun(MeshRun):
 
 
 class BilateralRun(MeshRun):
-    """The drop-in loop: ``OptaxOptimizer`` on the scene's own ``vertex_positions``."""
+    """The drop-in loop: ``OptaxOptimizer`` on the scene's own ``vertex_positions``; the normal
+    filter with ``directions`` sphere directions (the authors' 32 by default)."""
 
-    def __init__(self, problem: Problem, lr: float, lambda_: float):
+    def __init__(self, problem: Problem, lr: float, lambda_: float, directions: int = 32):
         import optax_bilateral.triangle_mesh as obm
         from optax_bilateral.mitsuba import OptaxOptimizer
 
@@ -398,7 +402,7 @@ class BilateralRun(MeshRun):
             lr,
             obm.mesh_laplacian(problem.faces),
             lambda_,
-            obm.NormalFilter(cfg.sigma_d, cfg.sigma_phi),
+            obm.NormalFilter(cfg.sigma_d, cfg.sigma_phi, directions=directions),
             solver="cholesky",
         )
         self.opt = OptaxOptimizer(transform, shapes={KEY: (-1, 3)})
@@ -426,20 +430,25 @@ def run_vertex_count(
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     problem = Problem(cfg, frequency, target)
-    entries = {
-        m: [
-            runner.Entry(
-                f"{m}[lr={lr:g}]",
-                {"learning_rate": lr, "lambda": cfg.lambda_}
-                | (
-                    {"sigma_d": cfg.sigma_d, "sigma_phi": cfg.sigma_phi} if m == "bilateral" else {}
-                ),
-                functools.partial(RUNS[m], problem, lr, cfg.lambda_),
-            )
-            for lr in cfg.learning_rates
-        ]
-        for m in METHODS
-    }
+
+    def entry(method: str, lr: float, directions: int = 32) -> runner.Entry:
+        ours = method != "mi.ad.LargeSteps"
+        make = functools.partial(BilateralRun, directions=directions) if ours else RUNS[method]
+        return runner.Entry(
+            f"{method}[lr={lr:g}]",
+            {"learning_rate": lr, "lambda": cfg.lambda_}
+            | (
+                {"sigma_d": cfg.sigma_d, "sigma_phi": cfg.sigma_phi, "directions": directions}
+                if ours
+                else {}
+            ),
+            functools.partial(make, problem, lr, cfg.lambda_),
+        )
+
+    entries = {m: [entry(m, lr) for lr in cfg.learning_rates] for m in METHODS}
+    for k in cfg.directions:
+        name = f"bilateral, {k} directions"
+        entries[name] = [entry(name, lr, k) for lr in cfg.learning_rates]
     traces, samples = runner.run_interleaved(
         problem,
         entries,
@@ -551,6 +560,12 @@ def _options(parser) -> None:
     parser.add_argument("--targets", nargs="+", choices=TARGETS, help="the shapes to recover")
     parser.add_argument("--lambda", dest="lambda_", type=float, help="lambda of both methods")
     parser.add_argument("--iterations", type=int, help="iterations of every run")
+    parser.add_argument(
+        "--directions",
+        type=int,
+        nargs="+",
+        help="also run ours with these many normal-filter directions (the default is 32)",
+    )
 
 
 def main(argv=None) -> dict:
@@ -567,6 +582,7 @@ def main(argv=None) -> dict:
         "targets": tuple(args.targets) if args.targets else None,
         "lambda_": args.lambda_,
         "iterations": args.iterations,
+        "directions": tuple(args.directions) if args.directions else None,
     }
     cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
     results = {}
