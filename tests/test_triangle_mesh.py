@@ -269,6 +269,9 @@ def test_bad_arguments_raise_clear_errors(small):
         M.mesh_postfilter(mesh, postfilter_v="max")
     with pytest.raises(ValueError, match="directions"):
         M.NormalFilter(directions=np.ones((4, 2)))
+    for bad in ("x", [[1.0, 0.0, "y"]], {"k": 3}):  # not numbers: still named
+        with pytest.raises(ValueError, match="directions must be an int"):
+            M.NormalFilter(directions=bad)
     tx = M.mesh_postfilter(mesh, sigma_d=M.NormalFilter(directions=M.sphere_directions(4)))
     x = jnp.asarray(small["v"])
     with pytest.raises(ValueError, match="needs params"):

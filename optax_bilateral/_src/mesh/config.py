@@ -136,7 +136,13 @@ class NormalFilter:
 
 def check_directions(directions) -> np.ndarray:
     """A ``(K, 3)`` array of unit vectors as float64, or a ValueError."""
-    d = np.asarray(directions, dtype=np.float64)
+    try:
+        d = np.asarray(directions, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(
+            f"directions must be an int (number of Sobol directions) or a (K, 3) array of unit "
+            f"vectors, got {directions!r}"
+        ) from e
     if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
         raise ValueError(
             f"directions must be an int (number of Sobol directions) or a (K, 3) "
