@@ -432,6 +432,9 @@ def test_bad_settings_raise_at_construction():
         ({"eps": float("nan")}, ValueError, "eps"),
         ({"mu_dtype": jnp.int32}, TypeError, "mu_dtype"),
         ({"mu_dtype": "float33"}, TypeError, "mu_dtype"),
+        ({"b1": "0.9"}, TypeError, "b1 must be a real number"),  # not b2's default first
+        ({"b2": [0.9, 0.99]}, TypeError, "b2 must be a real number"),
+        ({"eps": "tiny"}, TypeError, "eps must be a real number"),
     ]:
         with pytest.raises(err, match=name):
             ob.bilateral_adam(0.1, **kw)

@@ -272,6 +272,14 @@ def test_bad_arguments_raise_clear_errors(small):
     for bad in ("x", [[1.0, 0.0, "y"]], {"k": 3}):  # not numbers: still named
         with pytest.raises(ValueError, match="directions must be an int"):
             M.NormalFilter(directions=bad)
+    with pytest.raises(TypeError, match="sigma_d must be a real number"):
+        M.NormalFilter("wide")
+    with pytest.raises(TypeError, match="sigma_phi must be a real number"):
+        M.NormalFilter(0.5, "wide")
+    with pytest.raises(TypeError, match=r"lambda_.* must be a real number"):
+        M.bilateral_large_steps(0.1, f, "19")
+    with pytest.raises(TypeError, match="b1 must be a real number"):
+        M.large_steps(0.1, f, 1.0, b1="0.9")
     tx = M.mesh_postfilter(mesh, sigma_d=M.NormalFilter(directions=M.sphere_directions(4)))
     x = jnp.asarray(small["v"])
     with pytest.raises(ValueError, match="needs params"):

@@ -101,11 +101,22 @@ def normalize_axes(spatial_axes: Any, ndim: int, name: str = "spatial_axes") -> 
     return tuple(out)
 
 
+def _real(x: Any, name: str) -> float:
+    """A concrete ``x`` as a float, or a TypeError naming ``name`` (a string, a list, an array
+    of more than one value)."""
+    if isinstance(x, (str, bytes)):
+        raise TypeError(f"{name} must be a real number, got {x!r}")
+    try:
+        return float(np.asarray(x))
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be a real number, got {x!r}") from e
+
+
 def check_decay(x: Any, name: str) -> None:
     """Raises for a concrete decay rate outside [0, 1)."""
     if x is None or not is_concrete(x):
         return
-    v = float(np.asarray(x))
+    v = _real(x, name)
     if not 0.0 <= v < 1.0:
         raise ValueError(f"{name} must be in [0, 1), got {v}")
 
@@ -114,7 +125,7 @@ def check_nonnegative(x: Any, name: str, *, finite: bool = False) -> None:
     """Raises for a concrete value that is negative or NaN (with ``finite``, or infinite)."""
     if x is None or not is_concrete(x):
         return
-    v = float(np.asarray(x))
+    v = _real(x, name)
     if not v >= 0.0 or (finite and math.isinf(v)):
         raise ValueError(f"{name} must be {'finite and ' if finite else ''}>= 0, got {v}")
 
@@ -123,7 +134,7 @@ def check_positive(x: Any, name: str, why: str = "") -> None:
     """Raises for a concrete value that is not > 0 (NaN included); ``why`` ends the message."""
     if x is None or not is_concrete(x):
         return
-    v = float(np.asarray(x))
+    v = _real(x, name)
     if not v > 0.0:
         raise ValueError(f"{name} must be > 0{f' ({why})' if why else ''}, got {v}")
 

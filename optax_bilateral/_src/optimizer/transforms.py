@@ -741,8 +741,8 @@ def _adams(filtered, unfiltered, eps, eps_root, count) -> dict:
 
 def _check_adam(b1, b2, eps, eps_root):
     """Adam's hyperparameters checked; ``b2``, with None as ``1 - (1 - b1)^2``."""
+    check_decay(b1, "b1")  # before b2's default reads it
     b2 = 1 - (1 - b1) ** 2 if b2 is None else b2
-    check_decay(b1, "b1")
     check_decay(b2, "b2")
     check_nonnegative(eps, "eps")
     check_nonnegative(eps_root, "eps_root")
