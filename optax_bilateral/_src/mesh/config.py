@@ -136,18 +136,15 @@ class NormalFilter:
 
 def check_directions(directions) -> np.ndarray:
     """A ``(K, 3)`` array of unit vectors as float64, or a ValueError."""
+    expected = (
+        "directions must be an int (number of Sobol directions) or a (K, 3) array of unit vectors"
+    )
     try:
         d = np.asarray(directions, dtype=np.float64)
     except (TypeError, ValueError) as e:
-        raise ValueError(
-            f"directions must be an int (number of Sobol directions) or a (K, 3) array of unit "
-            f"vectors, got {directions!r}"
-        ) from e
+        raise ValueError(f"{expected}, got {directions!r}") from e
     if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
-        raise ValueError(
-            f"directions must be an int (number of Sobol directions) or a (K, 3) "
-            f"array of unit vectors, got shape {d.shape}"
-        )
+        raise ValueError(f"{expected}, got shape {d.shape}")
     if not np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4):
         raise ValueError("directions must be unit vectors")
     return d
