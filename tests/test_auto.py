@@ -389,8 +389,10 @@ def test_a_step_blends_on_an_open_gate_and_checks_a_closed_one_at_multiples_of_t
 def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
     """A closed gate's check computes the local averages at the sub-grid's entries only
     (every s-th texel, test_stride_leaves_at_least_min_texels); they are the full local
-    averages' sub-grid, and on leaves whose blend weight is uniform in distribution the
-    gate the step writes agrees with the one from every texel."""
+    averages' sub-grid. The blend's statistics read the sub-grid only (the residual is kept
+    there), so on leaves whose blend weight is uniform in distribution the gate the step
+    writes estimates the one from every texel from a quarter of them (here within 0.05 over
+    seeds 0-3, 0.004 on seed 1)."""
     rng = np.random.default_rng(3)
     for shape, axes, stride in [
         ((512, 512, 3), (0, 1), 4),
@@ -414,13 +416,16 @@ def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
         gate = {}
         for rule in (AUTO, EVERY_TEXEL):
             opt = ob.postfilter(b, b, sigma_d=rule, spatial_axes=(0, 1))
-            _, new = opt.update(c * m, at_step(opt.init(x), t - 1, residual=residual, **moments), x)
+            kept = residual[::2, ::2] if rule is AUTO else residual  # the state's sub-grid
+            _, new = opt.update(c * m, at_step(opt.init(x), t - 1, residual=kept, **moments), x)
             gate[rule] = float(new.sigma_state.gate)
-        assert abs(gate[AUTO] - gate[EVERY_TEXEL]) < 0.02, (scale, gate)
+        assert abs(gate[AUTO] - gate[EVERY_TEXEL]) < 0.06, (scale, gate)
         gates.append(gate[EVERY_TEXEL])
     assert gates[0] == 0 and 0 < gates[1] < gates[2] < 1 and gates[3] == 1
-    kept = lambda rule: ob.postfilter(sigma_d=rule).init(x).sigma_state.previous_guide.shape
-    assert kept(AUTO) == (128, 128, 2) and kept(EVERY_TEXEL) == shape  # sub-grid, every texel
+    kept = {rule: ob.postfilter(sigma_d=rule).init(x).sigma_state for rule in (AUTO, EVERY_TEXEL)}
+    for field in ("previous_guide", "residual"):  # sub-grid, every texel
+        assert getattr(kept[AUTO], field).shape == (128, 128, 2)
+        assert getattr(kept[EVERY_TEXEL], field).shape == shape
 
 
 @given(problem=blend_problems(), scale=st.floats(0.5**13, 2.0**13, width=32))

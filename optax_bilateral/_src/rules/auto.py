@@ -59,9 +59,10 @@ class AutoState(NamedTuple):
         more than ``min_texels`` (16384) texels its sub-grid (every ``s``-th texel along each
         spatial axis, ``s`` the largest power of two that leaves at least ``min_texels``);
         None for ``guide="self"``.
-      residual: the exponential moving average (decay 0.97) of ``m_hat - B m_hat``, with
-        the leaf's shape; None in a :func:`prefilter` or a memoryless postfilter (no
-        moments).
+      residual: the exponential moving average (decay 0.97) of ``m_hat - B m_hat`` on the
+        leaf's sub-grid (``previous_guide``'s texels, with the leaf's channels; the whole
+        leaf on a leaf of at most ``min_texels`` texels); None in a :func:`prefilter` or a
+        memoryless postfilter (no moments).
       direction: the mean norm per texel of a postfilter's last output
         ``m~ / (sqrt(v~) + eps)`` (a scalar; 0 before the first step); None in a
         :func:`prefilter`.
@@ -189,7 +190,8 @@ class Auto(SigmaRule):
         direction = None if kind == "prefilter" else scalar()
         if kind != "postfilter":
             return AutoState(previous_guide, None, direction, None, None)
-        residual = numerics.zeros(leaf, dtype)  # the leaf's sharding too
+        # The blend's statistics sample the sub-grid only: its residual is all they read.
+        residual = numerics.zeros(self._subgrid(jnp.asarray(leaf), plan.axes), dtype)
         return AutoState(previous_guide, residual, direction, scalar(), scalar())
 
     def sigma(self, guide, plan, state, ctx):
@@ -212,7 +214,7 @@ class Auto(SigmaRule):
             sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
         # One cascade for both ways: the ways differ only in the blend after it.
         m_f, v_f = self._cascade(op, moments, sigma, heavy)
-        residual = update_residual(self, moments, m_f, state.residual, ctx.c1)
+        residual = update_residual(self, moments, m_f, state.residual, ctx.c1, axes)
         learned = learned._replace(residual=residual)
         # The blend's statistics once, for both ways: the gate's check and the blend.
         lam, gate = lax.cond(
@@ -400,14 +402,16 @@ class Auto(SigmaRule):
 # ---------------------------------------------------------------------- the blend (auto, sure)
 
 
-def update_residual(rule: Auto, moments: Moments, bm: jax.Array, residual, c1) -> jax.Array:
-    """The residual's EMA with this step's ``m_hat - B m_hat`` (``bm``: ``B m``), kept where
-    the entry is not observed."""
+def update_residual(rule: Auto, moments: Moments, bm: jax.Array, residual, c1, axes) -> jax.Array:
+    """The residual's EMA with this step's ``m_hat - B m_hat`` (``bm``: ``B m``) on the
+    sub-grid (:attr:`AutoState.residual`), kept where the entry is not observed."""
     m = moments.m
+    sub = lambda x: rule._subgrid(x, axes)
     decay = jnp.asarray(rule.residual_decay, m.dtype)
     residual = residual.astype(m.dtype)
-    new = decay * residual + (1 - decay) * (m - bm) / jnp.asarray(c1, m.dtype)
-    return jnp.where(moments.observed, new, residual)
+    # Each input sliced, not their difference: XLA would make the full-size difference first.
+    new = decay * residual + (1 - decay) * (sub(m) - sub(bm)) / jnp.asarray(c1, m.dtype)
+    return jnp.where(sub(moments.observed), new, residual)
 
 
 def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes):
@@ -417,15 +421,14 @@ def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes
     scalar in [0, 1], ``gate``).
 
     ``moments.m, moments.v`` are the moments before bias correction (``ctx.c1``, ``ctx.c2``);
-    ``residual`` is the residual's EMA with this step's (:func:`update_residual`). The local
-    averages are taken at the sub-grid's entries only, over the B-spline's taps at its
-    stride: the weight is a smooth field, which a large leaf's sub-grid samples finely
-    enough.
+    ``residual`` is the residual's EMA with this step's (:func:`update_residual`), on the
+    sub-grid. The weight is a smooth field, which a large leaf's sub-grid samples finely
+    enough: every statistic is read there, and its local averages are the B-spline's taps
+    between the sub-grid's neighbours.
     """
-    m, v = moments.m, moments.v
-    stride = rule._stride(m.shape, axes)
-    sub = functools.partial(local_average_subgrid, axes=axes, stride=stride)
-    lam = rule._blend_weight(m, v, residual, sub, ctx)
+    m, v = (rule._subgrid(x, axes) for x in (moments.m, moments.v))
+    smooth = functools.partial(local_average_subgrid, axes=axes, stride=1)
+    lam = rule._blend_weight(m, v, residual, smooth, ctx)
     gate = rule._gate(lam)
     return lam * gate, gate
 
