@@ -100,16 +100,37 @@ struct Claims {
   std::condition_variable finished;
 };
 
+// The largest finite |x[i]|, i in [lo, hi), 0 if none: as the integer maximum of the bits
+// (non-negative floats order as their bits), which vectorises where a float maximum does not.
+template <typename T>
+T largest_finite_magnitude(const T* __restrict__ x, int64_t lo, int64_t hi) {
+  using I = std::conditional_t<sizeof(T) == 4, int32_t, int64_t>;
+  const I magnitude = std::numeric_limits<I>::max();  // every bit but the sign
+  const I inf = __builtin_bit_cast(I, std::numeric_limits<T>::infinity());
+  I m = 0;
+  for (int64_t i = lo; i < hi; ++i) {
+    const I u = __builtin_bit_cast(I, x[i]) & magnitude;
+    const I finite = u < inf ? u : 0;  // inf and NaN count as 0
+    m = finite > m ? finite : m;
+  }
+  return __builtin_bit_cast(T, m);
+}
+
+template <typename T, typename F>
+void parallel(const Cascade<T>& c, int threads, size_t units, const F& do_unit);
+
 // (guide scale, sigma_d scaled alike) as bilateral.rescale_guide and the one-channel halving.
 template <typename T>
-std::pair<T, T> guide_scale(const Cascade<T>& c, int64_t points) {
+std::pair<T, T> guide_scale(const Cascade<T>& c, int threads, int64_t points) {
   if (c.guide_channels == 1) return {T(0.5), c.sigma_d * T(0.5)};
-  T m = 0;
   const int64_t total = c.guide_channels * points;
-  for (int64_t i = 0; i < total; ++i) {
-    const T a = std::fabs(c.guide[i]);
-    if (std::isfinite(a) && a > m) m = a;
-  }
+  const int64_t chunk = 1 << 16;
+  std::vector<T> largest(static_cast<size_t>((total + chunk - 1) / chunk), T(0));
+  parallel(c, threads, largest.size(), [&](size_t k, Scratch<T>&) {
+    const int64_t lo = static_cast<int64_t>(k) * chunk;
+    largest[k] = largest_finite_magnitude(c.guide, lo, std::min(total, lo + chunk));
+  });
+  const T m = largest.empty() ? T(0) : *std::max_element(largest.begin(), largest.end());
   int e = 0;
   std::frexp(m, &e);  // m < 2^e
   const int limit = std::numeric_limits<T>::max_exponent / 2 - 8;
@@ -185,6 +206,16 @@ void parallel(const Cascade<T>& c, int threads, size_t units, const F& do_unit) 
   for (auto& th : own) th.join();
 }
 
+// Points [lo, hi) of a field of kC interleaved channels into the planes dst[0..kC): one
+// sweep over the field, each point's channels together (kC a constant, so it vectorises).
+template <typename T, int kC>
+void split_channels(const T* __restrict__ src, T* const* dst, int64_t lo, int64_t hi) {
+  T* __restrict__ d[kC];
+  for (int q = 0; q < kC; ++q) d[q] = dst[q];
+  for (int64_t p = lo; p < hi; ++p)
+    for (int q = 0; q < kC; ++q) d[q][p] = src[p * kC + q];
+}
+
 // The channels of `fields` ((points, c_k) each, interleaved) as planes `planes[c]`.
 template <typename T>
 void deinterleave(const Cascade<T>& c, int threads, int64_t points,
@@ -195,12 +226,21 @@ void deinterleave(const Cascade<T>& c, int threads, int64_t points,
     const int64_t lo = static_cast<int64_t>(k) * chunk;
     const int64_t hi = std::min(points, lo + chunk);
     size_t ch = 0;
-    for (const auto& [field, nc] : c.x_fields)
-      for (int64_t q = 0; q < nc; ++q, ++ch) {
-        T* __restrict__ dst = planes[ch];
-        const T* __restrict__ src = field;
-        for (int64_t p = lo; p < hi; ++p) dst[p] = src[p * nc + q];
+    for (const auto& [field, nc] : c.x_fields) {
+      T* const* dst = planes.data() + ch;
+      ch += static_cast<size_t>(nc);
+      switch (nc) {
+        case 1: split_channels<T, 1>(field, dst, lo, hi); continue;
+        case 2: split_channels<T, 2>(field, dst, lo, hi); continue;
+        case 3: split_channels<T, 3>(field, dst, lo, hi); continue;
+        case 4: split_channels<T, 4>(field, dst, lo, hi); continue;
+        default: break;
       }
+      for (int64_t q = 0; q < nc; ++q) {
+        T* __restrict__ d = dst[q];
+        for (int64_t p = lo; p < hi; ++p) d[p] = field[p * nc + q];
+      }
+    }
   });
 }
 
@@ -239,7 +279,10 @@ void run(const Cascade<T>& c) {
                 c.out_fields[f].first);
     return;
   }
-  const auto [scale, sigma] = guide_scale(c, points);
+
+  int threads = std::max(1, c.threads);
+  if (size < kMinParallelWork) threads = 1;
+  const auto [scale, sigma] = guide_scale(c, threads, points);
   PassArgs<T> args{};
   args.guide = c.guide;
   args.valid = c.valid;
@@ -251,8 +294,6 @@ void run(const Cascade<T>& c) {
   args.neg_inv_sigma = sigma > 0 ? T(-1) / sigma : -std::numeric_limits<T>::infinity();
   const std::vector<Step<T>> steps = plan_steps(c, passes);
   const size_t ns = steps.size();
-  int threads = std::max(1, c.threads);
-  if (size < kMinParallelWork) threads = 1;
   // The channels of the buffers the steps read and write: the input, the working copy and
   // the output (with interleaved outputs: their memory, as planes, for the steps before the
   // last one).

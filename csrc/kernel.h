@@ -3,6 +3,7 @@
 // Written as plain loops over contiguous points, which the compiler vectorises.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -47,6 +48,9 @@ struct Scratch {
   std::vector<int64_t> offsets;
   std::vector<char> on;
   std::vector<Term<T>> terms;
+  std::vector<int64_t> bounds;       // row_sums: where the row's terms start and end
+  std::vector<const Term<T>*> active;  // the terms of each cut between them, in order
+  std::vector<int64_t> first_active;   // cut k's terms: active[first_active[k], [k + 1])
   std::vector<T> slabs, ring;  // run_slabs: two slabs of the fields, the axis-0 weights
   std::vector<T*> cur, other;   // their channels
 };
@@ -211,94 +215,63 @@ inline bool partner_row_on_grid(const Pass& pass, int64_t r, const Pair& pair) {
   return true;
 }
 
-// acc[j] += w[j] (x null: the normaliser) or w[j] x[from + j] for every term, outside the
-// columns [jl, jh) that add_interior covers; terms in order, so sums run as in the JAX kernels.
-template <typename T>
-void add_edges(const Term<T>* terms, size_t nt, int64_t jl, int64_t jh, T* __restrict__ acc,
-               const T* x) {
-  for (size_t t = 0; t < nt; ++t) {
-    const Term<T>& u = terms[t];
-    const int64_t ranges[2][2] = {{u.at, jl < u.at + u.n ? jl : u.at + u.n},
-                                  {jh > u.at ? jh : u.at, u.at + u.n}};
-    for (const auto& r : ranges) {
-      const int64_t n = r[1] - r[0];
-      if (n <= 0) continue;
-      T* __restrict__ o = acc + r[0];
-      const T* __restrict__ w = u.w + (r[0] - u.at);
-      if (x) {
-        const T* __restrict__ xs = x + u.from + (r[0] - u.at);
-        for (int64_t j = 0; j < n; ++j) o[j] += w[j] * xs[j];
-      } else {
-        for (int64_t j = 0; j < n; ++j) o[j] += w[j];
-      }
-    }
+// o[j] += w_0[j] + ... + w_{N-1}[j] (the normaliser), terms in order as in the JAX kernels.
+template <typename T, int N>
+void add_weights(T* __restrict__ o, const T* const* w, int64_t n) {
+  const T* __restrict__ w0 = w[0];
+  const T* __restrict__ w1 = N > 1 ? w[1] : nullptr;
+  const T* __restrict__ w2 = N > 2 ? w[2] : nullptr;
+  const T* __restrict__ w3 = N > 3 ? w[3] : nullptr;
+  for (int64_t j = 0; j < n; ++j) {
+    T acc = o[j] + w0[j];
+    if constexpr (N > 1) acc = acc + w1[j];
+    if constexpr (N > 2) acc = acc + w2[j];
+    if constexpr (N > 3) acc = acc + w3[j];
+    o[j] = acc;
   }
 }
 
-// The same sums over columns [jl, jh), where every term has a value: one loop for the
-// separable passes' two or four terms, term by term otherwise.
-template <typename T>
-void add_interior(const Term<T>* terms, size_t nt, int64_t jl, int64_t jh, T* __restrict__ acc,
-                  const T* x) {
-  const int64_t n = jh - jl;
-  if (n <= 0) return;
-  const T* w[4];
-  const T* xs[4];
-  if (nt == 2 || nt == 4) {
-    for (size_t t = 0; t < nt; ++t) {
-      w[t] = terms[t].w + (jl - terms[t].at);
-      xs[t] = x ? x + terms[t].from + (jl - terms[t].at) : nullptr;
-    }
+// o[j] += w_0[j] x_0[j] + ... (a channel's sums past its first four terms).
+template <typename T, int N>
+void add_products(T* __restrict__ o, const T* const* w, const T* const* x, int64_t n) {
+  const T* __restrict__ w0 = w[0];
+  const T* __restrict__ w1 = N > 1 ? w[1] : nullptr;
+  const T* __restrict__ w2 = N > 2 ? w[2] : nullptr;
+  const T* __restrict__ w3 = N > 3 ? w[3] : nullptr;
+  const T* __restrict__ x0 = x[0];
+  const T* __restrict__ x1 = N > 1 ? x[1] : nullptr;
+  const T* __restrict__ x2 = N > 2 ? x[2] : nullptr;
+  const T* __restrict__ x3 = N > 3 ? x[3] : nullptr;
+  for (int64_t j = 0; j < n; ++j) {
+    T acc = o[j] + w0[j] * x0[j];
+    if constexpr (N > 1) acc = acc + w1[j] * x1[j];
+    if constexpr (N > 2) acc = acc + w2[j] * x2[j];
+    if constexpr (N > 3) acc = acc + w3[j] * x3[j];
+    o[j] = acc;
   }
-  T* __restrict__ o = acc + jl;
-  if (nt == 4 && x) {
-    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1], *__restrict__ w2 = w[2],
-            *__restrict__ w3 = w[3];
-    const T *__restrict__ x0 = xs[0], *__restrict__ x1 = xs[1], *__restrict__ x2 = xs[2],
-            *__restrict__ x3 = xs[3];
-    for (int64_t j = 0; j < n; ++j)
-      o[j] = o[j] + w0[j] * x0[j] + w1[j] * x1[j] + w2[j] * x2[j] + w3[j] * x3[j];
-  } else if (nt == 4) {
-    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1], *__restrict__ w2 = w[2],
-            *__restrict__ w3 = w[3];
-    for (int64_t j = 0; j < n; ++j) o[j] = o[j] + w0[j] + w1[j] + w2[j] + w3[j];
-  } else if (nt == 2 && x) {
-    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1];
-    const T *__restrict__ x0 = xs[0], *__restrict__ x1 = xs[1];
-    for (int64_t j = 0; j < n; ++j) o[j] = o[j] + w0[j] * x0[j] + w1[j] * x1[j];
-  } else if (nt == 2) {
-    const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1];
-    for (int64_t j = 0; j < n; ++j) o[j] = o[j] + w0[j] + w1[j];
-  } else {
-    // Four terms a loop (the sums in the same order as term by term), then the rest.
-    size_t t = 0;
-    for (; t + 4 <= nt; t += 4) {
-      const T* ws[4];
-      const T* xs4[4] = {};
-      for (size_t u = 0; u < 4; ++u) {
-        ws[u] = terms[t + u].w + (jl - terms[t + u].at);
-        if (x) xs4[u] = x + terms[t + u].from + (jl - terms[t + u].at);
-      }
-      const T *__restrict__ w0 = ws[0], *__restrict__ w1 = ws[1], *__restrict__ w2 = ws[2],
-              *__restrict__ w3 = ws[3];
-      if (x) {
-        const T *__restrict__ x0 = xs4[0], *__restrict__ x1 = xs4[1], *__restrict__ x2 = xs4[2],
-                *__restrict__ x3 = xs4[3];
-        for (int64_t j = 0; j < n; ++j)
-          o[j] = o[j] + w0[j] * x0[j] + w1[j] * x1[j] + w2[j] * x2[j] + w3[j] * x3[j];
-      } else {
-        for (int64_t j = 0; j < n; ++j) o[j] = o[j] + w0[j] + w1[j] + w2[j] + w3[j];
-      }
-    }
-    for (; t < nt; ++t) {
-      const T* __restrict__ wt = terms[t].w + (jl - terms[t].at);
-      if (x) {
-        const T* __restrict__ xt = x + terms[t].from + (jl - terms[t].at);
-        for (int64_t j = 0; j < n; ++j) o[j] += wt[j] * xt[j];
-      } else {
-        for (int64_t j = 0; j < n; ++j) o[j] += wt[j];
-      }
-    }
+}
+
+// o[j] = (h0 c[j] + w_0[j] x_0[j] + ...) / den, from the reciprocal inv[j]; 0 where no
+// weight reaches (as the JAX kernels' where(den > 0, ..., 0): a masked point's sum may hold
+// 0 * inf). Up to four terms, in one loop.
+template <typename T, int N>
+void fused_channel(T* __restrict__ o, const T* __restrict__ c, T h0, const T* const* w,
+                   const T* const* x, const T* __restrict__ inv, int64_t n) {
+  const T* __restrict__ w0 = N > 0 ? w[0] : nullptr;
+  const T* __restrict__ w1 = N > 1 ? w[1] : nullptr;
+  const T* __restrict__ w2 = N > 2 ? w[2] : nullptr;
+  const T* __restrict__ w3 = N > 3 ? w[3] : nullptr;
+  const T* __restrict__ x0 = N > 0 ? x[0] : nullptr;
+  const T* __restrict__ x1 = N > 1 ? x[1] : nullptr;
+  const T* __restrict__ x2 = N > 2 ? x[2] : nullptr;
+  const T* __restrict__ x3 = N > 3 ? x[3] : nullptr;
+  for (int64_t j = 0; j < n; ++j) {
+    T acc = h0 * c[j];
+    if constexpr (N > 0) acc = acc + w0[j] * x0[j];
+    if constexpr (N > 1) acc = acc + w1[j] * x1[j];
+    if constexpr (N > 2) acc = acc + w2[j] * x2[j];
+    if constexpr (N > 3) acc = acc + w3[j] * x3[j];
+    o[j] = inv[j] > 0 ? acc * inv[j] : T(0);
   }
 }
 
@@ -311,56 +284,91 @@ void reciprocal(T* __restrict__ den, int64_t n) {
   }
 }
 
-// y[j] <- y[j] / den[j] from its reciprocal; 0 where no weight reaches (as the JAX kernels'
-// where(den > 0, ..., 0): a masked point's sum may hold 0 * inf).
+// A row's columns [0, width) cut where a term starts or ends (s.bounds), and for each cut the
+// terms that cover it (s.active, in order; cut k's from s.first_active[k]): within a cut
+// every term covers all of it or none, so its sums run in one loop.
 template <typename T>
-void normalise(T* __restrict__ y, const T* __restrict__ inv, int64_t n) {
-  for (int64_t j = 0; j < n; ++j) y[j] = inv[j] > 0 ? y[j] * inv[j] : T(0);
+void cut_row(const Term<T>* terms, size_t nt, int64_t width, Scratch<T>& s) {
+  std::vector<int64_t>& b = s.bounds;
+  b.assign({0, width});
+  for (size_t t = 0; t < nt; ++t) {
+    b.push_back(terms[t].at);
+    b.push_back(terms[t].at + terms[t].n);
+  }
+  std::sort(b.begin(), b.end());
+  b.erase(std::unique(b.begin(), b.end()), b.end());
+  s.active.clear();
+  s.first_active.assign(1, 0);
+  for (size_t k = 0; k + 1 < b.size(); ++k) {
+    for (size_t t = 0; t < nt; ++t)
+      if (terms[t].at <= b[k] && b[k + 1] <= terms[t].at + terms[t].n) s.active.push_back(terms + t);
+    s.first_active.push_back(static_cast<int64_t>(s.active.size()));
+  }
 }
 
-// One channel's output over columns [0, width): y = (h0 x + sum of the terms) * inv, with
-// the terms' x read from xc + from. Columns [jl, jh), where every term has a value, in one
-// loop for two or four terms; the rest term by term.
+// The normaliser's terms over each cut of the row (cut_row): den[j] += sum of w.
 template <typename T>
-void channel_sums(const Term<T>* terms, size_t nt, int64_t jl, int64_t jh, int64_t width, T h0,
-                  T* __restrict__ y, const T* __restrict__ centre, const T* xc,
-                  const T* __restrict__ inv) {
-  if (nt != 2 && nt != 4) {
-    for (int64_t j = 0; j < width; ++j) y[j] = h0 * centre[j];
-    add_edges(terms, nt, jl, jh, y, xc);
-    add_interior(terms, nt, jl, jh, y, xc);
-    normalise(y, inv, width);
-    return;
+void add_row_weights(T* den, const Scratch<T>& s) {
+  const T* w[4];
+  for (size_t k = 0; k + 1 < s.bounds.size(); ++k) {
+    const int64_t j0 = s.bounds[k], n = s.bounds[k + 1] - j0;
+    const auto first = static_cast<size_t>(s.first_active[k]);
+    const auto last = static_cast<size_t>(s.first_active[k + 1]);
+    for (size_t t = first; t < last; t += 4) {
+      const size_t m = last - t < 4 ? last - t : 4;
+      for (size_t u = 0; u < m; ++u) w[u] = s.active[t + u]->w + (j0 - s.active[t + u]->at);
+      switch (m) {
+        case 1: add_weights<T, 1>(den + j0, w, n); break;
+        case 2: add_weights<T, 2>(den + j0, w, n); break;
+        case 3: add_weights<T, 3>(den + j0, w, n); break;
+        default: add_weights<T, 4>(den + j0, w, n); break;
+      }
+    }
   }
-  for (const auto& r : {std::pair<int64_t, int64_t>{0, jl}, {jh, width}})
-    for (int64_t j = r.first; j < r.second; ++j) y[j] = h0 * centre[j];
-  add_edges(terms, nt, jl, jh, y, xc);
-  normalise(y, inv, jl);
-  normalise(y + jh, inv + jh, width - jh);
-  const int64_t n = jh - jl;
+}
+
+// One channel's output over the row (cut_row): y = (h0 centre + sum of w x) * inv, the terms'
+// x read from xc + from; up to four terms a cut in one loop with the quotient.
+template <typename T>
+void channel_sums(const Scratch<T>& s, T h0, T* __restrict__ y, const T* __restrict__ centre,
+                  const T* xc, const T* __restrict__ inv) {
   const T* w[4] = {};
   const T* x[4] = {};
-  for (size_t t = 0; t < nt; ++t) {
-    w[t] = terms[t].w + (jl - terms[t].at);
-    x[t] = xc + terms[t].from + (jl - terms[t].at);
-  }
-  T* __restrict__ o = y + jl;
-  const T* __restrict__ c0 = centre + jl;
-  const T* __restrict__ iv = inv + jl;
-  const T *__restrict__ w0 = w[0], *__restrict__ w1 = w[1];
-  const T *__restrict__ x0 = x[0], *__restrict__ x1 = x[1];
-  if (nt == 4) {
-    const T *__restrict__ w2 = w[2], *__restrict__ w3 = w[3];
-    const T *__restrict__ x2 = x[2], *__restrict__ x3 = x[3];
-    for (int64_t j = 0; j < n; ++j) {
-      const T sum = h0 * c0[j] + w0[j] * x0[j] + w1[j] * x1[j] + w2[j] * x2[j] + w3[j] * x3[j];
-      o[j] = iv[j] > 0 ? sum * iv[j] : T(0);
+  for (size_t k = 0; k + 1 < s.bounds.size(); ++k) {
+    const int64_t j0 = s.bounds[k], n = s.bounds[k + 1] - j0;
+    const auto first = static_cast<size_t>(s.first_active[k]);
+    const auto last = static_cast<size_t>(s.first_active[k + 1]);
+    auto load = [&](size_t t, size_t m) {
+      for (size_t u = 0; u < m; ++u) {
+        const Term<T>& term = *s.active[t + u];
+        w[u] = term.w + (j0 - term.at);
+        x[u] = xc + term.from + (j0 - term.at);
+      }
+    };
+    T* o = y + j0;
+    const T* c = centre + j0;
+    const T* iv = inv + j0;
+    switch (last - first) {
+      case 0: fused_channel<T, 0>(o, c, h0, w, x, iv, n); continue;
+      case 1: load(first, 1); fused_channel<T, 1>(o, c, h0, w, x, iv, n); continue;
+      case 2: load(first, 2); fused_channel<T, 2>(o, c, h0, w, x, iv, n); continue;
+      case 3: load(first, 3); fused_channel<T, 3>(o, c, h0, w, x, iv, n); continue;
+      case 4: load(first, 4); fused_channel<T, 4>(o, c, h0, w, x, iv, n); continue;
+      default: break;
     }
-  } else {
-    for (int64_t j = 0; j < n; ++j) {
-      const T sum = h0 * c0[j] + w0[j] * x0[j] + w1[j] * x1[j];
-      o[j] = iv[j] > 0 ? sum * iv[j] : T(0);
+    // More than four terms (full mode): the sums four terms a loop, then the quotient.
+    for (int64_t j = 0; j < n; ++j) o[j] = h0 * c[j];
+    for (size_t t = first; t < last; t += 4) {
+      const size_t m = last - t < 4 ? last - t : 4;
+      load(t, m);
+      switch (m) {
+        case 1: add_products<T, 1>(o, w, x, n); break;
+        case 2: add_products<T, 2>(o, w, x, n); break;
+        case 3: add_products<T, 3>(o, w, x, n); break;
+        default: add_products<T, 4>(o, w, x, n); break;
+      }
     }
+    for (int64_t j = 0; j < n; ++j) o[j] = iv[j] > 0 ? o[j] * iv[j] : T(0);
   }
 }
 
@@ -434,20 +442,13 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
         terms[nt++] = {w, rm * L + jlo, jlo + ol - c0, jhi - jlo};
       }
     }
-    // Columns [jl, jh) get every term: there the sums run in one loop (and the quotient
-    // with them); the few columns at the row's ends, with fewer terms, term by term.
-    int64_t jl = 0, jh = width;
-    for (size_t t = 0; t < nt; ++t) {
-      jl = terms[t].at > jl ? terms[t].at : jl;
-      jh = terms[t].at + terms[t].n < jh ? terms[t].at + terms[t].n : jh;
-    }
-    if (jh < jl) jh = jl;
-    add_edges(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
-    add_interior(terms, nt, jl, jh, den, static_cast<const T*>(nullptr));
+    // The row cut where a term starts or ends: each cut's sums in one loop.
+    cut_row(terms, nt, width, s);
+    add_row_weights(den, s);
     reciprocal(den, width);  // one divide per point, not per channel
     for (int64_t c = 0; c < a.channels; ++c) {
       const T* xc = a.x[c] + a.x_at;
-      channel_sums(terms, nt, jl, jh, width, h0, a.y[c] + a.y_at + p, xc + p, xc, den);
+      channel_sums(s, h0, a.y[c] + a.y_at + p, xc + p, xc, den);
     }
   }
 }
@@ -508,11 +509,12 @@ void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int6
       } else {
         for (int64_t j = 0; j < M; ++j) den[j] = h0;
       }
-      add_interior(s.terms.data(), nt, 0, M, den, static_cast<const T*>(nullptr));
+      cut_row(s.terms.data(), nt, M, s);  // one cut: every term covers the slab
+      add_row_weights(den, s);
       reciprocal(den, M);
       for (int64_t c = 0; c < C; ++c) {
         const T* xc = a.x[c] + a.x_at;
-        channel_sums(s.terms.data(), nt, 0, M, M, h0, s.cur[c], xc + i * M, xc, den);
+        channel_sums(s, h0, s.cur[c], xc + i * M, xc, den);
       }
       in = s.cur.data();
       in_at = 0;
