@@ -5,15 +5,22 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-# The suite compiles hundreds of small programs, and LLVM's optimisations are most of their
-# compile time while changing results by float rounding at most; the tests assert properties
-# and tolerances, and the goldens compile with the same option (tests/goldens.py). Set before
-# JAX starts its backend, so pytest's workers and the children they start inherit it; a level
-# the caller chose wins.
-FAST_COMPILE = "--xla_backend_optimization_level=0"
+# The suite compiles hundreds of small programs. LLVM's optimisations, XLA's MLIR fusion
+# emitters (against its older elemental ones) and the split of each program for parallel
+# codegen are most of their compile time while changing results by float rounding at most:
+# without them a bilateral_adam update compiles in half the time (docs/research/compilation.md).
+# The tests assert properties and tolerances, and the goldens compile with the same options
+# (tests/goldens.py). Set before JAX starts its backend, so pytest's workers and the children
+# they start inherit them; a value the caller chose wins.
+FAST_COMPILE = {
+    "xla_backend_optimization_level": "0",
+    "xla_cpu_use_fusion_emitters": "false",
+    "xla_cpu_parallel_codegen_split_count": "1",
+}
 _FLAGS = os.environ.get("XLA_FLAGS", "")
-if "xla_backend_optimization_level" not in _FLAGS:
-    os.environ["XLA_FLAGS"] = f"{_FLAGS} {FAST_COMPILE}".strip()
+os.environ["XLA_FLAGS"] = " ".join(
+    [_FLAGS] + [f"--{k}={v}" for k, v in FAST_COMPILE.items() if k not in _FLAGS]
+).strip()
 
 # Each new shape or static setting compiles a new XLA program, so the property tests draw
 # those from small sets (shared compiled programs) and explore the data freely.

@@ -19,8 +19,8 @@ final state, upcast to float32 (exact for the three dtypes) and concatenated.
   configurations (every pair of factor levels appears in at least one of them),
   which ``tests/test_goldens.py`` compares bit for bit on every run; and a SHA-256 of
   every one of the 144 configurations, which ``--check`` (or the test with
-  ``OPTAX_BILATERAL_GOLDENS=all``) compares. Compiling all 144 takes about 4 minutes
-  on 2 cores (1-3 s each), which is why the suite runs the subset.
+  ``OPTAX_BILATERAL_GOLDENS=all``) compares. Recording all 144 takes about 25 s on 2
+  cores (0.1-2 s each), most of it compiling, which is why the suite runs the subset.
 * The programs, and the random inputs they are fed, are compiled without LLVM's
   optimisations (``COMPILER_OPTIONS``), whatever ``$XLA_FLAGS`` says.
 * Bit-equality holds for one toolchain (the jax and jaxlib versions recorded in the
@@ -67,10 +67,14 @@ VARIANTS = ("finite", "nan_texel", "huge")
 STEPS = 3
 SPATIAL_AXES = {"tex": (0, 1), "plane": (0, 1), "s": ()}
 SIGMA_D, LEVELS = 0.3, 2
-# LLVM's optimisations halve the compile time of these small programs and change
-# nothing the goldens guard: the computation is XLA's HLO, compiled the same way here
-# and when recorded.
-COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+# The suite's compile options (tests/conftest.py): they halve the compile time of these
+# small programs and change nothing the goldens guard: the computation is XLA's HLO,
+# compiled the same way here and when recorded.
+COMPILER_OPTIONS = {
+    "xla_backend_optimization_level": 0,
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_cpu_parallel_codegen_split_count": 1,
+}
 
 
 def config_id(kind, separable, guide, mask, dtype) -> str:
