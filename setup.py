@@ -12,8 +12,10 @@ the CPU's widest is chosen at run time (csrc/atrous.cc).
 import importlib.util
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
 
 
 def ffi_include_dir() -> str | None:
@@ -56,4 +58,23 @@ def native_extension() -> list[Extension]:
     ]
 
 
-setup(ext_modules=native_extension())
+class ParallelBuildExt(build_ext):
+    """``build_ext`` that compiles an extension's sources on every core (distutils compiles
+    them one after another; the three builds of the kernel are most of an install's time)."""
+
+    def build_extension(self, ext):
+        compile_one = self.compiler.compile
+
+        def compile_all(sources, *args, **kwargs):
+            with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+                parts = pool.map(lambda source: compile_one([source], *args, **kwargs), sources)
+                return [obj for objects in parts for obj in objects]
+
+        self.compiler.compile = compile_all
+        try:
+            super().build_extension(ext)
+        finally:
+            self.compiler.compile = compile_one
+
+
+setup(ext_modules=native_extension(), cmdclass={"build_ext": ParallelBuildExt})
