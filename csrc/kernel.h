@@ -51,6 +51,7 @@ struct Scratch {
   std::vector<int64_t> bounds;       // row_sums: where the row's terms start and end
   std::vector<const Term<T>*> active;  // the terms of each cut between them, in order
   std::vector<int64_t> first_active;   // cut k's terms: active[first_active[k], [k + 1])
+  std::vector<int64_t> cut_key;        // what the cuts were made for: most rows repeat it
   std::vector<T> slabs, ring;  // run_slabs: two slabs of the fields, the axis-0 weights
   std::vector<T*> cur, other;   // their channels
 };
@@ -289,6 +290,15 @@ void reciprocal(T* __restrict__ den, int64_t n) {
 // every term covers all of it or none, so its sums run in one loop.
 template <typename T>
 void cut_row(const Term<T>* terms, size_t nt, int64_t width, Scratch<T>& s) {
+  // The cuts depend only on where the terms lie and the row's width: rows alike reuse them.
+  std::vector<int64_t>& key = s.cut_key;
+  const auto at = reinterpret_cast<std::uintptr_t>(terms);
+  bool same = key.size() == 2 * nt + 2 && key[0] == static_cast<int64_t>(at) && key[1] == width;
+  for (size_t t = 0; same && t < nt; ++t)
+    same = key[2 + 2 * t] == terms[t].at && key[3 + 2 * t] == terms[t].n;
+  if (same) return;
+  key.assign({static_cast<int64_t>(at), width});
+  for (size_t t = 0; t < nt; ++t) key.insert(key.end(), {terms[t].at, terms[t].n});
   std::vector<int64_t>& b = s.bounds;
   b.assign({0, width});
   for (size_t t = 0; t < nt; ++t) {
