@@ -279,7 +279,6 @@ void run(const Cascade<T>& c) {
                 c.out_fields[f].first);
     return;
   }
-
   int threads = std::max(1, c.threads);
   if (size < kMinParallelWork) threads = 1;
   const auto [scale, sigma] = guide_scale(c, threads, points);

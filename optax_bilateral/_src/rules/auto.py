@@ -409,8 +409,7 @@ def update_residual(rule: Auto, moments: Moments, bm: jax.Array, residual, c1, a
     sub = lambda x: rule._subgrid(x, axes)
     decay = jnp.asarray(rule.residual_decay, m.dtype)
     residual = residual.astype(m.dtype)
-    # Each input sliced, not their difference: XLA would make the full-size difference first.
-    new = decay * residual + (1 - decay) * (sub(m) - sub(bm)) / jnp.asarray(c1, m.dtype)
+    new = decay * residual + (1 - decay) * sub(m - bm) / jnp.asarray(c1, m.dtype)
     return jnp.where(sub(moments.observed), new, residual)
 
 
