@@ -391,8 +391,8 @@ def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
     (every s-th texel, test_stride_leaves_at_least_min_texels); they are the full local
     averages' sub-grid. The blend's statistics read the sub-grid only (the residual is kept
     there), so on leaves whose blend weight is uniform in distribution the gate the step
-    writes estimates the one from every texel from a quarter of them (here within 0.05 over
-    seeds 0-3, 0.004 on seed 1)."""
+    writes estimates the one from every texel from a sixteenth of them (4096 texels: within
+    0.07 over seeds 0-3, 0.05 on seed 0; the gate is 1 / 0.15 times mean lam's error)."""
     rng = np.random.default_rng(3)
     for shape, axes, stride in [
         ((512, 512, 3), (0, 1), 4),
@@ -405,6 +405,8 @@ def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
             np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
     # A check step (8) whose moments are m_hat = m, v_hat = v, under a constant guide.
     shape, b, t = (256, 256, 2), 0.9, 8
+    s = AUTO._stride(shape, (0, 1))
+    assert s == 4  # a sixteenth of the texels
     c = 1 - b**t
     key = jax.random.PRNGKey(0)
     m = jax.random.normal(key, shape)
@@ -416,15 +418,15 @@ def test_the_gate_from_the_subgrid_is_the_gate_from_every_entry_to_rounding():
         gate = {}
         for rule in (AUTO, EVERY_TEXEL):
             opt = ob.postfilter(b, b, sigma_d=rule, spatial_axes=(0, 1))
-            kept = residual[::2, ::2] if rule is AUTO else residual  # the state's sub-grid
+            kept = residual[::s, ::s] if rule is AUTO else residual  # the state's sub-grid
             _, new = opt.update(c * m, at_step(opt.init(x), t - 1, residual=kept, **moments), x)
             gate[rule] = float(new.sigma_state.gate)
-        assert abs(gate[AUTO] - gate[EVERY_TEXEL]) < 0.06, (scale, gate)
+        assert abs(gate[AUTO] - gate[EVERY_TEXEL]) < 0.1, (scale, gate)
         gates.append(gate[EVERY_TEXEL])
     assert gates[0] == 0 and 0 < gates[1] < gates[2] < 1 and gates[3] == 1
     kept = {rule: ob.postfilter(sigma_d=rule).init(x).sigma_state for rule in (AUTO, EVERY_TEXEL)}
     for field in ("previous_guide", "residual"):  # sub-grid, every texel
-        assert getattr(kept[AUTO], field).shape == (128, 128, 2)
+        assert getattr(kept[AUTO], field).shape == (64, 64, 2)
         assert getattr(kept[EVERY_TEXEL], field).shape == shape
 
 
@@ -583,11 +585,12 @@ def test_the_filter_itself_takes_numbers_only():
     "shape, axes, expected",
     [
         ((64, 64, 3), (0, 1), 1),  # the suite's textures: every texel
-        ((256, 256, 1), (0, 1), 2),
-        ((512, 512, 3), (0, 1), 4),
-        ((64, 64, 64, 1), (0, 1, 2), 2),
-        ((1 << 20,), (0,), 64),
-        ((3, 1000, 1000), (1, 2), 4),  # channels first
+        ((128, 128, 1), (0, 1), 2),
+        ((256, 256, 1), (0, 1), 4),
+        ((512, 512, 3), (0, 1), 8),
+        ((64, 64, 64, 1), (0, 1, 2), 4),
+        ((1 << 20,), (0,), 256),
+        ((3, 1000, 1000), (1, 2), 8),  # channels first
     ],
 )
 def test_stride_leaves_at_least_min_texels(shape, axes, expected):
@@ -604,23 +607,24 @@ def test_stride_leaves_at_least_min_texels(shape, axes, expected):
 
 def test_a_large_leaf_keeps_a_sub_grid_of_its_guide_and_sigma_is_its_full_mean():
     """Above ``min_texels`` the state keeps every s-th texel; the guide's mean step over it is
-    the full grid's to a fraction of a percent, and an unprojected step still gives sqrt(C) lr."""
+    the full grid's to about a percent (1.3% here, from 4875 texels of a step whose size varies
+    per texel), and an unprojected step still gives sqrt(C) lr."""
     rng = np.random.default_rng(0)
-    shape = (300, 260, 2)  # 78000 texels: stride 2, not dividing 300 or 260 evenly
+    shape = (300, 260, 2)  # 78000 texels: stride 4, not dividing 300 or 260 evenly
     guide = jnp.asarray(rng.random(shape), jnp.float32)
     step = jnp.asarray(rng.standard_normal(shape) * rng.random(shape[:2])[..., None], jnp.float32)
     _, sub = _step_scales([guide, guide + 0.01 * step])
     full = AUTO.step_factor * 0.01 * np.linalg.norm(np.asarray(step), axis=-1).mean()
-    np.testing.assert_allclose(sub, full, rtol=5e-3)
+    np.testing.assert_allclose(sub, full, rtol=2e-2)
     opt = ob.bilateral_adam(0.02)
     params = jnp.asarray(rng.random(shape), jnp.float32)
     state = opt.init(params)
-    assert filtered_state(state).sigma_state.previous_guide.shape == (150, 130, 2)
+    assert filtered_state(state).sigma_state.previous_guide.shape == (75, 65, 2)
     for _ in range(3):
         g = jnp.asarray(rng.standard_normal(shape), jnp.float32) + params - 0.5
         u, state = opt.update(g, state, params)
         np.testing.assert_array_equal(
-            filtered_state(state).sigma_state.previous_guide, params[::2, ::2]
+            filtered_state(state).sigma_state.previous_guide, params[::4, ::4]
         )
         params = optax.apply_updates(params, u)
         moved = np.linalg.norm(np.asarray(u, np.float64), axis=-1).mean()
@@ -679,11 +683,11 @@ def test_correlated_tells_blurred_noise_from_white_noise_at_every_scale(scale):
 
 
 def test_correlated_reads_pairs_on_the_subgrid_of_a_large_leaf():
-    """On a leaf with a sub-grid (stride 4 at 512x512) the pairs are texels 4i and 4i + 1:
-    the same lag-1 correlation, from an eighth of the texels."""
+    """On a leaf with a sub-grid (stride 8 at 512x512) the pairs are texels 8i and 8i + 1:
+    the same lag-1 correlation, from a 32nd of the texels."""
     init = ob.postfilter(spatial_axes=(0, 1)).init
     kept = jax.eval_shape(init, jax.ShapeDtypeStruct((512, 512, 1), jnp.float32))
-    assert kept.sigma_state.previous_guide.shape == (128, 128, 1)
+    assert kept.sigma_state.previous_guide.shape == (64, 64, 1)
     _tells_blurred_from_white((512, 512, 1))
 
 

@@ -56,7 +56,7 @@ class AutoState(NamedTuple):
 
     Attributes:
       previous_guide: the guide the last update saw, with the guide's shape, or on a leaf of
-        more than ``min_texels`` (16384) texels its sub-grid (every ``s``-th texel along each
+        more than ``min_texels`` (4096) texels its sub-grid (every ``s``-th texel along each
         spatial axis, ``s`` the largest power of two that leaves at least ``min_texels``);
         None for ``guide="self"``.
       residual: the exponential moving average (decay 0.97) of ``m_hat - B m_hat`` on the
@@ -130,8 +130,8 @@ class Auto(SigmaRule):
         >>> rule = ob.auto_sigma(check_period=4)         # the gate's check every 4th step
         >>> opt = ob.bilateral_adam(0.02, sigma_d=rule)
         >>> state = ob.postfilter(sigma_d=rule).init(jnp.ones((512, 512, 3)))
-        >>> state.sigma_state.previous_guide.shape   # a 512x512 leaf's statistics: every 4th texel
-        (128, 128, 3)
+        >>> state.sigma_state.previous_guide.shape   # a 512x512 leaf's statistics: every 8th texel
+        (64, 64, 3)
     """
 
     rate_factor: float = 1.0
@@ -142,7 +142,7 @@ class Auto(SigmaRule):
     power: float = 2.0
     gate_bounds: tuple[float, float] = (0.5, 0.65)
     check_period: int = 8
-    min_texels: int = 16384
+    min_texels: int = 4096
     correlated: float = math.exp(-0.25)
     noisy: float = 0.25
     heavy_factor: float = 3.0
