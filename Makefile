@@ -64,7 +64,8 @@ test-min: $(VENV_MIN)/.installed
 	OPTAX_BILATERAL_QUICK=1 $(VENV_MIN)/bin/python -m pytest -q -n 2 --dist loadfile $(CORE_TESTS)
 
 # `make dist`: the sdist and the wheel (python -m build) in dist/, checked by twine; then the
-# wheel in a clean venv outside the checkout (build/dist-venv): alone, it runs the README's
+# wheel's contents (the library and its native kernel only); then the wheel in a clean venv
+# outside the checkout (build/dist-venv): alone, it runs the README's
 # quick start; with every extra, each gives what it promises (tests/check_dist.py).
 # Nothing is uploaded (RELEASING.md).
 DIST_VENV := build/dist-venv
@@ -73,6 +74,7 @@ dist: $(VENV)/.installed-dev
 	rm -rf dist $(DIST_VENV)
 	$(PY) -m build --outdir dist .
 	$(VENV)/bin/twine check --strict dist/*
+	$(PY) tests/check_dist.py wheel dist/*.whl
 	$(PYTHON) -m venv $(DIST_VENV)
 	$(DIST_VENV)/bin/python -m pip install --quiet --upgrade pip
 	$(DIST_VENV)/bin/python -m pip install --quiet dist/*.whl

@@ -4,6 +4,9 @@
 imports from the venv, not from the checkout, and runs the README's quick start (printing
 the numbers the README shows) and its three compositions.
 
+``python tests/check_dist.py wheel dist/*.whl``: the wheel holds the library, its metadata
+and the built native kernel, nothing else (no tests, no C++ sources), as a platform wheel.
+
 ``python tests/check_dist.py extras``: after ``pip install 'optax_bilateral[dev]'`` (every
 extra), each extra the wheel declares gives what it promises (:data:`EXTRAS`); an extra
 without a check here fails.
@@ -17,12 +20,35 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import pathlib
+import re
 import shutil
 import subprocess
 import sys
 import tempfile
+import tomllib
+import zipfile
 
 import docs_blocks
+
+
+def check_wheel(path: str) -> None:
+    wheel = pathlib.Path(path)
+    project = tomllib.loads((docs_blocks.ROOT / "pyproject.toml").read_text())["project"]
+    names = zipfile.ZipFile(wheel).namelist()
+    dist_info = f"optax_bilateral-{project['version']}.dist-info"
+    assert {n.split("/")[0] for n in names} == {"optax_bilateral", dist_info}, names
+    expected = {"optax_bilateral/py.typed", "optax_bilateral/_src/filter/front.py"}
+    assert expected | {"optax_bilateral/toy/texture.py"} <= set(names), names
+    assert any(n.startswith(dist_info) and n.endswith("LICENSE") for n in names)
+    # The native kernel: a platform wheel with the built extension, not its C++ sources.
+    assert any(re.fullmatch(r"optax_bilateral/_native\..*\.so", n) for n in names), names
+    assert not any(n.endswith((".cc", ".h")) for n in names)
+    assert not wheel.name.endswith("-none-any.whl"), wheel.name
+    metadata = zipfile.ZipFile(wheel).read(f"{dist_info}/METADATA").decode()
+    assert "License-Expression: Apache-2.0" in metadata
+    requires = re.findall(r"^Requires-Dist: ([\w\-]+)[^;\n]*$", metadata, re.M)
+    assert sorted(requires) == ["jax", "numpy", "optax"], requires  # extras aside
+    print(f"{wheel.name}: the library, its metadata and the native kernel only")
 
 
 def check_base() -> None:
@@ -153,4 +179,4 @@ def check_extras() -> None:
 
 
 if __name__ == "__main__":
-    {"base": check_base, "extras": check_extras}[sys.argv[1]]()
+    {"base": check_base, "extras": check_extras, "wheel": check_wheel}[sys.argv[1]](*sys.argv[2:])
