@@ -343,8 +343,10 @@ class Auto(SigmaRule):
         if not corr:
             return jnp.zeros([], bool)
         lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / c1
-        noise = jnp.sum(jnp.square(self._subgrid(z, axes)))
-        signal = jnp.sum(jnp.square(self._subgrid(m_hat, axes)))
+        noise, signal = jnp.sum(
+            jnp.square(jnp.stack([self._subgrid(z, axes), self._subgrid(m_hat, axes)])),
+            axis=tuple(range(1, z.ndim + 1)),
+        )
         return (jnp.mean(jnp.stack(corr)) >= self.correlated) & (
             noise > self.noisy * lag * lag * signal
         )
@@ -468,8 +470,10 @@ def _finite_mean(x: jax.Array) -> jax.Array:
 
 
 def _lag_correlation(x0: jax.Array, x1: jax.Array) -> jax.Array:
-    den = jnp.sqrt(jnp.sum(x0 * x0) * jnp.sum(x1 * x1))
-    return jnp.where(den > 0, jnp.sum(x0 * x1) / jnp.where(den > 0, den, 1), 0)
+    # One reduction for the three sums: each grid-wide sum is its own kernels to compile.
+    sums = jnp.sum(jnp.stack([x0 * x0, x1 * x1, x0 * x1]), axis=tuple(range(1, x0.ndim + 1)))
+    den = jnp.sqrt(sums[0] * sums[1])
+    return jnp.where(den > 0, sums[2] / jnp.where(den > 0, den, 1), 0)
 
 
 def _direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
