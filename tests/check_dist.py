@@ -37,8 +37,12 @@ def check_wheel(path: str) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     dist_info = f"optax_bilateral-{project['version']}.dist-info"
     assert {n.split("/")[0] for n in names} == {"optax_bilateral", dist_info}, names
-    expected = {"optax_bilateral/py.typed", "optax_bilateral/_src/filter/front.py"}
-    assert expected | {"optax_bilateral/toy/texture.py"} <= set(names), names
+    expected = {
+        "optax_bilateral/py.typed",
+        "optax_bilateral/_src/filter/front.py",
+        "optax_bilateral/toy/texture.py",
+    }
+    assert expected <= set(names), names
     assert any(n.startswith(dist_info) and n.endswith("LICENSE") for n in names)
     # The native kernel: a platform wheel with the built extension, not its C++ sources.
     assert any(re.fullmatch(r"optax_bilateral/_native\..*\.so", n) for n in names), names

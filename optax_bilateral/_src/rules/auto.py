@@ -343,9 +343,8 @@ class Auto(SigmaRule):
         if not corr:
             return jnp.zeros([], bool)
         lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / c1
-        noise, signal = jnp.sum(
-            jnp.square(jnp.stack([self._subgrid(z, axes), self._subgrid(m_hat, axes)])),
-            axis=tuple(range(1, z.ndim + 1)),
+        noise, signal = _sums(
+            jnp.square(self._subgrid(z, axes)), jnp.square(self._subgrid(m_hat, axes))
         )
         return (jnp.mean(jnp.stack(corr)) >= self.correlated) & (
             noise > self.noisy * lag * lag * signal
@@ -469,11 +468,16 @@ def _finite_mean(x: jax.Array) -> jax.Array:
     return jnp.sum(jnp.where(ok, x, 0)) / jnp.maximum(jnp.sum(ok), 1)
 
 
+def _sums(*xs: jax.Array) -> jax.Array:
+    """Each of the same-shaped ``xs`` summed, as one reduction of their stack (XLA compiles
+    every grid-wide sum as kernels of its own)."""
+    return jnp.sum(jnp.stack(xs), axis=tuple(range(1, xs[0].ndim + 1)))
+
+
 def _lag_correlation(x0: jax.Array, x1: jax.Array) -> jax.Array:
-    # One reduction for the three sums: each grid-wide sum is its own kernels to compile.
-    sums = jnp.sum(jnp.stack([x0 * x0, x1 * x1, x0 * x1]), axis=tuple(range(1, x0.ndim + 1)))
-    den = jnp.sqrt(sums[0] * sums[1])
-    return jnp.where(den > 0, sums[2] / jnp.where(den > 0, den, 1), 0)
+    s00, s11, s01 = _sums(x0 * x0, x1 * x1, x0 * x1)
+    den = jnp.sqrt(s00 * s11)
+    return jnp.where(den > 0, s01 / jnp.where(den > 0, den, 1), 0)
 
 
 def _direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
