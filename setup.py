@@ -35,6 +35,7 @@ def native_extension() -> list[Extension]:
     sources = [
         "module.cc",
         "atrous.cc",
+        "count.cc",
         "isa.cc",
         "ldl.cc",
         "local.cc",

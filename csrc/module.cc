@@ -1,5 +1,6 @@
-// The Python extension optax_bilateral._native: the XLA FFI handler of the a-trous cascade
-// and the capsule that registers it (jax.ffi.register_ffi_target).
+// The Python extension optax_bilateral._native: the XLA FFI handlers (the a-trous cascade, the
+// rules' sub-grid averages, the mesh solves, the non-finite counts) and the capsules that
+// register them (jax.ffi.register_ffi_target).
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -12,6 +13,7 @@
 #include <vector>
 
 #include "atrous.h"
+#include "count.h"
 #include "ldl.h"
 #include "local.h"
 
@@ -231,6 +233,35 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
   }
 }
 
+// Each operand's count of non-finite entries (count.h), one int32 per block: an output of b
+// entries splits its operand into b equal blocks (a vmapped call's batch).
+ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts) {
+  if (counts.size() != xs.size()) return invalid("one count per operand");
+  for (size_t k = 0; k < xs.size(); ++k) {
+    auto x = xs.get<ffi::AnyBuffer>(k);
+    auto out = counts.get<ffi::AnyBuffer>(k);
+    if (!x.has_value() || !out.has_value()) return invalid("operands and counts are buffers");
+    if ((*out)->element_type() != ffi::DataType::S32) return invalid("counts must be int32");
+    ob::Format format;
+    switch (x->element_type()) {
+      case ffi::DataType::F16: format = ob::Format::kF16; break;
+      case ffi::DataType::BF16: format = ob::Format::kBF16; break;
+      case ffi::DataType::F32: format = ob::Format::kF32; break;
+      case ffi::DataType::F64: format = ob::Format::kF64; break;
+      case ffi::DataType::C64: format = ob::Format::kC64; break;
+      case ffi::DataType::C128: format = ob::Format::kC128; break;
+      default: return invalid("the count takes float16, bfloat16, float32, float64 or complex");
+    }
+    const auto blocks = static_cast<int64_t>((*out)->element_count());
+    const auto n = static_cast<int64_t>(x->element_count());
+    if (blocks < 1 || n % blocks != 0)
+      return invalid("each operand must split into its count's number of blocks");
+    ob::count_nonfinite(format, x->untyped_data(), blocks, n / blocks,
+                        static_cast<int32_t*>((*out)->untyped_data()));
+  }
+  return ffi::Error::Success();
+}
+
 }  // namespace
 
 #pragma GCC diagnostic push
@@ -274,6 +305,10 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLocalAverage, local_average,
                                   .Ret<ffi::AnyBuffer>()  // the scratch between passes
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
+                              ffi::Ffi::Bind()
+                                  .RemainingArgs()   // the arrays
+                                  .RemainingRets());  // their counts, int32 (batch...)
 #pragma GCC diagnostic pop
 
 namespace {
@@ -284,6 +319,7 @@ PyObject* registrations(PyObject*, PyObject*) {
       {"optax_bilateral_atrous_fields", reinterpret_cast<void*>(&OptaxBilateralAtrousFields)},
       {"optax_bilateral_ldl", reinterpret_cast<void*>(&OptaxBilateralLdl)},
       {"optax_bilateral_local_average", reinterpret_cast<void*>(&OptaxBilateralLocalAverage)},
+      {"optax_bilateral_count_nonfinite", reinterpret_cast<void*>(&OptaxBilateralCountNonfinite)},
   };
   PyObject* dict = PyDict_New();
   if (!dict) return nullptr;

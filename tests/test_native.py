@@ -18,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from optax_bilateral import atrous_bilateral
+from optax_bilateral._src import numerics
 from optax_bilateral._src.filter import native
 from reference import atrous_reference
 
@@ -194,7 +195,10 @@ def test_without_the_extension_the_pure_jax_kernels_run():
         for i in range(9):  # past a gate check (step 8)
             u, state = opt.update(p * 0.1 + 0.01 * i, state, p)
         assert bool(jnp.all(jnp.isfinite(u)))
-        assert native.SUBGRID_TARGET not in jax.jit(opt.update).lower(p, state, p).as_text()
+        text = jax.jit(opt.update).lower(p, state, p).as_text()
+        assert native.SUBGRID_TARGET not in text and "count_nonfinite" not in text
+        u, state = opt.update(p.at[0, 0, 0].set(jnp.nan), state, p)  # counted by jnp.sum
+        assert int(state[0].nonfinite_count) == 1, state[0].nonfinite_count
         print("ok")
         """
     )
@@ -379,3 +383,53 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
         jax.clear_caches()
     np.testing.assert_allclose(slices, local._native_taps(x, (0, 1), 2), rtol=RTOL, atol=ATOL)
+
+
+# The optimizers' non-finite counts (numerics.count_nonfinite): one FFI call for every leaf.
+COUNT_SHAPES = [(), (7,), (3, 5, 2), (0, 4)]
+SPECIALS = [np.nan, -np.nan, np.inf, -np.inf, 0.0, -0.0, 1e-45, 3e38, -2.0]
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    dtype=st.sampled_from([jnp.float16, jnp.bfloat16, jnp.float32, jnp.complex64]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_nonfinite_counts_equal_jnp_on_drawn_arrays(dtype, seed):
+    # Real parts and imaginary parts drawn apart: a complex entry counts once.
+    rng = np.random.default_rng(seed)
+
+    def draw(shape):
+        x = rng.choice(SPECIALS, size=shape) * rng.choice([1.0, 7.5], size=shape)
+        if dtype == jnp.complex64:
+            x = x + 1j * rng.choice(SPECIALS, size=shape)
+        return jnp.asarray(x).astype(dtype)  # 3e38 overflows the half formats to inf
+
+    xs = [draw(s) for s in COUNT_SHAPES]
+    got = jax.jit(numerics.count_nonfinite)(xs)
+    assert jax.jit(numerics.count_nonfinite).lower(xs).as_text().count(numerics.COUNT_TARGET) == 1
+    for x, n in zip(xs, got):
+        assert n.dtype == jnp.int32 and n.shape == ()
+        assert int(n) == int(np.sum(~np.isfinite(np.asarray(x, np.complex128)))), x
+
+
+def test_nonfinite_counts_batch_and_are_not_differentiated():
+    x = jnp.asarray([[1.0, np.nan, 2.0], [np.inf, -np.inf, np.nan]])
+    count = lambda a, b: numerics.count_nonfinite([a, b])
+    # Nested batches, one operand unbatched: a count per batch element.
+    a, b = jax.vmap(jax.vmap(count, (0, None)), (0, None))(jnp.stack([x, x * 0]), x[0])
+    np.testing.assert_array_equal(a, [[1, 3], [1, 3]])
+    np.testing.assert_array_equal(b, [[1, 1], [1, 1]])
+    # A meta-gradient through an update that counts: the count has no derivative.
+    import optax_bilateral as ob
+
+    opt = ob.bilateral_adam(0.1, sigma_d=0.2, spatial_axes=(0,))
+    p = jnp.linspace(0.0, 1.0, 16)
+    state = opt.init(p)
+
+    def loss(g):
+        u, s = opt.update(g, state, p)
+        return jnp.sum(u) + jnp.sum(s[0].nonfinite_count)
+
+    grad = jax.grad(loss)(jnp.sin(p).at[3].set(np.nan))
+    assert bool(jnp.all(jnp.isfinite(grad)))

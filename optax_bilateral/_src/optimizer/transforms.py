@@ -708,12 +708,11 @@ def _count_nonfinite(counts, updates):
     if counts is None:
         return None
     top = jnp.iinfo(jnp.int32).max
-
-    def add(total, g):
-        new = jnp.sum(~jnp.isfinite(g), dtype=jnp.int32)
-        return jnp.where(total > top - new, top, total + new)
-
-    return jax.tree.map(add, counts, updates)
+    totals, treedef = jax.tree.flatten(counts)
+    news = numerics.count_nonfinite(treedef.flatten_up_to(updates))
+    return treedef.unflatten(
+        jnp.where(total > top - new, top, total + new) for total, new in zip(totals, news)
+    )
 
 
 def _check_betas(betas, default) -> tuple:
