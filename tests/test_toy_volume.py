@@ -227,15 +227,15 @@ def test_trilinear_matches_scipy_and_its_adjoint():
     rng = np.random.default_rng(0)
     grid = rng.standard_normal((5, 6, 7, 2)).astype(np.float32)
     pts = rng.uniform(-0.05, 1.05, (300, 3)).astype(np.float32)  # includes clamp-to-edge
-    got = np.asarray(volume._trilinear(jnp.asarray(grid), jnp.asarray(pts)))
+    got = np.asarray(volume.sampling.trilinear(jnp.asarray(grid), jnp.asarray(pts)))
     want = np.stack([_lookup(grid[..., c], pts.astype(np.float64)) for c in range(2)], -1)
     np.testing.assert_allclose(got, want, atol=1e-5)  # float32 rounding of O(1) values
     # The custom reverse rule is the exact transpose: <J g, c> = <g, J^T c>.
     cot = rng.standard_normal(got.shape).astype(np.float32)
     g2 = rng.standard_normal(grid.shape).astype(np.float32)
-    _, vjp = jax.vjp(lambda g: volume._trilinear(g, jnp.asarray(pts)), jnp.asarray(grid))
+    _, vjp = jax.vjp(lambda g: volume.sampling.trilinear(g, jnp.asarray(pts)), jnp.asarray(grid))
     (jt_c,) = vjp(jnp.asarray(cot))
-    lhs = np.vdot(np.asarray(volume._trilinear(jnp.asarray(g2), jnp.asarray(pts))), cot)
+    lhs = np.vdot(np.asarray(volume.sampling.trilinear(jnp.asarray(g2), jnp.asarray(pts))), cot)
     rhs = np.vdot(g2, np.asarray(jt_c))
     assert abs(lhs - rhs) <= 1e-4 * max(1.0, abs(lhs))  # float32 sums of ~600 terms
 
