@@ -91,20 +91,22 @@ dist: $(VENV)/.installed-dev
 # mask and extreme against a float64 loop; csrc/test_ldl.cc: the mesh solves' LDL^T sweeps
 # against dense float64 products; csrc/test_local.cc: the rules' sub-grid local averages against
 # their tensor-product sum in float64; csrc/test_count.cc: the non-finite counts against
-# std::isfinite on every 16-bit pattern and drawn float32/float64/complex blocks) built with
+# std::isfinite on every 16-bit pattern and drawn float32/float64/complex blocks;
+# csrc/test_stats.cc: the rules' texel statistics against their definition in float64) built with
 # AddressSanitizer and UndefinedBehaviorSanitizer, any finding fatal, then run once per
 # instruction set.
 SANITIZE := -fsanitize=address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer
 KERNELS := csrc/isa.cc csrc/passes.cc csrc/kernel_baseline.cc csrc/kernel_avx2.cc csrc/kernel_avx512.cc
 sanitize:
 	mkdir -p build
-	for t in atrous ldl local count; do \
+	for t in atrous ldl local count stats; do \
+		uses=$$([ $$t = stats ] && echo csrc/local.cc); \
 		$(CXX) -std=c++17 -O1 -g $(SANITIZE) -fno-math-errno -fno-trapping-math -Wall -Wextra \
-			-Werror -Icsrc csrc/test_$$t.cc csrc/$$t.cc $(KERNELS) -pthread \
+			-Werror -Icsrc csrc/test_$$t.cc csrc/$$t.cc $$uses $(KERNELS) -pthread \
 			-o build/test_$${t}_sanitized || exit 1; \
 	done
 	for isa in baseline avx2 avx512; do \
-		for t in atrous ldl local count; do \
+		for t in atrous ldl local count stats; do \
 			OPTAX_BILATERAL_ISA=$$isa ASAN_OPTIONS=detect_leaks=1 build/test_$${t}_sanitized \
 				|| exit 1; \
 		done; \

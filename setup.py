@@ -40,6 +40,7 @@ def native_extension() -> list[Extension]:
         "ldl.cc",
         "local.cc",
         "passes.cc",
+        "stats.cc",
         "kernel_baseline.cc",
     ]
     if os.environ.get("OPTAX_BILATERAL_BASELINE_ONLY") != "1":

@@ -1,5 +1,5 @@
 // The Python extension optax_bilateral._native: the XLA FFI handlers (the a-trous cascade, the
-// rules' sub-grid averages, the mesh solves, the non-finite counts) and the capsules that
+// rules' sub-grid averages and statistics, the mesh solves, the non-finite counts) and the capsules that
 // register them (jax.ffi.register_ffi_target).
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -16,6 +16,7 @@
 #include "count.h"
 #include "ldl.h"
 #include "local.h"
+#include "stats.h"
 
 // The FFI headers' own warnings are not this project's (they are checked with -Wall -Wextra).
 #pragma GCC diagnostic push
@@ -233,6 +234,38 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
   }
 }
 
+// The mean distance of a's texels at the sub-grid from b's (stats.h), or their mean norm.
+ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out,
+                               ffi::Span<const int64_t> axes, int64_t stride, bool has_b) {
+  ob::Subgrid g;
+  const auto dims = a.dimensions();
+  g.shape.assign(dims.begin(), dims.end());
+  g.axes.assign(axes.begin(), axes.end());
+  g.stride = stride;
+  const std::string problem = ob::check_texel_grid(g);
+  if (!problem.empty()) return invalid(problem);
+  const auto type = a.element_type();
+  if (out->element_type() != type || out->element_count() != 1 ||
+      (has_b && b.element_type() != type))
+    return invalid("the mean is a scalar of a's dtype, and b has a's dtype");
+  if (has_b && static_cast<int64_t>(b.element_count()) != ob::texel_subgrid_size(g))
+    return invalid("b must have the sub-grid's shape");
+  switch (type) {
+    case ffi::DataType::F32:
+      *static_cast<float*>(out->untyped_data()) = static_cast<float>(ob::texel_distance_mean(
+          g, static_cast<const float*>(a.untyped_data()),
+          has_b ? static_cast<const float*>(b.untyped_data()) : nullptr));
+      return ffi::Error::Success();
+    case ffi::DataType::F64:
+      *static_cast<double*>(out->untyped_data()) = ob::texel_distance_mean(
+          g, static_cast<const double*>(a.untyped_data()),
+          has_b ? static_cast<const double*>(b.untyped_data()) : nullptr);
+      return ffi::Error::Success();
+    default:
+      return invalid("the texel distance takes float32 or float64");
+  }
+}
+
 // Each operand's count of non-finite entries (count.h), one int32 per block: an output of b
 // entries splits its operand into b equal blocks (a vmapped call's batch).
 ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts) {
@@ -305,6 +338,14 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLocalAverage, local_average,
                                   .Ret<ffi::AnyBuffer>()  // the scratch between passes
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralTexelDistanceMean, texel_distance_mean,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // a (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // b (the sub-grid's shape), or (0,)
+                                  .Ret<ffi::AnyBuffer>()  // the mean, a scalar
+                                  .Attr<ffi::Span<const int64_t>>("axes")
+                                  .Attr<int64_t>("stride")
+                                  .Attr<bool>("has_b"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
                               ffi::Ffi::Bind()
                                   .RemainingArgs()   // the arrays
@@ -319,6 +360,8 @@ PyObject* registrations(PyObject*, PyObject*) {
       {"optax_bilateral_atrous_fields", reinterpret_cast<void*>(&OptaxBilateralAtrousFields)},
       {"optax_bilateral_ldl", reinterpret_cast<void*>(&OptaxBilateralLdl)},
       {"optax_bilateral_local_average", reinterpret_cast<void*>(&OptaxBilateralLocalAverage)},
+      {"optax_bilateral_texel_distance_mean",
+       reinterpret_cast<void*>(&OptaxBilateralTexelDistanceMean)},
       {"optax_bilateral_count_nonfinite", reinterpret_cast<void*>(&OptaxBilateralCountNonfinite)},
   };
   PyObject* dict = PyDict_New();

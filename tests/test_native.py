@@ -4,6 +4,7 @@ batchable through them, and absent without harm. (test_atrous.py's float64-refer
 take it too, parametrised by kernel; `make sanitize` runs its C++ test under AddressSanitizer
 and UBSan.)"""
 
+import functools
 import os
 import subprocess
 import sys
@@ -197,6 +198,7 @@ def test_without_the_extension_the_pure_jax_kernels_run():
         assert bool(jnp.all(jnp.isfinite(u)))
         text = jax.jit(opt.update).lower(p, state, p).as_text()
         assert native.SUBGRID_TARGET not in text and "count_nonfinite" not in text
+        assert native.TEXEL_MEAN_TARGET not in text
         u, state = opt.update(p.at[0, 0, 0].set(jnp.nan), state, p)  # counted by jnp.sum
         assert int(state[0].nonfinite_count) == 1, state[0].nonfinite_count
         print("ok")
@@ -361,8 +363,8 @@ def test_subgrid_average_differentiates_and_batches_as_the_slices():
 
 def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monkeypatch):
     # The default update's program: the guide's contrast and the blend's two statistics
-    # (computed once for the gate's check and the blend) are one FFI call each; with the
-    # pure-JAX kernel chosen, none.
+    # (computed once for the gate's check and the blend) are one FFI call each, and so are
+    # the mean distances the scale takes; with the pure-JAX kernel chosen, none.
     import optax_bilateral as ob
     from optax_bilateral._src.filter import local
 
@@ -374,15 +376,87 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
         return jax.jit(opt.update).lower(x, state, x).as_text()
 
     assert text().count(native.SUBGRID_TARGET) == 3
+    assert text().count(native.TEXEL_MEAN_TARGET) == 2  # the guide's step and its contrast
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
     jax.clear_caches()
     try:
-        assert native.SUBGRID_TARGET not in text()
+        assert native.SUBGRID_TARGET not in text() and native.TEXEL_MEAN_TARGET not in text()
         slices = local.local_average_subgrid((x,), (0, 1), 2)[0]
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
         jax.clear_caches()
     np.testing.assert_allclose(slices, local._native_taps(x, (0, 1), 2), rtol=RTOL, atol=ATOL)
+
+
+# The sigma_d rules' texel statistics (csrc/stats.h): the guide's step and contrast, one call.
+
+
+def _texel_distance_float64(a, b, axes, stride):
+    """The definition in float64: every texel of the sub-grid, its norm over the other axes."""
+    a = np.asarray(a, np.float64)[
+        tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(np.ndim(a)))
+    ]
+    x = a if b is None else a - np.asarray(b, np.float64)
+    channels = tuple(d for d in range(x.ndim) if d not in axes)
+    norms = np.sqrt(np.sum(x * x, axis=channels))
+    kept = norms[~np.isnan(norms)]
+    return kept.mean() if kept.size else 0.0
+
+
+@settings(max_examples=12)  # each drawn shape and stride compiles two programs
+@given(
+    case=st.sampled_from(
+        [((9,), (0,)), ((7, 5, 3), (0, 1)), ((3, 6, 11), (1, 2)), ((4, 5, 3, 2), (2, 0, 1))]
+    ),
+    stride=st.sampled_from([1, 2, 3]),
+    with_b=st.booleans(),
+    special=st.sampled_from([None, np.nan, np.inf, 3e38]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_texel_distance_equals_the_float64_definition(case, stride, with_b, special, seed):
+    from optax_bilateral._src.filter import local
+
+    shape, axes = case
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=shape).astype(np.float32)
+    if special is not None:
+        a.flat[rng.integers(a.size)] = special
+    sub = a[tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(a.ndim))]
+    b = rng.normal(size=sub.shape).astype(np.float32) if with_b else None
+    got = local._native_distance(
+        jnp.asarray(a), None if b is None else jnp.asarray(b), axes, stride
+    )
+    want = _texel_distance_float64(a, b, axes, stride)
+    assert got.dtype == jnp.float32 and got.shape == ()
+    # Sums in double: finite wherever the norms are (3e38 squared overflows float32 only).
+    np.testing.assert_allclose(float(got), want, rtol=1e-6)
+    if special != 3e38:  # the slices agree to float32 rounding
+        slices = local._distance(
+            jnp.asarray(a), None if b is None else jnp.asarray(b), axes, stride
+        )
+        np.testing.assert_allclose(float(got), float(slices), rtol=1e-5)
+
+
+def test_texel_distance_differentiates_batches_and_leaves_none_out():
+    from optax_bilateral._src.filter import local
+
+    a = jax.random.normal(jax.random.PRNGKey(2), (12, 10, 3))
+    b = jax.random.normal(jax.random.PRNGKey(3), (6, 5, 3))
+    for f in (local._native_distance, local._distance):
+        assert float(f(jnp.full((4, 4), jnp.nan), None, (0, 1), 1)) == 0.0  # every texel NaN
+    grads = [
+        jax.grad(functools.partial(f, axes=(0, 1), stride=2), argnums=(0, 1))(a, b)
+        for f in (local._native_distance, local._distance)
+    ]
+    for got, want in zip(*grads):
+        assert np.any(np.asarray(want) != 0)
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+    batch = jnp.stack([a, 2 * a])
+    np.testing.assert_allclose(
+        jax.vmap(lambda a: local._native_distance(a, b, (0, 1), 2))(batch),
+        [float(local._distance(x, b, (0, 1), 2)) for x in batch],
+        rtol=1e-5,
+    )
 
 
 # The optimizers' non-finite counts (numerics.count_nonfinite): one FFI call for every leaf.

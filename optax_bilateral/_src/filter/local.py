@@ -1,6 +1,7 @@
 """Local averages for the sigma_d rules' statistics: one level of the filter's 5-tap B-spline
 with every weight 1 (sigma_d = inf), on the whole grid or at a sub-grid, on one device or
-sharded like the leaf; and sums of squares that stay fast on one device and valid on a mesh."""
+sharded like the leaf; the mean distance between texels at a sub-grid; and sums of squares
+that stay fast on one device and valid on a mesh."""
 
 from __future__ import annotations
 
@@ -64,6 +65,48 @@ def _native_taps_jvp(axes, stride, primals, tangents):
     # Linear in x: the tangent is the same average as slices, which jax.grad can transpose.
     (x,), (t,) = primals, tangents
     return _native_taps(x, axes, stride), _taps(t, axes, stride)
+
+
+def texel_distance_mean(
+    a: jax.Array, b: jax.Array | None, axes: tuple[int, ...], stride: int
+) -> jax.Array:
+    """The mean over the sub-grid's texels ``p`` (every ``stride``-th along the spatial ``axes``)
+    of ``||a[stride p] - b[p]||``, the norm over ``a``'s other axes (``b`` None: of
+    ``||a[stride p]||``; else ``b`` has the sub-grid's shape), texels whose norm is NaN left
+    out, 0 when none is left. Where the filter runs on the native kernel, one FFI call
+    (csrc/stats.h, sums in double; its derivative the slices'), not the slices' XLA kernels."""
+    axes = tuple(axes)
+    if not sharded.is_split(a) and native.takes_subgrid(a) and resolve_kernel("auto") == "native":
+        return _native_distance(a, b, axes, stride)
+    return _distance(a, b, axes, stride)
+
+
+def _distance(a, b, axes, stride):
+    x = every(a, axes, stride)
+    return _nan_skipping_mean(texel_norm(x if b is None else x - b, axes))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
+def _native_distance(a, b, axes, stride):
+    return native.texel_distance_mean(a, b, axes, stride)
+
+
+@_native_distance.defjvp
+def _native_distance_jvp(axes, stride, primals, tangents):
+    # The slices' derivative (and their primal, equal up to float rounding).
+    return jax.jvp(lambda a, b: _distance(a, b, axes, stride), primals, tangents)
+
+
+def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
+    """Each texel's norm over the axes of ``x`` that are not spatial (``axes``)."""
+    channels = tuple(a for a in range(x.ndim) if a not in axes)
+    return jnp.sqrt(jnp.sum(x * x, axis=channels)) if channels else jnp.abs(x)
+
+
+def _nan_skipping_mean(x: jax.Array) -> jax.Array:
+    """Mean over the entries that are not NaN; 0 if none."""
+    ok = ~jnp.isnan(x)
+    return jnp.sum(jnp.where(ok, x, 0)) / jnp.maximum(jnp.sum(ok), 1)
 
 
 def every(x: jax.Array, axes: tuple[int, ...], s: int) -> jax.Array:

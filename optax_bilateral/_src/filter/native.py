@@ -36,6 +36,7 @@ from optax_bilateral._src.filter.bilateral import level_passes
 TARGET = "optax_bilateral_atrous"
 FIELDS_TARGET = "optax_bilateral_atrous_fields"
 SUBGRID_TARGET = "optax_bilateral_local_average"
+TEXEL_MEAN_TARGET = "optax_bilateral_texel_distance_mean"
 THREADS_ENV = extension.THREADS_ENV
 NATIVE_ENV = extension.NATIVE_ENV
 threads = extension.threads
@@ -228,3 +229,24 @@ def subgrid_average(x: jax.Array, axes: Sequence[int], stride: int) -> jax.Array
     )
     out, _ = call(x, axes=np.asarray(axes, np.int64), stride=np.int64(stride))
     return out
+
+
+def texel_distance_mean(
+    a: jax.Array, b: jax.Array | None, axes: Sequence[int], stride: int
+) -> jax.Array:
+    """The mean over the sub-grid's texels of ``||a[stride p] - b[p]||`` (csrc/stats.h): one FFI
+    call, sums in double. Not differentiable:
+    :func:`optax_bilateral._src.filter.local.texel_distance_mean` gives it a rule."""
+    ok, reason = _registered()
+    if not ok:
+        raise RuntimeError(f"the native texel statistics cannot run here: {reason}")
+    call = jax.ffi.ffi_call(
+        TEXEL_MEAN_TARGET, jax.ShapeDtypeStruct((), a.dtype), vmap_method="sequential"
+    )
+    return call(
+        a,
+        jnp.zeros((0,), a.dtype) if b is None else b,
+        axes=np.asarray(axes, np.int64),
+        stride=np.int64(stride),
+        has_b=b is not None,
+    )

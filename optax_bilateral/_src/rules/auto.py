@@ -39,7 +39,12 @@ from jax import lax
 
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import log_transform
-from optax_bilateral._src.filter.local import every, local_average_subgrid
+from optax_bilateral._src.filter.local import (
+    every,
+    local_average_subgrid,
+    texel_distance_mean,
+    texel_norm,
+)
 from optax_bilateral._src.rules.sigma import Filtered, Moments, SigmaRule, StepContext, cast_like
 from optax_bilateral._src.validation import check_integer, check_number
 
@@ -264,7 +269,7 @@ class Auto(SigmaRule):
         axes = _guide_axes(guide, axes)
         stride = self._stride(guide.shape, axes)
         (local,) = local_average_subgrid((jnp.nan_to_num(guide),), axes, stride)
-        return _finite_mean(_texel_norm(every(guide, axes, stride) - local, axes))
+        return texel_distance_mean(guide, local, axes, stride)
 
     def _check_correlation(self, moments, axes, state, ctx):
         """The new :attr:`AutoState.correlated`: :meth:`_correlated_noise` at the second step
@@ -309,8 +314,8 @@ class Auto(SigmaRule):
             return self.contrast_factor * self._contrast(guide, axes)
         guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
         guide_axes = _guide_axes(guide, axes)
-        now = self._subgrid(guide, guide_axes)
-        step = _finite_mean(_texel_norm(now - previous.astype(guide.dtype), guide_axes))
+        stride = self._stride(guide.shape, guide_axes)
+        step = texel_distance_mean(guide, previous.astype(guide.dtype), guide_axes, stride)
         moved = (count > 1) & (step > 0)
         if direction is None:
             scale = self.step_factor * step
@@ -457,17 +462,6 @@ def _guide_axes(guide: jax.Array, axes: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(range(guide.ndim)) if guide.ndim == len(axes) else axes
 
 
-def _texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
-    channels = tuple(a for a in range(x.ndim) if a not in axes)
-    return jnp.sqrt(jnp.sum(x * x, axis=channels)) if channels else jnp.abs(x)
-
-
-def _finite_mean(x: jax.Array) -> jax.Array:
-    """Mean over the entries that are not NaN; 0 if none."""
-    ok = ~jnp.isnan(x)
-    return jnp.sum(jnp.where(ok, x, 0)) / jnp.maximum(jnp.sum(ok), 1)
-
-
 def _sums(*xs: jax.Array) -> jax.Array:
     """Each of the same-shaped ``xs`` summed, as one reduction of their stack (XLA compiles
     every grid-wide sum as kernels of its own)."""
@@ -483,7 +477,7 @@ def _lag_correlation(x0: jax.Array, x1: jax.Array) -> jax.Array:
 def _direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
     """The mean norm per texel of a step's direction (:attr:`AutoState.direction`), over the
     same sub-grid as the guide's step; ``d`` is finite (unobserved entries step by 0)."""
-    return jnp.mean(_texel_norm(rule._subgrid(d, axes), axes))
+    return jnp.mean(texel_norm(rule._subgrid(d, axes), axes))
 
 
 def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:
