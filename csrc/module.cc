@@ -4,6 +4,8 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <algorithm>
+#include <cstddef>
 #include <cstdint>
 #include <cstring>
 #include <memory>
@@ -266,6 +268,49 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<f
   }
 }
 
+// The correlated-noise check's sums of z and y (stats.h), (3 pairs + 2) of z's dtype.
+ffi::Error correlation_sums(ffi::AnyBuffer z, ffi::AnyBuffer y, ffi::Result<ffi::AnyBuffer> out,
+                            ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
+                            int64_t stride) {
+  ob::Subgrid g;
+  const auto dims = z.dimensions();
+  g.shape.assign(dims.begin(), dims.end());
+  g.axes.assign(axes.begin(), axes.end());
+  g.stride = stride;
+  const std::string problem = ob::check_texel_grid(g);
+  if (!problem.empty()) return invalid(problem);
+  std::vector<int64_t> pairs(pair_axes.begin(), pair_axes.end());
+  for (size_t k = 0; k < pairs.size(); ++k) {
+    if (std::find(g.axes.begin(), g.axes.end(), pairs[k]) == g.axes.end() ||
+        std::find(pairs.begin(), pairs.begin() + static_cast<std::ptrdiff_t>(k), pairs[k]) !=
+            pairs.begin() + static_cast<std::ptrdiff_t>(k))
+      return invalid("each pair axis must be a spatial axis, named once");
+  }
+  const auto type = z.element_type();
+  const auto yd = y.dimensions();
+  if (y.element_type() != type || !std::equal(dims.begin(), dims.end(), yd.begin(), yd.end()))
+    return invalid("z and y must share their shape and dtype");
+  if (out->element_type() != type || out->element_count() != 3 * pairs.size() + 2)
+    return invalid("the sums are (3 pair axes + 2) of z's dtype");
+  std::vector<double> sums(3 * pairs.size() + 2);
+  switch (type) {
+    case ffi::DataType::F32: {
+      ob::correlation_sums(g, pairs, static_cast<const float*>(z.untyped_data()),
+                           static_cast<const float*>(y.untyped_data()), sums.data());
+      auto* o = static_cast<float*>(out->untyped_data());
+      for (size_t k = 0; k < sums.size(); ++k) o[k] = static_cast<float>(sums[k]);
+      return ffi::Error::Success();
+    }
+    case ffi::DataType::F64:
+      ob::correlation_sums(g, pairs, static_cast<const double*>(z.untyped_data()),
+                           static_cast<const double*>(y.untyped_data()),
+                           static_cast<double*>(out->untyped_data()));
+      return ffi::Error::Success();
+    default:
+      return invalid("the correlation sums take float32 or float64");
+  }
+}
+
 // Each operand's count of non-finite entries (count.h), one int32 per block: an output of b
 // entries splits its operand into b equal blocks (a vmapped call's batch).
 ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts) {
@@ -346,6 +391,14 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralTexelDistanceMean, texel_distance_me
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride")
                                   .Attr<bool>("has_b"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // z (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // y (*shape)
+                                  .Ret<ffi::AnyBuffer>()  // the sums (3 pair axes + 2)
+                                  .Attr<ffi::Span<const int64_t>>("axes")
+                                  .Attr<ffi::Span<const int64_t>>("pair_axes")
+                                  .Attr<int64_t>("stride"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
                               ffi::Ffi::Bind()
                                   .RemainingArgs()   // the arrays
@@ -362,6 +415,7 @@ PyObject* registrations(PyObject*, PyObject*) {
       {"optax_bilateral_local_average", reinterpret_cast<void*>(&OptaxBilateralLocalAverage)},
       {"optax_bilateral_texel_distance_mean",
        reinterpret_cast<void*>(&OptaxBilateralTexelDistanceMean)},
+      {"optax_bilateral_correlation_sums", reinterpret_cast<void*>(&OptaxBilateralCorrelationSums)},
       {"optax_bilateral_count_nonfinite", reinterpret_cast<void*>(&OptaxBilateralCountNonfinite)},
   };
   PyObject* dict = PyDict_New();

@@ -82,6 +82,57 @@ double run(const Subgrid& g, const T* a, const T* b) {
   return counted ? total / static_cast<double>(counted) : 0.0;
 }
 
+// Row-major strides of `shape`.
+std::vector<int64_t> strides_of(const std::vector<int64_t>& shape) {
+  std::vector<int64_t> out(shape.size());
+  int64_t n = 1;
+  for (size_t d = shape.size(); d-- > 0;) out[d] = n, n *= shape[d];
+  return out;
+}
+
+template <typename T>
+void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const T* z, const T* y,
+                 double* out) {
+  std::vector<bool> spatial(g.shape.size(), false);
+  for (int64_t ax : g.axes) spatial[static_cast<size_t>(ax)] = true;
+  const auto step = strides_of(g.shape);
+  const int64_t q = g.stride > 2 ? g.stride : 2;
+  for (size_t k = 0; k < pair_axes.size(); ++k) {
+    const size_t along = static_cast<size_t>(pair_axes[k]);
+    Walk pairs, unused;
+    for (size_t d = 0; d < g.shape.size(); ++d) {
+      if (d == along)
+        pairs.add(g.shape[d] / q, q * step[d], 0);
+      else if (spatial[d])
+        pairs.add(kept(g.shape[d], g.stride), g.stride * step[d], 0);
+      else
+        pairs.add(g.shape[d], step[d], 0);
+    }
+    double s00 = 0, s11 = 0, s01 = 0;
+    const int64_t n = pairs.count();
+    for (int64_t i = 0; i < n; ++i, pairs.next()) {
+      const double x0 = static_cast<double>(z[pairs.a]);
+      const double x1 = static_cast<double>(z[pairs.a + step[along]]);
+      s00 += x0 * x0;
+      s11 += x1 * x1;
+      s01 += x0 * x1;
+    }
+    out[3 * k] = s00, out[3 * k + 1] = s11, out[3 * k + 2] = s01;
+  }
+  Walk sub;
+  for (size_t d = 0; d < g.shape.size(); ++d)
+    sub.add(spatial[d] ? kept(g.shape[d], g.stride) : g.shape[d],
+            (spatial[d] ? g.stride : 1) * step[d], 0);
+  double zz = 0, yy = 0;
+  const int64_t n = sub.count();
+  for (int64_t i = 0; i < n; ++i, sub.next()) {
+    const double a = static_cast<double>(z[sub.a]), b = static_cast<double>(y[sub.a]);
+    zz += a * a;
+    yy += b * b;
+  }
+  out[3 * pair_axes.size()] = zz, out[3 * pair_axes.size() + 1] = yy;
+}
+
 }  // namespace
 
 std::string check_texel_grid(const Subgrid& g) {
@@ -104,6 +155,16 @@ double texel_distance_mean(const Subgrid& g, const float* a, const float* b) {
 
 double texel_distance_mean(const Subgrid& g, const double* a, const double* b) {
   return run(g, a, b);
+}
+
+void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, const float* z,
+                      const float* y, double* out) {
+  correlation(g, pair_axes, z, y, out);
+}
+
+void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, const double* z,
+                      const double* y, double* out) {
+  correlation(g, pair_axes, z, y, out);
 }
 
 }  // namespace optax_bilateral

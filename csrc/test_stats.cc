@@ -1,8 +1,10 @@
-// The texel statistics (stats.h) against their definition written out in double with unravelled
-// indices: ranks 1 to 4, every subset of spatial axes, strides 1 to 5, with and without b,
-// NaN and infinite entries, float and double; and check_texel_grid's verdicts on bad shapes.
+// The texel statistics (stats.h) against their definitions written out in double with
+// unravelled indices: ranks 1 to 4, every subset of spatial axes, strides 1 to 5, float and
+// double; the mean distance with and without b, NaN and infinite entries; the correlation sums
+// over every spatial axis of length > 1; and check_texel_grid's verdicts on bad shapes.
 // Built and run by `make sanitize` under AddressSanitizer and UndefinedBehaviorSanitizer;
 // exits non-zero on a mismatch.
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <limits>
@@ -84,6 +86,71 @@ void check(const ob::Subgrid& g, std::mt19937& rng) {
   }
 }
 
+// Every entry of z tested for being a pair's first point along `along` (on the sub-grid of the
+// other spatial axes, at a multiple of q = max(s, 2) with a partner before the block's end).
+std::vector<double> correlation_reference(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
+                                          const std::vector<double>& z,
+                                          const std::vector<double>& y) {
+  std::vector<bool> spatial(g.shape.size(), false);
+  for (int64_t ax : g.axes) spatial[ax] = true;
+  const int64_t q = std::max<int64_t>(g.stride, 2);
+  int64_t n = 1;
+  for (int64_t d : g.shape) n *= d;
+  std::vector<double> out;
+  for (int64_t along : pairs) {
+    double s00 = 0, s11 = 0, s01 = 0;
+    for (int64_t i = 0; i < n; ++i) {
+      auto idx = unravel(i, g.shape);
+      bool first = idx[along] % q == 0 && idx[along] / q < g.shape[along] / q;
+      for (size_t d = 0; d < idx.size(); ++d)
+        if (spatial[d] && static_cast<int64_t>(d) != along && idx[d] % g.stride) first = false;
+      if (!first) continue;
+      auto next = idx;
+      ++next[along];
+      const double x0 = z[i], x1 = z[ravel(next, g.shape)];
+      s00 += x0 * x0, s11 += x1 * x1, s01 += x0 * x1;
+    }
+    out.insert(out.end(), {s00, s11, s01});
+  }
+  double zz = 0, yy = 0;
+  for (int64_t i = 0; i < n; ++i) {
+    auto idx = unravel(i, g.shape);
+    bool on = true;
+    for (size_t d = 0; d < idx.size(); ++d)
+      if (spatial[d] && idx[d] % g.stride) on = false;
+    if (on) zz += z[i] * z[i], yy += y[i] * y[i];
+  }
+  out.insert(out.end(), {zz, yy});
+  return out;
+}
+
+template <typename T>
+void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
+  std::normal_distribution<double> normal(0.0, 2.0);
+  int64_t n = 1;
+  for (int64_t d : g.shape) n *= d;
+  std::vector<T> z(n), y(n);
+  std::vector<double> z64(n), y64(n);
+  for (int64_t i = 0; i < n; ++i) {
+    z[i] = static_cast<T>(normal(rng)), y[i] = static_cast<T>(normal(rng));
+    z64[i] = z[i], y64[i] = y[i];
+  }
+  std::vector<int64_t> pairs;
+  for (int64_t ax : g.axes)
+    if (g.shape[ax] > 1) pairs.push_back(ax);
+  const auto want = correlation_reference(g, pairs, z64, y64);
+  std::vector<double> got(want.size(), -1.0);
+  ob::correlation_sums(g, pairs, z.data(), y.data(), got.data());
+  ++cases;
+  for (size_t k = 0; k < want.size(); ++k) {
+    if (std::fabs(got[k] - want[k]) > 1e-12 * (1 + std::fabs(want[k])) && failures++ < 10) {
+      std::printf("FAIL correlation rank %zu stride %lld sum %zu: %.17g != %.17g\n",
+                  g.shape.size(), static_cast<long long>(g.stride), k, got[k], want[k]);
+      break;
+    }
+  }
+}
+
 void refused(const ob::Subgrid& g, const char* why) {
   ++cases;
   if (ob::check_texel_grid(g).empty() && failures++ < 10) std::printf("FAIL not refused: %s\n", why);
@@ -108,6 +175,8 @@ int main() {
         }
         check<float>(g, rng);
         check<double>(g, rng);
+        check_correlation<float>(g, rng);
+        check_correlation<double>(g, rng);
       }
     }
   }

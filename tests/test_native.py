@@ -198,7 +198,7 @@ def test_without_the_extension_the_pure_jax_kernels_run():
         assert bool(jnp.all(jnp.isfinite(u)))
         text = jax.jit(opt.update).lower(p, state, p).as_text()
         assert native.SUBGRID_TARGET not in text and "count_nonfinite" not in text
-        assert native.TEXEL_MEAN_TARGET not in text
+        assert native.TEXEL_MEAN_TARGET not in text and native.CORRELATION_TARGET not in text
         u, state = opt.update(p.at[0, 0, 0].set(jnp.nan), state, p)  # counted by jnp.sum
         assert int(state[0].nonfinite_count) == 1, state[0].nonfinite_count
         print("ok")
@@ -377,10 +377,12 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
 
     assert text().count(native.SUBGRID_TARGET) == 3
     assert text().count(native.TEXEL_MEAN_TARGET) == 2  # the guide's step and its contrast
+    assert text().count(native.CORRELATION_TARGET) == 1  # the correlated-noise check
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
     jax.clear_caches()
     try:
         assert native.SUBGRID_TARGET not in text() and native.TEXEL_MEAN_TARGET not in text()
+        assert native.CORRELATION_TARGET not in text()
         slices = local.local_average_subgrid((x,), (0, 1), 2)[0]
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
@@ -457,6 +459,51 @@ def test_texel_distance_differentiates_batches_and_leaves_none_out():
         [float(local._distance(x, b, (0, 1), 2)) for x in batch],
         rtol=1e-5,
     )
+
+
+def _correlation_float64(z, y, axes, stride):
+    """The sums by their definition in float64: the pairs (q k, q k + 1) along each axis."""
+    z, y = np.asarray(z, np.float64), np.asarray(y, np.float64)
+    q, lags = max(stride, 2), []
+    for a in (a for a in axes if z.shape[a] > 1):
+        x = z[
+            tuple(
+                slice(None, None, stride) if d in axes and d != a else slice(None)
+                for d in range(z.ndim)
+            )
+        ]
+        n = x.shape[a] // q
+        x0 = np.take(x, np.arange(n) * q, axis=a)
+        x1 = np.take(x, np.arange(n) * q + 1, axis=a)
+        lags.append([np.sum(x0 * x0), np.sum(x1 * x1), np.sum(x0 * x1)])
+    sub = tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(z.ndim))
+    return np.reshape(lags, (-1, 3)), np.array([np.sum(z[sub] ** 2), np.sum(y[sub] ** 2)])
+
+
+@settings(max_examples=12)
+@given(
+    case=st.sampled_from(
+        [((9,), (0,)), ((7, 5, 3), (0, 1)), ((3, 6, 11), (1, 2)), ((4, 1, 5, 2), (2, 0, 1))]
+    ),
+    stride=st.sampled_from([1, 2, 3, 4]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_correlation_sums_equal_the_float64_definition(case, stride, seed):
+    from optax_bilateral._src.filter import local
+
+    shape, axes = case
+    rng = np.random.default_rng(seed)
+    z, y = (jnp.asarray(rng.normal(size=shape), jnp.float32) for _ in range(2))
+    lags, energies = local.correlation_sums(z, y, axes, stride)
+    want_lags, want_energies = _correlation_float64(z, y, axes, stride)
+    assert lags.shape == want_lags.shape  # an axis of length 1 has no pairs
+    np.testing.assert_allclose(lags, want_lags, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(energies, want_energies, rtol=1e-6)
+    with pytest.MonkeyPatch.context() as patch:  # the slices' sums
+        patch.setattr(native, "takes_subgrid", lambda x: False)
+        slices = local.correlation_sums(z, y, axes, stride)
+    np.testing.assert_allclose(lags, slices[0], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(energies, slices[1], rtol=1e-5)
 
 
 # The optimizers' non-finite counts (numerics.count_nonfinite): one FFI call for every leaf.

@@ -1,7 +1,8 @@
 """Local averages for the sigma_d rules' statistics: one level of the filter's 5-tap B-spline
 with every weight 1 (sigma_d = inf), on the whole grid or at a sub-grid, on one device or
-sharded like the leaf; the mean distance between texels at a sub-grid; and sums of squares
-that stay fast on one device and valid on a mesh."""
+sharded like the leaf; the mean distance between texels at a sub-grid; the sums behind the
+lag-1 correlation between neighbours; and sums of squares that stay fast on one device and
+valid on a mesh."""
 
 from __future__ import annotations
 
@@ -95,6 +96,52 @@ def _native_distance(a, b, axes, stride):
 def _native_distance_jvp(axes, stride, primals, tangents):
     # The slices' derivative (and their primal, equal up to float rounding).
     return jax.jvp(lambda a, b: _distance(a, b, axes, stride), primals, tangents)
+
+
+def correlation_sums(
+    z: jax.Array, y: jax.Array, axes: tuple[int, ...], stride: int
+) -> tuple[jax.Array, jax.Array]:
+    """``(lags, energies)``, not differentiated: for each spatial axis of ``z`` longer than 1,
+    in order, the sums of ``x0^2``, ``x1^2`` and ``x0 x1`` over its neighbour pairs
+    (:func:`neighbours`), a ``(k, 3)`` array; and the sums of ``z^2`` and ``y^2`` over the
+    sub-grid (every ``stride``-th entry along ``axes``), a ``(2,)`` array. Where the filter
+    runs on the native kernel, one FFI call (csrc/stats.h, sums in double)."""
+    axes = tuple(axes)
+    z, y = lax.stop_gradient(z), lax.stop_gradient(y)
+    pairs = tuple(a for a in axes if z.shape[a] > 1)
+    if not sharded.is_split(z) and native.takes_subgrid(z) and resolve_kernel("auto") == "native":
+        sums = native.correlation_sums(z, y, axes, pairs, stride)
+        return sums[:-2].reshape(len(pairs), 3), sums[-2:]
+    lags = [
+        _sums(x0 * x0, x1 * x1, x0 * x1)
+        for x0, x1 in (neighbours(z, axes, a, stride) for a in pairs)
+    ]
+    energies = _sums(jnp.square(every(z, axes, stride)), jnp.square(every(y, axes, stride)))
+    return jnp.stack(lags) if lags else jnp.zeros((0, 3), z.dtype), energies
+
+
+def neighbours(
+    x: jax.Array, axes: tuple[int, ...], axis: int, s: int
+) -> tuple[jax.Array, jax.Array]:
+    """``x[p]`` and ``x[p + 1 along axis]`` for every ``p`` on the sub-grid of stride ``s``
+    (every ``max(s, 2)``-th ``p`` along ``axis``). Pairs from a reshape, not shifted slices,
+    which a grid sharded along ``axis`` cannot take."""
+    x = x[
+        tuple(
+            slice(None, None, s) if a in axes and a != axis else slice(None) for a in range(x.ndim)
+        )
+    ]
+    q = max(s, 2)
+    n = x.shape[axis] // q
+    x = lax.slice_in_dim(x, 0, n * q, axis=axis)
+    blocks = x.reshape(x.shape[:axis] + (n, q) + x.shape[axis + 1 :])
+    return jnp.take(blocks, 0, axis=axis + 1), jnp.take(blocks, 1, axis=axis + 1)
+
+
+def _sums(*xs: jax.Array) -> jax.Array:
+    """Each of the same-shaped ``xs`` summed, as one reduction of their stack (XLA compiles
+    every grid-wide sum as kernels of its own)."""
+    return jnp.sum(jnp.stack(xs), axis=tuple(range(1, xs[0].ndim + 1)))
 
 
 def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:

@@ -37,6 +37,7 @@ TARGET = "optax_bilateral_atrous"
 FIELDS_TARGET = "optax_bilateral_atrous_fields"
 SUBGRID_TARGET = "optax_bilateral_local_average"
 TEXEL_MEAN_TARGET = "optax_bilateral_texel_distance_mean"
+CORRELATION_TARGET = "optax_bilateral_correlation_sums"
 THREADS_ENV = extension.THREADS_ENV
 NATIVE_ENV = extension.NATIVE_ENV
 threads = extension.threads
@@ -249,4 +250,26 @@ def texel_distance_mean(
         axes=np.asarray(axes, np.int64),
         stride=np.int64(stride),
         has_b=b is not None,
+    )
+
+
+def correlation_sums(
+    z: jax.Array, y: jax.Array, axes: Sequence[int], pair_axes: Sequence[int], stride: int
+) -> jax.Array:
+    """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``: one FFI
+    call, sums in double. Not differentiable (its callers stop the gradient)."""
+    ok, reason = _registered()
+    if not ok:
+        raise RuntimeError(f"the native texel statistics cannot run here: {reason}")
+    call = jax.ffi.ffi_call(
+        CORRELATION_TARGET,
+        jax.ShapeDtypeStruct((3 * len(pair_axes) + 2,), z.dtype),
+        vmap_method="sequential",
+    )
+    return call(
+        z,
+        y,
+        axes=np.asarray(axes, np.int64),
+        pair_axes=np.asarray(pair_axes, np.int64),
+        stride=np.int64(stride),
     )

@@ -40,6 +40,7 @@ from jax import lax
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import log_transform
 from optax_bilateral._src.filter.local import (
+    correlation_sums,
     every,
     local_average_subgrid,
     texel_distance_mean,
@@ -344,33 +345,14 @@ class Auto(SigmaRule):
         m_hat = m.astype(dtype) / c1
         z = g.astype(dtype) - m_hat
         z, m_hat = jnp.where(moments.observed, z, 0), jnp.where(moments.observed, m_hat, 0)
-        corr = [_lag_correlation(*self._neighbours(z, axes, a)) for a in axes if g.shape[a] > 1]
-        if not corr:
+        lags, (noise, signal) = correlation_sums(z, m_hat, axes, self._stride(g.shape, axes))
+        if not lags.shape[0]:
             return jnp.zeros([], bool)
+        s00, s11, s01 = lags[:, 0], lags[:, 1], lags[:, 2]
+        den = jnp.sqrt(s00 * s11)
+        corr = jnp.where(den > 0, s01 / jnp.where(den > 0, den, 1), 0)
         lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / c1
-        noise, signal = _sums(
-            jnp.square(self._subgrid(z, axes)), jnp.square(self._subgrid(m_hat, axes))
-        )
-        return (jnp.mean(jnp.stack(corr)) >= self.correlated) & (
-            noise > self.noisy * lag * lag * signal
-        )
-
-    def _neighbours(self, x, axes, axis) -> tuple[jax.Array, jax.Array]:
-        """``x[p]`` and ``x[p + 1 along axis]`` for every ``p`` on the sub-grid (every even
-        ``p`` along ``axis`` where the stride is 1). Pairs from a reshape, not shifted
-        slices, which a grid sharded along ``axis`` cannot take."""
-        s = self._stride(x.shape, axes)
-        x = x[
-            tuple(
-                slice(None, None, s) if a in axes and a != axis else slice(None)
-                for a in range(x.ndim)
-            )
-        ]
-        q = max(s, 2)
-        n = x.shape[axis] // q
-        x = lax.slice_in_dim(x, 0, n * q, axis=axis)
-        blocks = x.reshape(x.shape[:axis] + (n, q) + x.shape[axis + 1 :])
-        return jnp.take(blocks, 0, axis=axis + 1), jnp.take(blocks, 1, axis=axis + 1)
+        return (jnp.mean(corr) >= self.correlated) & (noise > self.noisy * lag * lag * signal)
 
     def _blend_weight(self, m, v, residual, smooth, ctx):
         """The blend's weight of the unfiltered moments per entry, before the gate; ``smooth``
@@ -460,18 +442,6 @@ def upsample(rule: Auto, lam: jax.Array, shape: tuple[int, ...], axes) -> jax.Ar
 def _guide_axes(guide: jax.Array, axes: tuple[int, ...]) -> tuple[int, ...]:
     """The spatial axes of ``guide``: ``axes`` for a leaf-shaped guide, all for a grid-only one."""
     return tuple(range(guide.ndim)) if guide.ndim == len(axes) else axes
-
-
-def _sums(*xs: jax.Array) -> jax.Array:
-    """Each of the same-shaped ``xs`` summed, as one reduction of their stack (XLA compiles
-    every grid-wide sum as kernels of its own)."""
-    return jnp.sum(jnp.stack(xs), axis=tuple(range(1, xs[0].ndim + 1)))
-
-
-def _lag_correlation(x0: jax.Array, x1: jax.Array) -> jax.Array:
-    s00, s11, s01 = _sums(x0 * x0, x1 * x1, x0 * x1)
-    den = jnp.sqrt(s00 * s11)
-    return jnp.where(den > 0, s01 / jnp.where(den > 0, den, 1), 0)
 
 
 def _direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
