@@ -311,6 +311,53 @@ ffi::Error correlation_sums(ffi::AnyBuffer z, ffi::AnyBuffer y, ffi::Result<ffi:
   }
 }
 
+// sigma_d="auto"'s blend at the sub-grid (stats.h): lam gate (the sub-grid's shape) and gate.
+template <typename T>
+ffi::Error blend_typed(const ob::Subgrid& g, ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
+                       ffi::AnyBuffer scalars, ffi::AnyBuffer* out, ffi::AnyBuffer* gate,
+                       double gain, double power, double low, double span) {
+  const T* k = static_cast<const T*>(scalars.untyped_data());
+  const ob::Blend<T> b{k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7],
+                       static_cast<T>(gain), static_cast<T>(power), static_cast<T>(low),
+                       static_cast<T>(span)};
+  *static_cast<T*>(gate->untyped_data()) = ob::blend_weights(
+      g, static_cast<const T*>(m.untyped_data()), static_cast<const T*>(v.untyped_data()),
+      static_cast<const T*>(r.untyped_data()), b, static_cast<T*>(out->untyped_data()));
+  return ffi::Error::Success();
+}
+
+ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
+                         ffi::AnyBuffer scalars, ffi::Result<ffi::AnyBuffer> out,
+                         ffi::Result<ffi::AnyBuffer> gate, ffi::Span<const int64_t> axes,
+                         int64_t stride, double gain, double power, double low, double span) {
+  ob::Subgrid g;
+  const auto dims = m.dimensions();
+  g.shape.assign(dims.begin(), dims.end());
+  g.axes.assign(axes.begin(), axes.end());
+  g.stride = stride;
+  const std::string problem = ob::check_texel_grid(g);
+  if (!problem.empty()) return invalid(problem);
+  const auto type = m.element_type();
+  const auto vd = v.dimensions();
+  for (ffi::AnyBuffer* b : {&v, &r, &scalars, &*out, &*gate})
+    if (b->element_type() != type) return invalid("the blend's operands must share one dtype");
+  if (!std::equal(dims.begin(), dims.end(), vd.begin(), vd.end()))
+    return invalid("m and v must share their shape");
+  const auto sub = static_cast<size_t>(ob::texel_subgrid_size(g));
+  if (r.element_count() != sub || out->element_count() != sub)
+    return invalid("the residual and the output must have the sub-grid's shape");
+  if (scalars.element_count() != 8 || gate->element_count() != 1)
+    return invalid("the blend takes 8 scalars and gives one gate");
+  switch (type) {
+    case ffi::DataType::F32:
+      return blend_typed<float>(g, m, v, r, scalars, &*out, &*gate, gain, power, low, span);
+    case ffi::DataType::F64:
+      return blend_typed<double>(g, m, v, r, scalars, &*out, &*gate, gain, power, low, span);
+    default:
+      return invalid("the blend takes float32 or float64");
+  }
+}
+
 // Each operand's count of non-finite entries (count.h), one int32 per block: an output of b
 // entries splits its operand into b equal blocks (a vmapped call's batch).
 ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts) {
@@ -399,6 +446,20 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<ffi::Span<const int64_t>>("pair_axes")
                                   .Attr<int64_t>("stride"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // m (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // v (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // the residual (the sub-grid's shape)
+                                  .Arg<ffi::AnyBuffer>()  // the step's 8 scalars (stats.h)
+                                  .Ret<ffi::AnyBuffer>()  // lam gate (the sub-grid's shape)
+                                  .Ret<ffi::AnyBuffer>()  // gate, a scalar
+                                  .Attr<ffi::Span<const int64_t>>("axes")
+                                  .Attr<int64_t>("stride")
+                                  .Attr<double>("gain")
+                                  .Attr<double>("power")
+                                  .Attr<double>("low")
+                                  .Attr<double>("span"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
                               ffi::Ffi::Bind()
                                   .RemainingArgs()   // the arrays
@@ -416,6 +477,7 @@ PyObject* registrations(PyObject*, PyObject*) {
       {"optax_bilateral_texel_distance_mean",
        reinterpret_cast<void*>(&OptaxBilateralTexelDistanceMean)},
       {"optax_bilateral_correlation_sums", reinterpret_cast<void*>(&OptaxBilateralCorrelationSums)},
+      {"optax_bilateral_blend_weights", reinterpret_cast<void*>(&OptaxBilateralBlendWeights)},
       {"optax_bilateral_count_nonfinite", reinterpret_cast<void*>(&OptaxBilateralCountNonfinite)},
   };
   PyObject* dict = PyDict_New();

@@ -90,6 +90,18 @@ std::vector<int64_t> strides_of(const std::vector<int64_t>& shape) {
   return out;
 }
 
+// The walk over the sub-grid of g's spatial axes, with its offset into an array of g.shape.
+Walk subgrid_walk(const Subgrid& g) {
+  std::vector<bool> spatial(g.shape.size(), false);
+  for (int64_t ax : g.axes) spatial[static_cast<size_t>(ax)] = true;
+  const auto step = strides_of(g.shape);
+  Walk sub;
+  for (size_t d = 0; d < g.shape.size(); ++d)
+    sub.add(spatial[d] ? kept(g.shape[d], g.stride) : g.shape[d],
+            (spatial[d] ? g.stride : 1) * step[d], 0);
+  return sub;
+}
+
 template <typename T>
 void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const T* z, const T* y,
                  double* out) {
@@ -119,10 +131,7 @@ void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const 
     }
     out[3 * k] = s00, out[3 * k + 1] = s11, out[3 * k + 2] = s01;
   }
-  Walk sub;
-  for (size_t d = 0; d < g.shape.size(); ++d)
-    sub.add(spatial[d] ? kept(g.shape[d], g.stride) : g.shape[d],
-            (spatial[d] ? g.stride : 1) * step[d], 0);
+  Walk sub = subgrid_walk(g);
   double zz = 0, yy = 0;
   const int64_t n = sub.count();
   for (int64_t i = 0; i < n; ++i, sub.next()) {
@@ -131,6 +140,38 @@ void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const 
     yy += b * b;
   }
   out[3 * pair_axes.size()] = zz, out[3 * pair_axes.size() + 1] = yy;
+}
+
+template <typename T>
+T blend(const Subgrid& g, const T* m, const T* v, const T* r, const Blend<T>& b, T* out) {
+  Walk walk = subgrid_walk(g);
+  const int64_t n = walk.count();
+  std::vector<T> noise(static_cast<size_t>(n)), energy(noise), floor(noise), signal(noise);
+  for (int64_t i = 0; i < n; ++i, walk.next()) {
+    const T mm = m[walk.a] / b.c1;
+    const T x = v[walk.a] / b.c2 - mm * mm;
+    noise[i] = (((x < T(0) ? T(0) : x) * b.k) * b.ema) * b.corr_num / b.corr_den;
+    const T rh = r[i] / b.bias;
+    energy[i] = rh * rh;
+  }
+  Subgrid at_sub{walk.sizes, g.axes, 1};
+  std::vector<T> work(static_cast<size_t>(subgrid_work_size(at_sub)));
+  subgrid_average(at_sub, noise.data(), floor.data(), work.data());
+  subgrid_average(at_sub, energy.data(), signal.data(), work.data());
+  double total = 0;
+  for (int64_t i = 0; i < n; ++i) {
+    const bool on = b.usable > T(0) && signal[i] > T(0);
+    T lam = T(1) - floor[i] / (b.gain * (signal[i] > T(0) ? signal[i] : T(1)));
+    lam = on ? (lam < T(0) ? T(0) : lam > T(1) ? T(1) : lam) : T(0);  // NaN stays NaN
+    lam = b.power == T(2) ? lam * lam : std::pow(lam, b.power);
+    out[i] = lam;
+    total += static_cast<double>(lam);
+  }
+  const T mean = static_cast<T>(total / static_cast<double>(n));
+  const T open = (mean - b.low) / b.span;
+  const T gate = open < T(0) ? T(0) : open > T(1) ? T(1) : open;
+  for (int64_t i = 0; i < n; ++i) out[i] *= gate;
+  return gate;
 }
 
 }  // namespace
@@ -165,6 +206,16 @@ void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, c
 void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, const double* z,
                       const double* y, double* out) {
   correlation(g, pair_axes, z, y, out);
+}
+
+float blend_weights(const Subgrid& g, const float* m, const float* v, const float* r,
+                    const Blend<float>& b, float* out) {
+  return blend(g, m, v, r, b, out);
+}
+
+double blend_weights(const Subgrid& g, const double* m, const double* v, const double* r,
+                     const Blend<double>& b, double* out) {
+  return blend(g, m, v, r, b, out);
 }
 
 }  // namespace optax_bilateral

@@ -8,6 +8,13 @@
 //   other spatial axes, p_a = q k along the axis (k < n_a / q, q = max(s, 2)) and every
 //   channel, sum z[p]^2, z[p + e_a]^2 and z[p] z[p + e_a]; then the sums of z^2 and y^2 over
 //   the sub-grid: the correlated-noise check's statistics.
+// * blend_weights: the blend's weight of the unfiltered moments at the sub-grid (auto.py's
+//   _blend_weight and _gate). With m, v read at the sub-grid and r the residual there,
+//     n = ((max(v / c2 - (m / c1)^2, 0) k) ema) corr_num / corr_den,   e = (r / bias)^2,
+//     f = A n,  S = A e  (A: local.h's average at stride 1 over the sub-grid),
+//     lam = usable and S > 0 ? clamp(1 - f / (gain S), 0, 1)^power : 0,
+//     gate = clamp((mean lam - low) / span, 0, 1);   out = lam gate,
+//   each operation in T, in that order (the mean's sum in double).
 //
 // `shape` is a's row-major shape, `axes` its spatial axes (each once), `stride` s >= 1 along
 // them; b (optional) has the sub-grid's shape: each spatial axis cut to (n - 1) / s + 1. Sums
@@ -31,6 +38,20 @@ int64_t texel_subgrid_size(const Subgrid& g);
 // The mean above; `b` may be null (then the mean of ||a[s p]||).
 double texel_distance_mean(const Subgrid& g, const float* a, const float* b);
 double texel_distance_mean(const Subgrid& g, const double* a, const double* b);
+
+// The blend's scalars: the step's (computed by the rule) and the rule's constants.
+template <typename T>
+struct Blend {
+  T c1, c2, k, ema, corr_num, corr_den, bias, usable;
+  T gain, power, low, span;
+};
+
+// out (the sub-grid's shape) <- lam gate for m, v (g.shape) and r (the sub-grid's shape);
+// returns gate.
+float blend_weights(const Subgrid& g, const float* m, const float* v, const float* r,
+                    const Blend<float>& b, float* out);
+double blend_weights(const Subgrid& g, const double* m, const double* v, const double* r,
+                     const Blend<double>& b, double* out);
 
 // out (3 pair_axes.size() + 2) <- the sums above, of z and y (both of shape g.shape); each
 // pair axis must be one of g.axes.

@@ -1,7 +1,8 @@
 // The texel statistics (stats.h) against their definitions written out in double with
 // unravelled indices: ranks 1 to 4, every subset of spatial axes, strides 1 to 5, float and
 // double; the mean distance with and without b, NaN and infinite entries; the correlation sums
-// over every spatial axis of length > 1; and check_texel_grid's verdicts on bad shapes.
+// over every spatial axis of length > 1; the blend (its local averages written out as 5-tap
+// sums); and check_texel_grid's verdicts on bad shapes.
 // Built and run by `make sanitize` under AddressSanitizer and UndefinedBehaviorSanitizer;
 // exits non-zero on a mismatch.
 #include <algorithm>
@@ -17,7 +18,7 @@ namespace ob = optax_bilateral;
 
 namespace {
 
-int failures = 0, cases = 0;
+int failures = 0, cases = 0, open_blends = 0, blends = 0;
 
 std::vector<int64_t> unravel(int64_t p, const std::vector<int64_t>& shape) {
   std::vector<int64_t> idx(shape.size());
@@ -151,6 +152,95 @@ void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
   }
 }
 
+// One level of the B-spline at stride 1 along `axis` of `shape`, its taps on the grid only.
+std::vector<double> average_along(const std::vector<double>& x, const std::vector<int64_t>& shape,
+                                  int64_t axis) {
+  const double h[5] = {1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16};
+  std::vector<double> out(x.size());
+  for (size_t i = 0; i < x.size(); ++i) {
+    auto idx = unravel(static_cast<int64_t>(i), shape);
+    double sum = 0, norm = 0;
+    for (int k = 0; k < 5; ++k) {
+      auto at = idx;
+      at[axis] += k - 2;
+      if (at[axis] < 0 || at[axis] >= shape[axis]) continue;
+      sum += h[k] * x[ravel(at, shape)];
+      norm += h[k];
+    }
+    out[i] = sum / norm;
+  }
+  return out;
+}
+
+// The blend (stats.h) by its formula in double, the sub-grid read through unravelled indices.
+std::vector<double> blend_reference(const ob::Subgrid& g, const std::vector<double>& m,
+                                    const std::vector<double>& v, const std::vector<double>& r,
+                                    const ob::Blend<double>& b) {
+  std::vector<bool> spatial(g.shape.size(), false);
+  for (int64_t ax : g.axes) spatial[ax] = true;
+  std::vector<int64_t> sub = g.shape;
+  for (size_t d = 0; d < sub.size(); ++d)
+    if (spatial[d]) sub[d] = (g.shape[d] - 1) / g.stride + 1;
+  std::vector<double> noise(r.size()), energy(r.size());
+  for (size_t i = 0; i < r.size(); ++i) {
+    auto at = unravel(static_cast<int64_t>(i), sub);
+    for (size_t d = 0; d < at.size(); ++d)
+      if (spatial[d]) at[d] *= g.stride;
+    const int64_t p = ravel(at, g.shape);
+    const double mm = m[p] / b.c1;
+    noise[i] = std::max(v[p] / b.c2 - mm * mm, 0.0) * b.k * b.ema * b.corr_num / b.corr_den;
+    energy[i] = (r[i] / b.bias) * (r[i] / b.bias);
+  }
+  for (int64_t ax : g.axes) {
+    noise = average_along(noise, sub, ax);
+    energy = average_along(energy, sub, ax);
+  }
+  std::vector<double> lam(r.size());
+  double total = 0;
+  for (size_t i = 0; i < r.size(); ++i) {
+    const double l = 1 - noise[i] / (b.gain * (energy[i] > 0 ? energy[i] : 1));
+    lam[i] = b.usable > 0 && energy[i] > 0 ? std::pow(std::clamp(l, 0.0, 1.0), b.power) : 0.0;
+    total += lam[i];
+  }
+  const double gate = std::clamp((total / r.size() - b.low) / b.span, 0.0, 1.0);
+  for (double& l : lam) l *= gate;
+  lam.push_back(gate);
+  return lam;
+}
+
+template <typename T>
+void check_blend(const ob::Subgrid& g, std::mt19937& rng) {
+  std::normal_distribution<double> normal(0.0, 1.0);
+  int64_t n = 1;
+  for (int64_t d : g.shape) n *= d;
+  const int64_t sub = ob::texel_subgrid_size(g);
+  std::vector<T> m(n), v(n), r(sub), out(sub);
+  std::vector<double> m64(n), v64(n), r64(sub);
+  for (int64_t i = 0; i < n; ++i) {
+    m[i] = static_cast<T>(normal(rng));
+    v[i] = static_cast<T>(0.05 * std::fabs(normal(rng)) + 0.01 * m[i] * m[i]);
+    m64[i] = m[i], v64[i] = v[i];
+  }
+  for (int64_t i = 0; i < sub; ++i) r[i] = static_cast<T>(normal(rng)), r64[i] = r[i];
+  // Weights inside (0, 1) and at its ends, an open gate (low 0.05, span 0.5).
+  const ob::Blend<T> b{T(0.6), T(0.01), T(0.3), T(0.2), T(1.8), T(0.2), T(0.5), T(1),
+                       T(0.25), T(2), T(0.05), T(0.5)};
+  const ob::Blend<double> b64{0.6, 0.01, 0.3, 0.2, 1.8, 0.2, 0.5, 1, 0.25, 2, 0.05, 0.5};
+  const auto want = blend_reference(g, m64, v64, r64, b64);
+  const T gate = ob::blend_weights(g, m.data(), v.data(), r.data(), b, out.data());
+  const double tol = sizeof(T) == 4 ? 2e-5 : 1e-12;
+  ++cases;
+  bool ok = std::fabs(gate - want.back()) <= tol;
+  for (int64_t i = 0; i < sub && ok; ++i) ok = std::fabs(out[i] - want[i]) <= tol;
+  ++blends;
+  bool inside = false;
+  for (int64_t i = 0; i < sub; ++i) inside |= out[i] > T(0) && out[i] < gate;
+  open_blends += gate > T(0) && inside;
+  if (!ok && failures++ < 10)
+    std::printf("FAIL blend rank %zu stride %lld: gate %.9g != %.9g\n", g.shape.size(),
+                static_cast<long long>(g.stride), static_cast<double>(gate), want.back());
+}
+
 void refused(const ob::Subgrid& g, const char* why) {
   ++cases;
   if (ob::check_texel_grid(g).empty() && failures++ < 10) std::printf("FAIL not refused: %s\n", why);
@@ -177,6 +267,8 @@ int main() {
         check<double>(g, rng);
         check_correlation<float>(g, rng);
         check_correlation<double>(g, rng);
+        check_blend<float>(g, rng);
+        check_blend<double>(g, rng);
       }
     }
   }
@@ -184,6 +276,11 @@ int main() {
   refused({{4, 4}, {2}, 1}, "axis out of range");
   refused({{4, 4}, {0, 0}, 1}, "axis twice");
   refused({{4, 0}, {0}, 1}, "empty dimension");
+  if (2 * open_blends < blends) {  // the blend's cases must reach its weights
+    std::printf("FAIL only %d of %d blends had an open gate and weights inside\n", open_blends,
+                blends);
+    return 1;
+  }
   if (failures) {
     std::printf("%d of %d texel-statistics cases failed\n", failures, cases);
     return 1;

@@ -199,6 +199,7 @@ def test_without_the_extension_the_pure_jax_kernels_run():
         text = jax.jit(opt.update).lower(p, state, p).as_text()
         assert native.SUBGRID_TARGET not in text and "count_nonfinite" not in text
         assert native.TEXEL_MEAN_TARGET not in text and native.CORRELATION_TARGET not in text
+        assert native.BLEND_TARGET not in text
         u, state = opt.update(p.at[0, 0, 0].set(jnp.nan), state, p)  # counted by jnp.sum
         assert int(state[0].nonfinite_count) == 1, state[0].nonfinite_count
         print("ok")
@@ -362,9 +363,9 @@ def test_subgrid_average_differentiates_and_batches_as_the_slices():
 
 
 def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monkeypatch):
-    # The default update's program: the guide's contrast and the blend's two statistics
-    # (computed once for the gate's check and the blend) are one FFI call each, and so are
-    # the mean distances the scale takes; with the pure-JAX kernel chosen, none.
+    # The default update's program: the guide's contrast, the mean distances the scale takes,
+    # the correlated-noise check's sums and the blend (its two local averages inside) are one
+    # FFI call each; with the pure-JAX kernel chosen, none.
     import optax_bilateral as ob
     from optax_bilateral._src.filter import local
 
@@ -375,14 +376,15 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
     def text():
         return jax.jit(opt.update).lower(x, state, x).as_text()
 
-    assert text().count(native.SUBGRID_TARGET) == 3
+    assert text().count(native.SUBGRID_TARGET) == 1  # the guide's contrast
     assert text().count(native.TEXEL_MEAN_TARGET) == 2  # the guide's step and its contrast
     assert text().count(native.CORRELATION_TARGET) == 1  # the correlated-noise check
+    assert text().count(native.BLEND_TARGET) == 1  # the blend, its averages inside
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
     jax.clear_caches()
     try:
         assert native.SUBGRID_TARGET not in text() and native.TEXEL_MEAN_TARGET not in text()
-        assert native.CORRELATION_TARGET not in text()
+        assert native.CORRELATION_TARGET not in text() and native.BLEND_TARGET not in text()
         slices = local.local_average_subgrid((x,), (0, 1), 2)[0]
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
@@ -504,6 +506,76 @@ def test_correlation_sums_equal_the_float64_definition(case, stride, seed):
         slices = local.correlation_sums(z, y, axes, stride)
     np.testing.assert_allclose(lags, slices[0], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(energies, slices[1], rtol=1e-5)
+
+
+def _blend_case(seed, shape=(24, 20, 3), stride=2, count=9, scale=3.0):
+    """A postfilter leaf's moments and residual (of size ``scale``) at step ``count``, and
+    the rule's scalars: at scale 3 most weights lie inside (0, 1), some are 0."""
+    import optax_bilateral as ob
+    from optax_bilateral._src.rules.sigma import StepContext
+
+    rng = np.random.default_rng(seed)
+    m = jnp.asarray(rng.normal(size=shape), jnp.float32)
+    v = jnp.asarray(rng.random(shape) + np.asarray(m) ** 2 * rng.random(shape), jnp.float32)
+    sub = tuple(slice(None, None, stride) if d < 2 else slice(None) for d in range(len(shape)))
+    residual = jnp.asarray(rng.normal(size=np.asarray(m)[sub].shape) * scale, jnp.float32)
+    rule = ob.Auto()
+    b1, t = 0.9, jnp.asarray(count)
+    ctx = StepContext(t, b1, 1 - b1 ** t.astype(jnp.float32), 1 - 0.999 ** t.astype(jnp.float32))
+    return rule, m, v, residual, rule._blend_scalars(ctx, jnp.float32)
+
+
+@pytest.mark.parametrize("count", [1, 2, 9, 40])  # 1: no memory yet, every weight 0
+def test_blend_equals_the_rules_formula_in_jax(count):
+    import functools
+
+    from optax_bilateral._src.filter import local
+    from optax_bilateral._src.rules import auto
+
+    opened = []
+    for seed in range(3):
+        rule, m, v, residual, scalars = _blend_case(seed, count=count)
+        reference = functools.partial(auto._blend_reference, rule, axes=(0, 1), stride=2)
+        low, high = rule.gate_bounds
+        constants = (rule.gain, rule.power, low, high - low)
+        lam, gate = local._native_blend(m, v, residual, scalars, (0, 1), 2, constants, reference)
+        want_lam, want_gate = reference(m, v, residual, scalars)
+        assert lam.shape == residual.shape and gate.shape == ()
+        np.testing.assert_allclose(float(gate), float(want_gate), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(lam, want_lam, rtol=1e-5, atol=1e-6)
+        opened.append(float(want_gate) > 0 and bool(np.any(np.asarray(want_lam) > 0)))
+        if count == 1:
+            assert not np.any(np.asarray(lam))
+    if count == 40:  # the gate open: the weights themselves are compared
+        assert any(opened)
+
+
+def test_blend_differentiates_and_batches_as_the_rules_formula():
+    import functools
+
+    from optax_bilateral._src.filter import local
+    from optax_bilateral._src.rules import auto
+
+    rule, m, v, residual, scalars = _blend_case(0, shape=(12, 10, 2), scale=10.0)
+    rule = type(rule)(gate_bounds=(0.0, 1.0))  # a gate that opens with any weight
+    reference = functools.partial(auto._blend_reference, rule, axes=(0, 1), stride=2)
+    constants = (rule.gain, rule.power, 0.0, 1.0)
+
+    def loss(f):
+        return lambda m, v: jnp.sum(f(m, v, residual, scalars)[0] ** 2)
+
+    native_blend = functools.partial(
+        local._native_blend, axes=(0, 1), stride=2, constants=constants, reference=reference
+    )
+    got = jax.grad(loss(native_blend), argnums=(0, 1))(m, v)
+    want = jax.grad(loss(reference), argnums=(0, 1))(m, v)
+    for a, b in zip(got, want):
+        assert np.any(np.asarray(b) != 0)
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    batched = jax.vmap(lambda m: native_blend(m, v, residual, scalars)[1])(jnp.stack([m, 2 * m]))
+    np.testing.assert_allclose(
+        batched, [float(reference(x, v, residual, scalars)[1]) for x in (m, 2 * m)], rtol=1e-5
+    )
 
 
 # The optimizers' non-finite counts (numerics.count_nonfinite): one FFI call for every leaf.

@@ -43,10 +43,16 @@ def local_average_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
         return tuple(every(f, axes, stride) for f in local_average(fields, axes))
     axes = tuple(axes)
     return tuple(
-        _native_taps(x, axes, stride)
-        if native.takes_subgrid(x) and resolve_kernel("auto") == "native"
-        else _taps(x, axes, stride)
-        for x in fields
+        _native_taps(x, axes, stride) if runs_native(x) else _taps(x, axes, stride) for x in fields
+    )
+
+
+def runs_native(x: jax.Array) -> bool:
+    """Whether the rules' statistics of ``x`` run on the native kernel: the filter does
+    (``kernel="auto"`` resolves to it), ``x`` is float32 or float64, not empty and not split
+    over an explicit mesh."""
+    return (
+        not sharded.is_split(x) and native.takes_subgrid(x) and resolve_kernel("auto") == "native"
     )
 
 
@@ -77,7 +83,7 @@ def texel_distance_mean(
     out, 0 when none is left. Where the filter runs on the native kernel, one FFI call
     (csrc/stats.h, sums in double; its derivative the slices'), not the slices' XLA kernels."""
     axes = tuple(axes)
-    if not sharded.is_split(a) and native.takes_subgrid(a) and resolve_kernel("auto") == "native":
+    if runs_native(a):
         return _native_distance(a, b, axes, stride)
     return _distance(a, b, axes, stride)
 
@@ -109,7 +115,7 @@ def correlation_sums(
     axes = tuple(axes)
     z, y = lax.stop_gradient(z), lax.stop_gradient(y)
     pairs = tuple(a for a in axes if z.shape[a] > 1)
-    if not sharded.is_split(z) and native.takes_subgrid(z) and resolve_kernel("auto") == "native":
+    if runs_native(z):
         sums = native.correlation_sums(z, y, axes, pairs, stride)
         return sums[:-2].reshape(len(pairs), 3), sums[-2:]
     lags = [
@@ -142,6 +148,27 @@ def _sums(*xs: jax.Array) -> jax.Array:
     """Each of the same-shaped ``xs`` summed, as one reduction of their stack (XLA compiles
     every grid-wide sum as kernels of its own)."""
     return jnp.sum(jnp.stack(xs), axis=tuple(range(1, xs[0].ndim + 1)))
+
+
+def subgrid_blend(m, v, residual, scalars, axes, stride, constants, reference):
+    """``sigma_d="auto"``'s blend at the sub-grid, ``(lam * gate, gate)``: where the rules'
+    statistics run on the native kernel one FFI call (csrc/stats.h: the rule's formula
+    written out in C++), whose derivative is ``reference``'s; else
+    ``reference(m, v, residual, scalars)``, the rule's own (rules/auto.py, which also
+    describes the ``scalars`` and the ``constants``)."""
+    if runs_native(m):
+        return _native_blend(m, v, residual, scalars, tuple(axes), stride, constants, reference)
+    return reference(m, v, residual, scalars)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6, 7))
+def _native_blend(m, v, residual, scalars, axes, stride, constants, reference):
+    return native.blend_weights(m, v, residual, scalars, axes, stride, constants)
+
+
+@_native_blend.defjvp
+def _native_blend_jvp(axes, stride, constants, reference, primals, tangents):
+    return jax.jvp(reference, primals, tangents)
 
 
 def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:

@@ -38,6 +38,7 @@ FIELDS_TARGET = "optax_bilateral_atrous_fields"
 SUBGRID_TARGET = "optax_bilateral_local_average"
 TEXEL_MEAN_TARGET = "optax_bilateral_texel_distance_mean"
 CORRELATION_TARGET = "optax_bilateral_correlation_sums"
+BLEND_TARGET = "optax_bilateral_blend_weights"
 THREADS_ENV = extension.THREADS_ENV
 NATIVE_ENV = extension.NATIVE_ENV
 threads = extension.threads
@@ -273,3 +274,40 @@ def correlation_sums(
         pair_axes=np.asarray(pair_axes, np.int64),
         stride=np.int64(stride),
     )
+
+
+def blend_weights(
+    m: jax.Array,
+    v: jax.Array,
+    residual: jax.Array,
+    scalars: jax.Array,
+    axes: Sequence[int],
+    stride: int,
+    constants: tuple[float, float, float, float],
+) -> tuple[jax.Array, jax.Array]:
+    """``sigma_d="auto"``'s blend at the sub-grid (csrc/stats.h): ``(lam * gate, gate)`` from
+    ``m``, ``v`` (the leaf's shape), the residual (the sub-grid's), the step's 8 ``scalars``
+    and the rule's ``constants`` ``(gain, power, low, high - low)``. One FFI call; not
+    differentiable: :func:`optax_bilateral._src.filter.local.subgrid_blend` gives it a rule."""
+    ok, reason = _registered()
+    if not ok:
+        raise RuntimeError(f"the native texel statistics cannot run here: {reason}")
+    call = jax.ffi.ffi_call(
+        BLEND_TARGET,
+        (jax.ShapeDtypeStruct(residual.shape, m.dtype), jax.ShapeDtypeStruct((), m.dtype)),
+        vmap_method="sequential",
+    )
+    gain, power, low, span = (float(c) for c in constants)
+    lam, gate = call(
+        m,
+        v,
+        residual,
+        scalars,
+        axes=np.asarray(axes, np.int64),
+        stride=np.int64(stride),
+        gain=np.float64(gain),
+        power=np.float64(power),
+        low=np.float64(low),
+        span=np.float64(span),
+    )
+    return lam, gate

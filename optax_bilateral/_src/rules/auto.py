@@ -43,6 +43,7 @@ from optax_bilateral._src.filter.local import (
     correlation_sums,
     every,
     local_average_subgrid,
+    subgrid_blend,
     texel_distance_mean,
     texel_norm,
 )
@@ -354,26 +355,34 @@ class Auto(SigmaRule):
         lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / c1
         return (jnp.mean(corr) >= self.correlated) & (noise > self.noisy * lag * lag * signal)
 
-    def _blend_weight(self, m, v, residual, smooth, ctx):
-        """The blend's weight of the unfiltered moments per entry, before the gate; ``smooth``
-        takes the local averages (:func:`local_average`, or the
-        sub-grid's)."""
-        dtype = m.dtype
+    def _blend_scalars(self, ctx: StepContext, dtype) -> jax.Array:
+        """The blend's scalars at this step, in ``dtype``: ``c1``, ``c2``; ``k``, the noise of
+        ``m_hat`` per unit of ``v_hat - m_hat^2`` (eq. 24); the residual EMA's variance
+        ratio; the factor ``(1 + b1 decay) / (1 - b1 decay)`` (``m_hat`` correlates) as its
+        two parts; the residual's bias correction ``1 - decay^t``; 1 where the noise can be
+        told from the signal, else 0."""
         b1 = jnp.asarray(ctx.b1, dtype)
         c1, c2 = jnp.asarray(ctx.c1, dtype), jnp.asarray(ctx.c2, dtype)
-        count = ctx.count
-        t = count.astype(dtype)
         decay = jnp.asarray(self.residual_decay, dtype)
-        residual_hat = residual / (1 - decay**t)
-        # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
-        ratio, usable = noise_ratio(b1, c1, count)
+        bias = 1 - decay ** ctx.count.astype(dtype)
+        ratio, usable = noise_ratio(b1, c1, ctx.count)
         k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, MEMORY_EPS), 0)
+        ema = _ema_variance_ratio(decay, bias)
+        parts = [c1, c2, k, ema, 1 + b1 * decay, 1 - b1 * decay, bias, usable]
+        return jnp.stack([jnp.asarray(x).astype(dtype) for x in parts])
+
+    def _blend_weight(self, m, v, residual, scalars, axes):
+        """The blend's weight of the unfiltered moments per entry of the sub-grid, before the
+        gate, from ``m``, ``v`` and the residual there and :meth:`_blend_scalars`."""
+        c1, c2, k, ema, corr_num, corr_den, bias, usable = scalars
+        residual_hat = residual / bias
+        # Noise of m_hat from v_hat - m_hat^2 (eq. 24), then of the residual's EMA.
         noise = jnp.maximum(v / c2 - (m / c1) ** 2, 0) * k
-        residual_noise = noise * _ema_variance_ratio(decay, 1 - decay**t)
-        residual_noise = residual_noise * (1 + b1 * decay) / (1 - b1 * decay)  # m_hat correlates
-        floor, signal = smooth((residual_noise, residual_hat**2))
+        residual_noise = noise * ema
+        residual_noise = residual_noise * corr_num / corr_den  # m_hat correlates
+        floor, signal = local_average_subgrid((residual_noise, residual_hat**2), axes, 1)
         lam = 1 - floor / (self.gain * jnp.where(signal > 0, signal, 1))
-        return jnp.where(usable & (signal > 0), jnp.clip(lam, 0, 1), 0) ** self.power
+        return jnp.where((usable > 0) & (signal > 0), jnp.clip(lam, 0, 1), 0) ** self.power
 
     def _gate(self, lam: jax.Array) -> jax.Array:
         low, high = self.gate_bounds
@@ -411,11 +420,22 @@ def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes
     ``residual`` is the residual's EMA with this step's (:func:`update_residual`), on the
     sub-grid. The weight is a smooth field, which a large leaf's sub-grid samples finely
     enough: every statistic is read there, and its local averages are the B-spline's taps
-    between the sub-grid's neighbours.
+    between the sub-grid's neighbours. Where the filter runs on the native kernel, one FFI
+    call computes all of it (:func:`_blend_reference` is its JAX form and derivative).
     """
-    m, v = (rule._subgrid(x, axes) for x in (moments.m, moments.v))
-    smooth = functools.partial(local_average_subgrid, axes=axes, stride=1)
-    lam = rule._blend_weight(m, v, residual, smooth, ctx)
+    m = moments.m
+    stride = rule._stride(m.shape, axes)
+    low, high = rule.gate_bounds
+    constants = (rule.gain, rule.power, low, high - low)
+    reference = functools.partial(_blend_reference, rule, axes=tuple(axes), stride=stride)
+    scalars = rule._blend_scalars(ctx, m.dtype)
+    return subgrid_blend(m, moments.v, residual, scalars, axes, stride, constants, reference)
+
+
+def _blend_reference(rule: Auto, m, v, residual, scalars, *, axes, stride):
+    """:func:`blend_weights` in JAX, from the leaf's ``m``, ``v``."""
+    m, v = every(m, axes, stride), every(v, axes, stride)
+    lam = rule._blend_weight(m, v, residual, scalars, axes)
     gate = rule._gate(lam)
     return lam * gate, gate
 
