@@ -1,8 +1,10 @@
-"""Local averages for the sigma_d rules' statistics: one level of the filter's 5-tap B-spline
-with every weight 1 (sigma_d = inf), on the whole grid or at a sub-grid, on one device or
+"""The sigma_d rules' statistics: local averages (one level of the filter's 5-tap B-spline
+with every weight 1, sigma_d = inf), on the whole grid or at a sub-grid, on one device or
 sharded like the leaf; the mean distance between texels at a sub-grid; the sums behind the
-lag-1 correlation between neighbours; and sums of squares that stay fast on one device and
-valid on a mesh."""
+lag-1 correlation between neighbours; ``"auto"``'s blend at the sub-grid; and sums of
+squares that stay fast on one device and valid on a mesh. Where the filter runs on the
+native kernel each is one XLA FFI call (csrc/local.h, csrc/stats.h), with the slices here
+as its fallback and its derivative (:func:`runs_native`)."""
 
 from __future__ import annotations
 
