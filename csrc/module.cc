@@ -202,15 +202,21 @@ ffi::Error ldl(ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out, int64_t factor
   }
 }
 
+// The sub-grid a call's attributes describe over the array x.
+ob::Subgrid subgrid_of(const ffi::AnyBuffer& x, ffi::Span<const int64_t> axes, int64_t stride) {
+  ob::Subgrid g;
+  const auto dims = x.dimensions();
+  g.shape.assign(dims.begin(), dims.end());
+  g.axes.assign(axes.begin(), axes.end());
+  g.stride = stride;
+  return g;
+}
+
 // x (*shape) -> its local averages at every `stride`-th entry along `axes` (local.h).
 ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
                          ffi::Result<ffi::AnyBuffer> work, ffi::Span<const int64_t> axes,
                          int64_t stride) {
-  ob::Subgrid s;
-  const auto dims = x.dimensions();
-  s.shape.assign(dims.begin(), dims.end());
-  s.axes.assign(axes.begin(), axes.end());
-  s.stride = stride;
+  const ob::Subgrid s = subgrid_of(x, axes, stride);
   const std::string problem = ob::check_subgrid(s);
   if (!problem.empty()) return invalid(problem);
   const auto type = x.element_type();
@@ -239,11 +245,7 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
 // The mean distance of a's texels at the sub-grid from b's (stats.h), or their mean norm.
 ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out,
                                ffi::Span<const int64_t> axes, int64_t stride, bool has_b) {
-  ob::Subgrid g;
-  const auto dims = a.dimensions();
-  g.shape.assign(dims.begin(), dims.end());
-  g.axes.assign(axes.begin(), axes.end());
-  g.stride = stride;
+  const ob::Subgrid g = subgrid_of(a, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
   if (!problem.empty()) return invalid(problem);
   const auto type = a.element_type();
@@ -272,12 +274,9 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<f
 ffi::Error correlation_sums(ffi::AnyBuffer z, ffi::AnyBuffer y, ffi::Result<ffi::AnyBuffer> out,
                             ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
                             int64_t stride) {
-  ob::Subgrid g;
-  const auto dims = z.dimensions();
-  g.shape.assign(dims.begin(), dims.end());
-  g.axes.assign(axes.begin(), axes.end());
-  g.stride = stride;
+  const ob::Subgrid g = subgrid_of(z, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
+  const auto dims = z.dimensions();
   if (!problem.empty()) return invalid(problem);
   std::vector<int64_t> pairs(pair_axes.begin(), pair_axes.end());
   for (size_t k = 0; k < pairs.size(); ++k) {
@@ -330,12 +329,9 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
                          ffi::AnyBuffer scalars, ffi::Result<ffi::AnyBuffer> out,
                          ffi::Result<ffi::AnyBuffer> gate, ffi::Span<const int64_t> axes,
                          int64_t stride, double gain, double power, double low, double span) {
-  ob::Subgrid g;
-  const auto dims = m.dimensions();
-  g.shape.assign(dims.begin(), dims.end());
-  g.axes.assign(axes.begin(), axes.end());
-  g.stride = stride;
+  const ob::Subgrid g = subgrid_of(m, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
+  const auto dims = m.dimensions();
   if (!problem.empty()) return invalid(problem);
   const auto type = m.element_type();
   const auto vd = v.dimensions();

@@ -71,6 +71,13 @@ def status() -> Status:
     return Status(ok, reason, threads())
 
 
+def _require(what: str) -> None:
+    """Raises, naming ``what`` and why, where the extension cannot run."""
+    ok, reason = _registered()
+    if not ok:
+        raise RuntimeError(f"{what} cannot run here: {reason}")
+
+
 def available() -> bool:
     return _registered()[0]
 
@@ -91,9 +98,7 @@ def filter_planes(
 ) -> jax.Array:
     """Levels ``start .. levels - 1``: x (C, *S) zero where invalid, g (G, *S), valid (*S)
     float 0/1 or None, sigma a scalar in x's dtype. Returns (C, *S)."""
-    ok, reason = _registered()
-    if not ok:
-        raise RuntimeError(f"the native filter kernel cannot run here: {reason}")
+    _require("the native filter kernel")
     x = x.reshape(x.shape[:1] + g.shape[1:])
     return _cascade(x, g, valid, sigma, levels, bool(separable), start)
 
@@ -148,9 +153,7 @@ def filter_fields(
     axes first (zero where invalid, in the compute dtype), with guide planes ``g`` (G, *S):
     their channels are taken apart and put back inside the call, so no planar copy of the
     fields is made. Returns the fields' shapes."""
-    ok, reason = _registered()
-    if not ok:
-        raise RuntimeError(f"the native filter kernel cannot run here: {reason}")
+    _require("the native filter kernel")
     return _fields_cascade(tuple(fields), g, valid, sigma, levels, start)
 
 
@@ -215,9 +218,7 @@ def subgrid_average(x: jax.Array, axes: Sequence[int], stride: int) -> jax.Array
     """One level of the B-spline (every data weight 1) along each of ``axes`` in turn, read at
     every ``stride``-th entry: one FFI call for all of them (csrc/local.h). Not differentiable:
     :func:`optax_bilateral._src.filter.local.local_average_subgrid` gives it a rule."""
-    ok, reason = _registered()
-    if not ok:
-        raise RuntimeError(f"the native local average cannot run here: {reason}")
+    _require("the native local average")
     shape, sizes = list(x.shape), []
     for a in axes:
         shape[a] = (shape[a] - 1) // stride + 1
@@ -239,9 +240,7 @@ def texel_distance_mean(
     """The mean over the sub-grid's texels of ``||a[stride p] - b[p]||`` (csrc/stats.h): one FFI
     call, sums in double. Not differentiable:
     :func:`optax_bilateral._src.filter.local.texel_distance_mean` gives it a rule."""
-    ok, reason = _registered()
-    if not ok:
-        raise RuntimeError(f"the native texel statistics cannot run here: {reason}")
+    _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         TEXEL_MEAN_TARGET, jax.ShapeDtypeStruct((), a.dtype), vmap_method="sequential"
     )
@@ -259,9 +258,7 @@ def correlation_sums(
 ) -> jax.Array:
     """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``: one FFI
     call, sums in double. Not differentiable (its callers stop the gradient)."""
-    ok, reason = _registered()
-    if not ok:
-        raise RuntimeError(f"the native texel statistics cannot run here: {reason}")
+    _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         CORRELATION_TARGET,
         jax.ShapeDtypeStruct((3 * len(pair_axes) + 2,), z.dtype),
@@ -289,9 +286,7 @@ def blend_weights(
     ``m``, ``v`` (the leaf's shape), the residual (the sub-grid's), the step's 8 ``scalars``
     and the rule's ``constants`` ``(gain, power, low, high - low)``. One FFI call; not
     differentiable: :func:`optax_bilateral._src.filter.local.subgrid_blend` gives it a rule."""
-    ok, reason = _registered()
-    if not ok:
-        raise RuntimeError(f"the native texel statistics cannot run here: {reason}")
+    _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         BLEND_TARGET,
         (jax.ShapeDtypeStruct(residual.shape, m.dtype), jax.ShapeDtypeStruct((), m.dtype)),
