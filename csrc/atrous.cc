@@ -1,5 +1,5 @@
-// The cascade's driver: passes, the ping-pong between the output and one working copy,
-// threads, and the choice of instruction set.
+// The cascade's driver: separable levels in place, other passes alternating between the output
+// and one working copy, threads, and the choice of instruction set.
 #include "atrous.h"
 
 #include <algorithm>
@@ -23,9 +23,6 @@ namespace {
 
 // The bytes a block's sums (its fields and normaliser) should take: within L2.
 constexpr int64_t kBlockBytes = 256 * 1024;
-// Below this many point-channels a cascade runs on the calling thread alone: starting
-// threads costs more than they save.
-constexpr int64_t kMinParallelWork = 1 << 15;
 
 const Isa kIsa = cpu_isa();
 
@@ -49,19 +46,20 @@ void block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t c1,
 }
 
 template <typename T>
-void slabs(const PassArgs<T>& a, const SlabLevel<T>& l, int64_t i0, int64_t i1, Scratch<T>& s) {
+void chunk(const PassArgs<T>& a, const SlabLevel<T>& l, const SlabPlanes<const T>& from,
+           const SlabPlanes<T>& to, bool in_place, const Chunk<T>& ch, Scratch<T>& s) {
   switch (kIsa) {
 #if defined(__x86_64__)
     case Isa::kAvx512:
-      if constexpr (std::is_same_v<T, float>) return avx512::slabs32(a, l, i0, i1, s);
-      else return avx512::slabs64(a, l, i0, i1, s);
+      if constexpr (std::is_same_v<T, float>) return avx512::chunk32(a, l, from, to, in_place, ch, s);
+      else return avx512::chunk64(a, l, from, to, in_place, ch, s);
     case Isa::kAvx2:
-      if constexpr (std::is_same_v<T, float>) return avx2::slabs32(a, l, i0, i1, s);
-      else return avx2::slabs64(a, l, i0, i1, s);
+      if constexpr (std::is_same_v<T, float>) return avx2::chunk32(a, l, from, to, in_place, ch, s);
+      else return avx2::chunk64(a, l, from, to, in_place, ch, s);
 #endif
     default:
-      if constexpr (std::is_same_v<T, float>) return baseline::slabs32(a, l, i0, i1, s);
-      else return baseline::slabs64(a, l, i0, i1, s);
+      if constexpr (std::is_same_v<T, float>) return baseline::chunk32(a, l, from, to, in_place, ch, s);
+      else return baseline::chunk64(a, l, from, to, in_place, ch, s);
   }
 }
 
@@ -139,39 +137,21 @@ std::pair<T, T> guide_scale(const Cascade<T>& c, int threads, int64_t points) {
   return {inv, c.sigma_d * inv};
 }
 
-// One step of a cascade: a pass cut into blocks, or a separable level swept by slabs.
+// The separable levels of a grid of rank >= 2, each swept slab by slab.
 template <typename T>
-struct Step {
-  const Pass* pass = nullptr;
-  std::vector<Block> blocks;
-  SlabLevel<T> level;  // used when pass is null
-};
-
-template <typename T>
-std::vector<Step<T>> plan_steps(const Cascade<T>& c, const std::vector<Pass>& passes) {
-  std::vector<Step<T>> steps;
-  const size_t n = c.shape.size();
-  if (c.separable && n >= 2) {
-    const std::vector<int64_t> inner_shape(c.shape.begin() + 1, c.shape.end());
-    for (int i = c.start; i < c.levels; ++i) {
-      Step<T> step;
-      step.level.slabs = c.shape[0];
-      step.level.slab = 1;
-      for (int64_t k : inner_shape) step.level.slab *= k;
-      step.level.stride = int64_t{1} << i;
-      step.level.inner = make_passes(inner_shape, i + 1, i, true);
-      if (step.level.stride < c.shape[0] || !step.level.inner.empty())
-        steps.push_back(std::move(step));
-    }
-    return steps;
+std::vector<SlabLevel<T>> plan_levels(const Cascade<T>& c) {
+  std::vector<SlabLevel<T>> levels;
+  const std::vector<int64_t> inner_shape(c.shape.begin() + 1, c.shape.end());
+  for (int i = c.start; i < c.levels; ++i) {
+    SlabLevel<T> level;
+    level.slabs = c.shape[0];
+    level.slab = 1;
+    for (int64_t k : inner_shape) level.slab *= k;
+    level.stride = int64_t{1} << i;
+    level.inner = make_passes(inner_shape, i + 1, i, true);
+    if (level.stride < c.shape[0] || !level.inner.empty()) levels.push_back(std::move(level));
   }
-  for (const Pass& p : passes) {
-    Step<T> step;
-    step.pass = &p;
-    step.blocks = cut_blocks<T>(p, c.channels);
-    steps.push_back(std::move(step));
-  }
-  return steps;
+  return levels;
 }
 
 // Runs `units` units of work, unit k as do_unit(k, scratch), on the calling thread and on
@@ -216,50 +196,143 @@ void split_channels(const T* __restrict__ src, T* const* dst, int64_t lo, int64_
     for (int q = 0; q < kC; ++q) d[q][p] = src[p * kC + q];
 }
 
-// The channels of `fields` ((points, c_k) each, interleaved) as planes `planes[c]`.
+// The fields ((points, c_k) each, interleaved) into their outputs' memory, each slab's
+// channels as planes one after another (SlabPlanes): where every level then works in place.
 template <typename T>
-void deinterleave(const Cascade<T>& c, int threads, int64_t points,
-                  const std::vector<T*>& planes) {
-  const int64_t chunk = 1 << 14;
-  const size_t units = static_cast<size_t>((points + chunk - 1) / chunk);
+void split_fields(const Cascade<T>& c, int threads, int64_t slab) {
+  const int64_t n0 = c.shape[0];
+  const int64_t group = std::max<int64_t>(1, (int64_t{1} << 14) / slab);  // slabs per unit
+  const size_t units = static_cast<size_t>((n0 + group - 1) / group);
   parallel(c, threads, units, [&](size_t k, Scratch<T>&) {
-    const int64_t lo = static_cast<int64_t>(k) * chunk;
-    const int64_t hi = std::min(points, lo + chunk);
-    size_t ch = 0;
-    for (const auto& [field, nc] : c.x_fields) {
-      T* const* dst = planes.data() + ch;
-      ch += static_cast<size_t>(nc);
-      switch (nc) {
-        case 1: split_channels<T, 1>(field, dst, lo, hi); continue;
-        case 2: split_channels<T, 2>(field, dst, lo, hi); continue;
-        case 3: split_channels<T, 3>(field, dst, lo, hi); continue;
-        case 4: split_channels<T, 4>(field, dst, lo, hi); continue;
-        default: break;
-      }
-      for (int64_t q = 0; q < nc; ++q) {
-        T* __restrict__ d = dst[q];
-        for (int64_t p = lo; p < hi; ++p) d[p] = field[p * nc + q];
+    const int64_t i1 = std::min(n0, (static_cast<int64_t>(k) + 1) * group);
+    std::vector<T*> dst;
+    for (int64_t i = static_cast<int64_t>(k) * group; i < i1; ++i) {
+      for (size_t f = 0; f < c.x_fields.size(); ++f) {
+        const int64_t nc = c.x_fields[f].second;
+        const T* src = c.x_fields[f].first + i * slab * nc;
+        T* out = c.out_fields[f].first + i * slab * nc;
+        dst.resize(static_cast<size_t>(nc));
+        for (int64_t q = 0; q < nc; ++q) dst[q] = out + q * slab;
+        switch (nc) {
+          case 1: std::copy(src, src + slab, out); continue;
+          case 2: split_channels<T, 2>(src, dst.data(), 0, slab); continue;
+          case 3: split_channels<T, 3>(src, dst.data(), 0, slab); continue;
+          case 4: split_channels<T, 4>(src, dst.data(), 0, slab); continue;
+          default: break;
+        }
+        for (int64_t q = 0; q < nc; ++q)
+          for (int64_t p = 0; p < slab; ++p) dst[q][p] = src[p * nc + q];
       }
     }
   });
 }
 
-// Bounds of `threads` slab ranges of about equal cost: a range that does not start at slab 0
-// first recomputes the axis-0 weights of the 3 st slabs before it (one pair each, about a
-// quarter of a slab's work), so it gets fewer slabs.
+// A level's units: each chain of slabs (Chunk) whole, or cut in pieces where there are more
+// threads than chains. Pieces of a level that runs in place get copies of the originals their
+// neighbours overwrite, taken here, before any is written (into `copies`).
 template <typename T>
-std::vector<int64_t> slab_ranges(const SlabLevel<T>& level, int threads) {
-  const int64_t n0 = level.slabs, st = level.stride;
-  const int64_t t = std::max<int64_t>(1, std::min<int64_t>(threads, n0));
-  const int64_t halo = st < n0 ? (std::min(st, n0) + std::min(2 * st, n0)) / 4 : 0;
-  const int64_t share = (n0 + (t - 1) * halo + t - 1) / t;  // cost per range, rounded up
-  std::vector<int64_t> bounds = {0};
-  for (int64_t k = 1; k < t; ++k) {
-    const int64_t next = bounds.back() + share - (k > 1 ? halo : 0);
-    bounds.push_back(std::clamp<int64_t>(next, bounds.back() + 1, n0 - (t - k)));
+std::vector<Chunk<T>> plan_chunks(const SlabLevel<T>& level, int threads, bool in_place,
+                                  const SlabPlanes<const T>& from, int64_t channels,
+                                  std::vector<T>& copies) {
+  const int64_t n0 = level.slabs, M = level.slab, C = channels;
+  const bool axis0 = level.stride < n0;
+  const int64_t chains = axis0 ? level.stride : 1, step = axis0 ? level.stride : 1;
+  const int64_t pieces = axis0 ? (threads + chains - 1) / chains : threads;
+  std::vector<Chunk<T>> chunks;
+  for (int64_t r = 0; r < chains; ++r) {
+    const int64_t len = (n0 - r + step - 1) / step;
+    const int64_t k = std::clamp<int64_t>(pieces, 1, len);
+    for (int64_t j = 0; j < k; ++j) chunks.push_back({r, len * j / k, len * (j + 1) / k, len});
   }
-  bounds.push_back(n0);
-  return bounds;
+  if (!(in_place && axis0) || static_cast<int64_t>(chunks.size()) == chains) return chunks;
+  const int64_t block = 2 * C * M;  // two slabs' originals
+  copies.assign(static_cast<size_t>(2 * block) * chunks.size(), T(0));
+  for (size_t u = 0; u < chunks.size(); ++u) {
+    Chunk<T>& ch = chunks[u];
+    T* before = copies.data() + 2 * block * static_cast<int64_t>(u);
+    T* after = before + block;
+    // Slot s of `before` holds position first - 2 + s; of `after`, position last + s.
+    for (int s = 0; s < 2; ++s) {
+      const int64_t pb = ch.first - 2 + s, pa = ch.last + s;
+      for (int64_t c = 0; c < C; ++c) {
+        if (pb >= 0)
+          std::copy_n(from.at(ch.residue + pb * step, static_cast<size_t>(c)), M,
+                      before + (s * C + c) * M);
+        if (pa < ch.length)
+          std::copy_n(from.at(ch.residue + pa * step, static_cast<size_t>(c)), M,
+                      after + (s * C + c) * M);
+      }
+    }
+    ch.before = before;
+    ch.after = after;
+  }
+  return chunks;
+}
+
+// A separable cascade on a grid of rank >= 2: every level in place in the output's memory
+// (the first from the input, or from the fields split into that memory), so no working copy.
+template <typename T>
+void run_levels(const Cascade<T>& c, const PassArgs<T>& args, int threads, int64_t points) {
+  const std::vector<SlabLevel<T>> levels = plan_levels(c);
+  const int64_t M = points / c.shape[0];
+  const bool interleaved = !c.x_fields.empty();
+  SlabPlanes<T> out;
+  SlabPlanes<const T> input;
+  if (interleaved) {
+    for (const auto& [field, nc] : c.out_fields)
+      for (int64_t q = 0; q < nc; ++q) {
+        out.base.push_back(field + q * M);
+        out.stride.push_back(M * nc);
+      }
+    split_fields(c, threads, M);
+  } else {
+    for (int64_t ch = 0; ch < c.channels; ++ch) {
+      out.base.push_back(c.out + ch * points);
+      out.stride.push_back(M);
+      input.base.push_back(c.x + ch * points);
+      input.stride.push_back(M);
+    }
+  }
+  const SlabPlanes<const T> own{{out.base.begin(), out.base.end()}, out.stride};
+  if (interleaved) input = own;
+  for (size_t k = 0; k < levels.size(); ++k) {
+    const bool in_place = interleaved || k > 0;
+    const SlabPlanes<const T>& from = k == 0 ? input : own;
+    PassArgs<T> a = args;
+    if (interleaved && k + 1 == levels.size()) a.interleaved = &c.out_fields;
+    std::vector<T> copies;
+    const std::vector<Chunk<T>> chunks =
+        plan_chunks(levels[k], threads, in_place, from, c.channels, copies);
+    parallel(c, threads, chunks.size(), [&](size_t u, Scratch<T>& s) {
+      chunk(a, levels[k], from, out, in_place, chunks[u], s);
+    });
+  }
+}
+
+// Any other cascade: one step per pass, each cut into blocks, alternating between the output
+// and the working copy so that the last step writes the output.
+template <typename T>
+void run_passes(const Cascade<T>& c, const PassArgs<T>& args, const std::vector<Pass>& passes,
+                int threads, int64_t points) {
+  std::vector<const T*> in_ch(static_cast<size_t>(c.channels));
+  std::vector<T*> work_ch(in_ch.size()), out_ch(in_ch.size());
+  for (int64_t ch = 0; ch < c.channels; ++ch) {
+    in_ch[ch] = c.x + ch * points;
+    work_ch[ch] = c.work + ch * points;
+    out_ch[ch] = c.out + ch * points;
+  }
+  const size_t ns = passes.size();
+  for (size_t i = 0; i < ns; ++i) {
+    PassArgs<T> a = args;
+    const bool to_out = (ns - 1 - i) % 2 == 0;
+    a.y = to_out ? out_ch.data() : work_ch.data();
+    a.x = i == 0 ? in_ch.data() : to_out ? work_ch.data() : out_ch.data();
+    a.pass = &passes[i];
+    const std::vector<Block> blocks = cut_blocks<T>(passes[i], c.channels);
+    parallel(c, threads, blocks.size(), [&](size_t k, Scratch<T>& scratch) {
+      block(a, blocks[k].r0, blocks[k].r1, blocks[k].c0, blocks[k].c1, scratch);
+    });
+  }
 }
 
 template <typename T>
@@ -268,9 +341,8 @@ void run(const Cascade<T>& c) {
   for (int64_t n : c.shape) points *= n;
   const std::vector<Pass> passes = make_passes(c.shape, c.levels, c.start, c.separable);
   const int64_t size = c.channels * points;
-  const bool interleaved = !c.x_fields.empty();
   if (passes.empty() || points == 0) {
-    if (!interleaved) {
+    if (c.x_fields.empty()) {
       std::copy(c.x, c.x + size, c.out);
       return;
     }
@@ -280,7 +352,7 @@ void run(const Cascade<T>& c) {
     return;
   }
   int threads = std::max(1, c.threads);
-  if (size < kMinParallelWork) threads = 1;
+  if (size < c.min_parallel_work) threads = 1;
   const auto [scale, sigma] = guide_scale(c, threads, points);
   PassArgs<T> args{};
   args.guide = c.guide;
@@ -291,58 +363,8 @@ void run(const Cascade<T>& c) {
   args.guide_scale = scale;
   args.sigma_inf = std::isinf(sigma);
   args.neg_inv_sigma = sigma > 0 ? T(-1) / sigma : -std::numeric_limits<T>::infinity();
-  const std::vector<Step<T>> steps = plan_steps(c, passes);
-  const size_t ns = steps.size();
-  // The channels of the buffers the steps read and write: the input, the working copy and
-  // the output (with interleaved outputs: their memory, as planes, for the steps before the
-  // last one).
-  std::vector<const T*> in_ch(static_cast<size_t>(c.channels));
-  std::vector<T*> work_ch(static_cast<size_t>(c.channels)), out_ch(work_ch.size());
-  for (int64_t ch = 0; ch < c.channels; ++ch) {
-    work_ch[ch] = c.work + ch * points;
-    if (!interleaved) {
-      in_ch[ch] = c.x + ch * points;
-      out_ch[ch] = c.out + ch * points;
-    }
-  }
-  if (interleaved) {
-    size_t ch = 0;
-    for (const auto& [field, nc] : c.out_fields)
-      for (int64_t q = 0; q < nc; ++q) out_ch[ch++] = field + q * points;
-  }
-  // Planar: step i writes `out` when the steps after it are even in number, so the last
-  // writes `out` and the first reads the input. Interleaved: the last step reads the working
-  // copy and writes the outputs; the planes of the input go first to whichever buffer the
-  // steps' alternation starts from.
-  auto writes_out = [&](size_t i) { return (ns - 1 - i) % 2 == 0; };
-  if (interleaved) {
-    const bool first_to_out = ns % 2 == 0;  // then step 0 reads out's memory
-    deinterleave(c, threads, points, first_to_out ? out_ch : work_ch);
-    for (int64_t ch = 0; ch < c.channels; ++ch)
-      in_ch[ch] = first_to_out ? out_ch[ch] : work_ch[ch];
-  }
-  for (size_t i = 0; i < ns; ++i) {
-    PassArgs<T> a = args;
-    const bool to_out = writes_out(i);
-    a.y = to_out ? out_ch.data() : work_ch.data();
-    const T* const* prev = to_out ? work_ch.data() : out_ch.data();
-    a.x = i == 0 ? in_ch.data() : prev;
-    if (interleaved && i + 1 == ns) a.interleaved = &c.out_fields;
-    const Step<T>& step = steps[i];
-    a.pass = step.pass;
-    // Units: a pass's blocks, or a level's slabs in one range per thread.
-    const std::vector<int64_t> bounds = step.pass ? std::vector<int64_t>{}
-                                                  : slab_ranges(step.level, threads);
-    const size_t units = step.pass ? step.blocks.size() : bounds.size() - 1;
-    parallel(c, threads, units, [&](size_t k, Scratch<T>& scratch) {
-      if (step.pass) {
-        const Block& b = step.blocks[k];
-        block(a, b.r0, b.r1, b.c0, b.c1, scratch);
-      } else {
-        slabs(a, step.level, bounds[k], bounds[k + 1], scratch);
-      }
-    });
-  }
+  if (c.separable && c.shape.size() >= 2) return run_levels(c, args, threads, points);
+  run_passes(c, args, passes, threads, points);
 }
 
 }  // namespace

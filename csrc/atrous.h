@@ -25,10 +25,10 @@ struct Cascade {
   const T* guide = nullptr;  // (guide_channels, *shape)
   const T* valid = nullptr;  // (*shape) 0/1, or nullptr: every point valid
   T* out = nullptr;          // (channels, *shape)
-  T* work = nullptr;         // (channels, *shape) scratch, needed when the cascade has > 1 step
+  T* work = nullptr;         // (channels, *shape) scratch, where needs_working_copy says so
   // Instead of x and out: fields and outputs of shape (*shape, c_k), their channels
   // interleaved ({pointer, c_k}, the c_k adding up to `channels`). Only for a separable
-  // cascade of rank >= 2; `work` is then always needed.
+  // cascade of rank >= 2.
   std::vector<std::pair<const T*, int64_t>> x_fields;
   std::vector<std::pair<T*, int64_t>> out_fields;
   int64_t channels = 1;
@@ -39,17 +39,21 @@ struct Cascade {
   int start = 0;
   bool separable = true;
   int threads = 1;  // the most threads that work on one step, the caller's included
+  // Below this many point-channels the call runs on the calling thread alone: starting
+  // threads costs more than they save.
+  int64_t min_parallel_work = int64_t{1} << 15;
   // Starts a task on another thread (XLA's intra-op pool under the FFI), now or later; empty:
   // a std::thread per task. The caller works too, so a task that starts late finds nothing
   // left and a busy pool never stalls the call.
   std::function<void(std::function<void()>)> schedule;
 };
 
-// The steps a cascade runs, each one read and one write of the fields: a separable level of a
-// grid of rank >= 2 is one step (its passes swept slab by slab), any other pass one step.
-int count_steps(const std::vector<int64_t>& shape, int levels, int start, bool separable);
+// Whether a cascade needs `work`: a separable cascade on a grid of rank >= 2 runs every level
+// in place in the output's memory; any other runs one step per pass, alternating between the
+// output and the working copy, and needs it from two passes on.
+bool needs_working_copy(const std::vector<int64_t>& shape, int levels, int start, bool separable);
 
-// Runs the cascade; the result is in `out`. `work` may be null when count_steps <= 1.
+// Runs the cascade; the result is in `out` (or `out_fields`).
 void run_cascade(const Cascade<float>& c);
 void run_cascade(const Cascade<double>& c);
 

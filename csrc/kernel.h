@@ -24,8 +24,8 @@ struct PassArgs {
   const T* guide;  // (G, .), channel c at guide + c * guide_stride
   const T* valid;  // (.) or nullptr
   int64_t channels, guide_channels, guide_stride;
-  // run_slabs only: write the result into these fields, each (points, channels) with its
-  // channels interleaved, instead of y.
+  // run_chunk only: write the result into these fields, each (points, channels) with its
+  // channels interleaved, instead of into the level's output planes.
   const std::vector<std::pair<T*, int64_t>>* interleaved = nullptr;
   T guide_scale;    // the guide's multiplier: 1/2 with one channel, else a power of two
   T neg_inv_sigma;  // -1 / sigma_d (scaled like the guide); -inf for sigma_d = 0
@@ -52,19 +52,45 @@ struct Scratch {
   std::vector<const Term<T>*> active;  // the terms of each cut between them, in order
   std::vector<int64_t> first_active;   // cut k's terms: active[first_active[k], [k + 1])
   std::vector<int64_t> cut_key;        // what the cuts were made for: most rows repeat it
-  std::vector<T> slabs, ring;  // run_slabs: two slabs of the fields, the axis-0 weights
-  std::vector<T*> cur, other;   // their channels
+  // run_chunk: two slabs of the fields, the axis-0 weights (5 slabs), the originals of the
+  // last two slabs an in-place level overwrote (2 slabs of the fields)
+  std::vector<T> slabs, ring, saved;
+  std::vector<T*> cur, other, to;  // the two slabs' channels, the output slab's
+  std::vector<const T*> from;      // the input slab's channels
 };
 
-// One separable level of a grid of rank >= 2 run as one sweep over slabs of axis 0: the
-// pass along axis 0 (if the stride fits), then the passes along the other axes, which stay
-// within a slab, while the slab is in cache. One read and one write of the fields per
-// level instead of one per axis.
+// One separable level of a grid of rank >= 2 run slab by slab (slabs along axis 0): the pass
+// along axis 0 (if the stride fits), then the passes along the other axes, which stay within
+// a slab, while the slab is in cache. One read and one write of the fields per level instead
+// of one per axis.
 template <typename T>
 struct SlabLevel {
   int64_t slabs = 0, slab = 0;   // n0, and the points of one slab (n1 * ... * n_{d-1})
   int64_t stride = 0;            // 2^level
   std::vector<Pass> inner;       // the passes along axes 1.., on one slab's grid
+};
+
+// Where a level reads or writes its slabs: channel c of slab i at base[c] + i * stride[c].
+// Planar grids: stride = a slab's points. Fields in their own layout between levels: field
+// k's slab i holds its c_k planes one after another, in the memory its interleaved output
+// takes, so the last level writes each slab where it read it.
+template <typename P>
+struct SlabPlanes {
+  std::vector<P*> base;
+  std::vector<int64_t> stride;
+  P* at(int64_t i, size_t c) const { return base[c] + i * stride[c]; }
+};
+
+// One unit of a level: positions [first, last) of the chain of slabs residue, residue + st,
+// residue + 2 st, ... (length slabs in all). The axis-0 pass of a slab reads only its chain,
+// so chains are independent and each is swept in order, in place: the originals of the two
+// slabs before the current one are kept aside (Scratch::saved). A chain cut into several
+// chunks gets the originals its neighbours overwrite as copies taken before the level starts.
+template <typename T>
+struct Chunk {
+  int64_t residue = 0, first = 0, last = 0, length = 0;
+  const T* before = nullptr;  // positions first - 2, first - 1: (2, channels, slab points)
+  const T* after = nullptr;   // positions last, last + 1, alike
 };
 
 }  // namespace optax_bilateral
@@ -463,54 +489,69 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
   }
 }
 
-// Slabs [i0, i1) of one separable level (SlabLevel): x, y are the whole grid's fields.
+// One chunk of a separable level (SlabLevel, Chunk): each slab's axis-0 pass into a scratch
+// slab, its inner passes, and the result into `to`'s slab (or the interleaved fields). With
+// `in_place` (from and to the same memory) a slab's original is kept aside before its result
+// overwrites it, for the two slabs after it.
 template <typename T>
-void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int64_t i1,
-               Scratch<T>& s) {
+void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes<const T>& from,
+               const SlabPlanes<T>& to, bool in_place, const Chunk<T>& ch, Scratch<T>& s) {
   constexpr double kTaps[3] = {3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0};
-  const int64_t n0 = level.slabs, M = level.slab, C = a.channels;
-  const int64_t st = level.stride;
+  const int64_t M = level.slab, C = a.channels, st = level.stride, len = ch.length;
+  const bool axis0 = st < level.slabs;
   const T h0 = static_cast<T>(kTaps[0]);
-  // Axis-0 weights w(slab j, slab j + d st), d = 1, 2, for the slabs a sweep still needs:
-  // a ring of d st + 1 slabs per d (slab j in slot j mod depth), or of the n0 - d st slabs
-  // that have a partner, if fewer (then no slot is reused).
-  int64_t depth[3] = {1, 1, 1};
-  for (int d = 1; d <= 2; ++d) {
-    const int64_t partnered = n0 - d * st;
-    depth[d] = partnered <= 0 ? 1 : (partnered < d * st + 1 ? partnered : d * st + 1);
-  }
-  const bool axis0 = st < n0;
+  const int64_t step = axis0 ? st : 1;  // without an axis-0 pass every slab stands alone
+  const auto slab = [&](int64_t pos) { return ch.residue + pos * step; };
   s.slabs.resize(static_cast<size_t>(2 * C * M));
-  if (axis0) s.ring.resize(static_cast<size_t>((depth[1] + depth[2]) * M));
+  if (axis0) s.ring.resize(static_cast<size_t>(5 * M));
+  if (axis0 && in_place) s.saved.resize(static_cast<size_t>(2 * C * M));
   s.dist.resize(static_cast<size_t>(M));
   s.den.resize(static_cast<size_t>(M));
-  T* ring[3] = {nullptr, s.ring.data(), s.ring.data() + depth[1] * M};
-  auto weights_of = [&](int d, int64_t j) { return ring[d] + (j % depth[d]) * M; };
-  auto compute = [&](int d, int64_t j) {  // w(j, j + d st), if that slab exists
-    if (j < 0 || j + d * st >= n0) return;
-    pair_weights(a, j * M, (j + d * st) * M, M, static_cast<T>(kTaps[d]), weights_of(d, j),
+  // w(p, p + d) in chain positions: d = 1 in two slots, d = 2 in three.
+  const auto weights_of = [&](int d, int64_t p) {
+    return s.ring.data() + (d == 1 ? p % 2 : 2 + p % 3) * M;
+  };
+  const auto compute = [&](int d, int64_t p) {  // if both slabs exist
+    if (p < 0 || p + d >= len) return;
+    pair_weights(a, slab(p) * M, slab(p + d) * M, M, static_cast<T>(kTaps[d]), weights_of(d, p),
                  s.dist.data());
+  };
+  // Channel c of the original of position p, read by the slab at position `pos`.
+  const auto original = [&](int64_t p, int64_t pos, int64_t c) -> const T* {
+    if (!in_place || (p > pos && p < ch.last)) return from.at(slab(p), static_cast<size_t>(c));
+    if (p > pos) return ch.after + ((p - ch.last) * C + c) * M;
+    if (p >= ch.first) return s.saved.data() + ((p % 2) * C + c) * M;
+    return ch.before + ((p - ch.first + 2) * C + c) * M;
   };
   if (axis0) {
     for (int d = 1; d <= 2; ++d)
-      for (int64_t j = i0 - d * st; j < i0; ++j) compute(d, j);
+      for (int64_t p = ch.first - d; p < ch.first; ++p) compute(d, p);
   }
   s.cur.resize(static_cast<size_t>(C));
   s.other.resize(static_cast<size_t>(C));
+  s.from.resize(static_cast<size_t>(C));
+  s.to.resize(static_cast<size_t>(C));
   for (int64_t c = 0; c < C; ++c) {
     s.cur[c] = s.slabs.data() + c * M;
     s.other[c] = s.slabs.data() + (C + c) * M;
   }
-  for (int64_t i = i0; i < i1; ++i) {
-    const T* const* in = a.x;  // the slab's input: channel c at in[c] + in_at
-    int64_t in_at = a.x_at + i * M;
+  for (int64_t pos = ch.first; pos < ch.last; ++pos) {
+    const int64_t i = slab(pos);
+    for (int64_t c = 0; c < C; ++c) {
+      s.from[c] = from.at(i, static_cast<size_t>(c));
+      s.to[c] = to.at(i, static_cast<size_t>(c));
+    }
+    const T* const* in = s.from.data();
     if (axis0) {
-      for (int d = 1; d <= 2; ++d) compute(d, i);
-      s.terms.resize(4);
-      size_t nt = 0;
+      compute(1, pos);
+      compute(2, pos);
+      // The terms in the pure-JAX kernels' order: per offset, +o then -o.
+      const T* w[4];
+      int64_t partner[4];
+      int nt = 0;
       for (int d = 1; d <= 2; ++d) {
-        if (i + d * st < n0) s.terms[nt++] = {weights_of(d, i), (i + d * st) * M, 0, M};
-        if (i - d * st >= 0) s.terms[nt++] = {weights_of(d, i - d * st), (i - d * st) * M, 0, M};
+        if (pos + d < len) w[nt] = weights_of(d, pos), partner[nt++] = pos + d;
+        if (pos - d >= 0) w[nt] = weights_of(d, pos - d), partner[nt++] = pos - d;
       }
       T* __restrict__ den = s.den.data();
       const T* v = a.valid ? a.valid + i * M : nullptr;
@@ -519,44 +560,60 @@ void run_slabs(const PassArgs<T>& a, const SlabLevel<T>& level, int64_t i0, int6
       } else {
         for (int64_t j = 0; j < M; ++j) den[j] = h0;
       }
-      cut_row(s.terms.data(), nt, M, s);  // one cut: every term covers the slab
-      add_row_weights(den, s);
+      switch (nt) {
+        case 1: add_weights<T, 1>(den, w, M); break;
+        case 2: add_weights<T, 2>(den, w, M); break;
+        case 3: add_weights<T, 3>(den, w, M); break;
+        case 4: add_weights<T, 4>(den, w, M); break;
+        default: break;
+      }
       reciprocal(den, M);
       for (int64_t c = 0; c < C; ++c) {
-        const T* xc = a.x[c] + a.x_at;
-        channel_sums(s, h0, s.cur[c], xc + i * M, xc, den);
+        const T* x[4];
+        for (int k = 0; k < nt; ++k) x[k] = original(partner[k], pos, c);
+        T* y = s.cur[c];
+        switch (nt) {
+          case 0: fused_channel<T, 0>(y, s.from[c], h0, w, x, den, M); break;
+          case 1: fused_channel<T, 1>(y, s.from[c], h0, w, x, den, M); break;
+          case 2: fused_channel<T, 2>(y, s.from[c], h0, w, x, den, M); break;
+          case 3: fused_channel<T, 3>(y, s.from[c], h0, w, x, den, M); break;
+          default: fused_channel<T, 4>(y, s.from[c], h0, w, x, den, M); break;
+        }
+      }
+      if (in_place && pos + 1 < ch.last) {  // its original, for the next two positions
+        for (int64_t c = 0; c < C; ++c)
+          std::memcpy(s.saved.data() + ((pos % 2) * C + c) * M, s.from[c], sizeof(T) * M);
       }
       in = s.cur.data();
-      in_at = 0;
     }
     for (size_t k = 0; k < level.inner.size(); ++k) {
-      const bool last = k + 1 == level.inner.size();
-      T* const* spare = in == s.cur.data() ? s.other.data() : s.cur.data();
-      const bool to_y = last && !a.interleaved;
+      // The last pass writes the output slab itself, unless it reads it (no axis-0 pass and
+      // one inner pass, in place) or the output is interleaved.
+      const bool direct = k + 1 == level.inner.size() && !a.interleaved && in != s.from.data();
+      T* const* next = direct ? s.to.data() : in == s.cur.data() ? s.other.data() : s.cur.data();
       PassArgs<T> b = a;
       b.x = in;
-      b.x_at = in_at;
-      b.y = to_y ? a.y : spare;
-      b.y_at = to_y ? a.y_at + i * M : 0;
+      b.x_at = 0;
+      b.y = next;
+      b.y_at = 0;
       b.guide = a.guide + i * M;
       b.valid = a.valid ? a.valid + i * M : nullptr;
       b.pass = &level.inner[k];
       run_block(b, 0, level.inner[k].rows(), 0, level.inner[k].row_length, s);
-      in = b.y;
-      in_at = b.y_at;
+      in = next;
     }
     if (a.interleaved) {  // the slab's result into the fields, channels interleaved
       int64_t c = 0;
       for (const auto& [field, nc] : *a.interleaved) {
         T* __restrict__ out = field + i * M * nc;
         for (int64_t k = 0; k < nc; ++k, ++c) {
-          const T* __restrict__ src = in[c] + in_at;
+          const T* __restrict__ src = in[c];
           for (int64_t j = 0; j < M; ++j) out[j * nc + k] = src[j];
         }
       }
-    } else if (level.inner.empty()) {  // only the axis-0 pass ran: the slab is the output
+    } else if (in != s.to.data()) {
       for (int64_t c = 0; c < C; ++c)
-        std::memcpy(a.y[c] + a.y_at + i * M, in[c] + in_at, sizeof(T) * M);
+        if (s.to[c] != in[c]) std::memcpy(s.to[c], in[c], sizeof(T) * M);
     }
   }
 }

@@ -14,10 +14,11 @@ namespace optax_bilateral {
   void block32(const PassArgs<float>&, int64_t, int64_t, int64_t, int64_t, Scratch<float>&); \
   void block64(const PassArgs<double>&, int64_t, int64_t, int64_t, int64_t,                 \
                Scratch<double>&);                                                           \
-  void slabs32(const PassArgs<float>&, const SlabLevel<float>&, int64_t, int64_t,            \
-               Scratch<float>&);                                                            \
-  void slabs64(const PassArgs<double>&, const SlabLevel<double>&, int64_t, int64_t,          \
-               Scratch<double>&);                                                           \
+  void chunk32(const PassArgs<float>&, const SlabLevel<float>&, const SlabPlanes<const float>&, \
+               const SlabPlanes<float>&, bool, const Chunk<float>&, Scratch<float>&);        \
+  void chunk64(const PassArgs<double>&, const SlabLevel<double>&,                           \
+               const SlabPlanes<const double>&, const SlabPlanes<double>&, bool,            \
+               const Chunk<double>&, Scratch<double>&);                                     \
   void ldl32(const LdlFactor<float>&, float*, int64_t, int64_t, int64_t, float*);           \
   void ldl64(const LdlFactor<double>&, double*, int64_t, int64_t, int64_t, double*);        \
   }
@@ -41,13 +42,15 @@ OB_DECLARE_ISA(avx512)
                Scratch<double>& s) {                                                        \
     run_block(a, r0, r1, c0, c1, s);                                                        \
   }                                                                                         \
-  void slabs32(const PassArgs<float>& a, const SlabLevel<float>& l, int64_t i0, int64_t i1,  \
-               Scratch<float>& s) {                                                         \
-    run_slabs(a, l, i0, i1, s);                                                             \
+  void chunk32(const PassArgs<float>& a, const SlabLevel<float>& l,                         \
+               const SlabPlanes<const float>& from, const SlabPlanes<float>& to, bool in_place, \
+               const Chunk<float>& ch, Scratch<float>& s) {                                 \
+    run_chunk(a, l, from, to, in_place, ch, s);                                             \
   }                                                                                         \
-  void slabs64(const PassArgs<double>& a, const SlabLevel<double>& l, int64_t i0,           \
-               int64_t i1, Scratch<double>& s) {                                            \
-    run_slabs(a, l, i0, i1, s);                                                             \
+  void chunk64(const PassArgs<double>& a, const SlabLevel<double>& l,                       \
+               const SlabPlanes<const double>& from, const SlabPlanes<double>& to,          \
+               bool in_place, const Chunk<double>& ch, Scratch<double>& s) {                \
+    run_chunk(a, l, from, to, in_place, ch, s);                                             \
   }                                                                                         \
   void ldl32(const LdlFactor<float>& f, float* b, int64_t k, int64_t c0, int64_t c1,         \
              float* z) {                                                                    \

@@ -80,8 +80,8 @@ ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer vali
   c.out = static_cast<T*>(out->untyped_data());
   c.work = static_cast<T*>(work->untyped_data());
   if (work->element_count() != x.element_count() &&
-      ob::count_steps(c.shape, static_cast<int>(levels), static_cast<int>(start), separable) > 1)
-    return invalid("a cascade of several steps needs a working copy of the fields' size");
+      ob::needs_working_copy(c.shape, static_cast<int>(levels), static_cast<int>(start), separable))
+    return invalid("this cascade needs a working copy of the fields' size");
   return run_on(c, pool, sigma, levels, start, separable, threads);
 }
 
@@ -119,8 +119,7 @@ ffi::Error run_fields_typed(ffi::ThreadPool& pool, ffi::AnyBuffer guide, ffi::An
   int64_t points = 1;
   for (int64_t n : c.shape) points *= n;
   if (c.shape.size() < 2) return invalid("interleaved fields need a grid of rank >= 2");
-  if (outs.size() != fields.size() + 1)
-    return invalid("one output per field, and the working copy last");
+  if (outs.size() != fields.size()) return invalid("one output per field");
   c.channels = 0;
   for (size_t k = 0; k < fields.size(); ++k) {
     auto in = fields.get<ffi::AnyBuffer>(k);
@@ -135,13 +134,9 @@ ffi::Error run_fields_typed(ffi::ThreadPool& pool, ffi::AnyBuffer guide, ffi::An
     c.out_fields.push_back({static_cast<T*>((*out)->untyped_data()), n / points});
     c.channels += n / points;
   }
-  auto work = outs.get<ffi::AnyBuffer>(fields.size());
-  if (!work.has_value() || static_cast<int64_t>((*work)->element_count()) != c.channels * points)
-    return invalid("the working copy must hold every channel of every point");
   if (has_valid && static_cast<int64_t>(valid.element_count()) != points)
     return invalid("valid must have the spatial shape");
   if (sigma.element_count() != 1) return invalid("sigma_d must be a scalar");
-  c.work = static_cast<T*>((*work)->untyped_data());
   c.guide = static_cast<const T*>(guide.untyped_data());
   c.valid = has_valid ? static_cast<const T*>(valid.untyped_data()) : nullptr;
   return run_on(c, pool, sigma, levels, start, true, threads);
@@ -408,7 +403,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrousFields, atrous_fields,
                                   .Arg<ffi::AnyBuffer>()  // valid (*S), or (0,)
                                   .Arg<ffi::AnyBuffer>()  // sigma_d, a scalar
                                   .RemainingArgs()        // the fields, (points, c_k)
-                                  .RemainingRets()        // their outputs, the working copy
+                                  .RemainingRets()        // their outputs, alike
                                   .Attr<int64_t>("levels")
                                   .Attr<int64_t>("start")
                                   .Attr<bool>("has_valid")

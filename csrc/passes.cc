@@ -125,12 +125,9 @@ std::vector<Pass> make_passes(const std::vector<int64_t>& shape, int levels, int
   return passes;
 }
 
-int count_steps(const std::vector<int64_t>& shape, int levels, int start, bool separable) {
-  if (!separable || shape.size() < 2)
-    return static_cast<int>(make_passes(shape, levels, start, separable).size());
-  int steps = 0;
-  for (int i = start; i < levels; ++i) steps += !make_passes(shape, i + 1, i, true).empty();
-  return steps;
+bool needs_working_copy(const std::vector<int64_t>& shape, int levels, int start, bool separable) {
+  if (separable && shape.size() >= 2) return false;
+  return make_passes(shape, levels, start, separable).size() > 1;
 }
 
 }  // namespace optax_bilateral

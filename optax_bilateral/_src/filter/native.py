@@ -4,8 +4,10 @@ The same two functions as the pure-JAX kernels (:func:`plane_shape`, :func:`filt
 and :func:`filter_fields` for fields in their own layout, computed by the C++ extension
 ``optax_bilateral._native`` (sources in ``csrc/``, built by ``setup.py``): every level and
 pass in one call, each pair's weight computed once and used by both of its points, on
-several threads, with one working copy of the fields beside the output (a last output of the
-call, so that it is in XLA's buffer plan).
+several threads. A separable cascade on a grid of rank >= 2 runs every level in place in the
+output's memory, slab by slab; any other cascade of two or more passes alternates between the
+output and one working copy of the fields (a last output of the call, so that it is in XLA's
+buffer plan).
 
 Derivatives are the pure-JAX kernel's: :func:`filter_planes` is a ``jax.custom_jvp`` whose rule
 differentiates
@@ -105,7 +107,7 @@ def filter_planes(
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6))
 def _cascade(x, g, valid, sigma, levels, separable, start):
-    work = x.shape if _steps(g.shape[1:], levels, start, separable) > 1 else (0,)
+    work = x.shape if _needs_work(g.shape[1:], levels, start, separable) else (0,)
     call = jax.ffi.ffi_call(
         TARGET,
         (jax.ShapeDtypeStruct(x.shape, x.dtype), jax.ShapeDtypeStruct(work, x.dtype)),
@@ -125,13 +127,13 @@ def _cascade(x, g, valid, sigma, levels, separable, start):
     return out
 
 
-def _steps(shape, levels, start, separable) -> int:
-    """The steps the kernel runs (csrc/passes.cc, count_steps): a separable level of a grid of
-    rank >= 2 is one sweep; any other pass one. Two or more need a working copy."""
-    per_level = [len(level_passes(shape, 2**i, separable)) for i in range(start, levels)]
+def _needs_work(shape, levels, start, separable) -> bool:
+    """Whether the kernel needs a working copy (csrc/passes.cc, needs_working_copy): a
+    separable cascade on a grid of rank >= 2 runs in place; any other alternates between its
+    output and the copy from two passes on."""
     if separable and len(shape) >= 2:
-        return sum(1 for n in per_level if n)
-    return sum(per_level)
+        return False
+    return sum(len(level_passes(shape, 2**i, separable)) for i in range(start, levels)) > 1
 
 
 def takes_fields(shape: Sequence[int], separable: bool, field_axes) -> bool:
@@ -162,12 +164,10 @@ def _fields_cascade(fields, g, valid, sigma, levels, start):
     shape = g.shape[1:]
     points = math.prod(shape)
     flat = [f.reshape(points, -1) for f in fields]
-    channels = sum(f.shape[1] for f in flat)
     dtype = g.dtype
     call = jax.ffi.ffi_call(
         FIELDS_TARGET,
-        tuple(jax.ShapeDtypeStruct(f.shape, dtype) for f in flat)
-        + (jax.ShapeDtypeStruct((channels, points), dtype),),
+        tuple(jax.ShapeDtypeStruct(f.shape, dtype) for f in flat),
         vmap_method="sequential",
     )
     outs = call(
@@ -180,7 +180,7 @@ def _fields_cascade(fields, g, valid, sigma, levels, start):
         has_valid=valid is not None,
         threads=np.int64(threads()),
     )
-    return tuple(o.reshape(f.shape) for o, f in zip(outs[:-1], fields))
+    return tuple(o.reshape(f.shape) for o, f in zip(outs, fields))
 
 
 @_fields_cascade.defjvp
