@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <utility>
 #include <vector>
 
@@ -31,6 +32,12 @@ struct PassArgs {
   T neg_inv_sigma;  // -1 / sigma_d (scaled like the guide); -inf for sigma_d = 0
   bool sigma_inf;   // sigma_d = inf: every kept pair weighs 1
   const Pass* pass;
+
+  // 0 < sigma_d < inf: a pair's weight is exp_or_zero(distance * neg_inv_sigma), as
+  // data_weight's without its selects (equal guides give exp(-0) = 1, a NaN distance 0).
+  bool finite_sigma() const {
+    return !sigma_inf && neg_inv_sigma < T(0) && neg_inv_sigma > -std::numeric_limits<T>::infinity();
+  }
 };
 
 // Per-thread buffers, reused across passes.
@@ -125,6 +132,14 @@ inline float exp_nonpositive(float a) {
 
 inline double exp_nonpositive(double a) { return std::exp(a); }
 
+// exp(a) for a <= 0, and 0 for a NaN a: one comparison does both (a NaN fails every one).
+inline float exp_or_zero(float a) {
+  const bool keep = a >= -87.33654f;
+  return keep ? exp_nonpositive(keep ? a : 0.0f) : 0.0f;
+}
+
+inline double exp_or_zero(double a) { return a == a ? std::exp(a) : 0.0; }
+
 // The data weight of a guide distance `d` (one channel: |a - b|; several: the squared
 // norm), as bilateral.weight: equal guides weigh 1, a NaN distance or a dropped pair 0.
 template <typename T, bool kSquared>
@@ -155,7 +170,7 @@ void few_channel_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n
   }
   const T* __restrict__ va = kMasked ? a.valid + pa : nullptr;
   const T* __restrict__ vb = kMasked ? a.valid + pb : nullptr;
-  for (int64_t j = 0; j < n; ++j) {
+  const auto squared_distance = [&](int64_t j) {
     // Scaled only where the guide is large enough to overflow (bilateral.rescale_guide).
     T t = kScaled ? ga[0][j] * gs - gb[0][j] * gs : ga[0][j] - gb[0][j];
     T d2 = t * t;
@@ -163,6 +178,14 @@ void few_channel_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n
       t = kScaled ? ga[c][j] * gs - gb[c][j] * gs : ga[c][j] - gb[c][j];
       d2 += t * t;
     }
+    return d2;
+  };
+  if (!kMasked && a.finite_sigma()) {
+    for (int64_t j = 0; j < n; ++j) w[j] = tap * exp_or_zero(std::sqrt(squared_distance(j)) * nis);
+    return;
+  }
+  for (int64_t j = 0; j < n; ++j) {
+    const T d2 = squared_distance(j);
     bool keep = true;
     if constexpr (kMasked) keep = (va[j] > 0) & (vb[j] > 0);
     w[j] = tap * data_weight<T, true>(d2, keep, nis, sinf);
@@ -186,6 +209,9 @@ void pair_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap
         const T d = std::fabs(ga[j] * gs - gb[j] * gs);
         w[j] = tap * data_weight<T, false>(d, (va[j] > 0) & (vb[j] > 0), nis, sinf);
       }
+    } else if (a.finite_sigma()) {
+      for (int64_t j = 0; j < n; ++j)
+        w[j] = tap * exp_or_zero(std::fabs(ga[j] * gs - gb[j] * gs) * nis);
     } else {
       for (int64_t j = 0; j < n; ++j) {
         const T d = std::fabs(ga[j] * gs - gb[j] * gs);
