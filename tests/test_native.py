@@ -39,6 +39,26 @@ def _both(x, g, **kw):
     return [atrous_bilateral(x, g, kernel=k, **kw) for k in ("native", "plain")]
 
 
+@pytest.mark.parametrize(
+    "shape, axes", [((40, 36, 3), (0, 1)), ((300, 2), (0,))], ids=["fields-2d", "planes-1d"]
+)
+def test_a_continued_cascade_is_the_whole_cascade_bit_for_bit(shape, axes):
+    # "auto"'s correlated-noise way runs F + k levels in one call where the native kernel runs
+    # and continues the F levels' output elsewhere (rules/auto.py, Auto._cascade): the two
+    # must agree to the bit (the fields' target in 2-D, the planar one in 1-D).
+    rng = np.random.default_rng(11)
+    m, v = (jnp.asarray(rng.normal(size=shape), jnp.float32) for _ in range(2))
+    g = jnp.asarray(rng.normal(size=shape[: len(axes)] + (2,)), jnp.float32)
+    g = g.at[3, 1].set(jnp.nan) if len(axes) == 2 else g.at[3].set(jnp.nan)
+    run = functools.partial(
+        atrous_bilateral, guide=g, sigma_d=0.4, spatial_axes=axes, guide_axes=axes, kernel="native"
+    )
+    whole = run((m, v), levels=5)
+    continued = run(run((m, v), levels=3), levels=5, first_level=3)
+    for a, b in zip(whole, continued):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 # Shapes from a small set (each compiles a program), data drawn freely.
 SHAPES = [(23,), (6, 7), (17, 5), (4, 3, 5)]
 

@@ -43,6 +43,7 @@ from optax_bilateral._src.filter.local import (
     correlation_sums,
     every,
     local_average_subgrid,
+    runs_native,
     subgrid_blend,
     texel_distance_mean,
     texel_norm,
@@ -242,11 +243,17 @@ class Auto(SigmaRule):
     def _cascade(self, op, moments, sigma, heavy):
         """``(B m, B v)`` at ``sigma``; where the noise is correlated (``heavy``, a traced
         bool), :attr:`heavy_levels` more levels after the plan's F."""
-        out = op.apply((moments.m, moments.v), sigma)
+        fields = (moments.m, moments.v)
         extra = self.heavy_levels[len(op.plan.axes) - 1] if op.plan.one_operator else 0
         if not extra:
-            return out
+            return op.apply(fields, sigma)
         levels = op.plan.levels
+        if runs_native(moments.m):
+            # Each way its own cascade from the moments: neither passes its input through, so
+            # XLA gives the kernel's outputs to the conditional's without copies.
+            more = lambda: op.apply(fields, sigma, levels=levels + extra)
+            return lax.cond(heavy, more, lambda: op.apply(fields, sigma))
+        out = op.apply(fields, sigma)
         more = lambda: op.apply(out, sigma, levels=levels + extra, first_level=levels)
         return lax.cond(heavy, more, lambda: out)
 
