@@ -161,26 +161,26 @@ def filter_fields(
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5))
 def _fields_cascade(fields, g, valid, sigma, levels, start):
-    shape = g.shape[1:]
-    points = math.prod(shape)
-    flat = [f.reshape(points, -1) for f in fields]
+    # The fields and outputs in their own shapes (the call reads each as (points, c_k) from its
+    # element count): a reshape around the call would let XLA pick a layout for the outputs
+    # that the code after it then copies back.
     dtype = g.dtype
     call = jax.ffi.ffi_call(
         FIELDS_TARGET,
-        tuple(jax.ShapeDtypeStruct(f.shape, dtype) for f in flat),
+        tuple(jax.ShapeDtypeStruct(f.shape, dtype) for f in fields),
         vmap_method="sequential",
     )
     outs = call(
         g,
         jnp.zeros((0,), dtype) if valid is None else valid.astype(dtype),
         jnp.asarray(sigma, dtype).reshape(()),
-        *flat,
+        *fields,
         levels=np.int64(levels),
         start=np.int64(start),
         has_valid=valid is not None,
         threads=np.int64(threads()),
     )
-    return tuple(o.reshape(f.shape) for o, f in zip(outs, fields))
+    return tuple(outs)
 
 
 @_fields_cascade.defjvp
