@@ -129,6 +129,31 @@ def test_a_sparse_leaf_runs_sparse_levels_more_levels():
     np.testing.assert_allclose(np.asarray(b)[moved] / np.asarray(wide)[moved], 8.0, rtol=1e-4)
 
 
+@pytest.mark.parametrize("wide", [False, True])
+def test_a_widened_cascade_and_more_levels_continue_the_widened_one(wide):
+    # "auto"'s correlated-noise way asks for F + k levels at once on the native kernel
+    # (rules/auto.py, Auto._cascade); on a sparse leaf that must stay the widened cascade
+    # continued from level F, as the way's continuation elsewhere, to the bit.
+    from optax_bilateral._src.filter import operators
+    from optax_bilateral._src.rules import sparse
+
+    rng = np.random.default_rng(3)
+    m, v = (jnp.asarray(rng.normal(size=(40, 36, 3)), jnp.float32) for _ in range(2))
+    guide = jnp.asarray(rng.normal(size=(40, 36, 3)), jnp.float32)
+    plan = operators.FilterPlan((0, 1), 3, True, False, False)
+    base = operators.CrossGuided(plan, guide)
+    op = sparse._Widened(base, 1, jnp.asarray(wide))
+    widened = op.apply((m, v), 0.4)
+    want = base.apply(widened, 0.4, levels=5, first_level=3)
+    got = op.apply((m, v), 0.4, levels=5)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # A part the caller chose runs as asked.
+    part = op.apply((m, v), 0.4, levels=2)
+    for a, b in zip(part, base.apply((m, v), 0.4, levels=2)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_a_leaf_above_sparse_below_keeps_its_levels():
     params = jax.random.uniform(jax.random.PRNGKey(1), (32, 32, 3))
     g = _sparse_grad(params.shape, 2)  # a quarter of the texels: at sparse_below

@@ -152,12 +152,18 @@ class _Widened:
         return self.op.plan
 
     def apply(self, fields, sigma, levels=None, first_level=0):
-        out = self.op.apply(fields, sigma, levels, first_level)
-        if levels is not None:  # a part of the cascade that the caller chose
-            return out
         f = self.op.plan.levels
+        whole = levels is None or (first_level == 0 and levels > f)
+        if not whole:  # a part of the cascade that the caller chose
+            return self.op.apply(fields, sigma, levels, first_level)
+        out = self.op.apply(fields, sigma)
         more = lambda: self.op.apply(out, sigma, levels=f + self.extra, first_level=f)
-        return lax.cond(self.wide, more, lambda: out)
+        out = lax.cond(self.wide, more, lambda: out)
+        if levels is None:
+            return out
+        # The whole cascade and more ("auto"'s heavy way on the native kernel): the widened
+        # cascade, continued from level F, as that way's continuation does elsewhere.
+        return self.op.apply(out, sigma, levels=levels, first_level=f)
 
 
 def _boosted(way, *, boost, covered) -> Filtered:
