@@ -9,6 +9,9 @@ namespace optax_bilateral {
 namespace {
 
 constexpr int kRadius = 2;
+// Below this many entries per step along the axis, a pass sums entry by entry (a loop over so
+// few would cost more than its arithmetic); from it on, whole rows at once, vectorised.
+constexpr int64_t kShortRows = 8;
 constexpr double kTaps[2 * kRadius + 1] = {1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16};
 
 int64_t kept(int64_t n, int64_t stride) { return (n - 1) / stride + 1; }
@@ -30,24 +33,66 @@ int64_t count(const std::vector<int64_t>& shape) {
   return n;
 }
 
-// One pass along the middle axis of x (outer, n, inner) into out (outer, kept, inner).
+// Entry i's taps on the grid, k in [lo, hi), and their sum.
+struct Taps {
+  int lo, hi;
+  double norm;
+};
+
+Taps taps_at(int64_t centre, int64_t n) {
+  Taps t{static_cast<int>(std::max<int64_t>(0, kRadius - centre)),
+         static_cast<int>(std::min<int64_t>(2 * kRadius + 1, n - centre + kRadius)), 0.0};
+  for (int k = t.lo; k < t.hi; ++k) t.norm += kTaps[k];
+  return t;
+}
+
+// One pass along the middle axis of x (outer, n, inner) into out (outer, kept, inner); each
+// entry's sum in the same order (k ascending) either way.
 template <typename T>
 void pass(const T* x, T* out, int64_t outer, int64_t n, int64_t inner, int64_t stride) {
   const int64_t m = kept(n, stride);
+  if (inner < kShortRows) {  // the last axes: one sum per entry, row by row
+    std::vector<Taps> at(static_cast<size_t>(m));
+    for (int64_t i = 0; i < m; ++i) at[static_cast<size_t>(i)] = taps_at(stride * i, n);
+    T h[2 * kRadius + 1];
+    for (int k = 0; k <= 2 * kRadius; ++k) h[k] = static_cast<T>(kTaps[k]);
+    // With stride 1 the entries whose taps all fall on the grid are one contiguous run [lo, hi).
+    const int64_t lo = stride == 1 ? std::min<int64_t>(kRadius, m) : m;
+    const int64_t hi = stride == 1 ? std::max<int64_t>(lo, m - kRadius) : m;
+    for (int64_t o = 0; o < outer; ++o) {
+      const T* row = x + o * n * inner;
+      T* dst = out + o * m * inner;
+      auto entry = [&](int64_t i) {
+        const Taps& t = at[static_cast<size_t>(i)];
+        const int64_t first = stride * i - kRadius;  // + k >= 0 for k >= t.lo
+        for (int64_t q = 0; q < inner; ++q) {
+          T sum = T(0);
+          for (int k = t.lo; k < t.hi; ++k) sum += h[k] * row[(first + k) * inner + q];
+          dst[i * inner + q] = sum / static_cast<T>(t.norm);
+        }
+      };
+      for (int64_t i = 0; i < lo; ++i) entry(i);
+      if (hi > lo) {
+        const T norm = static_cast<T>(at[static_cast<size_t>(lo)].norm);
+        for (int64_t j = lo * inner; j < hi * inner; ++j) {
+          T sum = T(0);
+          for (int k = 0; k <= 2 * kRadius; ++k) sum += h[k] * row[j + (k - kRadius) * inner];
+          dst[j] = sum / norm;
+        }
+      }
+      for (int64_t i = hi; i < m; ++i) entry(i);
+    }
+    return;
+  }
   for (int64_t i = 0; i < m; ++i) {
-    // The taps of entry i that fall on the grid: k in [lo, hi).
-    const int64_t centre = stride * i;
-    const int lo = static_cast<int>(std::max<int64_t>(0, kRadius - centre));
-    const int hi = static_cast<int>(std::min<int64_t>(2 * kRadius + 1, n - centre + kRadius));
-    double norm = 0;
-    for (int k = lo; k < hi; ++k) norm += kTaps[k];
-    const T scale = static_cast<T>(norm);
+    const Taps t = taps_at(stride * i, n);
+    const T scale = static_cast<T>(t.norm);
     for (int64_t o = 0; o < outer; ++o) {
       T* dst = out + (o * m + i) * inner;
       for (int64_t q = 0; q < inner; ++q) dst[q] = T(0);
-      for (int k = lo; k < hi; ++k) {
+      for (int k = t.lo; k < t.hi; ++k) {
         const T h = static_cast<T>(kTaps[k]);
-        const T* row = x + (o * n + centre + k - kRadius) * inner;
+        const T* row = x + (o * n + stride * i + k - kRadius) * inner;
         for (int64_t q = 0; q < inner; ++q) dst[q] += h * row[q];
       }
       for (int64_t q = 0; q < inner; ++q) dst[q] /= scale;
