@@ -24,8 +24,9 @@ from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
+from jax.experimental.layout import Layout, with_layout_constraint
 
-from optax_bilateral._src.filter import layout
+from optax_bilateral._src.filter import layout, sharded
 from optax_bilateral._src.filter.front import atrous_bilateral
 
 # A field's sigma_d: a scalar, or (a self-guided operator) a function of the field.
@@ -67,11 +68,13 @@ class Operator(Protocol):
 @dataclasses.dataclass(frozen=True)
 class CrossGuided:
     """The cross-bilateral operator: weights from ``guide`` (NaN at unobserved texels, or
-    ``mask`` where it cannot hold NaN)."""
+    ``mask`` where it cannot hold NaN), whose spatial axes are ``guide_axes`` (None: the
+    plan's)."""
 
     plan: FilterPlan
     guide: jax.Array
     mask: jax.Array | None = None
+    guide_axes: tuple[int, ...] | None = None
 
     def apply(self, fields, sigma, levels=None, first_level=0):
         return atrous_bilateral(
@@ -82,6 +85,7 @@ class CrossGuided:
             spatial_axes=self.plan.axes,
             separable=self.plan.separable,
             mask=self.mask,
+            guide_axes=self.guide_axes,
             first_level=first_level,
         )
 
@@ -125,7 +129,14 @@ def operator(plan: FilterPlan, guide: jax.Array | None, observed: jax.Array) -> 
     nan_guide = nan_guide_at(guide, observed, plan.axes)
     if nan_guide is None:
         return CrossGuided(plan, jnp.asarray(guide), observed)
-    return CrossGuided(plan, nan_guide)
+    if sharded.is_split(nan_guide):
+        return CrossGuided(plan, nan_guide)
+    # In the kernels' layout once, (G, *spatial) row-major: not again inside each branch of a
+    # rule's conditional cascade, where the copy would live beside the cascade's outputs.
+    axes = plan.axes if nan_guide.ndim > len(plan.axes) else tuple(range(nan_guide.ndim))
+    planes = layout.guide_planes(nan_guide, axes, nan_guide.dtype, observed.shape)
+    planes = with_layout_constraint(planes, Layout(tuple(range(planes.ndim))))
+    return CrossGuided(plan, planes, guide_axes=tuple(range(1, planes.ndim)))
 
 
 def nan_guide_at(guide, observed, axes):
