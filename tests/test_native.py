@@ -412,6 +412,45 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
     np.testing.assert_allclose(slices, local._native_taps(x, (0, 1), 2), rtol=RTOL, atol=ATOL)
 
 
+@pytest.mark.parametrize("shape, conds", [((40, 40, 3), 1), ((12, 12, 12, 1), 0)])
+def test_the_defaults_statistics_run_without_conditionals_where_they_are_native(
+    shape, conds, monkeypatch
+):
+    # On the native kernel "auto"'s statistics (the contrast, the correlated-noise check, the
+    # blend) run at every step and a select keeps what the step uses; one way filters and
+    # blends or not, so the update holds one conditional in 2-D (the correlated noise's more
+    # levels) and none in 3-D (no more levels there). The pure-JAX kernels keep a conditional
+    # around each statistic, whose slices would cost full-size passes at every step.
+    import optax_bilateral as ob
+
+    x = jnp.ones(shape)
+    opt = ob.bilateral_adam(0.02)
+    state = opt.init(x)
+
+    def conditionals():
+        jaxpr = jax.make_jaxpr(opt.update)(x, state, x).jaxpr
+        return sum(e.primitive.name == "cond" for e in _all_eqns(jaxpr))
+
+    assert conditionals() == conds
+    monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
+    jax.clear_caches()
+    try:
+        assert conditionals() == conds + 3
+    finally:
+        monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
+        jax.clear_caches()
+
+
+def _all_eqns(jaxpr):
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for v in eqn.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                sub = getattr(sub, "jaxpr", sub)
+                if hasattr(sub, "eqns"):
+                    yield from _all_eqns(sub)
+
+
 # The sigma_d rules' texel statistics (csrc/stats.h): the guide's step and contrast, one call.
 
 

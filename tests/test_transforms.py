@@ -531,7 +531,7 @@ def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d
     """Clean and unobserved texels take one path (a NaN guide leaves the unobserved out), so
     a fixed sigma_d's update holds one cascade of F levels per transform: no second copy in a
     branch, which would double the compile time. ``"auto"``'s postfilter holds one cascade for
-    every way it may filter (``Auto.combine``: plain and blending differ after it), plus, in
+    the step, blended or not (``Auto.combine``: the blend is taken after it), plus, in
     2-D, the correlated-noise step's one more level (a cascade of F + 1 levels in that way
     where the native kernel runs: one call either way, and no copy of the first cascade's
     output into the branch's); its statistics run no filter level."""

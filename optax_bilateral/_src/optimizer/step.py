@@ -108,22 +108,36 @@ def postfilter_leaf(
         op = operators.operator(plan.filter, guide, cast(jax.Array, observed.texels))
         sigma, state = rule.sigma(guide, plan.filter, state, ctx)
         index, ways = rule.combine(Moments(m, v, g_obs, observed.entries), op, sigma, state, ctx)
+        sample = rule.step_sample(plan.filter)
 
         def finish(way):
             f = way()
-            m_t, v_t = blend(f.lam, m, f.m), blend(f.lam, v, f.v)
-            d = bounded_step(m_t, v_t, v, observed, adam, ctx, plan.uniform)
-            return d.astype(g.dtype), f.state
+
+            def step_at(at):  # the step at the entries `at` selects from leaf-shaped arrays
+                lam = None if f.lam is None else at(f.lam)
+                m_t = blend(lam, at(m), at(f.m), f.blends)
+                v_t = blend(lam, at(v), at(f.v), f.blends)
+                obs = Observed(None, at(observed.entries))
+                d = bounded_step(m_t, v_t, at(v), obs, adam, ctx, plan.uniform)
+                return rule.guard(d.astype(g.dtype), sigma)
+
+            d = step_at(_whole)
+            # The rule reads the step at its own sample, computed there: the whole step then has
+            # one reader, the learning rate, which XLA fuses into it (no full-size temporary).
+            seen = d if sample is None else sample(d) if plan.uniform else step_at(sample)
+            return d, rule.after_step(seen, f.state, plan.filter)
 
         if index is None:
             d, state = finish(*ways)
         else:  # a branch each: the filter's last pass stays fused into its step
             d, state = lax.switch(index, [functools.partial(finish, w) for w in ways])
-        d = rule.guard(d, sigma)
-        state = rule.after_step(d, state, plan.filter)
     if moments is None:
         return d, None, state
     return d, (m.astype(moments[0].dtype), v.astype(moments[1].dtype)), state
+
+
+def _whole(x):
+    return x
 
 
 @functools.partial(jax.jit, static_argnames=("plan",), inline=True)

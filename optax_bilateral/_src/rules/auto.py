@@ -220,25 +220,24 @@ class Auto(SigmaRule):
             learned = learned._replace(correlated=correlated)
             heavy = state.correlated > 0
             sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
-        # One cascade for both ways: the ways differ only in the blend after it.
         m_f, v_f = self._cascade(op, moments, sigma, heavy)
         residual = update_residual(self, moments, m_f, state.residual, ctx.c1, axes)
         learned = learned._replace(residual=residual)
-        # The blend's statistics once, for both ways: the gate's check and the blend.
-        lam, gate = lax.cond(
+        # The blend's statistics (at a CHECK step, the gate's check alone).
+        lam, gate = _either(
             (phase != SKIP) & ~heavy,
             functools.partial(blend_weights, self, moments, residual, ctx, axes),
             functools.partial(_no_weights, self, moments.m, axes),
+            both=runs_native(moments.m),
         )
-
-        def plain():  # no blend; at a CHECK step the gate's check alone
-            return Filtered(m_f, v_f, None, cast_like(learned._replace(gate=gate), state))
-
-        def blended():
-            up = upsample(self, lam, moments.m.shape, axes)
-            return Filtered(m_f, v_f, up, cast_like(learned._replace(gate=gate), state))
-
-        return ((phase == BLEND) & ~heavy).astype(jnp.int32), (plain, blended)
+        f = Filtered(
+            m_f,
+            v_f,
+            upsample(self, lam, moments.m.shape, axes),
+            cast_like(learned._replace(gate=gate), state),
+            blends=(phase == BLEND) & ~heavy,
+        )
+        return None, (lambda: f,)
 
     def _cascade(self, op, moments, sigma, heavy):
         """``(B m, B v)`` at ``sigma``; where the noise is correlated (``heavy``, a traced
@@ -249,18 +248,21 @@ class Auto(SigmaRule):
             return op.apply(fields, sigma)
         levels = op.plan.levels
         if runs_native(moments.m):
-            # Each way its own cascade from the moments: neither passes its input through, so
-            # XLA gives the kernel's outputs to the conditional's without copies.
+            # Each branch its own cascade from the moments: neither passes its input through,
+            # so XLA gives the kernel's outputs to the conditional's without copies.
             more = lambda: op.apply(fields, sigma, levels=levels + extra)
             return lax.cond(heavy, more, lambda: op.apply(fields, sigma))
         out = op.apply(fields, sigma)
         more = lambda: op.apply(out, sigma, levels=levels + extra, first_level=levels)
         return lax.cond(heavy, more, lambda: out)
 
+    def step_sample(self, plan):
+        return functools.partial(self._subgrid, axes=plan.axes)
+
     def after_step(self, d, state, plan):
         if state is None or state.direction is None:
             return state
-        direction = _direction_norm(d, plan.axes, self)
+        direction = jnp.mean(texel_norm(d, plan.axes))  # d: the step at the sub-grid
         return state._replace(direction=direction.astype(state.direction.dtype))
 
     # ------------------------------------------------------------------ the parts
@@ -292,7 +294,7 @@ class Auto(SigmaRule):
         stored = lambda: state.correlated.astype(m.dtype)
         count = ctx.count
         first = count == FIRST_NOISE_STEP
-        return lax.cond(first | (count % self.check_period == 0), check, stored)
+        return _either(first | (count % self.check_period == 0), check, stored, both=runs_native(m))
 
     # ------------------------------------------------------------------ statistics
 
@@ -333,11 +335,12 @@ class Auto(SigmaRule):
             rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
             scale = self.rate_factor * math.sqrt(channels) * rate
             moved = moved & (direction > 0)
-        # The contrast costs a filter pass; only the first step (or a guide at rest) needs it.
-        return lax.cond(
+        # Only the first step (or a guide at rest) needs the contrast.
+        return _either(
             moved,
             lambda: scale,
             lambda: (self.contrast_factor * self._contrast(guide, axes)).astype(step.dtype),
+            both=runs_native(guide),
         )
 
     def _correlated_noise(self, moments, axes, ctx) -> jax.Array:
@@ -471,12 +474,6 @@ def _guide_axes(guide: jax.Array, axes: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(range(guide.ndim)) if guide.ndim == len(axes) else axes
 
 
-def _direction_norm(d: jax.Array, axes: tuple[int, ...], rule: Auto) -> jax.Array:
-    """The mean norm per texel of a step's direction (:attr:`AutoState.direction`), over the
-    same sub-grid as the guide's step; ``d`` is finite (unobserved entries step by 0)."""
-    return jnp.mean(texel_norm(rule._subgrid(d, axes), axes))
-
-
 def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:
     """Var of a bias-corrected EMA (decay ``b``, ``c = 1 - b^t``) per unit sample variance:
     ``(1-b)(1-b^2t) / ((1+b)(1-b^t)^2)``, with ``1 - b^2t = c (2 - c)``."""
@@ -488,3 +485,13 @@ def noise_ratio(b1: jax.Array, c1: jax.Array, count: jax.Array) -> tuple[jax.Arr
     can be told from the signal (the step has memory: ``t > 1``, ``b1 > 0``)."""
     ratio = _ema_variance_ratio(b1, c1)
     return ratio, (count > 1) & (ratio < 1 - MEMORY_EPS)
+
+
+def _either(pred, on_true, on_false, *, both: bool):
+    """``on_true()`` where ``pred``, else ``on_false()``. ``both``: both computed and one
+    selected, no ``lax.cond`` (the native statistics read a sub-grid in microseconds; a
+    conditional costs XLA kernels to compile and copies of the full-size fields it passes
+    into its branches); else a ``lax.cond`` (the JAX forms' slices cost full-size passes)."""
+    if not both:
+        return lax.cond(pred, on_true, on_false)
+    return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true(), on_false())

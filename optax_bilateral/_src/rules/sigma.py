@@ -11,7 +11,8 @@ in this order, for
   ``lam`` of a per-entry blend with the unfiltered ones, :func:`blend`) and which one it
   takes; the step compiles each way with its own bounded step (so the filter's last pass
   fuses into it) and runs the one chosen;
-* ``after_step``: the state with what the step taught it (a postfilter).
+* ``after_step``: the state with what the step taught it (a postfilter), read at the entries
+  ``step_sample`` selects.
 
 Two declarations are read once, when a transform is built: ``default_levels`` (the leaf's
 F when the transform's ``levels`` is None) and ``check`` (whether the rule can run in a
@@ -27,9 +28,11 @@ another object (and another compiled step), never a module global. A new rule su
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Literal, NamedTuple
 
 import jax
+import jax.numpy as jnp
 
 from optax_bilateral._src.filter import operators
 
@@ -68,13 +71,17 @@ class Moments(NamedTuple):
 
 class Filtered(NamedTuple):
     """One way a postfilter step filters the moments: ``B m``, ``B v``, the blend's weight of
-    the unfiltered moments (an array like ``m``, or None for no blend; :func:`blend`), and
-    the rule's state after it."""
+    the unfiltered moments (an array like ``m``, or None for no blend; :func:`blend`), the
+    rule's state after it, and where the blend is taken (a traced bool: where False, ``B m``
+    and ``B v`` unblended; None: wherever ``lam`` is given). One way whose blend is taken or
+    not costs the step one kernel where two ways in a switch cost two, and each way's output
+    a buffer of its own."""
 
     m: jax.Array
     v: jax.Array
     lam: jax.Array | None
     state: Any
+    blends: jax.Array | None = None
 
 
 class SigmaRule:
@@ -135,8 +142,17 @@ class SigmaRule:
 
         return None, (filtered,)
 
+    def step_sample(self, plan) -> Callable[[jax.Array], jax.Array] | None:
+        """The entries of the step that :meth:`after_step` reads: a function that selects them
+        from any leaf-shaped (or broadcastable) array, or None for the whole step. The step is
+        then computed there a second time, so the whole one is read by the learning rate
+        alone."""
+        del plan
+        return None
+
     def after_step(self, d: jax.Array, state, plan) -> Any:
-        """The state with what the step ``d`` (its direction, before the learning rate) taught."""
+        """The state with what the step ``d`` (its direction, before the learning rate, at
+        :meth:`step_sample`'s entries) taught."""
         del d, plan
         return state
 
@@ -146,10 +162,16 @@ class SigmaRule:
         return out
 
 
-def blend(lam: jax.Array | None, x: jax.Array, bx: jax.Array) -> jax.Array:
-    """``lam x + (1 - lam) B x`` (``B x`` where ``lam`` is None): with one ``lam`` for ``m`` and
-    ``v``, one non-negative, row-stochastic operator for both (supplement §1.3)."""
-    return bx if lam is None else lam * x + (1 - lam) * bx
+def blend(
+    lam: jax.Array | None, x: jax.Array, bx: jax.Array, blends: jax.Array | None = None
+) -> jax.Array:
+    """``lam x + (1 - lam) B x`` (``B x`` where ``lam`` is None, or where ``blends`` is False):
+    with one ``lam`` for ``m`` and ``v``, one non-negative, row-stochastic operator for both
+    (supplement §1.3)."""
+    if lam is None:
+        return bx
+    out = lam * x + (1 - lam) * bx
+    return out if blends is None else jnp.where(blends, out, bx)
 
 
 def cast_like(state: Any, like: Any) -> Any:

@@ -131,6 +131,9 @@ class Sparse(SigmaRule):
         wrap = functools.partial(_boosted, boost=boost, covered=cov.state)
         return index, tuple(functools.partial(wrap, w) for w in ways)
 
+    def step_sample(self, plan):
+        return self.auto.step_sample(plan)
+
     def after_step(self, d, state, plan):
         return state._replace(auto=self.auto.after_step(d, state.auto, plan))
 
@@ -170,5 +173,4 @@ def _boosted(way, *, boost, covered) -> Filtered:
     """``way``'s :class:`Filtered` with ``B m`` multiplied by ``boost`` and the coverage's new
     state in the rule's."""
     f = way()
-    m = f.m * boost.astype(f.m.dtype)
-    return Filtered(m, f.v, f.lam, SparseState(f.state, covered))
+    return f._replace(m=f.m * boost.astype(f.m.dtype), state=SparseState(f.state, covered))
