@@ -2,6 +2,8 @@
 #include "local.h"
 
 #include <algorithm>
+#include <cmath>
+#include <limits>
 #include <set>
 
 namespace optax_bilateral {
@@ -33,6 +35,15 @@ int64_t count(const std::vector<int64_t>& shape) {
   return n;
 }
 
+// x as numpy.nan_to_num reads it: NaN as 0, an infinity as the largest finite value of its sign.
+template <typename T>
+T finite(T v) {
+  if (std::isnan(v)) return T(0);
+  if (std::isinf(v))
+    return v > T(0) ? std::numeric_limits<T>::max() : std::numeric_limits<T>::lowest();
+  return v;
+}
+
 // Entry i's taps on the grid, k in [lo, hi), and their sum.
 struct Taps {
   int lo, hi;
@@ -48,8 +59,9 @@ Taps taps_at(int64_t centre, int64_t n) {
 
 // One pass along the middle axis of x (outer, n, inner) into out (outer, kept, inner); each
 // entry's sum in the same order (k ascending) either way.
-template <typename T>
+template <typename T, bool Finite>
 void pass(const T* x, T* out, int64_t outer, int64_t n, int64_t inner, int64_t stride) {
+  const auto load = [x](int64_t i) { return Finite ? finite(x[i]) : x[i]; };
   const int64_t m = kept(n, stride);
   if (inner < kShortRows) {  // the last axes: one sum per entry, row by row
     std::vector<Taps> at(static_cast<size_t>(m));
@@ -60,14 +72,14 @@ void pass(const T* x, T* out, int64_t outer, int64_t n, int64_t inner, int64_t s
     const int64_t lo = stride == 1 ? std::min<int64_t>(kRadius, m) : m;
     const int64_t hi = stride == 1 ? std::max<int64_t>(lo, m - kRadius) : m;
     for (int64_t o = 0; o < outer; ++o) {
-      const T* row = x + o * n * inner;
+      const int64_t row = o * n * inner;
       T* dst = out + o * m * inner;
       auto entry = [&](int64_t i) {
         const Taps& t = at[static_cast<size_t>(i)];
         const int64_t first = stride * i - kRadius;  // + k >= 0 for k >= t.lo
         for (int64_t q = 0; q < inner; ++q) {
           T sum = T(0);
-          for (int k = t.lo; k < t.hi; ++k) sum += h[k] * row[(first + k) * inner + q];
+          for (int k = t.lo; k < t.hi; ++k) sum += h[k] * load(row + (first + k) * inner + q);
           dst[i * inner + q] = sum / static_cast<T>(t.norm);
         }
       };
@@ -76,7 +88,7 @@ void pass(const T* x, T* out, int64_t outer, int64_t n, int64_t inner, int64_t s
         const T norm = static_cast<T>(at[static_cast<size_t>(lo)].norm);
         for (int64_t j = lo * inner; j < hi * inner; ++j) {
           T sum = T(0);
-          for (int k = 0; k <= 2 * kRadius; ++k) sum += h[k] * row[j + (k - kRadius) * inner];
+          for (int k = 0; k <= 2 * kRadius; ++k) sum += h[k] * load(row + j + (k - kRadius) * inner);
           dst[j] = sum / norm;
         }
       }
@@ -92,8 +104,8 @@ void pass(const T* x, T* out, int64_t outer, int64_t n, int64_t inner, int64_t s
       for (int64_t q = 0; q < inner; ++q) dst[q] = T(0);
       for (int k = t.lo; k < t.hi; ++k) {
         const T h = static_cast<T>(kTaps[k]);
-        const T* row = x + (o * n + stride * i + k - kRadius) * inner;
-        for (int64_t q = 0; q < inner; ++q) dst[q] += h * row[q];
+        const int64_t row = (o * n + stride * i + k - kRadius) * inner;
+        for (int64_t q = 0; q < inner; ++q) dst[q] += h * load(row + q);
       }
       for (int64_t q = 0; q < inner; ++q) dst[q] /= scale;
     }
@@ -101,7 +113,7 @@ void pass(const T* x, T* out, int64_t outer, int64_t n, int64_t inner, int64_t s
 }
 
 template <typename T>
-void run(const Subgrid& s, const T* x, T* out, T* work) {
+void run(const Subgrid& s, const T* x, T* out, T* work, Read read) {
   const auto shapes = shapes_of(s);
   const size_t passes = s.axes.size();
   // Passes between the first and the last alternate between two regions of `work`.
@@ -114,10 +126,14 @@ void run(const Subgrid& s, const T* x, T* out, T* work) {
     for (size_t d = 0; d < a; ++d) outer *= shape[d];
     for (size_t d = a + 1; d < shape.size(); ++d) inner *= shape[d];
     T* dst = p + 1 == passes ? out : regions[p % 2];
-    pass(src, dst, outer, shape[a], inner, s.stride);
+    if (p == 0 && read == Read::kFinite)
+      pass<T, true>(src, dst, outer, shape[a], inner, s.stride);
+    else
+      pass<T, false>(src, dst, outer, shape[a], inner, s.stride);
     src = dst;
   }
-  if (passes == 0) std::copy(x, x + count(s.shape), out);
+  for (int64_t i = 0; passes == 0 && i < count(s.shape); ++i)
+    out[i] = read == Read::kFinite ? finite(x[i]) : x[i];
 }
 
 }  // namespace
@@ -145,12 +161,12 @@ int64_t subgrid_work_size(const Subgrid& s) {
   return count(shapes[1]) + (passes > 2 ? count(shapes[2]) : 0);
 }
 
-void subgrid_average(const Subgrid& s, const float* x, float* out, float* work) {
-  run(s, x, out, work);
+void subgrid_average(const Subgrid& s, const float* x, float* out, float* work, Read read) {
+  run(s, x, out, work, read);
 }
 
-void subgrid_average(const Subgrid& s, const double* x, double* out, double* work) {
-  run(s, x, out, work);
+void subgrid_average(const Subgrid& s, const double* x, double* out, double* work, Read read) {
+  run(s, x, out, work, read);
 }
 
 }  // namespace optax_bilateral

@@ -29,8 +29,14 @@ int64_t subgrid_size(const Subgrid& s);
 // The scratch the passes between the first and the last need, in elements (0 for one axis).
 int64_t subgrid_work_size(const Subgrid& s);
 
+// How the first pass reads x: as it is, or as numpy.nan_to_num would make it (NaN as 0, an
+// infinity as the largest finite value of its sign), with no copy of it.
+enum class Read { kAsIs, kFinite };
+
 // out <- the averages of x; `work` holds subgrid_work_size elements (may be null when 0).
-void subgrid_average(const Subgrid& s, const float* x, float* out, float* work);
-void subgrid_average(const Subgrid& s, const double* x, double* out, double* work);
+void subgrid_average(const Subgrid& s, const float* x, float* out, float* work,
+                     Read read = Read::kAsIs);
+void subgrid_average(const Subgrid& s, const double* x, double* out, double* work,
+                     Read read = Read::kAsIs);
 
 }  // namespace optax_bilateral

@@ -207,10 +207,12 @@ ob::Subgrid subgrid_of(const ffi::AnyBuffer& x, ffi::Span<const int64_t> axes, i
   return g;
 }
 
-// x (*shape) -> its local averages at every `stride`-th entry along `axes` (local.h).
+// x (*shape) -> its local averages at every `stride`-th entry along `axes` (local.h); `finite`:
+// x read as numpy.nan_to_num makes it.
 ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
                          ffi::Result<ffi::AnyBuffer> work, ffi::Span<const int64_t> axes,
-                         int64_t stride) {
+                         int64_t stride, bool finite) {
+  const ob::Read read = finite ? ob::Read::kFinite : ob::Read::kAsIs;
   const ob::Subgrid s = subgrid_of(x, axes, stride);
   const std::string problem = ob::check_subgrid(s);
   if (!problem.empty()) return invalid(problem);
@@ -225,12 +227,12 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
     case ffi::DataType::F32:
       ob::subgrid_average(s, static_cast<const float*>(x.untyped_data()),
                           static_cast<float*>(out->untyped_data()),
-                          static_cast<float*>(work->untyped_data()));
+                          static_cast<float*>(work->untyped_data()), read);
       return ffi::Error::Success();
     case ffi::DataType::F64:
       ob::subgrid_average(s, static_cast<const double*>(x.untyped_data()),
                           static_cast<double*>(out->untyped_data()),
-                          static_cast<double*>(work->untyped_data()));
+                          static_cast<double*>(work->untyped_data()), read);
       return ffi::Error::Success();
     default:
       return invalid("the local average takes float32 or float64");
@@ -265,13 +267,27 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<f
   }
 }
 
-// The correlated-noise check's sums of z and y (stats.h), (3 pairs + 2) of z's dtype.
-ffi::Error correlation_sums(ffi::AnyBuffer z, ffi::AnyBuffer y, ffi::Result<ffi::AnyBuffer> out,
+template <typename T>
+void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
+                       ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
+                       ffi::AnyBuffer c1, double* sums) {
+  const auto od = observed.dimensions();
+  const ob::Noise<T> noise{static_cast<const T*>(grad.untyped_data()),
+                           static_cast<const T*>(m.untyped_data()),
+                           static_cast<const bool*>(observed.untyped_data()),
+                           std::vector<int64_t>(od.begin(), od.end()),
+                           *static_cast<const T*>(c1.untyped_data())};
+  ob::correlation_sums(g, pairs, noise, sums);
+}
+
+// The correlated-noise check's sums (stats.h), (3 pairs + 2) of grad's dtype, of
+// z = grad - m / c1 and y = m / c1 where observed (a bool mask, broadcast), else 0.
+ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
+                            ffi::AnyBuffer c1, ffi::Result<ffi::AnyBuffer> out,
                             ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
                             int64_t stride) {
-  const ob::Subgrid g = subgrid_of(z, axes, stride);
+  const ob::Subgrid g = subgrid_of(grad, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
-  const auto dims = z.dimensions();
   if (!problem.empty()) return invalid(problem);
   std::vector<int64_t> pairs(pair_axes.begin(), pair_axes.end());
   for (size_t k = 0; k < pairs.size(); ++k) {
@@ -280,25 +296,31 @@ ffi::Error correlation_sums(ffi::AnyBuffer z, ffi::AnyBuffer y, ffi::Result<ffi:
             pairs.begin() + static_cast<std::ptrdiff_t>(k))
       return invalid("each pair axis must be a spatial axis, named once");
   }
-  const auto type = z.element_type();
-  const auto yd = y.dimensions();
-  if (y.element_type() != type || !std::equal(dims.begin(), dims.end(), yd.begin(), yd.end()))
-    return invalid("z and y must share their shape and dtype");
+  const auto type = grad.element_type();
+  const auto dims = grad.dimensions(), md = m.dimensions();
+  if (m.element_type() != type || !std::equal(dims.begin(), dims.end(), md.begin(), md.end()))
+    return invalid("grad and m must share their shape and dtype");
+  if (observed.element_type() != ffi::DataType::PRED)
+    return invalid("observed must be a bool mask");
+  const auto od = observed.dimensions();
+  const std::string mask_problem =
+      ob::check_noise_mask(g, std::vector<int64_t>(od.begin(), od.end()));
+  if (!mask_problem.empty()) return invalid(mask_problem);
+  if (c1.element_type() != type || c1.element_count() != 1)
+    return invalid("c1 must be a scalar of grad's dtype");
   if (out->element_type() != type || out->element_count() != 3 * pairs.size() + 2)
-    return invalid("the sums are (3 pair axes + 2) of z's dtype");
+    return invalid("the sums are (3 pair axes + 2) of grad's dtype");
   std::vector<double> sums(3 * pairs.size() + 2);
   switch (type) {
     case ffi::DataType::F32: {
-      ob::correlation_sums(g, pairs, static_cast<const float*>(z.untyped_data()),
-                           static_cast<const float*>(y.untyped_data()), sums.data());
+      correlation_typed<float>(g, pairs, grad, m, observed, c1, sums.data());
       auto* o = static_cast<float*>(out->untyped_data());
       for (size_t k = 0; k < sums.size(); ++k) o[k] = static_cast<float>(sums[k]);
       return ffi::Error::Success();
     }
     case ffi::DataType::F64:
-      ob::correlation_sums(g, pairs, static_cast<const double*>(z.untyped_data()),
-                           static_cast<const double*>(y.untyped_data()),
-                           static_cast<double*>(out->untyped_data()));
+      correlation_typed<double>(g, pairs, grad, m, observed, c1, sums.data());
+      std::copy(sums.begin(), sums.end(), static_cast<double*>(out->untyped_data()));
       return ffi::Error::Success();
     default:
       return invalid("the correlation sums take float32 or float64");
@@ -420,7 +442,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLocalAverage, local_average,
                                   .Ret<ffi::AnyBuffer>()  // the averages at the sub-grid
                                   .Ret<ffi::AnyBuffer>()  // the scratch between passes
                                   .Attr<ffi::Span<const int64_t>>("axes")
-                                  .Attr<int64_t>("stride"));
+                                  .Attr<int64_t>("stride")
+                                  .Attr<bool>("finite"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralTexelDistanceMean, texel_distance_mean,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // a (*shape)
@@ -431,8 +454,10 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralTexelDistanceMean, texel_distance_me
                                   .Attr<bool>("has_b"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                               ffi::Ffi::Bind()
-                                  .Arg<ffi::AnyBuffer>()  // z (*shape)
-                                  .Arg<ffi::AnyBuffer>()  // y (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // grad (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // m (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
+                                  .Arg<ffi::AnyBuffer>()  // c1, a scalar
                                   .Ret<ffi::AnyBuffer>()  // the sums (3 pair axes + 2)
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<ffi::Span<const int64_t>>("pair_axes")

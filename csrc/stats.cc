@@ -102,40 +102,66 @@ Walk subgrid_walk(const Subgrid& g) {
   return sub;
 }
 
+// Row-major strides of a mask of `shape` read at the indices of a grid of its rank: 0 along
+// its broadcast (length-1) dimensions.
+std::vector<int64_t> broadcast_strides(const std::vector<int64_t>& shape) {
+  auto out = strides_of(shape);
+  for (size_t d = 0; d < shape.size(); ++d)
+    if (shape[d] == 1) out[d] = 0;
+  return out;
+}
+
 template <typename T>
-void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const T* z, const T* y,
+T noise_y(const Noise<T>& n, int64_t a, int64_t o) {
+  return n.observed[o] ? n.m[a] / n.c1 : T(0);
+}
+
+template <typename T>
+T noise_z(const Noise<T>& n, int64_t a, int64_t o) {
+  return n.observed[o] ? n.grad[a] - n.m[a] / n.c1 : T(0);
+}
+
+template <typename T>
+void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const Noise<T>& noise,
                  double* out) {
   std::vector<bool> spatial(g.shape.size(), false);
   for (int64_t ax : g.axes) spatial[static_cast<size_t>(ax)] = true;
   const auto step = strides_of(g.shape);
+  const auto mask = broadcast_strides(noise.observed_shape);
   const int64_t q = g.stride > 2 ? g.stride : 2;
   for (size_t k = 0; k < pair_axes.size(); ++k) {
     const size_t along = static_cast<size_t>(pair_axes[k]);
-    Walk pairs, unused;
+    Walk pairs;
     for (size_t d = 0; d < g.shape.size(); ++d) {
       if (d == along)
-        pairs.add(g.shape[d] / q, q * step[d], 0);
+        pairs.add(g.shape[d] / q, q * step[d], q * mask[d]);
       else if (spatial[d])
-        pairs.add(kept(g.shape[d], g.stride), g.stride * step[d], 0);
+        pairs.add(kept(g.shape[d], g.stride), g.stride * step[d], g.stride * mask[d]);
       else
-        pairs.add(g.shape[d], step[d], 0);
+        pairs.add(g.shape[d], step[d], mask[d]);
     }
     double s00 = 0, s11 = 0, s01 = 0;
     const int64_t n = pairs.count();
     for (int64_t i = 0; i < n; ++i, pairs.next()) {
-      const double x0 = static_cast<double>(z[pairs.a]);
-      const double x1 = static_cast<double>(z[pairs.a + step[along]]);
+      const double x0 = static_cast<double>(noise_z(noise, pairs.a, pairs.b));
+      const double x1 =
+          static_cast<double>(noise_z(noise, pairs.a + step[along], pairs.b + mask[along]));
       s00 += x0 * x0;
       s11 += x1 * x1;
       s01 += x0 * x1;
     }
     out[3 * k] = s00, out[3 * k + 1] = s11, out[3 * k + 2] = s01;
   }
-  Walk sub = subgrid_walk(g);
+  Walk sub;
+  for (size_t d = 0; d < g.shape.size(); ++d) {
+    const int64_t s = spatial[d] ? g.stride : 1;
+    sub.add(spatial[d] ? kept(g.shape[d], g.stride) : g.shape[d], s * step[d], s * mask[d]);
+  }
   double zz = 0, yy = 0;
   const int64_t n = sub.count();
   for (int64_t i = 0; i < n; ++i, sub.next()) {
-    const double a = static_cast<double>(z[sub.a]), b = static_cast<double>(y[sub.a]);
+    const double a = static_cast<double>(noise_z(noise, sub.a, sub.b));
+    const double b = static_cast<double>(noise_y(noise, sub.a, sub.b));
     zz += a * a;
     yy += b * b;
   }
@@ -198,14 +224,23 @@ double texel_distance_mean(const Subgrid& g, const double* a, const double* b) {
   return run(g, a, b);
 }
 
-void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, const float* z,
-                      const float* y, double* out) {
-  correlation(g, pair_axes, z, y, out);
+std::string check_noise_mask(const Subgrid& g, const std::vector<int64_t>& observed_shape) {
+  if (observed_shape.size() != g.shape.size())
+    return "the observed mask must have the gradient's rank";
+  for (size_t d = 0; d < g.shape.size(); ++d)
+    if (observed_shape[d] != g.shape[d] && observed_shape[d] != 1)
+      return "each dimension of the observed mask must be the gradient's or 1";
+  return "";
 }
 
-void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, const double* z,
-                      const double* y, double* out) {
-  correlation(g, pair_axes, z, y, out);
+void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes,
+                      const Noise<float>& noise, double* out) {
+  correlation(g, pair_axes, noise, out);
+}
+
+void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes,
+                      const Noise<double>& noise, double* out) {
+  correlation(g, pair_axes, noise, out);
 }
 
 float blend_weights(const Subgrid& g, const float* m, const float* v, const float* r,

@@ -7,7 +7,8 @@
 //   of `pair_axes` (spatial axes of length > 1): over the positions p with p_d = s i on the
 //   other spatial axes, p_a = q k along the axis (k < n_a / q, q = max(s, 2)) and every
 //   channel, sum z[p]^2, z[p + e_a]^2 and z[p] z[p + e_a]; then the sums of z^2 and y^2 over
-//   the sub-grid: the correlated-noise check's statistics.
+//   the sub-grid: the correlated-noise check's statistics, z and y computed from the gradient,
+//   the first moment and the observed entries at the points read (Noise).
 // * blend_weights: the blend's weight of the unfiltered moments at the sub-grid (auto.py's
 //   _blend_weight and _gate). With m, v read at the sub-grid and r the residual there,
 //     n = ((max(v / c2 - (m / c1)^2, 0) k) ema) corr_num / corr_den,   e = (r / bias)^2,
@@ -53,11 +54,26 @@ float blend_weights(const Subgrid& g, const float* m, const float* v, const floa
 double blend_weights(const Subgrid& g, const double* m, const double* v, const double* r,
                      const Blend<double>& b, double* out);
 
-// out (3 pair_axes.size() + 2) <- the sums above, of z and y (both of shape g.shape); each
-// pair axis must be one of g.axes.
-void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, const float* z,
-                      const float* y, double* out);
-void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes, const double* z,
-                      const double* y, double* out);
+// The correlated-noise check's fields, computed where the sums read them (no full-size copy):
+// y = m / c1 and z = grad - y where `observed`, else 0, each operation in T (auto.py's order).
+// grad and m have g.shape; observed has its rank, each dimension g.shape's or 1 (broadcast).
+template <typename T>
+struct Noise {
+  const T* grad;
+  const T* m;
+  const bool* observed;
+  std::vector<int64_t> observed_shape;
+  T c1;
+};
+
+// The first problem with a Noise's mask shape for the grid g, or "".
+std::string check_noise_mask(const Subgrid& g, const std::vector<int64_t>& observed_shape);
+
+// out (3 pair_axes.size() + 2) <- the sums above, of z and y; each pair axis must be one of
+// g.axes.
+void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes,
+                      const Noise<float>& noise, double* out);
+void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes,
+                      const Noise<double>& noise, double* out);
 
 }  // namespace optax_bilateral

@@ -4,6 +4,7 @@
 // AddressSanitizer and UndefinedBehaviorSanitizer; exits non-zero on a mismatch.
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <cstdio>
 #include <memory>
 #include <random>
@@ -70,22 +71,39 @@ std::vector<double> reference(const std::vector<double>& x, const ob::Subgrid& s
   return out;
 }
 
+// x in T, and (kFinite) as numpy.nan_to_num makes it: what the average must read.
 template <typename T>
-bool check(const ob::Subgrid& s, const std::vector<double>& x, double tol) {
+std::vector<double> as_read(const std::vector<double>& x, ob::Read read) {
+  std::vector<double> out;
+  for (double v : x) {
+    const T t = static_cast<T>(v);
+    if (read == ob::Read::kAsIs || std::isfinite(t))
+      out.push_back(t);
+    else
+      out.push_back(std::isnan(t) ? 0.0 : t > 0 ? std::numeric_limits<T>::max()
+                                                : std::numeric_limits<T>::lowest());
+  }
+  return out;
+}
+
+template <typename T>
+bool check(const ob::Subgrid& s, const std::vector<double>& x, double tol,
+           ob::Read read = ob::Read::kAsIs) {
   std::vector<T> xt(x.begin(), x.end());
   const int64_t n_out = ob::subgrid_size(s), n_work = ob::subgrid_work_size(s);
   // Exactly sized heap buffers, so that AddressSanitizer sees any write past them.
   auto out = std::make_unique<T[]>(static_cast<size_t>(n_out));
   auto work = n_work ? std::make_unique<T[]>(static_cast<size_t>(n_work)) : nullptr;
-  ob::subgrid_average(s, xt.data(), out.get(), work.get());
-  const auto want = reference(x, s);
+  ob::subgrid_average(s, xt.data(), out.get(), work.get(), read);
+  const auto seen = as_read<T>(x, read);
+  const auto want = reference(seen, s);
   if (static_cast<int64_t>(want.size()) != n_out) {
     std::printf("size %lld, want %zu\n", static_cast<long long>(n_out), want.size());
     return false;
   }
   // Rounding relative to the inputs' scale: an average of large values of both signs cancels.
   double scale = 1;
-  for (double v : x) scale = std::max(scale, std::fabs(v));
+  for (double v : seen) scale = std::max(scale, std::fabs(v));
   for (int64_t i = 0; i < n_out; ++i) {
     const double got = static_cast<double>(out[static_cast<size_t>(i)]);
     if (!(std::fabs(got - want[static_cast<size_t>(i)]) <= tol * scale)) {
@@ -120,6 +138,18 @@ int main() {
     for (auto& v : x) v = trial % 7 == 0 ? 1e30 * normal(rng) : normal(rng);
     ++cases;
     if (!check<float>(s, x, 1e-6) || !check<double>(s, x, 1e-14)) {
+      std::printf("  in trial %d (rank %d, %zu axes, stride %lld)\n", trial, rank, s.axes.size(),
+                  static_cast<long long>(s.stride));
+      ++failures;
+    }
+    // NaN and infinities read as numpy.nan_to_num makes them (the guide's contrast).
+    for (auto& v : x) {
+      const auto r = rng() % 8;
+      v = r == 0 ? std::nan("") : r == 1 ? HUGE_VAL : r == 2 ? -HUGE_VAL : v;
+    }
+    ++cases;
+    if (!check<float>(s, x, 1e-6, ob::Read::kFinite) ||
+        !check<double>(s, x, 1e-14, ob::Read::kFinite)) {
       std::printf("  in trial %d (rank %d, %zu axes, stride %lld)\n", trial, rank, s.axes.size(),
                   static_cast<long long>(s.stride));
       ++failures;

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <memory>
 #include <random>
 #include <vector>
 
@@ -125,23 +126,44 @@ std::vector<double> correlation_reference(const ob::Subgrid& g, const std::vecto
   return out;
 }
 
+// z and y from a gradient, a first moment and a mask broadcast along some dimensions, as Noise
+// defines them (in T), for the float64 reference; then the native sums.
 template <typename T>
 void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
   std::normal_distribution<double> normal(0.0, 2.0);
   int64_t n = 1;
   for (int64_t d : g.shape) n *= d;
-  std::vector<T> z(n), y(n);
+  std::vector<int64_t> mask_shape;
+  for (int64_t d : g.shape) mask_shape.push_back(rng() % 3 == 0 ? 1 : d);
+  int64_t n_mask = 1;
+  for (int64_t d : mask_shape) n_mask *= d;
+  std::unique_ptr<bool[]> observed(new bool[static_cast<size_t>(n_mask)]);
+  for (int64_t i = 0; i < n_mask; ++i) observed[i] = rng() % 4 != 0;
+  const T c1 = static_cast<T>(0.1 + 0.9 * (rng() % 1000) / 1000.0);
+  std::vector<T> grad(n), m(n);
   std::vector<double> z64(n), y64(n);
   for (int64_t i = 0; i < n; ++i) {
-    z[i] = static_cast<T>(normal(rng)), y[i] = static_cast<T>(normal(rng));
-    z64[i] = z[i], y64[i] = y[i];
+    grad[i] = static_cast<T>(normal(rng)), m[i] = static_cast<T>(normal(rng));
+    auto idx = unravel(i, g.shape);
+    for (size_t d = 0; d < idx.size(); ++d)
+      if (mask_shape[d] == 1) idx[d] = 0;
+    const bool on = observed[ravel(idx, mask_shape)];
+    const T y = m[i] / c1;
+    z64[i] = on ? static_cast<T>(grad[i] - y) : T(0);
+    y64[i] = on ? y : T(0);
   }
   std::vector<int64_t> pairs;
   for (int64_t ax : g.axes)
     if (g.shape[ax] > 1) pairs.push_back(ax);
   const auto want = correlation_reference(g, pairs, z64, y64);
   std::vector<double> got(want.size(), -1.0);
-  ob::correlation_sums(g, pairs, z.data(), y.data(), got.data());
+  if (!ob::check_noise_mask(g, mask_shape).empty()) {
+    std::printf("FAIL a sound mask shape was refused\n");
+    ++failures;
+    return;
+  }
+  const ob::Noise<T> noise{grad.data(), m.data(), observed.get(), mask_shape, c1};
+  ob::correlation_sums(g, pairs, noise, got.data());
   ++cases;
   for (size_t k = 0; k < want.size(); ++k) {
     if (std::fabs(got[k] - want[k]) > 1e-12 * (1 + std::fabs(want[k])) && failures++ < 10) {
@@ -276,6 +298,11 @@ int main() {
   refused({{4, 4}, {2}, 1}, "axis out of range");
   refused({{4, 4}, {0, 0}, 1}, "axis twice");
   refused({{4, 0}, {0}, 1}, "empty dimension");
+  for (const auto& mask : std::vector<std::vector<int64_t>>{{4}, {4, 3}, {2, 4}, {4, 4, 1}}) {
+    ++cases;
+    if (ob::check_noise_mask({{4, 4}, {0, 1}, 1}, mask).empty() && failures++ < 10)
+      std::printf("FAIL a mask of rank %zu was not refused\n", mask.size());
+  }
   if (2 * open_blends < blends) {  // the blend's cases must reach its weights
     std::printf("FAIL only %d of %d blends had an open gate and weights inside\n", open_blends,
                 blends);

@@ -321,11 +321,11 @@ def test_subgrid_average_equals_the_float64_reference(shape, channels, stride, s
     axes = tuple(range(len(shape)))
     want = atrous_reference(x, np.zeros(shape + (1,)), np.inf, levels=1, separable=True)
     want = want[tuple(slice(None, None, stride) for _ in shape)]
-    got = local._native_taps(jnp.asarray(x), axes, stride)
+    got = local._native_taps(jnp.asarray(x), axes, stride, False)
     np.testing.assert_allclose(np.asarray(got), want, rtol=RTOL, atol=ATOL)
     # And the slices it replaces, on any order of the axes.
     for order in (axes, axes[::-1]):
-        native_out = local._native_taps(jnp.asarray(x), order, stride)
+        native_out = local._native_taps(jnp.asarray(x), order, stride, False)
         np.testing.assert_allclose(
             native_out, local._taps(jnp.asarray(x), order, stride), rtol=RTOL, atol=ATOL
         )
@@ -337,7 +337,7 @@ def test_subgrid_average_takes_axes_anywhere_and_float64():
     x = jax.random.normal(jax.random.PRNGKey(0), (5, 2, 9, 7))
     for axes, stride in [((0, 2, 3), 2), ((3,), 3), ((2, 0), 1), ((), 2)]:
         np.testing.assert_allclose(
-            local._native_taps(x, axes, stride),
+            local._native_taps(x, axes, stride, False),
             local._taps(x, axes, stride),
             rtol=RTOL,
             atol=ATOL,
@@ -348,7 +348,7 @@ def test_subgrid_average_takes_axes_anywhere_and_float64():
         jax.config.update("jax_enable_x64", True)
         from optax_bilateral._src.filter import local
         x = jax.random.normal(jax.random.PRNGKey(0), (13, 6, 2), dtype=np.float64)
-        got, want = local._native_taps(x, (0, 1), 2), local._taps(x, (0, 1), 2)
+        got, want = local._native_taps(x, (0, 1), 2, False), local._taps(x, (0, 1), 2)
         assert got.dtype == np.float64, got.dtype
         np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-15)
         print("ok")
@@ -368,18 +368,49 @@ def test_subgrid_average_differentiates_and_batches_as_the_slices():
         return lambda x: jnp.sum(jnp.sin(f(x, axes, 2)))
 
     np.testing.assert_allclose(
-        jax.grad(loss(local._native_taps))(x),
+        jax.grad(loss(lambda x, axes, s: local._native_taps(x, axes, s, False)))(x),
         jax.grad(loss(local._taps))(x),
         rtol=1e-5,
         atol=1e-6,
     )
     batch = jnp.stack([x, 2 * x, -x])
     np.testing.assert_allclose(
-        jax.vmap(lambda x: local._native_taps(x, axes, 2))(batch),
+        jax.vmap(lambda x: local._native_taps(x, axes, 2, False))(batch),
         jax.vmap(lambda x: local._taps(x, axes, 2))(batch),
         rtol=RTOL,
         atol=ATOL,
     )
+
+
+def test_subgrid_average_reads_nan_and_infinities_as_nan_to_num():
+    # The guide's contrast averages jnp.nan_to_num(guide) without making it: NaN reads as 0,
+    # an infinity as the largest finite value of its sign; values and derivatives as the
+    # slices' of the copy.
+    from optax_bilateral._src.filter import local
+
+    x = jax.random.normal(jax.random.PRNGKey(2), (17, 12, 3))
+    x = x.at[3, 4, 0].set(jnp.nan).at[8, 0, 2].set(jnp.inf).at[16, 11, 1].set(-jnp.inf)
+    x = x.at[0, 5].set(jnp.nan)
+    for stride in (1, 2, 3):
+        got = local._native_taps(x, (0, 1), stride, True)
+        want = local._taps(jnp.nan_to_num(x), (0, 1), stride)
+        np.testing.assert_allclose(got, want, rtol=RTOL, atol=ATOL)
+        assert np.all(np.isfinite(got))
+
+    w = jax.random.normal(jax.random.PRNGKey(3), local._taps(x, (0, 1), 2).shape)
+
+    def loss(f):  # linear: its gradient is the average's transpose of w, 0 where x is not finite
+        return lambda x: jnp.sum(f(x) * w)
+
+    got = jax.grad(loss(lambda x: local._native_taps(x, (0, 1), 2, True)))(x)
+    np.testing.assert_allclose(
+        got,
+        jax.grad(loss(lambda x: local._taps(jnp.nan_to_num(x), (0, 1), 2)))(x),
+        rtol=1e-5,
+        atol=1e-6,
+    )
+    assert got[3, 4, 0] == 0 and got[8, 0, 2] == 0 and np.all(got[0, 5] == 0)
+    assert np.count_nonzero(np.asarray(got)) > got.size // 8
 
 
 def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monkeypatch):
@@ -409,7 +440,9 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
         jax.clear_caches()
-    np.testing.assert_allclose(slices, local._native_taps(x, (0, 1), 2), rtol=RTOL, atol=ATOL)
+    np.testing.assert_allclose(
+        slices, local._native_taps(x, (0, 1), 2, False), rtol=RTOL, atol=ATOL
+    )
 
 
 @pytest.mark.parametrize("shape, conds", [((40, 40, 3), 1), ((12, 12, 12, 1), 0)])
@@ -550,21 +583,33 @@ def _correlation_float64(z, y, axes, stride):
     seed=st.integers(0, 2**31 - 1),
 )
 def test_correlation_sums_equal_the_float64_definition(case, stride, seed):
+    # z = g - m / c1 and y = m / c1 where observed (a mask broadcast along the last axis),
+    # else 0: computed in float32 as the rule does, summed in float64 by the definition.
     from optax_bilateral._src.filter import local
 
     shape, axes = case
     rng = np.random.default_rng(seed)
-    z, y = (jnp.asarray(rng.normal(size=shape), jnp.float32) for _ in range(2))
-    lags, energies = local.correlation_sums(z, y, axes, stride)
+    g, m = (jnp.asarray(rng.normal(size=shape), jnp.float32) for _ in range(2))
+    observed = jnp.asarray(rng.random(shape[:-1] + (1,)) < 0.8)
+    c1 = jnp.float32(0.3)
+    y = np.where(observed, m / c1, 0)
+    z = np.where(observed, g - m / c1, 0)
+    lags, energies = local.correlation_sums(g, m, observed, c1, axes, stride)
     want_lags, want_energies = _correlation_float64(z, y, axes, stride)
     assert lags.shape == want_lags.shape  # an axis of length 1 has no pairs
     np.testing.assert_allclose(lags, want_lags, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(energies, want_energies, rtol=1e-6)
     with pytest.MonkeyPatch.context() as patch:  # the slices' sums
         patch.setattr(native, "takes_subgrid", lambda x: False)
-        slices = local.correlation_sums(z, y, axes, stride)
+        slices = local.correlation_sums(g, m, observed, c1, axes, stride)
     np.testing.assert_allclose(lags, slices[0], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(energies, slices[1], rtol=1e-5)
+
+
+def test_correlation_sums_refuse_a_mask_that_does_not_broadcast():
+    g = jnp.ones((6, 5, 2))
+    with pytest.raises(Exception, match="observed mask"):
+        native.correlation_sums(g, g, jnp.ones((6, 4, 1), bool), 1.0, (0, 1), (0, 1), 1)
 
 
 def _blend_case(seed, shape=(24, 20, 3), stride=2, count=9, scale=3.0):

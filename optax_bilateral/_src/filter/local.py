@@ -34,18 +34,25 @@ def local_average(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple
     return cast(tuple[jax.Array, ...], out)
 
 
-def local_average_subgrid(fields, axes, stride: int) -> tuple[jax.Array, ...]:
+def local_average_subgrid(
+    fields, axes, stride: int, nan_to_num: bool = False
+) -> tuple[jax.Array, ...]:
     """:func:`local_average`'s local averages at every ``stride``-th entry along the spatial axes
     only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
     (the filter's weight off the grid is 0). Without a sub-grid, or on a grid split over
     devices in its type (whose axes take no slice of uneven length), the full local
     averages' sub-grid. Where the filter runs on the native kernel, one FFI call per field
-    (csrc/local.h; its derivative the slices')."""
+    (csrc/local.h; its derivative the slices'). ``nan_to_num``: of ``jnp.nan_to_num`` of
+    each field, which the native call reads so without a copy."""
     if sharded.is_split(fields[0]):
+        fields = tuple(jnp.nan_to_num(f) for f in fields) if nan_to_num else fields
         return tuple(every(f, axes, stride) for f in local_average(fields, axes))
     axes = tuple(axes)
     return tuple(
-        _native_taps(x, axes, stride) if runs_native(x) else _taps(x, axes, stride) for x in fields
+        _native_taps(x, axes, stride, nan_to_num)
+        if runs_native(x)
+        else _taps(jnp.nan_to_num(x) if nan_to_num else x, axes, stride)
+        for x in fields
     )
 
 
@@ -64,16 +71,18 @@ def _taps(x: jax.Array, axes: tuple[int, ...], stride: int) -> jax.Array:
     return x
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(1, 2))
-def _native_taps(x: jax.Array, axes: tuple[int, ...], stride: int) -> jax.Array:
-    return native.subgrid_average(x, axes, stride)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1, 2, 3))
+def _native_taps(x: jax.Array, axes: tuple[int, ...], stride: int, finite: bool) -> jax.Array:
+    return native.subgrid_average(x, axes, stride, finite)
 
 
 @_native_taps.defjvp
-def _native_taps_jvp(axes, stride, primals, tangents):
-    # Linear in x: the tangent is the same average as slices, which jax.grad can transpose.
+def _native_taps_jvp(axes, stride, finite, primals, tangents):
+    # Linear in x (in its finite entries, with finite): the tangent is the same average as
+    # slices, which jax.grad can transpose; nan_to_num's derivative is 0 where x is not finite.
     (x,), (t,) = primals, tangents
-    return _native_taps(x, axes, stride), _taps(t, axes, stride)
+    t = jnp.where(jnp.isfinite(x), t, 0) if finite else t
+    return _native_taps(x, axes, stride, finite), _taps(t, axes, stride)
 
 
 def texel_distance_mean(
@@ -107,19 +116,24 @@ def _native_distance_jvp(axes, stride, primals, tangents):
 
 
 def correlation_sums(
-    z: jax.Array, y: jax.Array, axes: tuple[int, ...], stride: int
+    g: jax.Array, m: jax.Array, observed: jax.Array, c1, axes: tuple[int, ...], stride: int
 ) -> tuple[jax.Array, jax.Array]:
-    """``(lags, energies)``, not differentiated: for each spatial axis of ``z`` longer than 1,
-    in order, the sums of ``x0^2``, ``x1^2`` and ``x0 x1`` over its neighbour pairs
+    """``(lags, energies)``, not differentiated, of ``z = g - m / c1`` and ``y = m / c1`` where
+    ``observed`` (broadcastable against ``g``), else 0: for each spatial axis longer than 1, in
+    order, the sums of ``x0^2``, ``x1^2`` and ``x0 x1`` of ``z`` over its neighbour pairs
     (:func:`neighbours`), a ``(k, 3)`` array; and the sums of ``z^2`` and ``y^2`` over the
-    sub-grid (every ``stride``-th entry along ``axes``), a ``(2,)`` array. Where the filter
-    runs on the native kernel, one FFI call (csrc/stats.h, sums in double)."""
+    sub-grid (every ``stride``-th entry along ``axes``), a ``(2,)`` array. ``g`` and ``m`` share
+    a float dtype. Where the filter runs on the native kernel, one FFI call (csrc/stats.h,
+    sums in double) that computes ``z`` and ``y`` where it reads them."""
     axes = tuple(axes)
-    z, y = lax.stop_gradient(z), lax.stop_gradient(y)
-    pairs = tuple(a for a in axes if z.shape[a] > 1)
-    if runs_native(z):
-        sums = native.correlation_sums(z, y, axes, pairs, stride)
+    g, m = lax.stop_gradient(g), lax.stop_gradient(m)
+    c1 = jnp.asarray(c1, m.dtype)
+    pairs = tuple(a for a in axes if g.shape[a] > 1)
+    if runs_native(g):
+        sums = native.correlation_sums(g, m, observed, c1, axes, pairs, stride)
         return sums[:-2].reshape(len(pairs), 3), sums[-2:]
+    y = m / c1
+    z, y = jnp.where(observed, g - y, 0), jnp.where(observed, y, 0)
     lags = [
         _sums(x0 * x0, x1 * x1, x0 * x1)
         for x0, x1 in (neighbours(z, axes, a, stride) for a in pairs)

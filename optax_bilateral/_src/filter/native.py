@@ -214,9 +214,12 @@ def takes_subgrid(x: jax.Array) -> bool:
     return available() and x.dtype in (jnp.float32, jnp.float64) and x.size > 0
 
 
-def subgrid_average(x: jax.Array, axes: Sequence[int], stride: int) -> jax.Array:
+def subgrid_average(
+    x: jax.Array, axes: Sequence[int], stride: int, finite: bool = False
+) -> jax.Array:
     """One level of the B-spline (every data weight 1) along each of ``axes`` in turn, read at
-    every ``stride``-th entry: one FFI call for all of them (csrc/local.h). Not differentiable:
+    every ``stride``-th entry: one FFI call for all of them (csrc/local.h); ``finite``: of
+    ``jnp.nan_to_num(x)``, read so without a copy. Not differentiable:
     :func:`optax_bilateral._src.filter.local.local_average_subgrid` gives it a rule."""
     _require("the native local average")
     shape, sizes = list(x.shape), []
@@ -230,7 +233,7 @@ def subgrid_average(x: jax.Array, axes: Sequence[int], stride: int) -> jax.Array
         (jax.ShapeDtypeStruct(tuple(shape), x.dtype), jax.ShapeDtypeStruct((work,), x.dtype)),
         vmap_method="sequential",
     )
-    out, _ = call(x, axes=np.asarray(axes, np.int64), stride=np.int64(stride))
+    out, _ = call(x, axes=np.asarray(axes, np.int64), stride=np.int64(stride), finite=finite)
     return out
 
 
@@ -254,19 +257,30 @@ def texel_distance_mean(
 
 
 def correlation_sums(
-    z: jax.Array, y: jax.Array, axes: Sequence[int], pair_axes: Sequence[int], stride: int
+    g: jax.Array,
+    m: jax.Array,
+    observed: jax.Array,
+    c1: jax.Array,
+    axes: Sequence[int],
+    pair_axes: Sequence[int],
+    stride: int,
 ) -> jax.Array:
-    """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``: one FFI
-    call, sums in double. Not differentiable (its callers stop the gradient)."""
+    """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``, of
+    ``z = g - m / c1`` and ``y = m / c1`` where ``observed`` (bool, broadcastable against
+    ``g``), else 0, each computed where the sums read it: one FFI call, sums in double. Not
+    differentiable (its callers stop the gradient)."""
     _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         CORRELATION_TARGET,
-        jax.ShapeDtypeStruct((3 * len(pair_axes) + 2,), z.dtype),
+        jax.ShapeDtypeStruct((3 * len(pair_axes) + 2,), g.dtype),
         vmap_method="sequential",
     )
+    mask = jnp.asarray(observed, bool)
     return call(
-        z,
-        y,
+        g,
+        m,
+        mask.reshape((1,) * (g.ndim - mask.ndim) + mask.shape),
+        jnp.asarray(c1, g.dtype).reshape(()),
         axes=np.asarray(axes, np.int64),
         pair_axes=np.asarray(pair_axes, np.int64),
         stride=np.int64(stride),

@@ -279,7 +279,7 @@ class Auto(SigmaRule):
         guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
         axes = _guide_axes(guide, axes)
         stride = self._stride(guide.shape, axes)
-        (local,) = local_average_subgrid((jnp.nan_to_num(guide),), axes, stride)
+        (local,) = local_average_subgrid((guide,), axes, stride, nan_to_num=True)
         return texel_distance_mean(guide, local, axes, stride)
 
     def _check_correlation(self, moments, axes, state, ctx):
@@ -353,10 +353,8 @@ class Auto(SigmaRule):
         g, m = moments.g, moments.m
         dtype = jnp.promote_types(m.dtype, jnp.float32)
         c1 = jnp.asarray(ctx.c1, dtype)
-        m_hat = m.astype(dtype) / c1
-        z = g.astype(dtype) - m_hat
-        z, m_hat = jnp.where(moments.observed, z, 0), jnp.where(moments.observed, m_hat, 0)
-        lags, (noise, signal) = correlation_sums(z, m_hat, axes, self._stride(g.shape, axes))
+        g, m, stride = g.astype(dtype), m.astype(dtype), self._stride(g.shape, axes)
+        lags, (noise, signal) = correlation_sums(g, m, moments.observed, c1, axes, stride)
         if not lags.shape[0]:
             return jnp.zeros([], bool)
         s00, s11, s01 = lags[:, 0], lags[:, 1], lags[:, 2]
