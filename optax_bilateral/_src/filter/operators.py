@@ -20,6 +20,7 @@ one not laid out on the grid) and for a self-guided operator, the filter's ``mas
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, NamedTuple, Protocol
 
 import jax
@@ -135,8 +136,21 @@ def operator(plan: FilterPlan, guide: jax.Array | None, observed: jax.Array) -> 
     # rule's conditional cascade, where the copy would live beside the cascade's outputs.
     axes = plan.axes if nan_guide.ndim > len(plan.axes) else tuple(range(nan_guide.ndim))
     planes = layout.guide_planes(nan_guide, axes, nan_guide.dtype, observed.shape)
-    planes = with_layout_constraint(planes, Layout(tuple(range(planes.ndim))))
+    if _layout_constraint_batches():
+        planes = with_layout_constraint(planes, Layout(tuple(range(planes.ndim))))
     return CrossGuided(plan, planes, guide_axes=tuple(range(1, planes.ndim)))
+
+
+@functools.cache
+def _layout_constraint_batches() -> bool:
+    """Whether this JAX can ``vmap`` a layout constraint (0.7.0 cannot, 0.7.1 on can; without
+    it the planes keep the layout XLA picks, as before the constraint)."""
+    pin = lambda x: with_layout_constraint(x, Layout((0,)))
+    try:
+        jax.eval_shape(jax.vmap(pin), jax.ShapeDtypeStruct((1, 1), jnp.float32))
+    except NotImplementedError:
+        return False
+    return True
 
 
 def nan_guide_at(guide, observed, axes):
