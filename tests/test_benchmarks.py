@@ -230,6 +230,7 @@ def test_processes_run_fresh_workers_and_write_their_measurements(tmp_path, monk
 
 
 def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
+    import optax_bilateral as ob
     from tools import ab_update
 
     summary = ab_update.main(
@@ -238,6 +239,9 @@ def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
     (row,) = summary["rows"]
     for k in ("adam ms", "old ms", "new ms", "new / old", "new / old (paired)"):
         assert np.isfinite(row[k]) and row[k] > 0
+    assert isinstance(row["bit-equal"], bool)
+    # The old revision runs a native kernel of its own, its FFI targets renamed beside ours.
+    assert summary["old kernel"]["available"] == ob.native_status().available
     assert (tmp_path / "ab_update.json").exists() and (tmp_path / "ab_update.md").exists()
     with pytest.raises(ValueError, match="--shape"):
         ab_update.main(["--quick", "--shape", "16", "--out", str(tmp_path)])
