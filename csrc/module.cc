@@ -267,6 +267,19 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<f
   }
 }
 
+// A statistic's `run` operand, a bool scalar: false where the caller discards the outputs (the
+// rule's selects), so the call writes zeros and does no work.
+std::string check_run(const ffi::AnyBuffer& run) {
+  if (run.element_type() != ffi::DataType::PRED || run.element_count() != 1)
+    return "run must be a bool scalar";
+  return "";
+}
+
+bool runs(const ffi::AnyBuffer& run) { return *static_cast<const bool*>(run.untyped_data()); }
+
+// Zeros into every element of `out`.
+void zero(ffi::AnyBuffer& out) { std::memset(out.untyped_data(), 0, out.size_bytes()); }
+
 template <typename T>
 void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
                        ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
@@ -283,7 +296,7 @@ void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
 // The correlated-noise check's sums (stats.h), (3 pairs + 2) of grad's dtype, of
 // z = grad - m / c1 and y = m / c1 where observed (a bool mask, broadcast), else 0.
 ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
-                            ffi::AnyBuffer c1, ffi::Result<ffi::AnyBuffer> out,
+                            ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                             ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
                             int64_t stride) {
   const ob::Subgrid g = subgrid_of(grad, axes, stride);
@@ -310,6 +323,12 @@ ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
     return invalid("c1 must be a scalar of grad's dtype");
   if (out->element_type() != type || out->element_count() != 3 * pairs.size() + 2)
     return invalid("the sums are (3 pair axes + 2) of grad's dtype");
+  const std::string run_problem = check_run(run);
+  if (!run_problem.empty()) return invalid(run_problem);
+  if (!runs(run)) {
+    zero(*out);
+    return ffi::Error::Success();
+  }
   std::vector<double> sums(3 * pairs.size() + 2);
   switch (type) {
     case ffi::DataType::F32: {
@@ -343,7 +362,7 @@ ffi::Error blend_typed(const ob::Subgrid& g, ffi::AnyBuffer m, ffi::AnyBuffer v,
 }
 
 ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
-                         ffi::AnyBuffer scalars, ffi::Result<ffi::AnyBuffer> out,
+                         ffi::AnyBuffer scalars, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                          ffi::Result<ffi::AnyBuffer> gate, ffi::Span<const int64_t> axes,
                          int64_t stride, double gain, double power, double low, double span) {
   const ob::Subgrid g = subgrid_of(m, axes, stride);
@@ -361,6 +380,13 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
     return invalid("the residual and the output must have the sub-grid's shape");
   if (scalars.element_count() != 8 || gate->element_count() != 1)
     return invalid("the blend takes 8 scalars and gives one gate");
+  const std::string run_problem = check_run(run);
+  if (!run_problem.empty()) return invalid(run_problem);
+  if (!runs(run)) {
+    zero(*out);
+    zero(*gate);
+    return ffi::Error::Success();
+  }
   switch (type) {
     case ffi::DataType::F32:
       return blend_typed<float>(g, m, v, r, scalars, &*out, &*gate, gain, power, low, span);
@@ -458,6 +484,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                                   .Arg<ffi::AnyBuffer>()  // m (*shape)
                                   .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
                                   .Arg<ffi::AnyBuffer>()  // c1, a scalar
+                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
                                   .Ret<ffi::AnyBuffer>()  // the sums (3 pair axes + 2)
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<ffi::Span<const int64_t>>("pair_axes")
@@ -468,6 +495,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
                                   .Arg<ffi::AnyBuffer>()  // v (*shape)
                                   .Arg<ffi::AnyBuffer>()  // the residual (the sub-grid's shape)
                                   .Arg<ffi::AnyBuffer>()  // the step's 8 scalars (stats.h)
+                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
                                   .Ret<ffi::AnyBuffer>()  // lam gate (the sub-grid's shape)
                                   .Ret<ffi::AnyBuffer>()  // gate, a scalar
                                   .Attr<ffi::Span<const int64_t>>("axes")

@@ -599,6 +599,8 @@ def test_correlation_sums_equal_the_float64_definition(case, stride, seed):
     assert lags.shape == want_lags.shape  # an axis of length 1 has no pairs
     np.testing.assert_allclose(lags, want_lags, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(energies, want_energies, rtol=1e-6)
+    skipped = local.correlation_sums(g, m, observed, c1, axes, stride, run=jnp.asarray(False))
+    assert not np.any(np.asarray(skipped[0])) and not np.any(np.asarray(skipped[1]))
     with pytest.MonkeyPatch.context() as patch:  # the slices' sums
         patch.setattr(native, "takes_subgrid", lambda x: False)
         slices = local.correlation_sums(g, m, observed, c1, axes, stride)
@@ -642,8 +644,12 @@ def test_blend_equals_the_rules_formula_in_jax(count):
         reference = functools.partial(auto._blend_reference, rule, axes=(0, 1), stride=2)
         low, high = rule.gate_bounds
         constants = (rule.gain, rule.power, low, high - low)
-        lam, gate = local._native_blend(m, v, residual, scalars, (0, 1), 2, constants, reference)
+        args = ((0, 1), 2, constants, reference)
+        lam, gate = local._native_blend(m, v, residual, scalars, True, *args)
         want_lam, want_gate = reference(m, v, residual, scalars)
+        # run=False: zeros, not computed (the rule selects its own zeros there).
+        skipped = local._native_blend(m, v, residual, scalars, jnp.asarray(False), *args)
+        assert not np.any(np.asarray(skipped[0])) and float(skipped[1]) == 0
         assert lam.shape == residual.shape and gate.shape == ()
         np.testing.assert_allclose(float(gate), float(want_gate), rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(lam, want_lam, rtol=1e-5, atol=1e-6)
@@ -668,9 +674,9 @@ def test_blend_differentiates_and_batches_as_the_rules_formula():
     def loss(f):
         return lambda m, v: jnp.sum(f(m, v, residual, scalars)[0] ** 2)
 
-    native_blend = functools.partial(
-        local._native_blend, axes=(0, 1), stride=2, constants=constants, reference=reference
-    )
+    def native_blend(m, v, residual, scalars):
+        return local._native_blend(m, v, residual, scalars, True, (0, 1), 2, constants, reference)
+
     got = jax.grad(loss(native_blend), argnums=(0, 1))(m, v)
     want = jax.grad(loss(reference), argnums=(0, 1))(m, v)
     for a, b in zip(got, want):

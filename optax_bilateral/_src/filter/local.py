@@ -116,7 +116,13 @@ def _native_distance_jvp(axes, stride, primals, tangents):
 
 
 def correlation_sums(
-    g: jax.Array, m: jax.Array, observed: jax.Array, c1, axes: tuple[int, ...], stride: int
+    g: jax.Array,
+    m: jax.Array,
+    observed: jax.Array,
+    c1,
+    axes: tuple[int, ...],
+    stride: int,
+    run: jax.Array | bool = True,
 ) -> tuple[jax.Array, jax.Array]:
     """``(lags, energies)``, not differentiated, of ``z = g - m / c1`` and ``y = m / c1`` where
     ``observed`` (broadcastable against ``g``), else 0: for each spatial axis longer than 1, in
@@ -124,13 +130,14 @@ def correlation_sums(
     (:func:`neighbours`), a ``(k, 3)`` array; and the sums of ``z^2`` and ``y^2`` over the
     sub-grid (every ``stride``-th entry along ``axes``), a ``(2,)`` array. ``g`` and ``m`` share
     a float dtype. Where the filter runs on the native kernel, one FFI call (csrc/stats.h,
-    sums in double) that computes ``z`` and ``y`` where it reads them."""
+    sums in double) that computes ``z`` and ``y`` where it reads them, and gives zeros
+    without reading anything where ``run`` (a traced bool) is False."""
     axes = tuple(axes)
     g, m = lax.stop_gradient(g), lax.stop_gradient(m)
     c1 = jnp.asarray(c1, m.dtype)
     pairs = tuple(a for a in axes if g.shape[a] > 1)
     if runs_native(g):
-        sums = native.correlation_sums(g, m, observed, c1, axes, pairs, stride)
+        sums = native.correlation_sums(g, m, observed, c1, axes, pairs, stride, run)
         return sums[:-2].reshape(len(pairs), 3), sums[-2:]
     y = m / c1
     z, y = jnp.where(observed, g - y, 0), jnp.where(observed, y, 0)
@@ -166,25 +173,31 @@ def _sums(*xs: jax.Array) -> jax.Array:
     return jnp.sum(jnp.stack(xs), axis=tuple(range(1, xs[0].ndim + 1)))
 
 
-def subgrid_blend(m, v, residual, scalars, axes, stride, constants, reference):
+def subgrid_blend(
+    m, v, residual, scalars, axes, stride, constants, reference, run: jax.Array | bool = True
+):
     """``sigma_d="auto"``'s blend at the sub-grid, ``(lam * gate, gate)``: where the rules'
     statistics run on the native kernel one FFI call (csrc/stats.h: the rule's formula
-    written out in C++), whose derivative is ``reference``'s; else
+    written out in C++), whose derivative is ``reference``'s, and which gives zeros without
+    computing them where ``run`` (a traced bool) is False (the caller discards them); else
     ``reference(m, v, residual, scalars)``, the rule's own (rules/auto.py, which also
     describes the ``scalars`` and the ``constants``)."""
     if runs_native(m):
-        return _native_blend(m, v, residual, scalars, tuple(axes), stride, constants, reference)
+        run = jnp.asarray(run, bool)
+        args = (tuple(axes), stride, constants, reference)
+        return _native_blend(m, v, residual, scalars, run, *args)
     return reference(m, v, residual, scalars)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6, 7))
-def _native_blend(m, v, residual, scalars, axes, stride, constants, reference):
-    return native.blend_weights(m, v, residual, scalars, axes, stride, constants)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7, 8))
+def _native_blend(m, v, residual, scalars, run, axes, stride, constants, reference):
+    return native.blend_weights(m, v, residual, scalars, axes, stride, constants, run)
 
 
 @_native_blend.defjvp
 def _native_blend_jvp(axes, stride, constants, reference, primals, tangents):
-    return jax.jvp(reference, primals, tangents)
+    # The reference's value and derivative wherever the caller reads them (run or not).
+    return jax.jvp(reference, primals[:4], tangents[:4])
 
 
 def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:

@@ -264,11 +264,13 @@ def correlation_sums(
     axes: Sequence[int],
     pair_axes: Sequence[int],
     stride: int,
+    run: jax.Array | bool = True,
 ) -> jax.Array:
     """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``, of
     ``z = g - m / c1`` and ``y = m / c1`` where ``observed`` (bool, broadcastable against
-    ``g``), else 0, each computed where the sums read it: one FFI call, sums in double. Not
-    differentiable (its callers stop the gradient)."""
+    ``g``), else 0, each computed where the sums read it: one FFI call, sums in double; zeros
+    without any work where ``run`` (a bool, may be traced) is False. Not differentiable (its
+    callers stop the gradient)."""
     _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         CORRELATION_TARGET,
@@ -281,6 +283,7 @@ def correlation_sums(
         m,
         mask.reshape((1,) * (g.ndim - mask.ndim) + mask.shape),
         jnp.asarray(c1, g.dtype).reshape(()),
+        jnp.asarray(run, bool).reshape(()),
         axes=np.asarray(axes, np.int64),
         pair_axes=np.asarray(pair_axes, np.int64),
         stride=np.int64(stride),
@@ -295,11 +298,13 @@ def blend_weights(
     axes: Sequence[int],
     stride: int,
     constants: tuple[float, float, float, float],
+    run: jax.Array | bool = True,
 ) -> tuple[jax.Array, jax.Array]:
     """``sigma_d="auto"``'s blend at the sub-grid (csrc/stats.h): ``(lam * gate, gate)`` from
     ``m``, ``v`` (the leaf's shape), the residual (the sub-grid's), the step's 8 ``scalars``
-    and the rule's ``constants`` ``(gain, power, low, high - low)``. One FFI call; not
-    differentiable: :func:`optax_bilateral._src.filter.local.subgrid_blend` gives it a rule."""
+    and the rule's ``constants`` ``(gain, power, low, high - low)``; zeros without any work
+    where ``run`` (a bool, may be traced) is False. One FFI call; not differentiable:
+    :func:`optax_bilateral._src.filter.local.subgrid_blend` gives it a rule."""
     _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         BLEND_TARGET,
@@ -312,6 +317,7 @@ def blend_weights(
         v,
         residual,
         scalars,
+        jnp.asarray(run, bool).reshape(()),
         axes=np.asarray(axes, np.int64),
         stride=np.int64(stride),
         gain=np.float64(gain),

@@ -224,9 +224,10 @@ class Auto(SigmaRule):
         residual = update_residual(self, moments, m_f, state.residual, ctx.c1, axes)
         learned = learned._replace(residual=residual)
         # The blend's statistics (at a CHECK step, the gate's check alone).
+        computed = (phase != SKIP) & ~heavy
         lam, gate = _either(
-            (phase != SKIP) & ~heavy,
-            functools.partial(blend_weights, self, moments, residual, ctx, axes),
+            computed,
+            functools.partial(blend_weights, self, moments, residual, ctx, axes, run=computed),
             functools.partial(_no_weights, self, moments.m, axes),
             both=runs_native(moments.m),
         )
@@ -288,13 +289,14 @@ class Auto(SigmaRule):
         one."""
         m = moments.m
 
+        count = ctx.count
+        due = (count == FIRST_NOISE_STEP) | (count % self.check_period == 0)
+
         def check():
-            return self._correlated_noise(moments, axes, ctx).astype(m.dtype)
+            return self._correlated_noise(moments, axes, ctx, run=due).astype(m.dtype)
 
         stored = lambda: state.correlated.astype(m.dtype)
-        count = ctx.count
-        first = count == FIRST_NOISE_STEP
-        return _either(first | (count % self.check_period == 0), check, stored, both=runs_native(m))
+        return _either(due, check, stored, both=runs_native(m))
 
     # ------------------------------------------------------------------ statistics
 
@@ -343,18 +345,19 @@ class Auto(SigmaRule):
             both=runs_native(guide),
         )
 
-    def _correlated_noise(self, moments, axes, ctx) -> jax.Array:
+    def _correlated_noise(self, moments, axes, ctx, run: jax.Array | bool = True) -> jax.Array:
         """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
         between neighbours of ``z = g - m_hat`` (``m_hat = m / c1``, the updated first moment
         bias-corrected), averaged over the spatial ``axes``, is at least ``correlated``, and
         ``z`` is noise: ``z = (1 - (1 - b1) / c1) (g - m_hat_{t-1})``, whose energy is at
         least ``noisy`` times ``m_hat``'s. Sums run over the sub-grid and the observed
-        entries; False at the first step or with ``b1 = 0``."""
+        entries; False at the first step or with ``b1 = 0``. ``run`` (a traced bool): the
+        native sums do no work where it is False (their caller discards the answer)."""
         g, m = moments.g, moments.m
         dtype = jnp.promote_types(m.dtype, jnp.float32)
         c1 = jnp.asarray(ctx.c1, dtype)
         g, m, stride = g.astype(dtype), m.astype(dtype), self._stride(g.shape, axes)
-        lags, (noise, signal) = correlation_sums(g, m, moments.observed, c1, axes, stride)
+        lags, (noise, signal) = correlation_sums(g, m, moments.observed, c1, axes, stride, run)
         if not lags.shape[0]:
             return jnp.zeros([], bool)
         s00, s11, s01 = lags[:, 0], lags[:, 1], lags[:, 2]
@@ -418,7 +421,9 @@ def update_residual(rule: Auto, moments: Moments, bm: jax.Array, residual, c1, a
     return jnp.where(sub(moments.observed), new, residual)
 
 
-def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes):
+def blend_weights(
+    rule: Auto, moments: Moments, residual, ctx: StepContext, axes, run: jax.Array | bool = True
+):
     """``(lam, gate)``: the blend's weight of the unfiltered moments (the gate applied) at
     every entry of the sub-grid (every entry on a leaf of at most ``min_texels`` texels;
     :func:`upsample` spreads it over the leaf), and how far the leaf's blend is open (a
@@ -429,7 +434,8 @@ def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes
     sub-grid. The weight is a smooth field, which a large leaf's sub-grid samples finely
     enough: every statistic is read there, and its local averages are the B-spline's taps
     between the sub-grid's neighbours. Where the filter runs on the native kernel, one FFI
-    call computes all of it (:func:`_blend_reference` is its JAX form and derivative).
+    call computes all of it (:func:`_blend_reference` is its JAX form and derivative), and
+    nothing where ``run`` (a traced bool) is False: zeros, which the caller discards.
     """
     m = moments.m
     stride = rule._stride(m.shape, axes)
@@ -437,7 +443,7 @@ def blend_weights(rule: Auto, moments: Moments, residual, ctx: StepContext, axes
     constants = (rule.gain, rule.power, low, high - low)
     reference = functools.partial(_blend_reference, rule, axes=tuple(axes), stride=stride)
     scalars = rule._blend_scalars(ctx, m.dtype)
-    return subgrid_blend(m, moments.v, residual, scalars, axes, stride, constants, reference)
+    return subgrid_blend(m, moments.v, residual, scalars, axes, stride, constants, reference, run)
 
 
 def _blend_reference(rule: Auto, m, v, residual, scalars, *, axes, stride):
