@@ -207,9 +207,22 @@ ob::Subgrid subgrid_of(const ffi::AnyBuffer& x, ffi::Span<const int64_t> axes, i
   return g;
 }
 
+// A statistic's `run` operand, a bool scalar: false where the caller discards the outputs (the
+// rule's selects), so the call writes zeros and does no work.
+std::string check_run(const ffi::AnyBuffer& run) {
+  if (run.element_type() != ffi::DataType::PRED || run.element_count() != 1)
+    return "run must be a bool scalar";
+  return "";
+}
+
+bool runs(const ffi::AnyBuffer& run) { return *static_cast<const bool*>(run.untyped_data()); }
+
+// Zeros into every element of `out`.
+void zero(ffi::AnyBuffer& out) { std::memset(out.untyped_data(), 0, out.size_bytes()); }
+
 // x (*shape) -> its local averages at every `stride`-th entry along `axes` (local.h); `finite`:
 // x read as numpy.nan_to_num makes it.
-ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
+ffi::Error local_average(ffi::AnyBuffer x, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                          ffi::Result<ffi::AnyBuffer> work, ffi::Span<const int64_t> axes,
                          int64_t stride, bool finite) {
   const ob::Read read = finite ? ob::Read::kFinite : ob::Read::kAsIs;
@@ -223,6 +236,12 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
     return invalid("the local average's output must have the sub-grid's shape");
   if (static_cast<int64_t>(work->element_count()) < ob::subgrid_work_size(s))
     return invalid("the local average's scratch is too small");
+  const std::string run_problem = check_run(run);
+  if (!run_problem.empty()) return invalid(run_problem);
+  if (!runs(run)) {
+    zero(*out);
+    return ffi::Error::Success();
+  }
   switch (type) {
     case ffi::DataType::F32:
       ob::subgrid_average(s, static_cast<const float*>(x.untyped_data()),
@@ -240,8 +259,9 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> out,
 }
 
 // The mean distance of a's texels at the sub-grid from b's (stats.h), or their mean norm.
-ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out,
-                               ffi::Span<const int64_t> axes, int64_t stride, bool has_b) {
+ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffer run,
+                               ffi::Result<ffi::AnyBuffer> out, ffi::Span<const int64_t> axes,
+                               int64_t stride, bool has_b) {
   const ob::Subgrid g = subgrid_of(a, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
   if (!problem.empty()) return invalid(problem);
@@ -251,6 +271,12 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<f
     return invalid("the mean is a scalar of a's dtype, and b has a's dtype");
   if (has_b && static_cast<int64_t>(b.element_count()) != ob::texel_subgrid_size(g))
     return invalid("b must have the sub-grid's shape");
+  const std::string run_problem = check_run(run);
+  if (!run_problem.empty()) return invalid(run_problem);
+  if (!runs(run)) {
+    zero(*out);
+    return ffi::Error::Success();
+  }
   switch (type) {
     case ffi::DataType::F32:
       *static_cast<float*>(out->untyped_data()) = static_cast<float>(ob::texel_distance_mean(
@@ -266,19 +292,6 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::Result<f
       return invalid("the texel distance takes float32 or float64");
   }
 }
-
-// A statistic's `run` operand, a bool scalar: false where the caller discards the outputs (the
-// rule's selects), so the call writes zeros and does no work.
-std::string check_run(const ffi::AnyBuffer& run) {
-  if (run.element_type() != ffi::DataType::PRED || run.element_count() != 1)
-    return "run must be a bool scalar";
-  return "";
-}
-
-bool runs(const ffi::AnyBuffer& run) { return *static_cast<const bool*>(run.untyped_data()); }
-
-// Zeros into every element of `out`.
-void zero(ffi::AnyBuffer& out) { std::memset(out.untyped_data(), 0, out.size_bytes()); }
 
 template <typename T>
 void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
@@ -465,6 +478,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLdl, ldl,
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLocalAverage, local_average,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // x (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
                                   .Ret<ffi::AnyBuffer>()  // the averages at the sub-grid
                                   .Ret<ffi::AnyBuffer>()  // the scratch between passes
                                   .Attr<ffi::Span<const int64_t>>("axes")
@@ -474,6 +488,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralTexelDistanceMean, texel_distance_me
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // a (*shape)
                                   .Arg<ffi::AnyBuffer>()  // b (the sub-grid's shape), or (0,)
+                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
                                   .Ret<ffi::AnyBuffer>()  // the mean, a scalar
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride")

@@ -321,11 +321,11 @@ def test_subgrid_average_equals_the_float64_reference(shape, channels, stride, s
     axes = tuple(range(len(shape)))
     want = atrous_reference(x, np.zeros(shape + (1,)), np.inf, levels=1, separable=True)
     want = want[tuple(slice(None, None, stride) for _ in shape)]
-    got = local._native_taps(jnp.asarray(x), axes, stride, False)
+    got = local._native_taps(jnp.asarray(x), True, axes, stride, False)
     np.testing.assert_allclose(np.asarray(got), want, rtol=RTOL, atol=ATOL)
     # And the slices it replaces, on any order of the axes.
     for order in (axes, axes[::-1]):
-        native_out = local._native_taps(jnp.asarray(x), order, stride, False)
+        native_out = local._native_taps(jnp.asarray(x), True, order, stride, False)
         np.testing.assert_allclose(
             native_out, local._taps(jnp.asarray(x), order, stride), rtol=RTOL, atol=ATOL
         )
@@ -337,7 +337,7 @@ def test_subgrid_average_takes_axes_anywhere_and_float64():
     x = jax.random.normal(jax.random.PRNGKey(0), (5, 2, 9, 7))
     for axes, stride in [((0, 2, 3), 2), ((3,), 3), ((2, 0), 1), ((), 2)]:
         np.testing.assert_allclose(
-            local._native_taps(x, axes, stride, False),
+            local._native_taps(x, True, axes, stride, False),
             local._taps(x, axes, stride),
             rtol=RTOL,
             atol=ATOL,
@@ -348,7 +348,7 @@ def test_subgrid_average_takes_axes_anywhere_and_float64():
         jax.config.update("jax_enable_x64", True)
         from optax_bilateral._src.filter import local
         x = jax.random.normal(jax.random.PRNGKey(0), (13, 6, 2), dtype=np.float64)
-        got, want = local._native_taps(x, (0, 1), 2, False), local._taps(x, (0, 1), 2)
+        got, want = local._native_taps(x, True, (0, 1), 2, False), local._taps(x, (0, 1), 2)
         assert got.dtype == np.float64, got.dtype
         np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-15)
         print("ok")
@@ -368,14 +368,14 @@ def test_subgrid_average_differentiates_and_batches_as_the_slices():
         return lambda x: jnp.sum(jnp.sin(f(x, axes, 2)))
 
     np.testing.assert_allclose(
-        jax.grad(loss(lambda x, axes, s: local._native_taps(x, axes, s, False)))(x),
+        jax.grad(loss(lambda x, axes, s: local._native_taps(x, True, axes, s, False)))(x),
         jax.grad(loss(local._taps))(x),
         rtol=1e-5,
         atol=1e-6,
     )
     batch = jnp.stack([x, 2 * x, -x])
     np.testing.assert_allclose(
-        jax.vmap(lambda x: local._native_taps(x, axes, 2, False))(batch),
+        jax.vmap(lambda x: local._native_taps(x, True, axes, 2, False))(batch),
         jax.vmap(lambda x: local._taps(x, axes, 2))(batch),
         rtol=RTOL,
         atol=ATOL,
@@ -392,7 +392,9 @@ def test_subgrid_average_reads_nan_and_infinities_as_nan_to_num():
     x = x.at[3, 4, 0].set(jnp.nan).at[8, 0, 2].set(jnp.inf).at[16, 11, 1].set(-jnp.inf)
     x = x.at[0, 5].set(jnp.nan)
     for stride in (1, 2, 3):
-        got = local._native_taps(x, (0, 1), stride, True)
+        got = local._native_taps(x, True, (0, 1), stride, True)
+        skipped = local._native_taps(x, jnp.asarray(False), (0, 1), stride, True)
+        assert skipped.shape == got.shape and not np.any(np.asarray(skipped))  # not run
         want = local._taps(jnp.nan_to_num(x), (0, 1), stride)
         np.testing.assert_allclose(got, want, rtol=RTOL, atol=ATOL)
         assert np.all(np.isfinite(got))
@@ -402,7 +404,7 @@ def test_subgrid_average_reads_nan_and_infinities_as_nan_to_num():
     def loss(f):  # linear: its gradient is the average's transpose of w, 0 where x is not finite
         return lambda x: jnp.sum(f(x) * w)
 
-    got = jax.grad(loss(lambda x: local._native_taps(x, (0, 1), 2, True)))(x)
+    got = jax.grad(loss(lambda x: local._native_taps(x, True, (0, 1), 2, True)))(x)
     np.testing.assert_allclose(
         got,
         jax.grad(loss(lambda x: local._taps(jnp.nan_to_num(x), (0, 1), 2)))(x),
@@ -441,7 +443,7 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
         jax.clear_caches()
     np.testing.assert_allclose(
-        slices, local._native_taps(x, (0, 1), 2, False), rtol=RTOL, atol=ATOL
+        slices, local._native_taps(x, True, (0, 1), 2, False), rtol=RTOL, atol=ATOL
     )
 
 
@@ -519,9 +521,9 @@ def test_texel_distance_equals_the_float64_definition(case, stride, with_b, spec
         a.flat[rng.integers(a.size)] = special
     sub = a[tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(a.ndim))]
     b = rng.normal(size=sub.shape).astype(np.float32) if with_b else None
-    got = local._native_distance(
-        jnp.asarray(a), None if b is None else jnp.asarray(b), axes, stride
-    )
+    a_, b_ = jnp.asarray(a), None if b is None else jnp.asarray(b)
+    got = local._native_distance(a_, b_, True, axes, stride)
+    assert float(local._native_distance(a_, b_, jnp.asarray(False), axes, stride)) == 0  # not run
     want = _texel_distance_float64(a, b, axes, stride)
     assert got.dtype == jnp.float32 and got.shape == ()
     # Sums in double: finite wherever the norms are (3e38 squared overflows float32 only).
@@ -538,18 +540,22 @@ def test_texel_distance_differentiates_batches_and_leaves_none_out():
 
     a = jax.random.normal(jax.random.PRNGKey(2), (12, 10, 3))
     b = jax.random.normal(jax.random.PRNGKey(3), (6, 5, 3))
-    for f in (local._native_distance, local._distance):
+
+    def native_distance(a, b, axes, stride):
+        return local._native_distance(a, b, True, axes, stride)
+
+    for f in (native_distance, local._distance):
         assert float(f(jnp.full((4, 4), jnp.nan), None, (0, 1), 1)) == 0.0  # every texel NaN
     grads = [
         jax.grad(functools.partial(f, axes=(0, 1), stride=2), argnums=(0, 1))(a, b)
-        for f in (local._native_distance, local._distance)
+        for f in (native_distance, local._distance)
     ]
     for got, want in zip(*grads):
         assert np.any(np.asarray(want) != 0)
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
     batch = jnp.stack([a, 2 * a])
     np.testing.assert_allclose(
-        jax.vmap(lambda a: local._native_distance(a, b, (0, 1), 2))(batch),
+        jax.vmap(lambda a: native_distance(a, b, (0, 1), 2))(batch),
         [float(local._distance(x, b, (0, 1), 2)) for x in batch],
         rtol=1e-5,
     )

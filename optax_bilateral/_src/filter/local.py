@@ -35,7 +35,7 @@ def local_average(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple
 
 
 def local_average_subgrid(
-    fields, axes, stride: int, nan_to_num: bool = False
+    fields, axes, stride: int, nan_to_num: bool = False, run: jax.Array | bool = True
 ) -> tuple[jax.Array, ...]:
     """:func:`local_average`'s local averages at every ``stride``-th entry along the spatial axes
     only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
@@ -43,13 +43,14 @@ def local_average_subgrid(
     devices in its type (whose axes take no slice of uneven length), the full local
     averages' sub-grid. Where the filter runs on the native kernel, one FFI call per field
     (csrc/local.h; its derivative the slices'). ``nan_to_num``: of ``jnp.nan_to_num`` of
-    each field, which the native call reads so without a copy."""
+    each field, which the native call reads so without a copy. ``run`` (a traced bool): the
+    native calls give zeros without any work where it is False (the caller discards them)."""
     if sharded.is_split(fields[0]):
         fields = tuple(jnp.nan_to_num(f) for f in fields) if nan_to_num else fields
         return tuple(every(f, axes, stride) for f in local_average(fields, axes))
     axes = tuple(axes)
     return tuple(
-        _native_taps(x, axes, stride, nan_to_num)
+        _native_taps(x, jnp.asarray(run, bool), axes, stride, nan_to_num)
         if runs_native(x)
         else _taps(jnp.nan_to_num(x) if nan_to_num else x, axes, stride)
         for x in fields
@@ -71,31 +72,38 @@ def _taps(x: jax.Array, axes: tuple[int, ...], stride: int) -> jax.Array:
     return x
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(1, 2, 3))
-def _native_taps(x: jax.Array, axes: tuple[int, ...], stride: int, finite: bool) -> jax.Array:
-    return native.subgrid_average(x, axes, stride, finite)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3, 4))
+def _native_taps(
+    x: jax.Array, run: jax.Array, axes: tuple[int, ...], stride: int, finite: bool
+) -> jax.Array:
+    return native.subgrid_average(x, axes, stride, finite, run)
 
 
 @_native_taps.defjvp
 def _native_taps_jvp(axes, stride, finite, primals, tangents):
     # Linear in x (in its finite entries, with finite): the tangent is the same average as
     # slices, which jax.grad can transpose; nan_to_num's derivative is 0 where x is not finite.
-    (x,), (t,) = primals, tangents
+    (x, run), (t, _) = primals, tangents
     t = jnp.where(jnp.isfinite(x), t, 0) if finite else t
-    return _native_taps(x, axes, stride, finite), _taps(t, axes, stride)
+    return _native_taps(x, run, axes, stride, finite), _taps(t, axes, stride)
 
 
 def texel_distance_mean(
-    a: jax.Array, b: jax.Array | None, axes: tuple[int, ...], stride: int
+    a: jax.Array,
+    b: jax.Array | None,
+    axes: tuple[int, ...],
+    stride: int,
+    run: jax.Array | bool = True,
 ) -> jax.Array:
     """The mean over the sub-grid's texels ``p`` (every ``stride``-th along the spatial ``axes``)
     of ``||a[stride p] - b[p]||``, the norm over ``a``'s other axes (``b`` None: of
     ``||a[stride p]||``; else ``b`` has the sub-grid's shape), texels whose norm is NaN left
     out, 0 when none is left. Where the filter runs on the native kernel, one FFI call
-    (csrc/stats.h, sums in double; its derivative the slices'), not the slices' XLA kernels."""
+    (csrc/stats.h, sums in double; its derivative the slices'), not the slices' XLA kernels,
+    which gives 0 without any work where ``run`` (a traced bool) is False."""
     axes = tuple(axes)
     if runs_native(a):
-        return _native_distance(a, b, axes, stride)
+        return _native_distance(a, b, jnp.asarray(run, bool), axes, stride)
     return _distance(a, b, axes, stride)
 
 
@@ -104,15 +112,15 @@ def _distance(a, b, axes, stride):
     return _nan_skipping_mean(texel_norm(x if b is None else x - b, axes))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
-def _native_distance(a, b, axes, stride):
-    return native.texel_distance_mean(a, b, axes, stride)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4))
+def _native_distance(a, b, run, axes, stride):
+    return native.texel_distance_mean(a, b, axes, stride, run)
 
 
 @_native_distance.defjvp
 def _native_distance_jvp(axes, stride, primals, tangents):
-    # The slices' derivative (and their primal, equal up to float rounding).
-    return jax.jvp(lambda a, b: _distance(a, b, axes, stride), primals, tangents)
+    # The slices' derivative (and their primal, equal up to float rounding; run or not).
+    return jax.jvp(lambda a, b: _distance(a, b, axes, stride), primals[:2], tangents[:2])
 
 
 def correlation_sums(

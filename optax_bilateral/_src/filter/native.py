@@ -215,11 +215,16 @@ def takes_subgrid(x: jax.Array) -> bool:
 
 
 def subgrid_average(
-    x: jax.Array, axes: Sequence[int], stride: int, finite: bool = False
+    x: jax.Array,
+    axes: Sequence[int],
+    stride: int,
+    finite: bool = False,
+    run: jax.Array | bool = True,
 ) -> jax.Array:
     """One level of the B-spline (every data weight 1) along each of ``axes`` in turn, read at
     every ``stride``-th entry: one FFI call for all of them (csrc/local.h); ``finite``: of
-    ``jnp.nan_to_num(x)``, read so without a copy. Not differentiable:
+    ``jnp.nan_to_num(x)``, read so without a copy; zeros without any work where ``run`` (a
+    bool, may be traced) is False. Not differentiable:
     :func:`optax_bilateral._src.filter.local.local_average_subgrid` gives it a rule."""
     _require("the native local average")
     shape, sizes = list(x.shape), []
@@ -233,15 +238,21 @@ def subgrid_average(
         (jax.ShapeDtypeStruct(tuple(shape), x.dtype), jax.ShapeDtypeStruct((work,), x.dtype)),
         vmap_method="sequential",
     )
-    out, _ = call(x, axes=np.asarray(axes, np.int64), stride=np.int64(stride), finite=finite)
+    run = jnp.asarray(run, bool).reshape(())
+    out, _ = call(x, run, axes=np.asarray(axes, np.int64), stride=np.int64(stride), finite=finite)
     return out
 
 
 def texel_distance_mean(
-    a: jax.Array, b: jax.Array | None, axes: Sequence[int], stride: int
+    a: jax.Array,
+    b: jax.Array | None,
+    axes: Sequence[int],
+    stride: int,
+    run: jax.Array | bool = True,
 ) -> jax.Array:
     """The mean over the sub-grid's texels of ``||a[stride p] - b[p]||`` (csrc/stats.h): one FFI
-    call, sums in double. Not differentiable:
+    call, sums in double; 0 without any work where ``run`` (a bool, may be traced) is False.
+    Not differentiable:
     :func:`optax_bilateral._src.filter.local.texel_distance_mean` gives it a rule."""
     _require("the native texel statistics")
     call = jax.ffi.ffi_call(
@@ -250,6 +261,7 @@ def texel_distance_mean(
     return call(
         a,
         jnp.zeros((0,), a.dtype) if b is None else b,
+        jnp.asarray(run, bool).reshape(()),
         axes=np.asarray(axes, np.int64),
         stride=np.int64(stride),
         has_b=b is not None,

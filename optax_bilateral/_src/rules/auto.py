@@ -272,7 +272,7 @@ class Auto(SigmaRule):
         guide = log_transform(field) if plan.log_guide else field
         return self.contrast_factor * self._contrast(guide, plan.axes)
 
-    def _contrast(self, guide, axes):
+    def _contrast(self, guide, axes, run: jax.Array | bool = True):
         """The guide's mean distance from its local average (one low-pass level of the
         filter): the scale of its texel-to-texel variation; over the sub-grid of a large leaf
         (:meth:`_stride`; the local averages computed there only, so a large leaf's first
@@ -280,8 +280,8 @@ class Auto(SigmaRule):
         guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
         axes = _guide_axes(guide, axes)
         stride = self._stride(guide.shape, axes)
-        (local,) = local_average_subgrid((guide,), axes, stride, nan_to_num=True)
-        return texel_distance_mean(guide, local, axes, stride)
+        (local,) = local_average_subgrid((guide,), axes, stride, nan_to_num=True, run=run)
+        return texel_distance_mean(guide, local, axes, stride, run)
 
     def _check_correlation(self, moments, axes, state, ctx):
         """The new :attr:`AutoState.correlated`: :meth:`_correlated_noise` at the second step
@@ -338,11 +338,9 @@ class Auto(SigmaRule):
             scale = self.rate_factor * math.sqrt(channels) * rate
             moved = moved & (direction > 0)
         # Only the first step (or a guide at rest) needs the contrast.
+        contrast = lambda: self.contrast_factor * self._contrast(guide, axes, run=~moved)
         return _either(
-            moved,
-            lambda: scale,
-            lambda: (self.contrast_factor * self._contrast(guide, axes)).astype(step.dtype),
-            both=runs_native(guide),
+            moved, lambda: scale, lambda: contrast().astype(step.dtype), both=runs_native(guide)
         )
 
     def _correlated_noise(self, moments, axes, ctx, run: jax.Array | bool = True) -> jax.Array:
