@@ -603,7 +603,10 @@ def test_correlation_sums_equal_the_float64_definition(case, stride, seed):
     lags, energies = local.correlation_sums(g, m, observed, c1, axes, stride)
     want_lags, want_energies = _correlation_float64(z, y, axes, stride)
     assert lags.shape == want_lags.shape  # an axis of length 1 has no pairs
-    np.testing.assert_allclose(lags, want_lags, rtol=1e-6, atol=1e-6)
+    # z from float32 operations (C++ here, XLA in the test: an ulp apart at most); a cross
+    # sum that cancels is then off by about float32 rounding of its terms, not of itself.
+    scale = float(np.max(want_lags)) if want_lags.size else 1.0
+    np.testing.assert_allclose(lags, want_lags, rtol=1e-6, atol=1e-6 * scale)
     np.testing.assert_allclose(energies, want_energies, rtol=1e-6)
     skipped = local.correlation_sums(g, m, observed, c1, axes, stride, run=jnp.asarray(False))
     assert not np.any(np.asarray(skipped[0])) and not np.any(np.asarray(skipped[1]))
@@ -650,11 +653,11 @@ def test_blend_equals_the_rules_formula_in_jax(count):
         reference = functools.partial(auto._blend_reference, rule, axes=(0, 1), stride=2)
         low, high = rule.gate_bounds
         constants = (rule.gain, rule.power, low, high - low)
-        args = ((0, 1), 2, constants, reference)
-        lam, gate = local._native_blend(m, v, residual, scalars, True, *args)
+        how = local.BlendCall((0, 1), 2, constants, reference)
+        lam, gate = local._native_blend(m, v, residual, scalars, True, how)
         want_lam, want_gate = reference(m, v, residual, scalars)
         # run=False: zeros, not computed (the rule selects its own zeros there).
-        skipped = local._native_blend(m, v, residual, scalars, jnp.asarray(False), *args)
+        skipped = local._native_blend(m, v, residual, scalars, jnp.asarray(False), how)
         assert not np.any(np.asarray(skipped[0])) and float(skipped[1]) == 0
         assert lam.shape == residual.shape and gate.shape == ()
         np.testing.assert_allclose(float(gate), float(want_gate), rtol=1e-5, atol=1e-6)
@@ -681,7 +684,8 @@ def test_blend_differentiates_and_batches_as_the_rules_formula():
         return lambda m, v: jnp.sum(f(m, v, residual, scalars)[0] ** 2)
 
     def native_blend(m, v, residual, scalars):
-        return local._native_blend(m, v, residual, scalars, True, (0, 1), 2, constants, reference)
+        how = local.BlendCall((0, 1), 2, constants, reference)
+        return local._native_blend(m, v, residual, scalars, True, how)
 
     got = jax.grad(loss(native_blend), argnums=(0, 1))(m, v)
     want = jax.grad(loss(reference), argnums=(0, 1))(m, v)

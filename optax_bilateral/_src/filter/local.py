@@ -9,7 +9,7 @@ as its fallback and its derivative (:func:`runs_native`)."""
 from __future__ import annotations
 
 import functools
-from typing import cast
+from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -191,21 +191,30 @@ def subgrid_blend(
     ``reference(m, v, residual, scalars)``, the rule's own (rules/auto.py, which also
     describes the ``scalars`` and the ``constants``)."""
     if runs_native(m):
-        run = jnp.asarray(run, bool)
-        args = (tuple(axes), stride, constants, reference)
-        return _native_blend(m, v, residual, scalars, run, *args)
+        how = BlendCall(tuple(axes), stride, constants, reference)
+        return _native_blend(m, v, residual, scalars, jnp.asarray(run, bool), how)
     return reference(m, v, residual, scalars)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7, 8))
-def _native_blend(m, v, residual, scalars, run, axes, stride, constants, reference):
-    return native.blend_weights(m, v, residual, scalars, axes, stride, constants, run)
+class BlendCall(NamedTuple):
+    """What is fixed about a native blend's call: the sub-grid, the rule's constants, and the
+    JAX form that is its derivative."""
+
+    axes: tuple[int, ...]
+    stride: int
+    constants: tuple[float, float, float, float]
+    reference: Any
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(5,))
+def _native_blend(m, v, residual, scalars, run, how: BlendCall):
+    return native.blend_weights(m, v, residual, scalars, how.axes, how.stride, how.constants, run)
 
 
 @_native_blend.defjvp
-def _native_blend_jvp(axes, stride, constants, reference, primals, tangents):
+def _native_blend_jvp(how, primals, tangents):
     # The reference's value and derivative wherever the caller reads them (run or not).
-    return jax.jvp(reference, primals[:4], tangents[:4])
+    return jax.jvp(how.reference, primals[:4], tangents[:4])
 
 
 def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:
