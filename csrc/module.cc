@@ -8,8 +8,10 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
-#include <memory>
 #include <functional>
+#include <initializer_list>
+#include <memory>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -208,17 +210,16 @@ ob::Subgrid subgrid_of(const ffi::AnyBuffer& x, ffi::Span<const int64_t> axes, i
 }
 
 // A statistic's `run` operand, a bool scalar: false where the caller discards the outputs (the
-// rule's selects), so the call writes zeros and does no work.
-std::string check_run(const ffi::AnyBuffer& run) {
+// rule's selects). Then the call is done: zeros in `outs`, no work. An invalid `run` is an error;
+// otherwise nothing (the call goes on).
+std::optional<ffi::Error> unless_run(const ffi::AnyBuffer& run,
+                                     std::initializer_list<ffi::AnyBuffer*> outs) {
   if (run.element_type() != ffi::DataType::PRED || run.element_count() != 1)
-    return "run must be a bool scalar";
-  return "";
+    return invalid("run must be a bool scalar");
+  if (*static_cast<const bool*>(run.untyped_data())) return std::nullopt;
+  for (ffi::AnyBuffer* out : outs) std::memset(out->untyped_data(), 0, out->size_bytes());
+  return ffi::Error::Success();
 }
-
-bool runs(const ffi::AnyBuffer& run) { return *static_cast<const bool*>(run.untyped_data()); }
-
-// Zeros into every element of `out`.
-void zero(ffi::AnyBuffer& out) { std::memset(out.untyped_data(), 0, out.size_bytes()); }
 
 // x (*shape) -> its local averages at every `stride`-th entry along `axes` (local.h); `finite`:
 // x read as numpy.nan_to_num makes it.
@@ -236,12 +237,7 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::AnyBuffer run, ffi::Result<ffi::
     return invalid("the local average's output must have the sub-grid's shape");
   if (static_cast<int64_t>(work->element_count()) < ob::subgrid_work_size(s))
     return invalid("the local average's scratch is too small");
-  const std::string run_problem = check_run(run);
-  if (!run_problem.empty()) return invalid(run_problem);
-  if (!runs(run)) {
-    zero(*out);
-    return ffi::Error::Success();
-  }
+  if (auto done = unless_run(run, {&*out})) return *done;
   switch (type) {
     case ffi::DataType::F32:
       ob::subgrid_average(s, static_cast<const float*>(x.untyped_data()),
@@ -271,12 +267,7 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffe
     return invalid("the mean is a scalar of a's dtype, and b has a's dtype");
   if (has_b && static_cast<int64_t>(b.element_count()) != ob::texel_subgrid_size(g))
     return invalid("b must have the sub-grid's shape");
-  const std::string run_problem = check_run(run);
-  if (!run_problem.empty()) return invalid(run_problem);
-  if (!runs(run)) {
-    zero(*out);
-    return ffi::Error::Success();
-  }
+  if (auto done = unless_run(run, {&*out})) return *done;
   switch (type) {
     case ffi::DataType::F32:
       *static_cast<float*>(out->untyped_data()) = static_cast<float>(ob::texel_distance_mean(
@@ -336,12 +327,7 @@ ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
     return invalid("c1 must be a scalar of grad's dtype");
   if (out->element_type() != type || out->element_count() != 3 * pairs.size() + 2)
     return invalid("the sums are (3 pair axes + 2) of grad's dtype");
-  const std::string run_problem = check_run(run);
-  if (!run_problem.empty()) return invalid(run_problem);
-  if (!runs(run)) {
-    zero(*out);
-    return ffi::Error::Success();
-  }
+  if (auto done = unless_run(run, {&*out})) return *done;
   std::vector<double> sums(3 * pairs.size() + 2);
   switch (type) {
     case ffi::DataType::F32: {
@@ -393,13 +379,7 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
     return invalid("the residual and the output must have the sub-grid's shape");
   if (scalars.element_count() != 8 || gate->element_count() != 1)
     return invalid("the blend takes 8 scalars and gives one gate");
-  const std::string run_problem = check_run(run);
-  if (!run_problem.empty()) return invalid(run_problem);
-  if (!runs(run)) {
-    zero(*out);
-    zero(*gate);
-    return ffi::Error::Success();
-  }
+  if (auto done = unless_run(run, {&*out, &*gate})) return *done;
   switch (type) {
     case ffi::DataType::F32:
       return blend_typed<float>(g, m, v, r, scalars, &*out, &*gate, gain, power, low, span);

@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import jaxprs
 from optax_bilateral import atrous_bilateral
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter import native
@@ -464,7 +465,7 @@ def test_the_defaults_statistics_run_without_conditionals_where_they_are_native(
 
     def conditionals():
         jaxpr = jax.make_jaxpr(opt.update)(x, state, x).jaxpr
-        return sum(e.primitive.name == "cond" for e in _all_eqns(jaxpr))
+        return sum(e.primitive.name == "cond" for e in jaxprs.eqns(jaxpr))
 
     assert conditionals() == conds
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
@@ -474,16 +475,6 @@ def test_the_defaults_statistics_run_without_conditionals_where_they_are_native(
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
         jax.clear_caches()
-
-
-def _all_eqns(jaxpr):
-    for eqn in jaxpr.eqns:
-        yield eqn
-        for v in eqn.params.values():
-            for sub in v if isinstance(v, (tuple, list)) else (v,):
-                sub = getattr(sub, "jaxpr", sub)
-                if hasattr(sub, "eqns"):
-                    yield from _all_eqns(sub)
 
 
 # The sigma_d rules' texel statistics (csrc/stats.h): the guide's step and contrast, one call.

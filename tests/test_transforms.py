@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+import jaxprs
 import optax_bilateral as ob
 from optax_bilateral import atrous_bilateral
 
@@ -557,7 +558,7 @@ def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d
         """The levels a cascade runs: its native calls' ``levels - start``, or (pure-JAX
         kernels) its weights' exps, F = 3 on two axes holding 8 (2 pairs per pass, shared
         between levels) and one more level 4."""
-        calls = [e for e in _eqns(f) if e.primitive.name == "ffi_call"]
+        calls = [e for e in jaxprs.eqns(f) if e.primitive.name == "ffi_call"]
         if not calls:
             return {8: 3, 4: 1}[str(f).count(" exp ")]
         attrs = [dict(e.params["attributes"]) for e in calls]
@@ -565,7 +566,7 @@ def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d
 
     cascades = filters(jaxpr)
     levels = [levels_run(f) for f in cascades]
-    native_calls = [_eqns(f) for f in cascades]
+    native_calls = [jaxprs.eqns(f) for f in cascades]
     native_calls = [[e for e in es if e.primitive.name == "ffi_call"] for es in native_calls]
     if sigma_d == 0.1:
         assert levels == [3] * (1 + prefilter), levels
@@ -573,17 +574,6 @@ def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d
         assert levels == [3] * (1 + prefilter) + [4], levels
     else:  # the correlated-noise step's one more level, continuing the cascade
         assert levels == [3] * (1 + prefilter) + [1], levels
-
-
-def _eqns(jx):
-    """Every equation of a jaxpr and of the jaxprs inside it."""
-    for eqn in jx.eqns:
-        yield eqn
-        for v in eqn.params.values():
-            for sub in v if isinstance(v, (tuple, list)) else (v,):
-                sub = getattr(sub, "jaxpr", sub)
-                if hasattr(sub, "eqns"):
-                    yield from _eqns(sub)
 
 
 # --- Interop ------------------------------------------------------------------------------
