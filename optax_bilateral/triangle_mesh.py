@@ -17,6 +17,7 @@ from optax_bilateral._src.mesh.alias import bilateral_large_steps, large_steps
 from optax_bilateral._src.mesh.config import (
     CG,
     DEFAULT_DIRECTIONS,
+    DEFAULT_KERNEL_TOL,
     DEFAULT_LAMBDA,
     DEFAULT_MAXITER,
     DEFAULT_NORMAL_SIGMA_D,
@@ -32,6 +33,7 @@ from optax_bilateral._src.mesh.config import (
 from optax_bilateral._src.mesh.laplacian import MeshLaplacian, mesh_laplacian, smoothing_solve
 from optax_bilateral._src.mesh.normals import (
     bilateral_normal_filter,
+    kernel_bases,
     sphere_directions,
     vertex_normals,
 )
@@ -47,6 +49,7 @@ from optax_bilateral._src.mesh.transforms import (
 __all__ = (
     "CG",
     "DEFAULT_DIRECTIONS",
+    "DEFAULT_KERNEL_TOL",
     "DEFAULT_LAMBDA",
     "DEFAULT_MAXITER",
     "DEFAULT_NORMAL_SIGMA_D",
@@ -64,6 +67,7 @@ __all__ = (
     "bilateral_large_steps",
     "bilateral_normal_filter",
     "bilateral_smoothing",
+    "kernel_bases",
     "laplacian_smoothing",
     "large_steps",
     "mesh_laplacian",

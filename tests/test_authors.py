@@ -589,7 +589,8 @@ def test_bilateral_filter_splat_sigma_d_slice_sigma_phi(cube, solver):
         jnp.asarray(normals),
         cube["mesh"],
         lambda_=LAM,
-        sigma_d=ob.triangle_mesh.NormalFilter(0.5, sigma_phi=0.4, directions=dirs),
+        # kernel_tol=0: every direction its own term, as theirs.
+        sigma_d=ob.triangle_mesh.NormalFilter(0.5, sigma_phi=0.4, directions=dirs, kernel_tol=0.0),
         solver=ob.triangle_mesh.CG(tol=1e-15, maxiter=400) if solver == "cg" else solver,
     )
     close(ours, theirs)
@@ -618,7 +619,9 @@ def test_mesh_optimizer_matches(cube, prefilter, postfilter_v):
         lr,
         cube["mesh"],
         LAM,
-        ob.triangle_mesh.NormalFilter(0.5, sigma_phi=0.4, directions=dirs, normals="uniform"),
+        ob.triangle_mesh.NormalFilter(
+            0.5, sigma_phi=0.4, directions=dirs, normals="uniform", kernel_tol=0.0
+        ),
         *betas,
         eps,
         prefilter=prefilter,

@@ -97,7 +97,8 @@ def test_the_volume_tutorials_upsampling_restarts_the_keys_state(mi):
 def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
     from experiments.mitsuba import mesh as E
 
-    result = E.main(["--quick", "--out", str(tmp_path), "--directions", "8"])
+    argv = ["--quick", "--out", str(tmp_path), "--directions", "8", "--kernel-tol", "0"]
+    result = E.main(argv)
     cfg = E.default_config(quick=True)
     rows = json.loads((tmp_path / "summary.json").read_text())["rows"]
     assert [(r["target"], r["vertices"]) for r in rows] == [
@@ -113,7 +114,11 @@ def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
             assert 0 < r[k] < 1.5 * r["initial Hausdorff"]
     for r in result["results"].values():
         _pngs(r)
-        assert set(r["methods"]) == {*E.METHODS, "bilateral, 8 directions"}
+        assert set(r["methods"]) == {
+            *E.METHODS,
+            "bilateral, 8 directions",
+            "bilateral, kernel_tol 0",
+        }
     assert "ours / Large Steps" in (tmp_path / "table.md").read_text()
 
 
@@ -139,14 +144,19 @@ def test_mesh_experiment_options_reach_the_runs(mi, monkeypatch, tmp_path):
     seen = []
 
     def fake(cfg, frequency, out, progress, target):
-        seen.append((cfg.lambda_, cfg.iterations, frequency, target, cfg.directions))
+        seen.append(
+            (cfg.lambda_, cfg.iterations, frequency, target, cfg.directions, cfg.kernel_tols)
+        )
         raise StopIteration  # enough: the settings reached the first run
 
     monkeypatch.setattr(E, "run_vertex_count", fake)
     argv = ["--quick", "--out", str(tmp_path), "--frequencies", "5", "--lambda", "76"]
     with pytest.raises(StopIteration):
-        E.main([*argv, "--targets", "bumpy_box", "--iterations", "3", "--directions", "16", "8"])
-    assert seen == [(76.0, 3, 5, "bumpy_box", (16, 8))]
+        E.main(
+            [*argv, "--targets", "bumpy_box", "--iterations", "3", "--directions", "16", "8"]
+            + ["--kernel-tol", "0", "0.1"]
+        )
+    assert seen == [(76.0, 3, 5, "bumpy_box", (16, 8), (0.0, 0.1))]
     with pytest.raises(SystemExit):
         E.main(["--targets", "teapot"])
 

@@ -107,7 +107,7 @@ def test_sphere_directions_unit_and_spread():
 def test_bilateral_operator_row_stochastic_nonnegative_and_matches_dense(small, sigma_d):
     normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
     dirs = M.sphere_directions(32)
-    b = filter_matrix(small, normals, sigma_d, directions=dirs, sigma_phi=0.4)
+    b = filter_matrix(small, normals, sigma_d, directions=dirs, sigma_phi=0.4, kernel_tol=0.0)
     # Rows sum to one up to float32 and the CG tolerance (1e-7 relative per column).
     np.testing.assert_allclose(b.sum(1), 1.0, atol=1e-5)
     # M^-1 >= 0 and w >= 0, so B >= 0; CG round-off may dip below by ~1e-7.
@@ -115,6 +115,51 @@ def test_bilateral_operator_row_stochastic_nonnegative_and_matches_dense(small, 
     np.testing.assert_allclose(
         b, dense_bilateral(small["minv"], normals, sigma_d, dirs, 0.4), atol=2e-6
     )
+
+
+@pytest.mark.parametrize("sigma_d,tol", [(0.2, 0.02), (0.5, 0.02), (0.5, 0.1), (2.0, 0.3)])
+def test_compressed_kernel_stays_within_its_tolerance(small, sigma_d, tol):
+    """K_r within tol of K (relative) puts each B_ij within (1 + tol) / (1 - tol) of the
+    directions' own, both ways, and B stays non-negative and row-stochastic."""
+    normals = np.asarray(M.vertex_normals(cubified(small["v"]), small["f"]))
+    dirs = M.sphere_directions(32)
+    bases = M.kernel_bases(dirs, sigma_d, 0.4, tol)
+    assert bases is not None and bases[0].shape[1] < 32  # fewer terms than directions
+    b = filter_matrix(small, normals, sigma_d, directions=dirs, sigma_phi=0.4, kernel_tol=tol)
+    exact = dense_bilateral(small["minv"], normals, sigma_d, dirs, 0.4)
+    np.testing.assert_allclose(b.sum(1), 1.0, atol=1e-5)
+    assert b.min() > -1e-6
+    bound = (1 + tol) / (1 - tol) - 1
+    assert np.all(np.abs(b - exact) <= bound * exact + 2e-6)
+    # The tolerance is spent: the compressed filter is another operator, not the same one.
+    assert np.abs(b - exact).max() > 1e-5
+
+
+def test_kernel_bases_keep_every_direction_where_the_kernel_is_sharp():
+    dirs = M.sphere_directions(32)
+    assert M.kernel_bases(dirs, 0.5, 0.4, 0.0) is None  # tol 0: the authors' form
+    assert M.kernel_bases(dirs, 0.02, 0.02, 0.02) is None  # narrow lobes need every direction
+    a_w, a_phi = M.kernel_bases(dirs, 0.5, 0.4, 0.02)
+    # The defaults' kernel: spherical harmonics to degree 3, 1 + 3 + 5 + 7 terms.
+    assert a_w.shape == a_phi.shape == (32, 16)
+    # A repeated direction leaves the same kernel twice over, and the same rank.
+    twice = M.kernel_bases(np.concatenate([dirs, dirs]), 0.5, 0.4, 0.02)
+    assert twice is not None and twice[0].shape == (64, 16)
+
+
+def test_traced_widths_keep_every_direction(small):
+    normals = M.vertex_normals(cubified(small["v"]), small["f"])
+    x = jnp.asarray(np.random.default_rng(3).normal(size=(len(small["v"]), 2)), jnp.float32)
+
+    def filtered(sigma_d, tol):
+        data_term = M.NormalFilter(sigma_d, directions=8, kernel_tol=tol)
+        return M.bilateral_normal_filter(
+            [x], normals, small["mesh"], lambda_=LAM, sigma_d=data_term, solver="cholesky"
+        )[0]
+
+    traced = jax.jit(lambda s: filtered(s, 0.3))(jnp.float32(0.5))
+    np.testing.assert_allclose(traced, filtered(0.5, 0.0), rtol=1e-5, atol=1e-6)
+    assert np.abs(np.asarray(filtered(0.5, 0.3) - filtered(0.5, 0.0))).max() > 1e-6
 
 
 def test_bilateral_reduces_to_large_steps_as_sigma_grows(small):
@@ -491,6 +536,12 @@ def test_new_options_reject_bad_values(small):
         M.large_steps(0.1, mesh, solver=M.CG(tol=0.0))
     with pytest.raises(ValueError, match="maxiter"):
         M.CG(maxiter=0)
+    for bad in (-0.01, 0.5, 2.0):
+        with pytest.raises(ValueError, match=r"kernel_tol must be >= 0 and < 0\.5"):
+            M.NormalFilter(kernel_tol=bad)
+    for bad in ("0.1", None, float("nan"), True):
+        with pytest.raises(TypeError, match="kernel_tol must be a real number"):
+            M.NormalFilter(kernel_tol=bad)
     with pytest.raises(ValueError, match="weld_positions"):
         M.mesh_laplacian(small["f"], weld_positions=np.zeros((3, 3)))
 

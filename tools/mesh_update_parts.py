@@ -3,15 +3,16 @@ their parts, jitted, on the mesh experiment's vertex counts (issue #55, "profile
 
     python -m tools.mesh_update_parts [--quick] [--out DIR] [--after-render]
 
-For icosphere meshes pushed onto the mesh experiment's rounded cube (10 f^2 + 2 vertices,
-f = 16, 32 and 64: 2562, 10242 and 40962 vertices) and each solver, the median milliseconds
-of: the whole jitted update of ``bilateral_large_steps`` (the defaults: 32 directions, the
-prefilter ``M^-1 g``, ``postfilter_v="uniform"``) and of ``large_steps``; and of their parts,
-``smoothing_solve`` (``M^-1`` on 3 columns) and ``bilateral_normal_filter`` (``B`` on one
-3-channel field: a solve of 32 x 4 columns). Then the solves alone, on the host, float32, with
-3 and 128 columns: ``solver="cholesky"``'s factor (qdldl) swept by the extension, and CHOLMOD
-through cholespy (Mitsuba's Large Steps' solver, float64), with the seconds each takes to
-factorise. Writes ``mesh_update_parts.json`` and ``.md``.
+For icosphere meshes pushed onto the mesh experiment's rounded cube (10 f^2 + 2 vertices, f =
+16, 32 and 64: 2562, 10242 and 40962 vertices) and each solver, the median milliseconds of: the
+whole jitted update of ``bilateral_large_steps`` (the defaults: the 32 directions' kernel in 16
+terms, the prefilter ``M^-1 g``, ``postfilter_v="uniform"``) and of ``large_steps``; and of
+their parts, ``smoothing_solve`` (``M^-1`` on 3 columns) and ``bilateral_normal_filter`` (``B``
+on one 3-channel field: a solve of 16 x 4 columns). Then the solves alone, on the host,
+float32, with 3, 64 and 128 columns (``kernel_tol=0``'s 32 x 4): ``solver="cholesky"``'s factor
+(qdldl) swept by the extension, and CHOLMOD through cholespy (Mitsuba's Large Steps' solver,
+float64), with the seconds each takes to factorise. Writes ``mesh_update_parts.json`` and
+``.md``.
 
 ``--after-render`` (needs Mitsuba 3) adds the whole jitted update at a few delays after a
 render and ``dr.backward`` of the Mitsuba mesh experiment's scene, as its loop runs it, with
@@ -98,7 +99,7 @@ def solves(frequency: int, repeats: int) -> dict:
     )
     row["cholespy factorise s"] = time.perf_counter() - t
     rng = np.random.default_rng(0)
-    for columns in (3, 128):
+    for columns in (3, 64, 128):
         b = rng.normal(size=(u, columns)).astype(np.float32)
         out = np.empty_like(b)
         row[f"sweeps {columns} ms"] = median_ms(lambda b=b: factor.solve(b), repeats)

@@ -41,6 +41,11 @@ DEFAULT_SIGMA_PHI = 0.4
 # "A few dozen" directions (the authors' n_filter_samples); a power of two keeps Sobol's balance.
 DEFAULT_DIRECTIONS = 32
 """The default number of sphere directions ``s_k`` of the filter (:func:`sphere_directions`)."""
+# The directions' kernel is smooth: rank 16 (spherical harmonics to degree 3) holds the
+# defaults' to 1.1%, half the solve's columns (docs/triangle_mesh.md decisions).
+DEFAULT_KERNEL_TOL = 0.02
+"""The default :class:`NormalFilter` ``kernel_tol``: the largest relative error of the
+compressed data term ``K(n_i, n_j)`` against the directions' own."""
 # Relative residual per right-hand side (docs/triangle_mesh.md: iterations against tol).
 DEFAULT_TOL = 1e-4
 """The default CG tolerance: relative residual per right-hand side."""
@@ -94,6 +99,12 @@ class NormalFilter:
         default), ``"uniform"`` (the authors'), ``"angle"`` (see :func:`vertex_normals`) or
         a callable ``positions -> (V, 3) unit normals``. :func:`bilateral_normal_filter`,
         which is given the normals, does not read it.
+      kernel_tol: how far the data term ``K(n_i, n_j) = sum_k phi_k(i) w_k(j)`` may move,
+        relative, when it is compressed to fewer splat/slice pairs than directions (in
+        ``[0, 0.5)``; default 0.02). ``K`` is smooth on the sphere, so a few combinations
+        of the ``phi_k`` and of the ``w_k`` hold it (:func:`kernel_bases`): each pair fewer is
+        ``C + 1`` solve columns fewer. ``0`` keeps every direction (the authors' form).
+        With traced widths every direction is kept.
 
     Example::
 
@@ -111,10 +122,14 @@ class NormalFilter:
     sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI
     directions: Directions = DEFAULT_DIRECTIONS
     normals: Normals = "area"
+    kernel_tol: float = DEFAULT_KERNEL_TOL
 
     def __post_init__(self):
         check_positive(self.sigma_d, "sigma_d", "inf turns its weights off")
         check_positive(self.sigma_phi, "sigma_phi", "inf turns its weights off")
+        # Below 1 the compressed kernel stays positive (B non-negative); past 1/2 it would
+        # be another filter, not the directions' one.
+        check_number(self, "kernel_tol", low=0, high=0.5, high_open=True)
         if not callable(self.normals):
             check_choice(self.normals, "normals", NORMALS)
         d = self.directions

@@ -20,6 +20,7 @@ float32.
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from collections.abc import Sequence
@@ -54,6 +55,7 @@ from optax_bilateral._src.mesh.laplacian import (
     solve_columns,
     spread,
 )
+from optax_bilateral._src.validation import is_concrete
 
 
 def _unit(x):
@@ -187,21 +189,97 @@ def directions_of(normal_filter: NormalFilter) -> np.ndarray | None:
     return check_directions(directions)
 
 
-def _vmf(n, s, sigma):
+def _vmf(n, s, sigma, xp=jnp):
     """``exp((max(n . s, -1) - 1) / sigma)``: the authors' clamp, shifted into (0, 1]."""
-    return jnp.exp((jnp.maximum(n @ s.T, -1.0) - 1.0) / sigma)
+    return xp.exp((xp.maximum(n @ s.T, -1.0) - 1.0) / sigma)
 
 
-def _bilateral(host, graph, x, n, s, widths, solve, x0):
-    """Splat (w_k * x, w_k), diffuse with one solve, slice with phi_k, divide. ``graph`` is
-    ``(neighbors, degree)``, ``widths`` ``(sigma_d, sigma_phi)``, ``solve`` ``(lambda_, tol,
-    maxiter)``.
+def _fibonacci_sphere(num: int) -> np.ndarray:
+    """``num`` near-uniform unit vectors on a golden-angle spiral."""
+    i = np.arange(num) + 0.5
+    z = 1.0 - 2.0 * i / num
+    r = np.sqrt(1.0 - z * z)
+    angle = np.pi * (1.0 + math.sqrt(5.0)) * i
+    return np.stack([r * np.cos(angle), r * np.sin(angle), z], axis=-1)
 
-    Returns the filtered ``(U, C)`` field and the diffused ``(U, K (C + 1))`` columns.
+
+def kernel_bases(
+    directions: np.ndarray, sigma_d: float, sigma_phi: float, tol: float, *, samples: int = 1024
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The data term ``K(a, b) = sum_k phi_k(a) w_k(b)`` compressed to fewer terms.
+
+    ``K = Phi W^T`` over the sphere has rank at most ``K``, and for smooth kernels far less
+    (its singular values fall by degree of spherical harmonics: 1, 3, 5, 7 of them). The
+    truncated SVD of ``Phi W^T`` over ``samples`` near-uniform normals (and the zero normal
+    of a vertex whose faces cancel) gives ``(K, r)`` matrices with
+    ``K_r(a, b) = (phi(a) A_phi) . (w(b) A_w)``, ``r`` the least rank whose relative error
+    on those normals is at most ``tol``. Splatting with ``w A_w`` and slicing with
+    ``phi A_phi`` takes ``r (C + 1)`` solve columns, not ``K (C + 1)``; since
+    ``K_r >= (1 - tol) K > 0``, ``B`` stays non-negative and row-stochastic.
+
+    Args:
+      directions: ``(K, 3)`` unit vectors.
+      sigma_d: the splat width (a concrete number ``> 0``).
+      sigma_phi: the slice width (a concrete number ``> 0``).
+      tol: the largest relative error of ``K_r`` on the sample normals (``0``: None).
+      samples: how many normals (a Fibonacci sphere) the error is measured on.
+
+    Returns:
+      ``(A_w, A_phi)``, float64 ``(K, r)``, or None where only ``r = K`` holds ``tol``.
+      The transforms compute them once per setting (:class:`NormalFilter`'s ``kernel_tol``).
+
+    Example::
+
+        >>> from optax_bilateral import triangle_mesh as obm
+        >>> dirs = obm.sphere_directions(32)
+        >>> a_w, a_phi = obm.kernel_bases(dirs, 0.5, 0.4, 0.02)   # the defaults
+        >>> a_w.shape                                # 16 terms: 64 solve columns, not 128
+        (32, 16)
+        >>> print(obm.kernel_bases(dirs, 0.02, 0.02, 0.02))       # narrow lobes: all 32
+        None
     """
-    sigma_d, sigma_phi = widths
+    key = tuple(map(tuple, np.asarray(directions, np.float64).tolist()))
+    return _kernel_bases(key, float(sigma_d), float(sigma_phi), float(tol), int(samples))
+
+
+@functools.lru_cache(maxsize=64)
+def _kernel_bases(directions, sigma_d, sigma_phi, tol, samples):
+    s = np.asarray(directions)
+    if tol <= 0:
+        return None
+    normals = np.concatenate([_fibonacci_sphere(samples), np.zeros((1, 3))])
+    phi, w = _vmf(normals, s, sigma_phi, np), _vmf(normals, s, sigma_d, np)
+    exact = phi @ w.T
+    q_phi, r_phi = np.linalg.qr(phi)
+    q_w, r_w = np.linalg.qr(w)
+    u, singular, vt = np.linalg.svd(r_phi @ r_w.T)
+    left, right = q_phi @ u, q_w @ vt.T
+    approx = np.zeros_like(exact)
+    for rank in range(1, len(s)):
+        t = rank - 1
+        approx += singular[t] * np.outer(left[:, t], right[:, t])
+        if np.max(np.abs(approx - exact) / exact) <= tol:
+            scale = np.sqrt(singular[:rank])
+            # Least squares, not R^-1: repeated directions leave Phi rank-deficient.
+            a_phi = np.linalg.lstsq(phi, left[:, :rank] * scale, rcond=None)[0]
+            a_w = np.linalg.lstsq(w, right[:, :rank] * scale, rcond=None)[0]
+            return a_w, a_phi
+    return None
+
+
+def _bilateral(host, graph, x, n, terms, widths, solve, x0):
+    """Splat (w_k * x, w_k), diffuse with one solve, slice with phi_k, divide. ``graph`` is
+    ``(neighbors, degree)``, ``terms`` ``(directions, bases)`` with ``bases`` None or
+    ``(A_w, A_phi)`` (:func:`kernel_bases`), ``widths`` ``(sigma_d, sigma_phi)``, ``solve``
+    ``(lambda_, tol, maxiter)``.
+
+    Returns the filtered ``(U, C)`` field and the diffused ``(U, r (C + 1))`` columns.
+    """
+    (s, bases), (sigma_d, sigma_phi) = terms, widths
     w = _vmf(n, s, sigma_d)  # (U, K)
     phi = _vmf(n, s, sigma_phi)
+    if bases is not None:
+        w, phi = w @ bases[0], phi @ bases[1]  # (U, r)
     num_v, num_dirs, channels = x.shape[0], w.shape[1], x.shape[1]
     splat = jnp.concatenate([w[:, :, None] * x[:, None, :], w[:, :, None]], axis=2)
     rhs = splat.reshape(num_v, num_dirs * (channels + 1))
@@ -223,16 +301,29 @@ class Operator(NamedTuple):
     directions: Any  # (K, 3) unit vectors, or None where sigma_d is inf (B = M^-1)
     sigma_d: Any
     sigma_phi: Any
+    bases: Any  # (A_w, A_phi) of kernel_bases, or None: every direction its own term
 
     @classmethod
     def of(cls, system: System, normal_filter: NormalFilter) -> Operator:
         s = directions_of(normal_filter)
-        return cls(system, s, normal_filter.sigma_d, normal_filter.sigma_phi)
+        sigma_d, sigma_phi = normal_filter.sigma_d, normal_filter.sigma_phi
+        bases = None
+        if s is not None and is_concrete(sigma_d) and is_concrete(sigma_phi):
+            widths = float(np.asarray(sigma_d)), float(np.asarray(sigma_phi))
+            bases = kernel_bases(s, *widths, normal_filter.kernel_tol)
+        return cls(system, s, sigma_d, sigma_phi, bases)
+
+    @property
+    def terms(self) -> int:
+        """How many splat/slice pairs ``B`` diffuses: the rank ``r`` or every direction."""
+        if self.directions is None:
+            return 0
+        return len(self.directions) if self.bases is None else self.bases[0].shape[1]
 
     def columns(self, channels: int) -> int:
-        """How many columns the solve of a ``channels``-wide field takes: ``K (C + 1)`` (each
-        direction's weighted field and its weight), or ``C`` for ``B = M^-1``."""
-        return channels if self.directions is None else len(self.directions) * (channels + 1)
+        """How many columns the solve of a ``channels``-wide field takes: ``r (C + 1)`` (each
+        term's weighted field and its weight), or ``C`` for ``B = M^-1``."""
+        return channels if self.directions is None else self.terms * (channels + 1)
 
 
 def bilateral_fields(fields, normals, op: Operator, x0=None):
@@ -259,7 +350,10 @@ def bilateral_fields(fields, normals, op: Operator, x0=None):
             (mesh.neighbors, mesh.degree),
             x,
             as_dtype(merge(mesh, jnp.asarray(normals))),
-            as_dtype(op.directions),
+            (
+                as_dtype(op.directions),
+                None if op.bases is None else tuple(map(as_dtype, op.bases)),
+            ),
             (as_dtype(op.sigma_d), as_dtype(op.sigma_phi)),
             solve,
             x0,
