@@ -98,6 +98,7 @@ def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
     from experiments.mitsuba import mesh as E
 
     argv = ["--quick", "--out", str(tmp_path), "--directions", "8", "--kernel-tol", "0"]
+    argv += ["--sigma-d", "2"]
     result = E.main(argv)
     cfg = E.default_config(quick=True)
     rows = json.loads((tmp_path / "summary.json").read_text())["rows"]
@@ -118,6 +119,7 @@ def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
             *E.METHODS,
             "bilateral, 8 directions",
             "bilateral, kernel_tol 0",
+            "bilateral, sigma_d 2",
         }
     assert "ours / Large Steps" in (tmp_path / "table.md").read_text()
 
@@ -145,7 +147,15 @@ def test_mesh_experiment_options_reach_the_runs(mi, monkeypatch, tmp_path):
 
     def fake(cfg, frequency, out, progress, target):
         seen.append(
-            (cfg.lambda_, cfg.iterations, frequency, target, cfg.directions, cfg.kernel_tols)
+            (
+                cfg.lambda_,
+                cfg.iterations,
+                frequency,
+                target,
+                cfg.directions,
+                cfg.kernel_tols,
+                cfg.sigma_ds,
+            )
         )
         raise StopIteration  # enough: the settings reached the first run
 
@@ -154,9 +164,9 @@ def test_mesh_experiment_options_reach_the_runs(mi, monkeypatch, tmp_path):
     with pytest.raises(StopIteration):
         E.main(
             [*argv, "--targets", "bumpy_box", "--iterations", "3", "--directions", "16", "8"]
-            + ["--kernel-tol", "0", "0.1"]
+            + ["--kernel-tol", "0", "0.1", "--sigma-d", "1", "inf"]
         )
-    assert seen == [(76.0, 3, 5, "bumpy_box", (16, 8), (0.0, 0.1))]
+    assert seen == [(76.0, 3, 5, "bumpy_box", (16, 8), (0.0, 0.1), (1.0, float("inf")))]
     with pytest.raises(SystemExit):
         E.main(["--targets", "teapot"])
 

@@ -3,7 +3,7 @@
 
     python -m experiments.mitsuba.mesh [--quick] [--out DIR] [--frequencies F ...]
         [--targets rounded_cube bumpy_box] [--lambda L] [--iterations N] [--directions K ...]
-        [--kernel-tol T ...]
+        [--kernel-tol T ...] [--sigma-d S ...]
 
 A sphere (an icosphere built in code) recovers a target built in code (a fine icosphere
 pushed radially onto its surface: a cube with rounded edges, and a box with nearly sharp
@@ -32,6 +32,8 @@ Methods, at the same lambda and learning rate:
   kernel_tol=T)``; ``0`` is the authors' form, every direction its own term (the solve takes
   ``4 K`` columns; the default tolerance 0.02 holds the 32 directions' kernel in 16 terms,
   64 columns).
+* ``bilateral, sigma_d S`` (``--sigma-d S``): the same with the splat width ``S`` (not 0.5;
+  ``inf`` is Large Steps' ``B = M^-1``): the search for the best-tuned filter.
 
 Geometry error: the symmetric Hausdorff distance to the target (the distance of the mesh's
 surface samples to the target's signed distance function, exact for the rounded cube and to
@@ -92,6 +94,7 @@ class Config:
     samples: int = 20000  # Hausdorff surface samples on each side
     directions: tuple = ()  # ours again with these many normal-filter directions (not 32)
     kernel_tols: tuple = ()  # ours again with these NormalFilter kernel_tol (not 0.02)
+    sigma_ds: tuple = ()  # ours again with these splat widths sigma_d (not 0.5)
     record_every: int = 10
 
 
@@ -408,7 +411,7 @@ class BilateralRun(MeshRun):
             lr,
             obm.mesh_laplacian(problem.faces),
             lambda_,
-            obm.NormalFilter(cfg.sigma_d, cfg.sigma_phi, **fields),
+            obm.NormalFilter(**({"sigma_d": cfg.sigma_d, "sigma_phi": cfg.sigma_phi} | fields)),
             solver="cholesky",
         )
         self.opt = OptaxOptimizer(transform, shapes={KEY: (-1, 3)})
@@ -454,6 +457,9 @@ def run_vertex_count(
     for tol in cfg.kernel_tols:
         name = f"bilateral, kernel_tol {tol:g}"
         entries[name] = [entry(name, lr, kernel_tol=tol) for lr in cfg.learning_rates]
+    for sigma_d in cfg.sigma_ds:
+        name = f"bilateral, sigma_d {sigma_d:g}"
+        entries[name] = [entry(name, lr, sigma_d=sigma_d) for lr in cfg.learning_rates]
     traces, samples = runner.run_interleaved(
         problem,
         entries,
@@ -579,6 +585,13 @@ def _options(parser) -> None:
         help="also run ours with these NormalFilter kernel_tol (0: the authors' form; the "
         "default is 0.02)",
     )
+    parser.add_argument(
+        "--sigma-d",
+        dest="sigma_ds",
+        type=float,
+        nargs="+",
+        help="also run ours with these splat widths sigma_d (the default is 0.5; inf: B = M^-1)",
+    )
 
 
 def main(argv=None) -> dict:
@@ -597,6 +610,7 @@ def main(argv=None) -> dict:
         "iterations": args.iterations,
         "directions": tuple(args.directions) if args.directions else None,
         "kernel_tols": tuple(args.kernel_tols) if args.kernel_tols else None,
+        "sigma_ds": tuple(args.sigma_ds) if args.sigma_ds else None,
     }
     cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
     results = {}
