@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 import optax_bilateral as ob
 from optax_bilateral import triangle_mesh as M
@@ -145,6 +147,33 @@ def test_kernel_bases_keep_every_direction_where_the_kernel_is_sharp():
     # A repeated direction leaves the same kernel twice over, and the same rank.
     twice = M.kernel_bases(np.concatenate([dirs, dirs]), 0.5, 0.4, 0.02)
     assert twice is not None and twice[0].shape == (64, 16)
+
+
+@given(
+    sigma_d=st.sampled_from([0.05, 0.2, 0.5, 2.0, 5.0]),
+    sigma_phi=st.sampled_from([0.05, 0.4, 1.0]),
+    tol=st.sampled_from([0.005, 0.02, 0.1, 0.45]),
+    seed=st.integers(0, 2**16),
+)
+def test_kernel_bases_hold_the_tolerance_off_their_samples(sigma_d, sigma_phi, tol, seed):
+    """Chosen on a Fibonacci sphere, the compressed kernel holds its tolerance within 1.25x
+    (1.05x measured at worst on a grid of widths) on normals it never saw, and stays
+    positive; where no rank below the directions' holds it, no tighter one does either."""
+    dirs = M.sphere_directions(32)
+    bases = M.kernel_bases(dirs, sigma_d, sigma_phi, tol)
+    if bases is None:
+        assert M.kernel_bases(dirs, sigma_d, sigma_phi, tol / 2) is None
+        return
+    n = np.random.default_rng(seed).normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+
+    def vmf(sigma):
+        return np.exp((np.maximum(n @ dirs.T, -1.0) - 1.0) / sigma)
+
+    exact = vmf(sigma_phi) @ vmf(sigma_d).T
+    compressed = (vmf(sigma_phi) @ bases[1]) @ (vmf(sigma_d) @ bases[0]).T
+    assert compressed.min() > 0
+    assert np.max(np.abs(compressed - exact) / exact) <= 1.25 * tol
 
 
 def test_traced_widths_keep_every_direction(small):
