@@ -176,6 +176,25 @@ def test_kernel_bases_hold_the_tolerance_off_their_samples(sigma_d, sigma_phi, t
     assert np.max(np.abs(compressed - exact) / exact) <= 1.25 * tol
 
 
+def test_kernel_bases_reject_bad_arguments():
+    dirs = M.sphere_directions(8)
+    with pytest.raises(ValueError, match="directions"):
+        M.kernel_bases(dirs[:, :2], 0.5, 0.4, 0.02)
+    for name, args in (("sigma_d", (0.0, 0.4)), ("sigma_phi", (0.5, -1.0))):
+        with pytest.raises(ValueError, match=f"{name} must be > 0"):
+            M.kernel_bases(dirs, *args, 0.02)
+    with pytest.raises(TypeError, match="sigma_d must be a concrete number"):
+        jax.jit(lambda s: M.kernel_bases(dirs, s, 0.4, 0.02))(0.5)
+    for bad in (-0.1, 0.5, "0.1", True, float("nan")):
+        with pytest.raises(ValueError, match=r"tol must be a real number >= 0 and < 0\.5"):
+            M.kernel_bases(dirs, 0.5, 0.4, bad)
+    with pytest.raises(ValueError, match="samples must be an int >= 16"):
+        M.kernel_bases(dirs, 0.5, 0.4, 0.02, samples=8)
+    # inf: every weight 1, one term holds the kernel exactly.
+    a_w, a_phi = M.kernel_bases(dirs, np.inf, 0.4, 0.02)
+    assert a_w.shape == a_phi.shape == (8, 1)
+
+
 def test_traced_widths_keep_every_direction(small):
     normals = M.vertex_normals(cubified(small["v"]), small["f"])
     x = jnp.asarray(np.random.default_rng(3).normal(size=(len(small["v"]), 2)), jnp.float32)

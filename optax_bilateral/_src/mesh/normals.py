@@ -55,7 +55,7 @@ from optax_bilateral._src.mesh.laplacian import (
     solve_columns,
     spread,
 )
-from optax_bilateral._src.validation import is_concrete
+from optax_bilateral._src.validation import check_positive, is_concrete
 
 
 def _unit(x):
@@ -213,16 +213,18 @@ def kernel_bases(
     truncated SVD of ``Phi W^T`` over ``samples`` near-uniform normals (and the zero normal
     of a vertex whose faces cancel) gives ``(K, r)`` matrices with
     ``K_r(a, b) = (phi(a) A_phi) . (w(b) A_w)``, ``r`` the least rank whose relative error
-    on those normals is at most ``tol``. Splatting with ``w A_w`` and slicing with
-    ``phi A_phi`` takes ``r (C + 1)`` solve columns, not ``K (C + 1)``; since
-    ``K_r >= (1 - tol) K > 0``, ``B`` stays non-negative and row-stochastic.
+    on those normals is at most ``tol`` (on other normals the error measured at most 1.05
+    ``tol``). Splatting with ``w A_w`` and slicing with ``phi A_phi`` takes ``r (C + 1)``
+    solve columns, not ``K (C + 1)``; since ``K_r >= (1 - tol) K > 0``, ``B`` stays
+    non-negative and row-stochastic.
 
     Args:
       directions: ``(K, 3)`` unit vectors.
       sigma_d: the splat width (a concrete number ``> 0``).
       sigma_phi: the slice width (a concrete number ``> 0``).
-      tol: the largest relative error of ``K_r`` on the sample normals (``0``: None).
-      samples: how many normals (a Fibonacci sphere) the error is measured on.
+      tol: the largest relative error of ``K_r`` on the sample normals, in ``[0, 0.5)``
+        (``0``: None).
+      samples: how many normals (a Fibonacci sphere, ``>= 16``) the error is measured on.
 
     Returns:
       ``(A_w, A_phi)``, float64 ``(K, r)``, or None where only ``r = K`` holds ``tol``.
@@ -238,8 +240,18 @@ def kernel_bases(
         >>> print(obm.kernel_bases(dirs, 0.02, 0.02, 0.02))       # narrow lobes: all 32
         None
     """
-    key = tuple(map(tuple, np.asarray(directions, np.float64).tolist()))
-    return _kernel_bases(key, float(sigma_d), float(sigma_phi), float(tol), int(samples))
+    directions = check_directions(directions)
+    for value, name in ((sigma_d, "sigma_d"), (sigma_phi, "sigma_phi")):
+        if not is_concrete(value):
+            raise TypeError(f"{name} must be a concrete number here (it is read on the host)")
+        check_positive(value, name)
+    if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0 <= tol < 0.5:
+        raise ValueError(f"tol must be a real number >= 0 and < 0.5, got {tol!r}")
+    if isinstance(samples, bool) or not isinstance(samples, numbers.Integral) or samples < 16:
+        raise ValueError(f"samples must be an int >= 16, got {samples!r}")
+    key = tuple(map(tuple, directions.tolist()))
+    widths = float(np.asarray(sigma_d)), float(np.asarray(sigma_phi))
+    return _kernel_bases(key, *widths, float(tol), int(samples))
 
 
 @functools.lru_cache(maxsize=64)
