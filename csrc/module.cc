@@ -10,6 +10,7 @@
 #include <cstring>
 #include <functional>
 #include <initializer_list>
+#include <limits>
 #include <memory>
 #include <optional>
 #include <string>
@@ -284,25 +285,36 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffe
   }
 }
 
+// A double limit as T: past T's largest value (no T lies beyond it) infinity, not a cast
+// out of T's range.
+template <typename T>
+T in_range(double limit) {
+  const double top = static_cast<double>(std::numeric_limits<T>::max());
+  return limit > top ? std::numeric_limits<T>::infinity() : static_cast<T>(limit);
+}
+
 template <typename T>
 void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
                        ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
-                       ffi::AnyBuffer c1, double* sums) {
+                       ffi::AnyBuffer c1, double limit, double* sums) {
   const auto od = observed.dimensions();
   const ob::Noise<T> noise{static_cast<const T*>(grad.untyped_data()),
                            static_cast<const T*>(m.untyped_data()),
                            static_cast<const bool*>(observed.untyped_data()),
                            std::vector<int64_t>(od.begin(), od.end()),
-                           *static_cast<const T*>(c1.untyped_data())};
+                           *static_cast<const T*>(c1.untyped_data()),
+                           in_range<T>(limit)};
   ob::correlation_sums(g, pairs, noise, sums);
 }
 
 // The correlated-noise check's sums (stats.h), (3 pairs + 2) of grad's dtype, of
-// z = grad - m / c1 and y = m / c1 where observed (a bool mask, broadcast), else 0.
+// z = clip(grad, -limit, limit) - m / c1 and y = m / c1 where observed (a bool mask,
+// broadcast), else 0.
 ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
                             ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                             ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
-                            int64_t stride) {
+                            int64_t stride, double limit) {
+  if (!(limit > 0)) return invalid("limit must be > 0 (inf: no clip)");
   const ob::Subgrid g = subgrid_of(grad, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
   if (!problem.empty()) return invalid(problem);
@@ -331,13 +343,13 @@ ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
   std::vector<double> sums(3 * pairs.size() + 2);
   switch (type) {
     case ffi::DataType::F32: {
-      correlation_typed<float>(g, pairs, grad, m, observed, c1, sums.data());
+      correlation_typed<float>(g, pairs, grad, m, observed, c1, limit, sums.data());
       auto* o = static_cast<float*>(out->untyped_data());
       for (size_t k = 0; k < sums.size(); ++k) o[k] = static_cast<float>(sums[k]);
       return ffi::Error::Success();
     }
     case ffi::DataType::F64:
-      correlation_typed<double>(g, pairs, grad, m, observed, c1, sums.data());
+      correlation_typed<double>(g, pairs, grad, m, observed, c1, limit, sums.data());
       std::copy(sums.begin(), sums.end(), static_cast<double*>(out->untyped_data()));
       return ffi::Error::Success();
     default:
@@ -483,7 +495,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                                   .Ret<ffi::AnyBuffer>()  // the sums (3 pair axes + 2)
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<ffi::Span<const int64_t>>("pair_axes")
-                                  .Attr<int64_t>("stride"));
+                                  .Attr<int64_t>("stride")
+                                  .Attr<double>("limit"));  // |grad| clipped to it
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // m (*shape)

@@ -1,6 +1,7 @@
 // csrc/stats.h's statistics: plain loops over the sub-grid (at most ~2^17 texels per leaf).
 #include "stats.h"
 
+#include <algorithm>
 #include <cmath>
 #include <vector>
 
@@ -118,7 +119,9 @@ T noise_y(const Noise<T>& n, int64_t a, int64_t o) {
 
 template <typename T>
 T noise_z(const Noise<T>& n, int64_t a, int64_t o) {
-  return n.observed[o] ? n.grad[a] - n.m[a] / n.c1 : T(0);
+  if (!n.observed[o]) return T(0);
+  const T g = std::min(std::max(n.grad[a], -n.limit), n.limit);  // jnp.clip's order
+  return g - n.m[a] / n.c1;
 }
 
 template <typename T>

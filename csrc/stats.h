@@ -23,6 +23,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -55,8 +56,9 @@ double blend_weights(const Subgrid& g, const double* m, const double* v, const d
                      const Blend<double>& b, double* out);
 
 // The correlated-noise check's fields, computed where the sums read them (no full-size copy):
-// y = m / c1 and z = grad - y where `observed`, else 0, each operation in T (auto.py's order).
-// grad and m have g.shape; observed has its rank, each dimension g.shape's or 1 (broadcast).
+// y = m / c1 and z = clip(grad, -limit, limit) - y where `observed`, else 0, each operation in
+// T (auto.py's order; the clip is the step's, so grad may be the gradient as given). grad and
+// m have g.shape; observed has its rank, each dimension g.shape's or 1 (broadcast).
 template <typename T>
 struct Noise {
   const T* grad;
@@ -64,6 +66,7 @@ struct Noise {
   const bool* observed;
   std::vector<int64_t> observed_shape;
   T c1;
+  T limit = std::numeric_limits<T>::infinity();
 };
 
 // The first problem with a Noise's mask shape for the grid g, or "".

@@ -140,6 +140,8 @@ void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
   std::unique_ptr<bool[]> observed(new bool[static_cast<size_t>(n_mask)]);
   for (int64_t i = 0; i < n_mask; ++i) observed[i] = rng() % 4 != 0;
   const T c1 = static_cast<T>(0.1 + 0.9 * (rng() % 1000) / 1000.0);
+  // Half the cases clip the gradient (to about its spread: many entries are clipped).
+  const T limit = rng() % 2 ? static_cast<T>(1.5) : std::numeric_limits<T>::infinity();
   std::vector<T> grad(n), m(n);
   std::vector<double> z64(n), y64(n);
   for (int64_t i = 0; i < n; ++i) {
@@ -148,8 +150,10 @@ void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
     for (size_t d = 0; d < idx.size(); ++d)
       if (mask_shape[d] == 1) idx[d] = 0;
     const bool on = observed[ravel(idx, mask_shape)];
+    if (!on && rng() % 2) grad[i] = std::numeric_limits<T>::quiet_NaN();  // never read
     const T y = m[i] / c1;
-    z64[i] = on ? static_cast<T>(grad[i] - y) : T(0);
+    const T clipped = grad[i] < -limit ? -limit : grad[i] > limit ? limit : grad[i];
+    z64[i] = on ? static_cast<T>(clipped - y) : T(0);
     y64[i] = on ? y : T(0);
   }
   std::vector<int64_t> pairs;
@@ -162,7 +166,7 @@ void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
     ++failures;
     return;
   }
-  const ob::Noise<T> noise{grad.data(), m.data(), observed.get(), mask_shape, c1};
+  const ob::Noise<T> noise{grad.data(), m.data(), observed.get(), mask_shape, c1, limit};
   ob::correlation_sums(g, pairs, noise, got.data());
   ++cases;
   for (size_t k = 0; k < want.size(); ++k) {

@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import jax_compat
 import jaxprs
 from optax_bilateral import atrous_bilateral
 from optax_bilateral._src import numerics
@@ -606,6 +607,45 @@ def test_correlation_sums_equal_the_float64_definition(case, stride, seed):
         slices = local.correlation_sums(g, m, observed, c1, axes, stride)
     np.testing.assert_allclose(lags, slices[0], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(energies, slices[1], rtol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_correlation_sums_clip_the_given_gradient_where_they_read_it(dtype):
+    # The gradient as given (NaN and inf where unobserved, huge where observed) with the
+    # step's limit: the same sums as of the observed, clipped gradient, to the bit.
+    from optax_bilateral._src.filter import local
+
+    rng = np.random.default_rng(0)
+    shape, axes, limit = (12, 10, 3), (0, 1), 2.5
+    raw = rng.normal(size=shape) * 3
+    raw[rng.random(shape) < 0.2] = 1e30
+    observed = rng.random(shape[:-1] + (1,)) < 0.8
+    raw = np.where(observed, raw, np.where(rng.random(shape) < 0.5, np.nan, -np.inf))
+    with jax_compat.enable_x64(dtype == jnp.float64):
+        g = jnp.asarray(raw, dtype)
+        m = jnp.asarray(rng.normal(size=shape), dtype)
+        mask, c1 = jnp.asarray(observed), jnp.asarray(0.3, dtype)
+        clipped = jnp.clip(jnp.where(mask, g, 0), -limit, limit)
+        for stride in (1, 2, 3):
+            got = local.correlation_sums(g, m, mask, c1, axes, stride, limit=limit)
+            want = local.correlation_sums(clipped, m, mask, c1, axes, stride)
+            for a, b in zip(got, want, strict=True):
+                np.testing.assert_array_equal(a, b)
+                assert np.all(np.isfinite(np.asarray(a)))
+            with pytest.MonkeyPatch.context() as patch:  # the slices' sums clip alike
+                patch.setattr(native, "takes_subgrid", lambda x: False)
+                slices = local.correlation_sums(g, m, mask, c1, axes, stride, limit=limit)
+            np.testing.assert_allclose(got[0], slices[0], rtol=1e-5)
+            np.testing.assert_allclose(got[1], slices[1], rtol=1e-5)
+
+
+@pytest.mark.parametrize("limit", [0.0, -1.0, float("nan")])
+def test_correlation_sums_refuse_a_limit_that_is_not_positive(limit):
+    g = jnp.ones((6, 5, 2))
+    with pytest.raises(ValueError, match="limit must be > 0"):
+        native.correlation_sums(
+            g, g, jnp.ones((6, 5, 1), bool), 1.0, (0, 1), (0, 1), 1, limit=limit
+        )
 
 
 def test_correlation_sums_refuse_a_mask_that_does_not_broadcast():

@@ -2,6 +2,7 @@
 
     python -m tools.profile_update --shape 512x512 --log-guide
     python -m tools.profile_update --shape 512x512x3 --full --calls 20
+    python -m tools.profile_update --shape 512x512x3 --defaults
 
 Compiles ``bilateral_adam``'s update (the optimizer of ``tools.ab_update``: the
 texture experiment's, with ``--log-guide`` its log guide) and ``optax.adam``'s on the same
@@ -72,9 +73,18 @@ def traced_kernels(fn, args, names: set[str], calls: int) -> dict[str, dict]:
     return {k: {"kernels per call": count[k] / calls, "us per call": dur[k] / calls} for k in count}
 
 
-def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int, rounds: int) -> dict:
+def profile(
+    shape,
+    levels: int,
+    separable: bool,
+    log_guide: bool,
+    calls: int,
+    rounds: int,
+    defaults: bool = False,
+) -> dict:
     params, grad = ab_update.arrays(shape)
-    opts = {"adam": optax.adam(1e-2), "ours": ab_update.optimizer(ob, levels, separable, log_guide)}
+    ours = ab_update.optimizer(ob, levels, separable, log_guide, defaults)
+    opts = {"adam": optax.adam(1e-2), "ours": ours}
     progs = {}
     for k, opt in opts.items():
         prog = bm.update_program(opt)
@@ -86,6 +96,7 @@ def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int, ro
         "levels": levels,
         "separable": separable,
         "log_guide": log_guide,
+        "defaults": defaults,
         "calls": calls,
         "programs": {},
     }
@@ -109,10 +120,15 @@ def profile(shape, levels: int, separable: bool, log_guide: bool, calls: int, ro
 
 
 def markdown(result: dict) -> str:
+    setting = (
+        "bilateral_adam(0.02) defaults"
+        if result.get("defaults")
+        else f"F={result['levels']}, {'separable' if result['separable'] else 'full'}"
+        f"{', log guide' if result['log_guide'] else ''}"
+    )
     head = (
-        f"update kernels, shape {'x'.join(map(str, result['shape']))}, F={result['levels']}, "
-        f"{'separable' if result['separable'] else 'full'}"
-        f"{', log guide' if result['log_guide'] else ''}, {result['calls']} traced calls\n\n"
+        f"update kernels, shape {'x'.join(map(str, result['shape']))}, {setting}, "
+        f"{result['calls']} traced calls\n\n"
     )
     summary = [
         {
@@ -149,6 +165,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
         p.add_argument("--levels", type=int, default=5)
         p.add_argument("--full", action="store_true", help="full instead of separable mode")
         p.add_argument("--log-guide", action="store_true")
+        p.add_argument(
+            "--defaults",
+            action="store_true",
+            help="bilateral_adam(0.02) with every default (ignores --levels, --full, --log-guide)",
+        )
         p.add_argument("--calls", type=int, default=20, help="traced calls per program")
         p.add_argument("--rounds", type=int, default=11, help="untraced timing rounds")
 
@@ -160,7 +181,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
             raise ValueError(f"--{name} must be >= {0 if name == 'levels' else 1}, got {v}")
     if args.quick:
         args.calls, args.rounds = 2, 1
-    result = profile(shape, args.levels, not args.full, args.log_guide, args.calls, args.rounds)
+    result = profile(
+        shape, args.levels, not args.full, args.log_guide, args.calls, args.rounds, args.defaults
+    )
     result["jax"] = jax.__version__
     md = markdown(result)
     common.write_results(args.out, "profile", result, md)

@@ -9,6 +9,7 @@ as its fallback and its derivative (:func:`runs_native`)."""
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, NamedTuple, cast
 
 import jax
@@ -131,9 +132,11 @@ def correlation_sums(
     axes: tuple[int, ...],
     stride: int,
     run: jax.Array | bool = True,
+    limit: float = math.inf,
 ) -> tuple[jax.Array, jax.Array]:
-    """``(lags, energies)``, not differentiated, of ``z = g - m / c1`` and ``y = m / c1`` where
-    ``observed`` (broadcastable against ``g``), else 0: for each spatial axis longer than 1, in
+    """``(lags, energies)``, not differentiated, of ``z = clip(g, -limit, limit) - m / c1`` and
+    ``y = m / c1`` where ``observed`` (broadcastable against ``g``), else 0 (``g`` may be the
+    gradient as given, unobserved entries and all): for each spatial axis longer than 1, in
     order, the sums of ``x0^2``, ``x1^2`` and ``x0 x1`` of ``z`` over its neighbour pairs
     (:func:`neighbours`), a ``(k, 3)`` array; and the sums of ``z^2`` and ``y^2`` over the
     sub-grid (every ``stride``-th entry along ``axes``), a ``(2,)`` array. ``g`` and ``m`` share
@@ -145,10 +148,10 @@ def correlation_sums(
     c1 = jnp.asarray(c1, m.dtype)
     pairs = tuple(a for a in axes if g.shape[a] > 1)
     if runs_native(g):
-        sums = native.correlation_sums(g, m, observed, c1, axes, pairs, stride, run)
+        sums = native.correlation_sums(g, m, observed, c1, axes, pairs, stride, run, limit)
         return sums[:-2].reshape(len(pairs), 3), sums[-2:]
     y = m / c1
-    z, y = jnp.where(observed, g - y, 0), jnp.where(observed, y, 0)
+    z, y = jnp.where(observed, jnp.clip(g, -limit, limit) - y, 0), jnp.where(observed, y, 0)
     lags = [
         _sums(x0 * x0, x1 * x1, x0 * x1)
         for x0, x1 in (neighbours(z, axes, a, stride) for a in pairs)

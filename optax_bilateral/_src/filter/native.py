@@ -277,13 +277,16 @@ def correlation_sums(
     pair_axes: Sequence[int],
     stride: int,
     run: jax.Array | bool = True,
+    limit: float = math.inf,
 ) -> jax.Array:
     """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``, of
-    ``z = g - m / c1`` and ``y = m / c1`` where ``observed`` (bool, broadcastable against
-    ``g``), else 0, each computed where the sums read it: one FFI call, sums in double; zeros
-    without any work where ``run`` (a bool, may be traced) is False. Not differentiable (its
-    callers stop the gradient)."""
+    ``z = clip(g, -limit, limit) - m / c1`` and ``y = m / c1`` where ``observed`` (bool,
+    broadcastable against ``g``), else 0, each computed where the sums read it: one FFI call,
+    sums in double; zeros without any work where ``run`` (a bool, may be traced) is False. Not
+    differentiable (its callers stop the gradient)."""
     _require("the native texel statistics")
+    if not limit > 0:
+        raise ValueError(f"limit must be > 0 (inf: no clip), got {limit!r}")
     call = jax.ffi.ffi_call(
         CORRELATION_TARGET,
         jax.ShapeDtypeStruct((3 * len(pair_axes) + 2,), g.dtype),
@@ -299,6 +302,7 @@ def correlation_sums(
         axes=np.asarray(axes, np.int64),
         pair_axes=np.asarray(pair_axes, np.int64),
         stride=np.int64(stride),
+        limit=np.float64(limit),
     )
 
 

@@ -107,7 +107,8 @@ def postfilter_leaf(
     else:
         op = operators.operator(plan.filter, guide, cast(jax.Array, observed.texels))
         sigma, state = rule.sigma(guide, plan.filter, state, ctx)
-        index, ways = rule.combine(Moments(m, v, g_obs, observed.entries), op, sigma, state, ctx)
+        fields = Moments(m, v, g_obs, observed.entries, g, plan.limit)
+        index, ways = rule.combine(fields, op, sigma, state, ctx)
         sample = rule.step_sample(plan.filter)
 
         def finish(way):

@@ -351,11 +351,17 @@ class Auto(SigmaRule):
         least ``noisy`` times ``m_hat``'s. Sums run over the sub-grid and the observed
         entries; False at the first step or with ``b1 = 0``. ``run`` (a traced bool): the
         native sums do no work where it is False (their caller discards the answer)."""
-        g, m = moments.g, moments.m
+        # The gradient as given where the sums run natively: they mask and clip it where they
+        # read it (the observed gradient would be a full-size temporary for them alone).
+        g, m, limit = moments.g, moments.m, math.inf
+        if moments.given is not None and runs_native(m):
+            g, limit = moments.given, moments.limit
         dtype = jnp.promote_types(m.dtype, jnp.float32)
         c1 = jnp.asarray(ctx.c1, dtype)
         g, m, stride = g.astype(dtype), m.astype(dtype), self._stride(g.shape, axes)
-        lags, (noise, signal) = correlation_sums(g, m, moments.observed, c1, axes, stride, run)
+        lags, (noise, signal) = correlation_sums(
+            g, m, moments.observed, c1, axes, stride, run, limit
+        )
         if not lags.shape[0]:
             return jnp.zeros([], bool)
         s00, s11, s01 = lags[:, 0], lags[:, 1], lags[:, 2]

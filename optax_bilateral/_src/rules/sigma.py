@@ -28,6 +28,7 @@ another object (and another compiled step), never a module global. A new rule su
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, Literal, NamedTuple
 
@@ -60,13 +61,18 @@ class StepContext(NamedTuple):
 
 class Moments(NamedTuple):
     """A postfilter leaf's fields at this step, in the arithmetic dtype: the updated moments
-    (kept at unobserved entries), the observed gradient (0 where unobserved), and the
-    observed entries (broadcastable against the leaf)."""
+    (kept at unobserved entries), the observed gradient (0 where unobserved, clipped to
+    ``+-limit``), and the observed entries (broadcastable against the leaf). ``given`` is the
+    gradient as the leaf received it (None: read ``g``), for a native statistic that reads a
+    few entries: it applies the mask and the clip where it reads, so XLA need not write ``g``
+    out in full for it."""
 
     m: jax.Array
     v: jax.Array
     g: jax.Array
     observed: jax.Array
+    given: jax.Array | None = None
+    limit: float = math.inf
 
 
 class Filtered(NamedTuple):
