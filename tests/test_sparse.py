@@ -154,6 +154,29 @@ def test_a_widened_cascade_and_more_levels_continue_the_widened_one(wide):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.parametrize("wide", [False, True])
+@pytest.mark.parametrize("levels", [None, 5])
+def test_a_widened_cascade_in_one_call_equals_its_continuation(wide, levels):
+    # On the native kernel each branch runs its own cascade from the fields (no continuation
+    # of level F's output inside the conditional, which XLA copied); the same numbers, to the
+    # bit, as the continuation the other kernels run.
+    from optax_bilateral._src.filter import operators
+    from optax_bilateral._src.rules import sparse
+
+    rng = np.random.default_rng(4)
+    m, v = (jnp.asarray(rng.normal(size=(40, 36, 3)), jnp.float32) for _ in range(2))
+    guide = jnp.asarray(rng.normal(size=(40, 36, 3)), jnp.float32)
+    plan = operators.FilterPlan((0, 1), 3, True, False, False)
+    op = sparse._Widened(operators.CrossGuided(plan, guide), 1, jnp.asarray(wide))
+    assert sparse.runs_native(m)
+    got = jax.jit(lambda f: op.apply(f, 0.4, levels))((m, v))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sparse, "runs_native", lambda x: False)
+        want = jax.jit(lambda f: op.apply(f, 0.4, levels))((m, v))
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_a_leaf_above_sparse_below_keeps_its_levels():
     params = jax.random.uniform(jax.random.PRNGKey(1), (32, 32, 3))
     g = _sparse_grad(params.shape, 2)  # a quarter of the texels: at sparse_below

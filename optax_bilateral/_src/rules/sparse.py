@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from optax_bilateral._src.filter.local import runs_native
 from optax_bilateral._src.rules import coverage
 from optax_bilateral._src.rules.auto import Auto
 from optax_bilateral._src.rules.sigma import Filtered, Setting, SigmaRule
@@ -159,6 +160,15 @@ class _Widened:
         whole = levels is None or (first_level == 0 and levels > f)
         if not whole:  # a part of the cascade that the caller chose
             return self.op.apply(fields, sigma, levels, first_level)
+        if runs_native(jax.tree.leaves(fields)[0]):
+            # Each branch its own cascade from the fields (the native kernel's F + extra levels
+            # in one call equal F levels continued, to the bit): neither passes its input
+            # through, so XLA gives the kernel's outputs to the conditional's without copies.
+            def wider():
+                out = self.op.apply(fields, sigma, levels=f + self.extra)
+                return out if levels is None else self.op.apply(out, sigma, levels, first_level=f)
+
+            return lax.cond(self.wide, wider, lambda: self.op.apply(fields, sigma, levels))
         out = self.op.apply(fields, sigma)
         more = lambda: self.op.apply(out, sigma, levels=f + self.extra, first_level=f)
         out = lax.cond(self.wide, more, lambda: out)
