@@ -74,12 +74,9 @@ std::vector<Block> cut_blocks(const Pass& pass, int64_t channels) {
   int64_t reach = 0;  // the most rows a pair spans: a block recomputes that many rows' weights
   for (const Pair& p : pass.pairs) reach = std::max(reach, p.flat_rows);
   const int64_t per_point = (channels + 1) * static_cast<int64_t>(sizeof(T));
-  int64_t width = L;
+  const int64_t width = L;  // rows whole: a pass along an outer axis moves along them
   int64_t height = std::max<int64_t>(1, kBlockBytes / (per_point * L));
   if (reach > 0) height = std::max(height, 4 * reach);  // recompute at most 1/4 of the rows
-  if (pass.column_tiles) {
-    width = std::clamp<int64_t>(kBlockBytes / (per_point * height) / 16 * 16, 16, L);
-  }
   height = std::min(height, rows);
   std::vector<Block> blocks;
   for (int64_t r0 = 0; r0 < rows; r0 += height)

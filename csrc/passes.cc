@@ -27,26 +27,22 @@ Pass separable_pass(const std::vector<int64_t>& shape, size_t axis, int64_t stri
   Pass pass;
   pass.centre = kTaps[0];
   const size_t n = shape.size();
-  const bool last = axis + 1 == n;
-  if (last) {
+  if (axis + 1 == n) {
     pass.row_shape.assign(shape.begin(), shape.end() - 1);
     pass.row_length = shape[n - 1];
   } else {
-    pass.row_shape = {product(shape, 0, axis), shape[axis]};
-    pass.row_length = product(shape, axis + 1, n);
-    pass.column_tiles = true;
+    pass.row_shape = {product(shape, 0, axis)};
+    pass.row_length = product(shape, axis, n);
   }
+  // A step along `axis` moves this many points along the row.
+  const int64_t step = product(shape, axis + 1, n);
   for (int d = 1; d <= 2; ++d) {
     if (d * stride >= shape[axis]) continue;
     Pair pair;
     pair.tap = kTaps[d];
     pair.row_offset.assign(pass.row_shape.size(), 0);
-    if (last) {
-      pair.column_offset = d * stride;
-    } else {
-      pair.row_offset[1] = d * stride;
-    }
-    pair.flat_rows = flat(pass.row_shape, pair.row_offset);
+    pair.column_offset = d * stride * step;
+    pair.flat_rows = 0;
     pass.pairs.push_back(pair);
   }
   return pass;

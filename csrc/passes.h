@@ -16,15 +16,15 @@ struct Pair {
 };
 
 // A pass sees the grid as rows of `row_length` contiguous points, indexed by `row_shape`.
-// Separable passes along the last axis: rows are the grid's rows; along an outer axis k:
-// row axes (n0*..*n_{k-1}, n_k), rows of n_{k+1}*..*n_{d-1} points, whose columns are then
-// independent (no pair moves along the row) and may be cut into tiles.
+// Separable passes along the last axis: rows are the grid's rows; along an outer axis k: rows
+// of n_k*..*n_{d-1} points (one per index of the axes before k), a pair moving o n_{k+1}*..
+// points along the row, which stays on the grid exactly where the row does: one long row,
+// not n_k short ones, so that a 3-D slab's pass runs long loops.
 struct Pass {
   std::vector<int64_t> row_shape;
   int64_t row_length = 1;
   std::vector<Pair> pairs;
   double centre = 0;  // h0, or h0^n for a full pass
-  bool column_tiles = false;
 
   int64_t rows() const {
     int64_t r = 1;
