@@ -183,14 +183,24 @@ void parallel(const Cascade<T>& c, int threads, size_t units, const F& do_unit) 
   for (auto& th : own) th.join();
 }
 
-// Points [lo, hi) of a field of kC interleaved channels into the planes dst[0..kC): one
-// sweep over the field, each point's channels together (kC a constant, so it vectorises).
-template <typename T, int kC>
-void split_channels(const T* __restrict__ src, T* const* dst, int64_t lo, int64_t hi) {
-  T* __restrict__ d[kC];
-  for (int q = 0; q < kC; ++q) d[q] = dst[q];
-  for (int64_t p = lo; p < hi; ++p)
-    for (int q = 0; q < kC; ++q) d[q][p] = src[p * kC + q];
+// The instruction set's build of kernel.h's split_planes: n points of a field of nc
+// interleaved channels into the planes dst[0..nc).
+template <typename T>
+void split(const T* src, T* const* dst, int64_t nc, int64_t n) {
+  constexpr bool f32 = std::is_same_v<T, float>;
+  switch (kIsa) {
+#if defined(__x86_64__)
+    case Isa::kAvx512:
+      if constexpr (f32) return avx512::split32(src, dst, nc, n);
+      else return avx512::split64(src, dst, nc, n);
+    case Isa::kAvx2:
+      if constexpr (f32) return avx2::split32(src, dst, nc, n);
+      else return avx2::split64(src, dst, nc, n);
+#endif
+    default:
+      if constexpr (f32) return baseline::split32(src, dst, nc, n);
+      else return baseline::split64(src, dst, nc, n);
+  }
 }
 
 // The fields ((points, c_k) each, interleaved) into their outputs' memory, each slab's
@@ -210,15 +220,7 @@ void split_fields(const Cascade<T>& c, int threads, int64_t slab) {
         T* out = c.out_fields[f].first + i * slab * nc;
         dst.resize(static_cast<size_t>(nc));
         for (int64_t q = 0; q < nc; ++q) dst[q] = out + q * slab;
-        switch (nc) {
-          case 1: std::copy(src, src + slab, out); continue;
-          case 2: split_channels<T, 2>(src, dst.data(), 0, slab); continue;
-          case 3: split_channels<T, 3>(src, dst.data(), 0, slab); continue;
-          case 4: split_channels<T, 4>(src, dst.data(), 0, slab); continue;
-          default: break;
-        }
-        for (int64_t q = 0; q < nc; ++q)
-          for (int64_t p = 0; p < slab; ++p) dst[q][p] = src[p * nc + q];
+        split(src, dst.data(), nc, slab);
       }
     }
   });

@@ -527,6 +527,40 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
   }
 }
 
+// out[j * kC + q] = src[q][j]: planes into one field, each point's channels together (kC a
+// constant, so that the stores vectorise; one plane at a time they were scalar).
+template <typename T, int kC>
+void interleave_channels(const T* const* src, T* __restrict__ out, int64_t n) {
+  const T* __restrict__ s[kC];
+  for (int q = 0; q < kC; ++q) s[q] = src[q];
+  for (int64_t j = 0; j < n; ++j)
+    for (int q = 0; q < kC; ++q) out[j * kC + q] = s[q][j];
+}
+
+// dst[q][p] = src[p * kC + q]: a field's channels into planes, each point's channels
+// together (kC a constant, so that the loads vectorise).
+template <typename T, int kC>
+void split_channels(const T* __restrict__ src, T* const* dst, int64_t n) {
+  T* __restrict__ d[kC];
+  for (int q = 0; q < kC; ++q) d[q] = dst[q];
+  for (int64_t p = 0; p < n; ++p)
+    for (int q = 0; q < kC; ++q) d[q][p] = src[p * kC + q];
+}
+
+// n points of a field of nc interleaved channels into nc planes.
+template <typename T>
+void split_planes(const T* src, T* const* dst, int64_t nc, int64_t n) {
+  switch (nc) {
+    case 1: std::memcpy(dst[0], src, sizeof(T) * n); return;
+    case 2: return split_channels<T, 2>(src, dst, n);
+    case 3: return split_channels<T, 3>(src, dst, n);
+    case 4: return split_channels<T, 4>(src, dst, n);
+    default:
+      for (int64_t q = 0; q < nc; ++q)
+        for (int64_t p = 0; p < n; ++p) dst[q][p] = src[p * nc + q];
+  }
+}
+
 // One chunk of a separable level (SlabLevel, Chunk): each slab's axis-0 pass into a scratch
 // slab, its inner passes, and the result into `to`'s slab (or the interleaved fields). With
 // `in_place` (from and to the same memory) a slab's original is kept aside before its result
@@ -643,11 +677,17 @@ void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes
     if (a.interleaved) {  // the slab's result into the fields, channels interleaved
       int64_t c = 0;
       for (const auto& [field, nc] : *a.interleaved) {
-        T* __restrict__ out = field + i * M * nc;
-        for (int64_t k = 0; k < nc; ++k, ++c) {
-          const T* __restrict__ src = in[c];
-          for (int64_t j = 0; j < M; ++j) out[j * nc + k] = src[j];
+        T* out = field + i * M * nc;
+        switch (nc) {
+          case 1: std::memcpy(out, in[c], sizeof(T) * M); break;
+          case 2: interleave_channels<T, 2>(in + c, out, M); break;
+          case 3: interleave_channels<T, 3>(in + c, out, M); break;
+          case 4: interleave_channels<T, 4>(in + c, out, M); break;
+          default:
+            for (int64_t k = 0; k < nc; ++k)
+              for (int64_t j = 0; j < M; ++j) out[j * nc + k] = in[c + k][j];
         }
+        c += nc;
       }
     } else if (in != s.to.data()) {
       for (int64_t c = 0; c < C; ++c)

@@ -21,6 +21,8 @@ namespace optax_bilateral {
                const Chunk<double>&, Scratch<double>&);                                     \
   void ldl32(const LdlFactor<float>&, float*, int64_t, int64_t, int64_t, float*);           \
   void ldl64(const LdlFactor<double>&, double*, int64_t, int64_t, int64_t, double*);        \
+  void split32(const float*, float* const*, int64_t, int64_t);                              \
+  void split64(const double*, double* const*, int64_t, int64_t);                            \
   }
 
 OB_DECLARE_ISA(baseline)
@@ -59,5 +61,11 @@ OB_DECLARE_ISA(avx512)
   void ldl64(const LdlFactor<double>& f, double* b, int64_t k, int64_t c0, int64_t c1,       \
              double* z) {                                                                   \
     ldl_block(f, b, k, c0, c1, z);                                                          \
+  }                                                                                         \
+  void split32(const float* src, float* const* dst, int64_t nc, int64_t n) {                \
+    split_planes(src, dst, nc, n);                                                          \
+  }                                                                                         \
+  void split64(const double* src, double* const* dst, int64_t nc, int64_t n) {              \
+    split_planes(src, dst, nc, n);                                                          \
   }                                                                                         \
   }
