@@ -124,6 +124,27 @@ def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
     assert "ours / Large Steps" in (tmp_path / "table.md").read_text()
 
 
+def test_mesh_experiment_runs_each_seed_and_their_medians(mi, tmp_path):
+    from experiments.mitsuba import mesh as E
+
+    argv = ["--quick", "--out", str(tmp_path), "--targets", "rounded_cube", "--seeds", "0", "3"]
+    result = E.main(argv)
+    rows = json.loads((tmp_path / "summary.json").read_text())["rows"]
+    assert [r["seed"] for r in rows] == [0, 3]
+    for seed in (0, 3):
+        assert (tmp_path / "rounded_cube" / "v92" / f"seed{seed}" / "summary.json").exists()
+    # Other render noise, the same start: the seeds' runs end apart.
+    assert rows[0]["ours Hausdorff"] != rows[1]["ours Hausdorff"]
+    (median,) = result["medians"]
+    assert median["seeds"] == 2
+    for k in ("ours Hausdorff", "ours / Large Steps", "ours / Large Steps Hausdorff"):
+        assert median[k] == pytest.approx(np.median([r[k] for r in rows]))
+    assert "Medians over the seeds" in (tmp_path / "table.md").read_text()
+    cfg = E.default_config(quick=True)
+    with pytest.raises(ValueError, match="seed must be in"):
+        E.Problem(cfg, 3, seed=E.MAX_SEED + 1)
+
+
 def test_hausdorff_distance_to_the_rounded_cube(mi):
     # The target mesh is on the surface (to its triangles' sag); a sphere of radius R around
     # the cube's centre is at least R - (its corner distance) away, measured exactly.

@@ -3,7 +3,7 @@
 
     python -m experiments.mitsuba.mesh [--quick] [--out DIR] [--frequencies F ...]
         [--targets rounded_cube bumpy_box] [--lambda L] [--iterations N] [--directions K ...]
-        [--kernel-tol T ...] [--sigma-d S ...]
+        [--kernel-tol T ...] [--sigma-d S ...] [--seeds S ...]
 
 A sphere (an icosphere built in code) recovers a target built in code (a fine icosphere
 pushed radially onto its surface: a cube with rounded edges, and a box with nearly sharp
@@ -13,7 +13,9 @@ latitude-longitude environment map made in code (each colour channel lit from on
 so the colour of a pixel says which way the surface faces), ``n_views`` cameras on a
 Fibonacci sphere, ``direct_projective`` (``sppi`` 0, as Mitsuba's shape tutorial), L1 loss
 against ``reference_spp`` renders of the target. An iteration renders one view (``i mod
-n_views``), as the tutorial's loop steps once per camera, with render seed ``i``.
+n_views``), as the tutorial's loop steps once per camera, with render seed ``i`` (``--seeds
+S ...``: every vertex count again with render seeds ``i + S * SEED_STRIDE``, other noise on
+the same views; both methods see the same noise at each iteration).
 
 Methods, at the same lambda and learning rate:
 
@@ -69,6 +71,10 @@ TARGETS = ("rounded_cube", "bumpy_box")
 HAUSDORFF = runner.Metric("hausdorff", "Hausdorff")
 REFERENCE_SEED = 1 << 20
 EVAL_SEED = 1 << 21
+# A run's render seeds, i + seed * SEED_STRIDE: apart for up to SEED_STRIDE iterations, and
+# below REFERENCE_SEED for seeds up to MAX_SEED.
+SEED_STRIDE = 1 << 12
+MAX_SEED = REFERENCE_SEED // SEED_STRIDE - 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,6 +101,7 @@ class Config:
     directions: tuple = ()  # ours again with these many normal-filter directions (not 32)
     kernel_tols: tuple = ()  # ours again with these NormalFilter kernel_tol (not 0.02)
     sigma_ds: tuple = ()  # ours again with these splat widths sigma_d (not 0.5)
+    seeds: tuple = (0,)  # every vertex count once per seed of the renders' noise
     record_every: int = 10
 
 
@@ -275,12 +282,18 @@ def scene_dict(mesh, env: np.ndarray) -> dict:
 class Problem:
     """One vertex count: the sphere's scene, the target's reference renders, the metric."""
 
-    def __init__(self, cfg: Config, frequency: int, target: str = "rounded_cube"):
+    def __init__(self, cfg: Config, frequency: int, target: str = "rounded_cube", seed: int = 0):
         import drjit as dr
         import mitsuba as mi
 
+        if not 0 <= seed <= MAX_SEED or cfg.iterations > SEED_STRIDE:
+            raise ValueError(
+                f"seed must be in [0, {MAX_SEED}] and iterations at most {SEED_STRIDE}, got "
+                f"seed {seed} and {cfg.iterations} iterations"
+            )
         mc.setup()
         self.cfg = cfg
+        self.seed = seed
         self.init, self.faces = toy.icosphere(frequency)
         self.sdf = target_sdf(target, cfg)
         self.target = radial_surface(cfg.target_frequency, self.sdf)
@@ -308,13 +321,18 @@ class Problem:
         self.write(self.init)
 
     def render_and_backward(self, i: int) -> float:
-        """Renders view ``i mod n_views`` with seed ``i``; ``dr.backward`` of the L1 loss."""
+        """Renders view ``i mod n_views`` with seed ``i + seed * SEED_STRIDE``; ``dr.backward``
+        of the L1 loss."""
         import drjit as dr
         import mitsuba as mi
 
         view = i % self.cfg.n_views
         image = mi.render(
-            self.scene, self.params, sensor=self.sensors[view], spp=self.cfg.spp, seed=i
+            self.scene,
+            self.params,
+            sensor=self.sensors[view],
+            spp=self.cfg.spp,
+            seed=i + self.seed * SEED_STRIDE,
         )
         loss = dr.mean(dr.abs(image - self.references[view]), axis=None)
         dr.backward(loss)
@@ -434,11 +452,16 @@ RUNS = {"mi.ad.LargeSteps": LargeStepsRun, "bilateral": BilateralRun}
 
 
 def run_vertex_count(
-    cfg: Config, frequency: int, out: pathlib.Path, progress: bool, target: str = "rounded_cube"
+    cfg: Config,
+    frequency: int,
+    out: pathlib.Path,
+    progress: bool,
+    target: str = "rounded_cube",
+    seed: int = 0,
 ) -> dict:
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    problem = Problem(cfg, frequency, target)
+    problem = Problem(cfg, frequency, target, seed)
 
     def entry(method: str, lr: float, **fields) -> runner.Entry:
         ours = method != "mi.ad.LargeSteps"
@@ -475,7 +498,8 @@ def run_vertex_count(
             f"Mitsuba mesh recovery, {vertices} vertices: sphere -> {target} (half "
             f"{cfg.half}), {cfg.n_views} views of {cfg.resolution}^2, "
             f"direct_projective spp {cfg.spp}, L1, {cfg.iterations} iterations (one view "
-            f"each), lambda {cfg.lambda_}, initial Hausdorff {initial:.4f}."
+            f"each), lambda {cfg.lambda_}, initial Hausdorff {initial:.4f}"
+            + (f", render seeds i + {seed * SEED_STRIDE}." if seed else ".")
         ),
         curves={
             "hausdorff": "Hausdorff distance to the rounded cube",
@@ -494,6 +518,7 @@ def run_vertex_count(
             **dataclasses.asdict(cfg),
             "frequency": frequency,
             "target": target,
+            "seed": seed,
             "vertices": vertices,
             "initial_hausdorff": initial,
             "reference_seconds": problem.reference_seconds,
@@ -503,6 +528,7 @@ def run_vertex_count(
     result = runner.write_report(out, traces, samples, report, started)
     result["vertices"] = vertices
     result["target"] = target
+    result["seed"] = seed
     result["initial_hausdorff"] = initial
     result["samples"] = samples
     return result
@@ -534,8 +560,9 @@ def plot_views(problem: Problem, best: dict, path: pathlib.Path, views: int = 4)
 
 
 def table2(results: dict) -> list[dict]:
-    """The Table 2 analogue: per target and vertex count, both methods' time per iteration and
-    the paired ratio, the update's share of the iteration, and the final Hausdorff distances."""
+    """The Table 2 analogue: per target, vertex count and seed, both methods' time per
+    iteration and the paired ratio, the update's share of the iteration, and the final
+    Hausdorff distances and their ratio."""
     rows = []
     for r in results.values():
         m = r["methods"]
@@ -544,10 +571,12 @@ def table2(results: dict) -> list[dict]:
             k: float(np.median(np.asarray(s["update"]) / np.asarray(s["total"])))
             for k, s in r["samples"].items()
         }
+        hausdorff = {k: m[k]["final_hausdorff"] for k in METHODS}
         rows.append(
             {
                 "target": r["target"],
                 "vertices": r["vertices"],
+                "seed": r["seed"],
                 "Large Steps ms/iter": 1e3 * float(np.median(totals["mi.ad.LargeSteps"])),
                 "ours ms/iter": 1e3 * float(np.median(totals["bilateral"])),
                 "ours / Large Steps": common.paired_ratio(totals, "bilateral", "mi.ad.LargeSteps"),
@@ -557,11 +586,29 @@ def table2(results: dict) -> list[dict]:
                 "Large Steps update share": share["mi.ad.LargeSteps"],
                 "ours update share": share["bilateral"],
                 "initial Hausdorff": r["initial_hausdorff"],
-                "Large Steps Hausdorff": m["mi.ad.LargeSteps"]["final_hausdorff"],
-                "ours Hausdorff": m["bilateral"]["final_hausdorff"],
+                "Large Steps Hausdorff": hausdorff["mi.ad.LargeSteps"],
+                "ours Hausdorff": hausdorff["bilateral"],
+                "ours / Large Steps Hausdorff": hausdorff["bilateral"]
+                / hausdorff["mi.ad.LargeSteps"],
             }
         )
     return rows
+
+
+def seed_medians(rows: list[dict]) -> list[dict]:
+    """Per target and vertex count, the median over seeds of every number of :func:`table2`'s
+    rows (each ratio the median of the seeds' ratios)."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["target"], r["vertices"]), []).append(r)
+    out = []
+    for (target, vertices), rs in groups.items():
+        numbers = [k for k in rs[0] if k not in ("target", "vertices", "seed")]
+        out.append(
+            {"target": target, "vertices": vertices, "seeds": len(rs)}
+            | {k: float(np.median([r[k] for r in rs])) for k in numbers}
+        )
+    return out
 
 
 def _options(parser) -> None:
@@ -584,6 +631,13 @@ def _options(parser) -> None:
         nargs="+",
         help="also run ours with these NormalFilter kernel_tol (0: the authors' form; the "
         "default is 0.02)",
+    )
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        help=f"render seeds' offsets, each a run of every vertex count (0 to {MAX_SEED}; the "
+        "default is 0 alone)",
     )
     parser.add_argument(
         "--sigma-d",
@@ -611,28 +665,35 @@ def main(argv=None) -> dict:
         "directions": tuple(args.directions) if args.directions else None,
         "kernel_tols": tuple(args.kernel_tols) if args.kernel_tols else None,
         "sigma_ds": tuple(args.sigma_ds) if args.sigma_ds else None,
+        "seeds": tuple(args.seeds) if args.seeds else None,
     }
     cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
     results = {}
     for target in cfg.targets:
         for f in cfg.frequencies:
-            out = args.out / target / f"v{10 * f * f + 2}"
-            results[target, f] = run_vertex_count(cfg, f, out, progress=True, target=target)
-            print(results[target, f]["table"])
+            for seed in cfg.seeds:
+                out = args.out / target / f"v{10 * f * f + 2}"
+                out = out if cfg.seeds == (0,) else out / f"seed{seed}"
+                results[target, f, seed] = run_vertex_count(cfg, f, out, True, target, seed)
+                print(results[target, f, seed]["table"])
     rows = table2(results)
+    medians = seed_medians(rows) if len(cfg.seeds) > 1 else None
     text = (
         "Mitsuba mesh recovery: time per iteration (medians over interleaved iterations, one "
         f"process; load average {runner.load_average()}) and final Hausdorff distance.\n\n"
         + common.markdown_table(rows, floatfmt=".4g")
         + "\n"
     )
+    if medians:
+        text += "\nMedians over the seeds:\n\n" + common.markdown_table(medians, floatfmt=".4g")
+        text += "\n"
     (args.out / "table.md").write_text(text)
-    (args.out / "summary.json").write_text(
-        json.dumps(common.jsonable({"rows": rows, "config": dataclasses.asdict(cfg)}), indent=2)
-        + "\n"
-    )
+    summary = {"rows": rows, "config": dataclasses.asdict(cfg)}
+    if medians:
+        summary["medians"] = medians
+    (args.out / "summary.json").write_text(json.dumps(common.jsonable(summary), indent=2) + "\n")
     print(text)
-    return {"rows": rows, "results": results, "table": text}
+    return {"rows": rows, "medians": medians, "results": results, "table": text}
 
 
 if __name__ == "__main__":
