@@ -111,8 +111,11 @@ def test_mesh_experiment_writes_the_table_2_analogue(mi, tmp_path):
         assert (
             r["Large Steps ms/iter"] > 0 and r["ours ms/iter"] > 0 and r["ours / Large Steps"] > 0
         )
-        for k in ("Large Steps Hausdorff", "ours Hausdorff"):
+        for k in ("Large Steps Hausdorff", "ours Hausdorff", "bilateral, sigma_d 2 Hausdorff"):
             assert 0 < r[k] < 1.5 * r["initial Hausdorff"]
+        others = ("8 directions", "kernel_tol 0", "sigma_d 2")
+        best = min(r["ours Hausdorff"], *(r[f"bilateral, {v} Hausdorff"] for v in others))
+        assert r["ours / best filter Hausdorff"] == pytest.approx(r["ours Hausdorff"] / best)
     for r in result["results"].values():
         _pngs(r)
         assert set(r["methods"]) == {
