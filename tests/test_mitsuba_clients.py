@@ -169,7 +169,7 @@ def test_mesh_experiment_options_reach_the_runs(mi, monkeypatch, tmp_path):
 
     seen = []
 
-    def fake(cfg, frequency, out, progress, target):
+    def fake(cfg, frequency, out, progress, target, seed):
         seen.append(
             (
                 cfg.lambda_,
@@ -179,6 +179,9 @@ def test_mesh_experiment_options_reach_the_runs(mi, monkeypatch, tmp_path):
                 cfg.directions,
                 cfg.kernel_tols,
                 cfg.sigma_ds,
+                cfg.seeds,
+                seed,
+                out.name,
             )
         )
         raise StopIteration  # enough: the settings reached the first run
@@ -188,9 +191,11 @@ def test_mesh_experiment_options_reach_the_runs(mi, monkeypatch, tmp_path):
     with pytest.raises(StopIteration):
         E.main(
             [*argv, "--targets", "bumpy_box", "--iterations", "3", "--directions", "16", "8"]
-            + ["--kernel-tol", "0", "0.1", "--sigma-d", "1", "inf"]
+            + ["--kernel-tol", "0", "0.1", "--sigma-d", "1", "inf", "--seeds", "4", "7"]
         )
-    assert seen == [(76.0, 3, 5, "bumpy_box", (16, 8), (0.0, 0.1), (1.0, float("inf")))]
+    assert seen == [
+        (76.0, 3, 5, "bumpy_box", (16, 8), (0.0, 0.1), (1.0, float("inf")), (4, 7), 4, "seed4")
+    ]
     with pytest.raises(SystemExit):
         E.main(["--targets", "teapot"])
 
