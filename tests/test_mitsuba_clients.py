@@ -144,8 +144,12 @@ def test_mesh_experiment_runs_each_seed_and_their_medians(mi, tmp_path):
         assert median[k] == pytest.approx(np.median([r[k] for r in rows]))
     assert "Medians over the seeds" in (tmp_path / "table.md").read_text()
     cfg = E.default_config(quick=True)
-    with pytest.raises(ValueError, match="seed must be in"):
+    with pytest.raises(ValueError, match="seeds must be distinct ints"):
         E.Problem(cfg, 3, seed=E.MAX_SEED + 1)
+    for seeds in (["0", "0"], [str(E.MAX_SEED + 1)], ["-1"]):  # refused before any run
+        with pytest.raises(ValueError, match="seeds must be distinct ints"):
+            E.main(["--quick", "--out", str(tmp_path / "bad"), "--seeds", *seeds])
+    assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
 
 
 def test_hausdorff_distance_to_the_rounded_cube(mi):

@@ -77,6 +77,17 @@ SEED_STRIDE = 1 << 12
 MAX_SEED = REFERENCE_SEED // SEED_STRIDE - 1
 
 
+def check_seeds(seeds: tuple, iterations: int) -> None:
+    """Raises unless ``seeds`` are distinct ints in [0, MAX_SEED] and ``iterations`` at most
+    SEED_STRIDE (the runs' render seeds then never meet each other or the references')."""
+    ok = all(isinstance(s, int) and 0 <= s <= MAX_SEED for s in seeds)
+    if not ok or len(set(seeds)) != len(seeds) or iterations > SEED_STRIDE:
+        raise ValueError(
+            f"seeds must be distinct ints in [0, {MAX_SEED}] and iterations at most "
+            f"{SEED_STRIDE}, got seeds {seeds} and {iterations} iterations"
+        )
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     frequencies: tuple  # icosphere frequencies: 10 f^2 + 2 vertices each
@@ -286,11 +297,7 @@ class Problem:
         import drjit as dr
         import mitsuba as mi
 
-        if not 0 <= seed <= MAX_SEED or cfg.iterations > SEED_STRIDE:
-            raise ValueError(
-                f"seed must be in [0, {MAX_SEED}] and iterations at most {SEED_STRIDE}, got "
-                f"seed {seed} and {cfg.iterations} iterations"
-            )
+        check_seeds((seed,), cfg.iterations)
         mc.setup()
         self.cfg = cfg
         self.seed = seed
@@ -682,6 +689,7 @@ def main(argv=None) -> dict:
         "seeds": tuple(args.seeds) if args.seeds else None,
     }
     cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
+    check_seeds(cfg.seeds, cfg.iterations)  # before any run
     results = {}
     for target in cfg.targets:
         for f in cfg.frequencies:
