@@ -100,22 +100,51 @@ def prefilter_limit(grad_dtype: Any) -> float:
 
 
 def safe_step(
-    m_f: jax.Array, v_f: jax.Array, c1: jax.Array, c2: jax.Array, eps: Any, eps_root: Any
+    m_f: jax.Array, v_f: jax.Array, inv_c1: jax.Array, inv_c2: jax.Array, eps: Any, eps_root: Any
 ) -> jax.Array:
-    """``(m_f/c1) / (sqrt(v_f/c2 + eps_root) + eps)``, with 0 where the denominator is 0.
+    """``(m_f/c1) / (sqrt(v_f/c2 + eps_root) + eps)``, with 0 where the denominator is 0;
+    ``inv_c1``, ``inv_c2``: the bias corrections' reciprocals ``1 / c1``, ``1 / c2``.
 
     Same values as the plain expression wherever that is finite. ``sqrt`` gets
     derivative 0 at 0: ``B v = 0`` means no gradient reached the footprint, which
     stays so under small changes of the hyperparameters (true derivative 0),
     and ``sqrt'(0) = inf`` times a zero cotangent would make meta-gradients NaN.
-    The bias corrections divide as a multiplication by their reciprocals, written out:
-    left to XLA, the rounding of ``m / c1 / den`` depends on the program around it.
+    The bias corrections divide as a multiplication by their reciprocals, taken by the
+    caller: left to XLA, the rounding of ``m / c1 / den`` depends on the program around it.
     """
-    v_hat = v_f * (1 / c2).astype(v_f.dtype) + eps_root
+    v_hat = v_f * inv_c2.astype(v_f.dtype) + eps_root
     pos = v_hat > 0
     den = jnp.where(pos, jnp.sqrt(jnp.where(pos, v_hat, 1)), 0) + eps
     ok = den > 0
-    return jnp.where(ok, (m_f * (1 / c1).astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
+    return jnp.where(ok, (m_f * inv_c1.astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
+
+
+def one_kernel(tree: Any) -> Any:
+    """``tree``'s arrays (scalars and short vectors of floats or bools), unchanged, computed in
+    one XLA kernel.
+
+    XLA writes out every small value that an FFI call, a conditional or several full-size
+    kernels read as a kernel of its own, and compiles each in milliseconds whatever it
+    computes (docs/research/compilation.md). Flattened into one vector of their widest dtype
+    (bools as 0 and 1, which every float holds exactly) behind an optimization barrier, which
+    keeps XLA from taking the vector apart again, they are computed in one kernel and read
+    back where they are used, each in its own dtype and shape.
+    """
+    xs, treedef = jax.tree.flatten(tree)
+    if len(xs) < 2:
+        return tree
+    xs = [jnp.asarray(x) for x in xs]
+    for x in xs:
+        if not (jnp.issubdtype(x.dtype, jnp.floating) or x.dtype == jnp.bool_):
+            raise TypeError(f"one_kernel takes floats and bools, got {x.dtype}")
+    dtype = jnp.result_type(*(x.dtype for x in xs if x.dtype != jnp.bool_), jnp.float32)
+    packed = jax.lax.optimization_barrier(jnp.concatenate([x.astype(dtype).ravel() for x in xs]))
+    out, at = [], 0
+    for x in xs:
+        y = packed[at : at + x.size].reshape(x.shape)
+        out.append(y != 0 if x.dtype == jnp.bool_ else y.astype(x.dtype))
+        at += x.size
+    return jax.tree.unflatten(treedef, out)
 
 
 def sigma_guard(sigma_d: Any) -> jax.Array:

@@ -216,8 +216,11 @@ def _native_blend(m, v, residual, scalars, run, how: BlendCall):
 
 @_native_blend.defjvp
 def _native_blend_jvp(how, primals, tangents):
-    # The reference's value and derivative wherever the caller reads them (run or not).
-    return jax.jvp(how.reference, primals[:4], tangents[:4])
+    # The reference's derivative where it runs, zeros (constant outputs) where it does not.
+    run = primals[4]
+    out, tangent = jax.jvp(how.reference, primals[:4], tangents[:4])
+    zero = lambda x: jnp.where(run, x, jnp.zeros_like(x))
+    return jax.tree.map(zero, out), jax.tree.map(zero, tangent)
 
 
 def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:

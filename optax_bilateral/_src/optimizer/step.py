@@ -97,7 +97,9 @@ def postfilter_leaf(
     ``moments`` is the stored ``(m, v)``, or None (memoryless); ``guide`` the leaf's guide
     (None if self-guided or not filtered); ``state`` its sigma_d rule's state.
     """
-    ctx = StepContext(clock.count, adam.b1, clock.c1, clock.c2)
+    ctx = StepContext(clock.count, adam.b1, clock.c1, clock.c2, 1 / clock.c1, 1 / clock.c2)
+    if plan.filter is not None:
+        ctx = rule.prepare(state, plan.filter, ctx)
     observed = observe(g, plan)
     g_obs = jnp.where(observed.entries, g, 0).astype(plan.compute_dtype)
     g_obs = jnp.clip(g_obs, -plan.limit, plan.limit)
@@ -193,5 +195,5 @@ def bounded_step(m_f, v_f, v, observed: Observed, adam: AdamHyper, ctx: StepCont
     if uniform:
         v_f = jnp.where(observed.entries, v_f, v)
         v_f = jnp.broadcast_to(jnp.max(v_f), v_f.shape)
-    d = numerics.safe_step(m_f, v_f, ctx.c1, ctx.c2, adam.eps, adam.eps_root)
+    d = numerics.safe_step(m_f, v_f, ctx.inv_c1, ctx.inv_c2, adam.eps, adam.eps_root)
     return jnp.where(observed.entries, d, 0)

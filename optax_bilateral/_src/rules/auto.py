@@ -102,6 +102,21 @@ class AutoState(NamedTuple):
     correlated: jax.Array | None = None
 
 
+class Decisions(NamedTuple):
+    """What a postfilter step of ``"auto"`` decides from its state and the step count alone
+    (:meth:`Auto.prepare`): whether it filters heavier (the noise was correlated at the last
+    check), checks the correlation, computes the blend's statistics (at least its gate's
+    check) and blends; the blend's scalars (:meth:`Auto._blend_scalars`); and ``c1`` in the
+    moments' dtype."""
+
+    heavy: jax.Array
+    due: jax.Array
+    computed: jax.Array
+    blends: jax.Array
+    scalars: jax.Array
+    c1: jax.Array
+
+
 @jax.tree_util.register_static
 @dataclasses.dataclass(frozen=True)
 class Auto(SigmaRule):
@@ -202,6 +217,29 @@ class Auto(SigmaRule):
         residual = numerics.zeros(self._subgrid(jnp.asarray(leaf), plan.axes), dtype)
         return AutoState(previous_guide, residual, direction, scalar(), scalar())
 
+    def prepare(self, state, plan, ctx):
+        if state is None or state.residual is None or not (plan.filter_m and plan.filter_v):
+            return ctx
+        c1, c2, inv_c1, inv_c2 = numerics.one_kernel((ctx.c1, ctx.c2, ctx.inv_c1, ctx.inv_c2))
+        ctx = ctx._replace(c1=c1, c2=c2, inv_c1=inv_c1, inv_c2=inv_c2)
+        return ctx._replace(decided=self._decide(state, plan, ctx))
+
+    def _decide(self, state, plan, ctx) -> Decisions:
+        """:class:`Decisions` from the leaf's state and the step count (``ctx``)."""
+        dtype = state.residual.dtype
+        phase = self._blend_phase(state.gate, ctx.count)
+        count = ctx.count
+        heavy = (state.correlated > 0) & plan.one_operator
+        due = ((count == FIRST_NOISE_STEP) | (count % self.check_period == 0)) & plan.one_operator
+        return Decisions(
+            heavy,
+            due,
+            (phase != SKIP) & ~heavy,
+            (phase == BLEND) & ~heavy,
+            self._blend_scalars(ctx, dtype),
+            jnp.asarray(ctx.c1, dtype),
+        )
+
     def sigma(self, guide, plan, state, ctx):
         if guide is None:  # self-guided: each field's own contrast
             return functools.partial(self._own_contrast, plan=plan), state
@@ -213,30 +251,32 @@ class Auto(SigmaRule):
         if state.residual is None or not (op.plan.filter_m and op.plan.filter_v):
             return super().combine(moments, op, sigma, state, ctx)
         axes = op.plan.axes
-        phase = self._blend_phase(state.gate, ctx.count)
-        heavy, learned = jnp.zeros([], bool), state
+        if ctx.decided is None:  # not prepared (a rule that delegates to this one)
+            ctx = ctx._replace(decided=self._decide(state, op.plan, ctx))
+        decided = ctx.decided
+        heavy, learned = decided.heavy, state
         if op.plan.one_operator:  # self-guided: each field's own sigma_d, never heavier
             correlated = self._check_correlation(moments, axes, state, ctx)
             learned = learned._replace(correlated=correlated)
-            heavy = state.correlated > 0
             sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
         m_f, v_f = self._cascade(op, moments, sigma, heavy)
         residual = update_residual(self, moments, m_f, state.residual, ctx.c1, axes)
         learned = learned._replace(residual=residual)
         # The blend's statistics (at a CHECK step, the gate's check alone).
-        computed = (phase != SKIP) & ~heavy
-        lam, gate = _either(
-            computed,
-            functools.partial(blend_weights, self, moments, residual, ctx, axes, run=computed),
-            functools.partial(_no_weights, self, moments.m, axes),
-            both=runs_native(moments.m),
-        )
+        computed = decided.computed
+        weights = functools.partial(blend_weights, self, moments, residual, decided.scalars, axes)
+        if runs_native(moments.m):  # zeros without any work where not computed
+            lam, gate = weights(run=computed)
+        else:
+            lam, gate = lax.cond(
+                computed, weights, functools.partial(_no_weights, self, moments.m, axes)
+            )
         f = Filtered(
             m_f,
             v_f,
             upsample(self, lam, moments.m.shape, axes),
             cast_like(learned._replace(gate=gate), state),
-            blends=(phase == BLEND) & ~heavy,
+            blends=decided.blends,
         )
         return None, (lambda: f,)
 
@@ -284,13 +324,10 @@ class Auto(SigmaRule):
         return texel_distance_mean(guide, local, axes, stride, run)
 
     def _check_correlation(self, moments, axes, state, ctx):
-        """The new :attr:`AutoState.correlated`: :meth:`_correlated_noise` at the second step
-        (the first with a noise estimate) and every ``check_period``-th, else the stored
-        one."""
-        m = moments.m
-
-        count = ctx.count
-        due = (count == FIRST_NOISE_STEP) | (count % self.check_period == 0)
+        """The new :attr:`AutoState.correlated`: :meth:`_correlated_noise` where it is due
+        (:class:`Decisions`: the second step, the first with a noise estimate, and every
+        ``check_period``-th), else the stored one."""
+        m, due = moments.m, ctx.decided.due
 
         def check():
             return self._correlated_noise(moments, axes, ctx, run=due).astype(m.dtype)
@@ -329,18 +366,19 @@ class Auto(SigmaRule):
         guide_axes = _guide_axes(guide, axes)
         stride = self._stride(guide.shape, guide_axes)
         step = texel_distance_mean(guide, previous.astype(guide.dtype), guide_axes, stride)
-        moved = (count > 1) & (step > 0)
+        # Only the first step (or a guide at rest) needs the contrast. (Written as at rest,
+        # not as moved: the native contrast's `run` then reads the same value as the select.)
+        at_rest = (count <= 1) | ~(step > 0)
         if direction is None:
             scale = self.step_factor * step
         else:
             channels = math.prod(n for a, n in enumerate(guide.shape) if a not in guide_axes)
             rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
             scale = self.rate_factor * math.sqrt(channels) * rate
-            moved = moved & (direction > 0)
-        # Only the first step (or a guide at rest) needs the contrast.
-        contrast = lambda: self.contrast_factor * self._contrast(guide, axes, run=~moved)
+            at_rest = at_rest | ~(direction > 0)
+        contrast = lambda: self.contrast_factor * self._contrast(guide, axes, run=at_rest)
         return _either(
-            moved, lambda: scale, lambda: contrast().astype(step.dtype), both=runs_native(guide)
+            at_rest, lambda: contrast().astype(step.dtype), lambda: scale, both=runs_native(guide)
         )
 
     def _correlated_noise(self, moments, axes, ctx, run: jax.Array | bool = True) -> jax.Array:
@@ -357,7 +395,7 @@ class Auto(SigmaRule):
         if moments.given is not None and runs_native(m):
             g, limit = moments.given, moments.limit
         dtype = jnp.promote_types(m.dtype, jnp.float32)
-        c1 = jnp.asarray(ctx.c1, dtype)
+        c1 = ctx.decided.c1.astype(dtype)
         g, m, stride = g.astype(dtype), m.astype(dtype), self._stride(g.shape, axes)
         lags, (noise, signal) = correlation_sums(
             g, m, moments.observed, c1, axes, stride, run, limit
@@ -426,7 +464,7 @@ def update_residual(rule: Auto, moments: Moments, bm: jax.Array, residual, c1, a
 
 
 def blend_weights(
-    rule: Auto, moments: Moments, residual, ctx: StepContext, axes, run: jax.Array | bool = True
+    rule: Auto, moments: Moments, residual, scalars, axes, run: jax.Array | bool = True
 ):
     """``(lam, gate)``: the blend's weight of the unfiltered moments (the gate applied) at
     every entry of the sub-grid (every entry on a leaf of at most ``min_texels`` texels;
@@ -435,18 +473,18 @@ def blend_weights(
 
     ``moments.m, moments.v`` are the moments before bias correction (``ctx.c1``, ``ctx.c2``);
     ``residual`` is the residual's EMA with this step's (:func:`update_residual`), on the
-    sub-grid. The weight is a smooth field, which a large leaf's sub-grid samples finely
-    enough: every statistic is read there, and its local averages are the B-spline's taps
-    between the sub-grid's neighbours. Where the filter runs on the native kernel, one FFI
-    call computes all of it (:func:`_blend_reference` is its JAX form and derivative), and
-    nothing where ``run`` (a traced bool) is False: zeros, which the caller discards.
+    sub-grid; ``scalars`` the step's (:meth:`Auto._blend_scalars`). The weight is a smooth
+    field, which a large leaf's sub-grid samples finely enough: every statistic is read there,
+    and its local averages are the B-spline's taps between the sub-grid's neighbours. Where
+    the filter runs on the native kernel, one FFI call computes all of it
+    (:func:`_blend_reference` is its JAX form and derivative), and nothing where ``run`` (a
+    traced bool) is False: zeros, which the caller discards.
     """
     m = moments.m
     stride = rule._stride(m.shape, axes)
     low, high = rule.gate_bounds
     constants = (rule.gain, rule.power, low, high - low)
     reference = functools.partial(_blend_reference, rule, axes=tuple(axes), stride=stride)
-    scalars = rule._blend_scalars(ctx, m.dtype)
     return subgrid_blend(m, moments.v, residual, scalars, axes, stride, constants, reference, run)
 
 

@@ -50,13 +50,18 @@ class Setting(NamedTuple):
 
 
 class StepContext(NamedTuple):
-    """What every leaf's step shares: the step count (1 at the first update) and, in a
-    postfilter, the first moment's decay ``b1`` and the bias corrections ``1 - b^t``."""
+    """What a leaf's step knows before it reads the leaf: the step count (1 at the first
+    update) and, in a postfilter, the first moment's decay ``b1``, the bias corrections
+    ``1 - b^t`` and their reciprocals, and what the rule decided from its state and the
+    count alone (:meth:`SigmaRule.prepare`; None: nothing)."""
 
     count: jax.Array
     b1: Any = None
     c1: Any = None
     c2: Any = None
+    inv_c1: Any = None
+    inv_c2: Any = None
+    decided: Any = None
 
 
 class Moments(NamedTuple):
@@ -125,6 +130,14 @@ class SigmaRule:
         """The leaf's state (``guide``: its guide at ``init``, None if self-guided)."""
         del leaf, guide, plan, kind
         return None
+
+    def prepare(self, state, plan, ctx: StepContext) -> StepContext:
+        """A postfilter step's context (``ctx``) with what the rule decides from its
+        ``state`` and the step count alone, before the step reads the leaf: ``ctx`` itself
+        by default. A rule that decides several such scalars computes them, with the bias
+        corrections, in one XLA kernel (:func:`~optax_bilateral._src.numerics.one_kernel`)."""
+        del state, plan
+        return ctx
 
     def sigma(self, guide, plan, state, ctx: StepContext) -> tuple[operators.Sigma, Any]:
         """This step's ``sigma_d`` (``guide``: the leaf's guide, None if self-guided), and the

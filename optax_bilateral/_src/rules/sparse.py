@@ -115,6 +115,9 @@ class Sparse(SigmaRule):
         auto = self.auto.init(leaf, guide, plan, kind)
         return SparseState(auto, coverage.init(jnp.shape(leaf), plan.axes, self.block))
 
+    def prepare(self, state, plan, ctx):
+        return self.auto.prepare(state.auto, plan, ctx)
+
     def sigma(self, guide, plan, state, ctx):
         sigma, auto = self.auto.sigma(guide, plan, state.auto, ctx)
         return sigma, state._replace(auto=auto)

@@ -179,7 +179,8 @@ class Sure(SigmaRule):
         axes = op.plan.axes
         m_f, v_f, chosen = self._select(moments, op, sigma, state, ctx)
         residual = update_residual(self.auto, moments, m_f, state.residual, ctx.c1, axes)
-        lam, gate = blend_weights(self.auto, moments, residual, ctx, axes)
+        scalars = self.auto._blend_scalars(ctx, moments.m.dtype)
+        lam, gate = blend_weights(self.auto, moments, residual, scalars, axes)
         lam = upsample(self.auto, lam, moments.m.shape, axes)
         # Sticky: the bias it saw persists, the gate's view of it does not.
         opened = jnp.maximum(state.opened, (gate >= 1).astype(moments.m.dtype))
