@@ -210,14 +210,27 @@ ob::Subgrid subgrid_of(const ffi::AnyBuffer& x, ffi::Span<const int64_t> axes, i
   return g;
 }
 
-// A statistic's `run` operand, a bool scalar: false where the caller discards the outputs (the
-// rule's selects). Then the call is done: zeros in `outs`, no work. An invalid `run` is an error;
-// otherwise nothing (the call goes on).
-std::optional<ffi::Error> unless_run(const ffi::AnyBuffer& run,
+// Entry `at` of a bool or float vector operand (a scalar is a vector of one), or nothing where
+// there is none. The step's scalars come as one vector, which XLA computes in one kernel where
+// it would compute each scalar operand in a kernel of its own (numerics.one_kernel).
+std::optional<double> entry(const ffi::AnyBuffer& v, int64_t at) {
+  if (at < 0 || at >= static_cast<int64_t>(v.element_count())) return std::nullopt;
+  switch (v.element_type()) {
+    case ffi::DataType::PRED: return static_cast<const bool*>(v.untyped_data())[at] ? 1.0 : 0.0;
+    case ffi::DataType::F32: return static_cast<const float*>(v.untyped_data())[at];
+    case ffi::DataType::F64: return static_cast<const double*>(v.untyped_data())[at];
+    default: return std::nullopt;
+  }
+}
+
+// A statistic's `run` flag, entry `run_at` of its operand (nonzero: true): false where the
+// caller discards the outputs (the rule's selects). Then the call is done: zeros in `outs`, no
+// work. An invalid `run` is an error; otherwise nothing (the call goes on).
+std::optional<ffi::Error> unless_run(const ffi::AnyBuffer& run, int64_t run_at,
                                      std::initializer_list<ffi::AnyBuffer*> outs) {
-  if (run.element_type() != ffi::DataType::PRED || run.element_count() != 1)
-    return invalid("run must be a bool scalar");
-  if (*static_cast<const bool*>(run.untyped_data())) return std::nullopt;
+  const std::optional<double> flag = entry(run, run_at);
+  if (!flag) return invalid("run must be a bool or float vector with an entry at run_at");
+  if (*flag != 0) return std::nullopt;
   for (ffi::AnyBuffer* out : outs) std::memset(out->untyped_data(), 0, out->size_bytes());
   return ffi::Error::Success();
 }
@@ -226,7 +239,7 @@ std::optional<ffi::Error> unless_run(const ffi::AnyBuffer& run,
 // x read as numpy.nan_to_num makes it.
 ffi::Error local_average(ffi::AnyBuffer x, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                          ffi::Result<ffi::AnyBuffer> work, ffi::Span<const int64_t> axes,
-                         int64_t stride, bool finite) {
+                         int64_t stride, bool finite, int64_t run_at) {
   const ob::Read read = finite ? ob::Read::kFinite : ob::Read::kAsIs;
   const ob::Subgrid s = subgrid_of(x, axes, stride);
   const std::string problem = ob::check_subgrid(s);
@@ -238,7 +251,7 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::AnyBuffer run, ffi::Result<ffi::
     return invalid("the local average's output must have the sub-grid's shape");
   if (static_cast<int64_t>(work->element_count()) < ob::subgrid_work_size(s))
     return invalid("the local average's scratch is too small");
-  if (auto done = unless_run(run, {&*out})) return *done;
+  if (auto done = unless_run(run, run_at, {&*out})) return *done;
   switch (type) {
     case ffi::DataType::F32:
       ob::subgrid_average(s, static_cast<const float*>(x.untyped_data()),
@@ -258,7 +271,7 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::AnyBuffer run, ffi::Result<ffi::
 // The mean distance of a's texels at the sub-grid from b's (stats.h), or their mean norm.
 ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffer run,
                                ffi::Result<ffi::AnyBuffer> out, ffi::Span<const int64_t> axes,
-                               int64_t stride, bool has_b) {
+                               int64_t stride, bool has_b, int64_t run_at) {
   const ob::Subgrid g = subgrid_of(a, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
   if (!problem.empty()) return invalid(problem);
@@ -268,7 +281,7 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffe
     return invalid("the mean is a scalar of a's dtype, and b has a's dtype");
   if (has_b && static_cast<int64_t>(b.element_count()) != ob::texel_subgrid_size(g))
     return invalid("b must have the sub-grid's shape");
-  if (auto done = unless_run(run, {&*out})) return *done;
+  if (auto done = unless_run(run, run_at, {&*out})) return *done;
   switch (type) {
     case ffi::DataType::F32:
       *static_cast<float*>(out->untyped_data()) = static_cast<float>(ob::texel_distance_mean(
@@ -296,13 +309,13 @@ T in_range(double limit) {
 template <typename T>
 void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
                        ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
-                       ffi::AnyBuffer c1, double limit, double* sums) {
+                       T c1, double limit, double* sums) {
   const auto od = observed.dimensions();
   const ob::Noise<T> noise{static_cast<const T*>(grad.untyped_data()),
                            static_cast<const T*>(m.untyped_data()),
                            static_cast<const bool*>(observed.untyped_data()),
                            std::vector<int64_t>(od.begin(), od.end()),
-                           *static_cast<const T*>(c1.untyped_data()),
+                           c1,
                            in_range<T>(limit)};
   ob::correlation_sums(g, pairs, noise, sums);
 }
@@ -313,7 +326,7 @@ void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
 ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
                             ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                             ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
-                            int64_t stride, double limit) {
+                            int64_t stride, double limit, int64_t c1_at, int64_t run_at) {
   if (!(limit > 0)) return invalid("limit must be > 0 (inf: no clip)");
   const ob::Subgrid g = subgrid_of(grad, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
@@ -335,21 +348,23 @@ ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
   const std::string mask_problem =
       ob::check_noise_mask(g, std::vector<int64_t>(od.begin(), od.end()));
   if (!mask_problem.empty()) return invalid(mask_problem);
-  if (c1.element_type() != type || c1.element_count() != 1)
-    return invalid("c1 must be a scalar of grad's dtype");
+  const std::optional<double> c = entry(c1, c1_at);
+  if (!c || c1.element_type() == ffi::DataType::PRED)
+    return invalid("c1 must be a float vector with an entry at c1_at");
   if (out->element_type() != type || out->element_count() != 3 * pairs.size() + 2)
     return invalid("the sums are (3 pair axes + 2) of grad's dtype");
-  if (auto done = unless_run(run, {&*out})) return *done;
+  if (auto done = unless_run(run, run_at, {&*out})) return *done;
   std::vector<double> sums(3 * pairs.size() + 2);
   switch (type) {
     case ffi::DataType::F32: {
-      correlation_typed<float>(g, pairs, grad, m, observed, c1, limit, sums.data());
+      correlation_typed<float>(g, pairs, grad, m, observed, static_cast<float>(*c), limit,
+                               sums.data());
       auto* o = static_cast<float*>(out->untyped_data());
       for (size_t k = 0; k < sums.size(); ++k) o[k] = static_cast<float>(sums[k]);
       return ffi::Error::Success();
     }
     case ffi::DataType::F64:
-      correlation_typed<double>(g, pairs, grad, m, observed, c1, limit, sums.data());
+      correlation_typed<double>(g, pairs, grad, m, observed, *c, limit, sums.data());
       std::copy(sums.begin(), sums.end(), static_cast<double*>(out->untyped_data()));
       return ffi::Error::Success();
     default:
@@ -375,7 +390,8 @@ ffi::Error blend_typed(const ob::Subgrid& g, ffi::AnyBuffer m, ffi::AnyBuffer v,
 ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
                          ffi::AnyBuffer scalars, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                          ffi::Result<ffi::AnyBuffer> gate, ffi::Span<const int64_t> axes,
-                         int64_t stride, double gain, double power, double low, double span) {
+                         int64_t stride, double gain, double power, double low, double span,
+                         int64_t run_at) {
   const ob::Subgrid g = subgrid_of(m, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
   const auto dims = m.dimensions();
@@ -391,7 +407,7 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
     return invalid("the residual and the output must have the sub-grid's shape");
   if (scalars.element_count() != 8 || gate->element_count() != 1)
     return invalid("the blend takes 8 scalars and gives one gate");
-  if (auto done = unless_run(run, {&*out, &*gate})) return *done;
+  if (auto done = unless_run(run, run_at, {&*out, &*gate})) return *done;
   switch (type) {
     case ffi::DataType::F32:
       return blend_typed<float>(g, m, v, r, scalars, &*out, &*gate, gain, power, low, span);
@@ -470,40 +486,44 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLdl, ldl,
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLocalAverage, local_average,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // x (*shape)
-                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
+                                  .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
                                   .Ret<ffi::AnyBuffer>()  // the averages at the sub-grid
                                   .Ret<ffi::AnyBuffer>()  // the scratch between passes
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride")
-                                  .Attr<bool>("finite"));
+                                  .Attr<bool>("finite")
+                                  .Attr<int64_t>("run_at"));  // run's entry
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralTexelDistanceMean, texel_distance_mean,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // a (*shape)
                                   .Arg<ffi::AnyBuffer>()  // b (the sub-grid's shape), or (0,)
-                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
+                                  .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
                                   .Ret<ffi::AnyBuffer>()  // the mean, a scalar
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride")
-                                  .Attr<bool>("has_b"));
+                                  .Attr<bool>("has_b")
+                                  .Attr<int64_t>("run_at"));  // run's entry
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // grad (*shape)
                                   .Arg<ffi::AnyBuffer>()  // m (*shape)
                                   .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
-                                  .Arg<ffi::AnyBuffer>()  // c1, a scalar
-                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
+                                  .Arg<ffi::AnyBuffer>()  // c1: a float vector
+                                  .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
                                   .Ret<ffi::AnyBuffer>()  // the sums (3 pair axes + 2)
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<ffi::Span<const int64_t>>("pair_axes")
                                   .Attr<int64_t>("stride")
-                                  .Attr<double>("limit"));  // |grad| clipped to it
+                                  .Attr<double>("limit")  // |grad| clipped to it
+                                  .Attr<int64_t>("c1_at")  // c1's entry
+                                  .Attr<int64_t>("run_at"));  // run's entry
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // m (*shape)
                                   .Arg<ffi::AnyBuffer>()  // v (*shape)
                                   .Arg<ffi::AnyBuffer>()  // the residual (the sub-grid's shape)
                                   .Arg<ffi::AnyBuffer>()  // the step's 8 scalars (stats.h)
-                                  .Arg<ffi::AnyBuffer>()  // run, a bool scalar
+                                  .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
                                   .Ret<ffi::AnyBuffer>()  // lam gate (the sub-grid's shape)
                                   .Ret<ffi::AnyBuffer>()  // gate, a scalar
                                   .Attr<ffi::Span<const int64_t>>("axes")
@@ -511,7 +531,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
                                   .Attr<double>("gain")
                                   .Attr<double>("power")
                                   .Attr<double>("low")
-                                  .Attr<double>("span"));
+                                  .Attr<double>("span")
+                                  .Attr<int64_t>("run_at"));  // run's entry
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
                               ffi::Ffi::Bind()
                                   .RemainingArgs()   // the arrays

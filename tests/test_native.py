@@ -654,6 +654,87 @@ def test_correlation_sums_refuse_a_mask_that_does_not_broadcast():
         native.correlation_sums(g, g, jnp.ones((6, 4, 1), bool), 1.0, (0, 1), (0, 1), 1)
 
 
+def test_native_statistics_read_their_flags_and_c1_from_one_vector_of_scalars():
+    # numerics.one_kernel's vector: each call reads its `run` flag (nonzero: run) and the
+    # correlation sums their c1 at an entry of it, as from scalars of their own.
+    from optax_bilateral._src.filter import local
+    from optax_bilateral._src.numerics import Entry
+    from optax_bilateral._src.rules import auto
+
+    rng = np.random.default_rng(0)
+    shape, axes = (12, 10, 3), (0, 1)
+    g, m = (jnp.asarray(rng.normal(size=shape), jnp.float32) for _ in range(2))
+    observed = jnp.asarray(rng.random(shape[:-1] + (1,)) < 0.8)
+    vector = jnp.asarray([0.3, 0.0, 1.0], jnp.float32)
+    on, off = Entry(vector, 2, jnp.dtype(bool)), Entry(vector, 1, jnp.dtype(bool))
+    c1 = Entry(vector, 0, jnp.dtype(jnp.float32))
+    want = local.correlation_sums(g, m, observed, jnp.float32(0.3), axes, 2)
+    got = local.correlation_sums(g, m, observed, c1, axes, 2, run=on)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    skipped = local.correlation_sums(g, m, observed, c1, axes, 2, run=off)
+    assert not any(np.any(np.asarray(x)) for x in skipped)
+    assert float(local.texel_distance_mean(g, None, axes, 2, run=off)) == 0
+    np.testing.assert_array_equal(
+        local.texel_distance_mean(g, None, axes, 2, run=on),
+        local.texel_distance_mean(g, None, axes, 2),
+    )
+    (average,) = local.local_average_subgrid((g,), axes, 2, run=off)
+    assert not np.any(np.asarray(average))
+    rule, bm, v, residual, scalars = _blend_case(0, stride=1)  # the rule's stride at 24x20
+    blend = functools.partial(auto.blend_weights, rule, auto.Moments(bm, v, bm, True), residual)
+    lam, gate = blend(scalars, axes, run=off)
+    assert not np.any(np.asarray(lam)) and float(gate) == 0
+    for a, b in zip(blend(scalars, axes, run=on), blend(scalars, axes), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(Exception, match="run must be a bool or float vector"):
+        past = Entry(vector, 3, jnp.dtype(bool))  # past the vector's end
+        jax.block_until_ready(local.texel_distance_mean(g, None, axes, 2, run=past))
+
+
+def test_one_kernel_computes_the_steps_scalars_in_one_xla_kernel():
+    # Powers, quotients and comparisons of the step count, read by one full-size kernel: XLA
+    # computes each that an expensive operation produces in a kernel of its own, unless they
+    # come as one_kernel's vector.
+    import re
+
+    def program(pack):
+        def f(count, x):
+            t = count.astype(jnp.float32)
+            c1, c2 = 1 - 0.9**t, 1 - 0.999**t
+            xs = (c1, c2, 1 / c1, 1 / c2, (count % 8 == 0) | (count == 2), count > 1)
+            if pack:
+                xs = tuple(e.value for e in numerics.one_kernel(xs))
+            a, b, ia, ib, due, usable = xs
+            return jnp.where(due & usable, x * ia + b, x * ib - a)
+
+        return f
+
+    x = jnp.linspace(0.0, 1.0, 64)
+    kernels, outs = [], []
+    for pack in (False, True):
+        compiled = jax.jit(program(pack)).lower(jnp.int32(8), x).compile()
+        kernels.append(len(re.findall(r"= \S+ fusion\(", compiled.as_text())))
+        outs.append(compiled(jnp.int32(8), x))
+    # The same formulas; XLA may simplify them otherwise around the vector (an ulp).
+    np.testing.assert_allclose(outs[0], outs[1], rtol=1e-6)
+    assert kernels[1] == 2 < kernels[0]  # the vector, and the kernel that reads it
+
+
+@pytest.mark.parametrize(
+    "xs, error",
+    [
+        ((jnp.int32(1), jnp.float32(1)), TypeError),
+        ((jnp.zeros(2), jnp.float32(1)), TypeError),
+        (tuple(jnp.float32(k) for k in range(9)), ValueError),
+        ((), ValueError),
+    ],
+)
+def test_one_kernel_refuses_what_it_cannot_hold(xs, error):
+    with pytest.raises(error, match="one_kernel takes"):
+        numerics.one_kernel(xs)
+
+
 def _blend_case(seed, shape=(24, 20, 3), stride=2, count=9, scale=3.0):
     """A postfilter leaf's moments and residual (of size ``scale``) at step ``count``, and
     the rule's scalars: at scale 3 most weights lie inside (0, 1), some are 0."""

@@ -41,6 +41,7 @@ import json
 import os
 import pathlib
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -1023,6 +1024,15 @@ def cold_compile_seconds(opt, shape) -> tuple[float, float]:
     return t1 - t0, time.perf_counter() - t1
 
 
+def xla_kernels(opt, shape) -> int:
+    """The XLA kernels (fusions) of ``jax.jit(opt.update)``'s compiled program for a leaf of
+    ``shape``: XLA compiles each on its own, so the compile follows their number
+    (docs/research/compilation.md)."""
+    params, grad = update_arrays(shape)
+    text = jax.jit(opt.update).lower(grad, opt.init(params), params).compile().as_text()
+    return len(re.findall(r"= \S+ fusion\(", text or ""))
+
+
 def compile_ratios(quick: bool, repeats: int) -> list[dict]:
     """Per grid and method: median seconds to trace, lower and compile one update, and its
     ratio to ``optax.adam``'s in the same repeat (rotating order; a warm-up compile first, so
@@ -1050,6 +1060,7 @@ def compile_ratios(quick: bool, repeats: int) -> list[dict]:
                     "compile s": float(np.median([b for _, b in xs])),
                     "total s": float(np.median(total)),
                     "x adam (median of paired)": ratio,
+                    "XLA kernels": xla_kernels(opts[name], shape),
                     "limit": limit,
                     "met": None if limit is None else bool(ratio <= limit),
                 }

@@ -13,6 +13,7 @@ The step counter uses :func:`optax.safe_increment`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -119,32 +120,64 @@ def safe_step(
     return jnp.where(ok, (m_f * inv_c1.astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
 
 
-def one_kernel(tree: Any) -> Any:
-    """``tree``'s arrays (scalars and short vectors of floats or bools), unchanged, computed in
-    one XLA kernel.
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """Entry ``at`` of ``vector``: a scalar of ``dtype`` computed with others in one XLA
+    kernel (:func:`one_kernel`). JAX code reads :attr:`value`; a native call reads the vector
+    itself at ``at`` (csrc/module.cc), which XLA then computes once rather than as an operand
+    of its own."""
 
-    XLA writes out every small value that an FFI call, a conditional or several full-size
-    kernels read as a kernel of its own, and compiles each in milliseconds whatever it
-    computes (docs/research/compilation.md). Flattened into one vector of their widest dtype
-    (bools as 0 and 1, which every float holds exactly) behind an optimization barrier, which
-    keeps XLA from taking the vector apart again, they are computed in one kernel and read
-    back where they are used, each in its own dtype and shape.
+    vector: jax.Array
+    at: int
+    dtype: Any
+
+    @property
+    def value(self) -> jax.Array:
+        x = jax.lax.index_in_dim(self.vector, self.at, keepdims=False)
+        return x != 0 if self.dtype == jnp.bool_ else x.astype(self.dtype)
+
+    @classmethod
+    def of(cls, x: Any) -> Entry:
+        """``x`` (an :class:`Entry`, or a scalar: the one entry of its own vector)."""
+        if isinstance(x, Entry):
+            return x
+        x = jnp.asarray(x)
+        return cls(x.reshape(1), 0, x.dtype)
+
+
+jax.tree_util.register_dataclass(Entry, data_fields=["vector"], meta_fields=["at", "dtype"])
+
+
+def value(x: Any) -> Any:
+    """``x``'s value: an :class:`Entry`'s, or ``x`` itself."""
+    return x.value if isinstance(x, Entry) else x
+
+
+# XLA's CPU backend fuses a concatenate of at most this many operands.
+ONE_KERNEL_MAX = 8
+
+
+def one_kernel(tree: Any) -> Any:
+    """``tree``'s scalars (floats or bools, at most 8) as :class:`Entry` of one vector that
+    XLA computes in one kernel.
+
+    XLA writes out every scalar that an FFI call, a conditional or several full-size kernels
+    read as a kernel of its own, and compiles each in milliseconds whatever it computes
+    (docs/research/compilation.md). Stacked in their widest dtype (bools as 0 and 1, which
+    every float holds exactly) behind an optimization barrier, which keeps XLA from taking the
+    vector apart again, they are one kernel (of a longer concatenate, XLA's CPU backend
+    computes each operand in a kernel of its own).
     """
     xs, treedef = jax.tree.flatten(tree)
-    if len(xs) < 2:
-        return tree
     xs = [jnp.asarray(x) for x in xs]
     for x in xs:
-        if not (jnp.issubdtype(x.dtype, jnp.floating) or x.dtype == jnp.bool_):
-            raise TypeError(f"one_kernel takes floats and bools, got {x.dtype}")
+        if x.shape or not (jnp.issubdtype(x.dtype, jnp.floating) or x.dtype == jnp.bool_):
+            raise TypeError(f"one_kernel takes float and bool scalars, got {x.dtype}{x.shape}")
+    if not 0 < len(xs) <= ONE_KERNEL_MAX:
+        raise ValueError(f"one_kernel takes 1 to {ONE_KERNEL_MAX} scalars, got {len(xs)}")
     dtype = jnp.result_type(*(x.dtype for x in xs if x.dtype != jnp.bool_), jnp.float32)
-    packed = jax.lax.optimization_barrier(jnp.concatenate([x.astype(dtype).ravel() for x in xs]))
-    out, at = [], 0
-    for x in xs:
-        y = packed[at : at + x.size].reshape(x.shape)
-        out.append(y != 0 if x.dtype == jnp.bool_ else y.astype(x.dtype))
-        at += x.size
-    return jax.tree.unflatten(treedef, out)
+    vector = jax.lax.optimization_barrier(jnp.stack([x.astype(dtype) for x in xs]))
+    return jax.tree.unflatten(treedef, [Entry(vector, k, x.dtype) for k, x in enumerate(xs)])
 
 
 def sigma_guard(sigma_d: Any) -> jax.Array:

@@ -20,6 +20,7 @@ from jax import lax
 from optax_bilateral._src.filter import native, sharded
 from optax_bilateral._src.filter.bilateral import TAPS
 from optax_bilateral._src.filter.front import atrous_bilateral, resolve_kernel
+from optax_bilateral._src.numerics import Entry, value
 
 
 def local_average(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple[jax.Array, ...]:
@@ -36,7 +37,7 @@ def local_average(fields: tuple[jax.Array, ...], axes: tuple[int, ...]) -> tuple
 
 
 def local_average_subgrid(
-    fields, axes, stride: int, nan_to_num: bool = False, run: jax.Array | bool = True
+    fields, axes, stride: int, nan_to_num: bool = False, run: jax.Array | bool | Entry = True
 ) -> tuple[jax.Array, ...]:
     """:func:`local_average`'s local averages at every ``stride``-th entry along the spatial axes
     only: per axis, the 5 taps read at the sub-grid, normalised over those inside the grid
@@ -51,7 +52,7 @@ def local_average_subgrid(
         return tuple(every(f, axes, stride) for f in local_average(fields, axes))
     axes = tuple(axes)
     return tuple(
-        _native_taps(x, jnp.asarray(run, bool), axes, stride, nan_to_num)
+        _native_taps(x, Entry.of(run), axes, stride, nan_to_num)
         if runs_native(x)
         else _taps(jnp.nan_to_num(x) if nan_to_num else x, axes, stride)
         for x in fields
@@ -94,7 +95,7 @@ def texel_distance_mean(
     b: jax.Array | None,
     axes: tuple[int, ...],
     stride: int,
-    run: jax.Array | bool = True,
+    run: jax.Array | bool | Entry = True,
 ) -> jax.Array:
     """The mean over the sub-grid's texels ``p`` (every ``stride``-th along the spatial ``axes``)
     of ``||a[stride p] - b[p]||``, the norm over ``a``'s other axes (``b`` None: of
@@ -104,7 +105,7 @@ def texel_distance_mean(
     which gives 0 without any work where ``run`` (a traced bool) is False."""
     axes = tuple(axes)
     if runs_native(a):
-        return _native_distance(a, b, jnp.asarray(run, bool), axes, stride)
+        return _native_distance(a, b, Entry.of(run), axes, stride)
     return _distance(a, b, axes, stride)
 
 
@@ -131,7 +132,7 @@ def correlation_sums(
     c1,
     axes: tuple[int, ...],
     stride: int,
-    run: jax.Array | bool = True,
+    run: jax.Array | bool | Entry = True,
     limit: float = math.inf,
 ) -> tuple[jax.Array, jax.Array]:
     """``(lags, energies)``, not differentiated, of ``z = clip(g, -limit, limit) - m / c1`` and
@@ -145,12 +146,11 @@ def correlation_sums(
     without reading anything where ``run`` (a traced bool) is False."""
     axes = tuple(axes)
     g, m = lax.stop_gradient(g), lax.stop_gradient(m)
-    c1 = jnp.asarray(c1, m.dtype)
     pairs = tuple(a for a in axes if g.shape[a] > 1)
     if runs_native(g):
         sums = native.correlation_sums(g, m, observed, c1, axes, pairs, stride, run, limit)
         return sums[:-2].reshape(len(pairs), 3), sums[-2:]
-    y = m / c1
+    y = m / jnp.asarray(value(c1), m.dtype)
     z, y = jnp.where(observed, jnp.clip(g, -limit, limit) - y, 0), jnp.where(observed, y, 0)
     lags = [
         _sums(x0 * x0, x1 * x1, x0 * x1)
@@ -184,9 +184,7 @@ def _sums(*xs: jax.Array) -> jax.Array:
     return jnp.sum(jnp.stack(xs), axis=tuple(range(1, xs[0].ndim + 1)))
 
 
-def subgrid_blend(
-    m, v, residual, scalars, axes, stride, constants, reference, run: jax.Array | bool = True
-):
+def subgrid_blend(m, v, residual, scalars, axes, stride, constants, reference, run: Any = True):
     """``sigma_d="auto"``'s blend at the sub-grid, ``(lam * gate, gate)``: where the rules'
     statistics run on the native kernel one FFI call (csrc/stats.h: the rule's formula
     written out in C++), whose derivative is ``reference``'s, and which gives zeros without
@@ -195,7 +193,7 @@ def subgrid_blend(
     describes the ``scalars`` and the ``constants``)."""
     if runs_native(m):
         how = BlendCall(tuple(axes), stride, constants, reference)
-        return _native_blend(m, v, residual, scalars, jnp.asarray(run, bool), how)
+        return _native_blend(m, v, residual, scalars, Entry.of(run), how)
     return reference(m, v, residual, scalars)
 
 
@@ -217,7 +215,7 @@ def _native_blend(m, v, residual, scalars, run, how: BlendCall):
 @_native_blend.defjvp
 def _native_blend_jvp(how, primals, tangents):
     # The reference's derivative where it runs, zeros (constant outputs) where it does not.
-    run = primals[4]
+    run = value(primals[4])
     out, tangent = jax.jvp(how.reference, primals[:4], tangents[:4])
     zero = lambda x: jnp.where(run, x, jnp.zeros_like(x))
     return jax.tree.map(zero, out), jax.tree.map(zero, tangent)

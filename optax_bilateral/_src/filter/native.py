@@ -34,6 +34,7 @@ import numpy as np
 from optax_bilateral._src import extension
 from optax_bilateral._src.filter import plain
 from optax_bilateral._src.filter.bilateral import level_passes
+from optax_bilateral._src.numerics import Entry
 
 TARGET = "optax_bilateral_atrous"
 FIELDS_TARGET = "optax_bilateral_atrous_fields"
@@ -219,12 +220,13 @@ def subgrid_average(
     axes: Sequence[int],
     stride: int,
     finite: bool = False,
-    run: jax.Array | bool = True,
+    run: jax.Array | bool | Entry = True,
 ) -> jax.Array:
     """One level of the B-spline (every data weight 1) along each of ``axes`` in turn, read at
     every ``stride``-th entry: one FFI call for all of them (csrc/local.h); ``finite``: of
     ``jnp.nan_to_num(x)``, read so without a copy; zeros without any work where ``run`` (a
-    bool, may be traced) is False. Not differentiable:
+    bool, may be traced, or an :class:`~optax_bilateral._src.numerics.Entry`) is False. Not
+    differentiable:
     :func:`optax_bilateral._src.filter.local.local_average_subgrid` gives it a rule."""
     _require("the native local average")
     shape, sizes = list(x.shape), []
@@ -238,8 +240,15 @@ def subgrid_average(
         (jax.ShapeDtypeStruct(tuple(shape), x.dtype), jax.ShapeDtypeStruct((work,), x.dtype)),
         vmap_method="sequential",
     )
-    run = jnp.asarray(run, bool).reshape(())
-    out, _ = call(x, run, axes=np.asarray(axes, np.int64), stride=np.int64(stride), finite=finite)
+    run = Entry.of(run)
+    out, _ = call(
+        x,
+        run.vector,
+        axes=np.asarray(axes, np.int64),
+        stride=np.int64(stride),
+        finite=finite,
+        run_at=np.int64(run.at),
+    )
     return out
 
 
@@ -248,23 +257,26 @@ def texel_distance_mean(
     b: jax.Array | None,
     axes: Sequence[int],
     stride: int,
-    run: jax.Array | bool = True,
+    run: jax.Array | bool | Entry = True,
 ) -> jax.Array:
     """The mean over the sub-grid's texels of ``||a[stride p] - b[p]||`` (csrc/stats.h): one FFI
-    call, sums in double; 0 without any work where ``run`` (a bool, may be traced) is False.
+    call, sums in double; 0 without any work where ``run`` (a bool, may be traced, or an
+    :class:`~optax_bilateral._src.numerics.Entry`) is False.
     Not differentiable:
     :func:`optax_bilateral._src.filter.local.texel_distance_mean` gives it a rule."""
     _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         TEXEL_MEAN_TARGET, jax.ShapeDtypeStruct((), a.dtype), vmap_method="sequential"
     )
+    run = Entry.of(run)
     return call(
         a,
         jnp.zeros((0,), a.dtype) if b is None else b,
-        jnp.asarray(run, bool).reshape(()),
+        run.vector,
         axes=np.asarray(axes, np.int64),
         stride=np.int64(stride),
         has_b=b is not None,
+        run_at=np.int64(run.at),
     )
 
 
@@ -272,17 +284,18 @@ def correlation_sums(
     g: jax.Array,
     m: jax.Array,
     observed: jax.Array,
-    c1: jax.Array,
+    c1: jax.Array | Entry,
     axes: Sequence[int],
     pair_axes: Sequence[int],
     stride: int,
-    run: jax.Array | bool = True,
+    run: jax.Array | bool | Entry = True,
     limit: float = math.inf,
 ) -> jax.Array:
     """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``, of
     ``z = clip(g, -limit, limit) - m / c1`` and ``y = m / c1`` where ``observed`` (bool,
     broadcastable against ``g``), else 0, each computed where the sums read it: one FFI call,
-    sums in double; zeros without any work where ``run`` (a bool, may be traced) is False. Not
+    sums in double; zeros without any work where ``run`` (a bool, may be traced) is False.
+    ``c1`` and ``run`` may be :class:`~optax_bilateral._src.numerics.Entry`. Not
     differentiable (its callers stop the gradient)."""
     _require("the native texel statistics")
     if not limit > 0:
@@ -293,16 +306,20 @@ def correlation_sums(
         vmap_method="sequential",
     )
     mask = jnp.asarray(observed, bool)
+    c1 = c1 if isinstance(c1, Entry) else Entry.of(jnp.asarray(c1, g.dtype))
+    run = Entry.of(run)
     return call(
         g,
         m,
         mask.reshape((1,) * (g.ndim - mask.ndim) + mask.shape),
-        jnp.asarray(c1, g.dtype).reshape(()),
-        jnp.asarray(run, bool).reshape(()),
+        c1.vector,
+        run.vector,
         axes=np.asarray(axes, np.int64),
         pair_axes=np.asarray(pair_axes, np.int64),
         stride=np.int64(stride),
         limit=np.float64(limit),
+        c1_at=np.int64(c1.at),
+        run_at=np.int64(run.at),
     )
 
 
@@ -314,12 +331,13 @@ def blend_weights(
     axes: Sequence[int],
     stride: int,
     constants: tuple[float, float, float, float],
-    run: jax.Array | bool = True,
+    run: jax.Array | bool | Entry = True,
 ) -> tuple[jax.Array, jax.Array]:
     """``sigma_d="auto"``'s blend at the sub-grid (csrc/stats.h): ``(lam * gate, gate)`` from
     ``m``, ``v`` (the leaf's shape), the residual (the sub-grid's), the step's 8 ``scalars``
     and the rule's ``constants`` ``(gain, power, low, high - low)``; zeros without any work
-    where ``run`` (a bool, may be traced) is False. One FFI call; not differentiable:
+    where ``run`` (a bool, may be traced, or an
+    :class:`~optax_bilateral._src.numerics.Entry`) is False. One FFI call; not differentiable:
     :func:`optax_bilateral._src.filter.local.subgrid_blend` gives it a rule."""
     _require("the native texel statistics")
     call = jax.ffi.ffi_call(
@@ -328,17 +346,19 @@ def blend_weights(
         vmap_method="sequential",
     )
     gain, power, low, span = (float(c) for c in constants)
+    run = Entry.of(run)
     lam, gate = call(
         m,
         v,
         residual,
         scalars,
-        jnp.asarray(run, bool).reshape(()),
+        run.vector,
         axes=np.asarray(axes, np.int64),
         stride=np.int64(stride),
         gain=np.float64(gain),
         power=np.float64(power),
         low=np.float64(low),
         span=np.float64(span),
+        run_at=np.int64(run.at),
     )
     return lam, gate

@@ -106,15 +106,15 @@ class Decisions(NamedTuple):
     """What a postfilter step of ``"auto"`` decides from its state and the step count alone
     (:meth:`Auto.prepare`): whether it filters heavier (the noise was correlated at the last
     check), checks the correlation, computes the blend's statistics (at least its gate's
-    check) and blends; the blend's scalars (:meth:`Auto._blend_scalars`); and ``c1`` in the
-    moments' dtype."""
+    check) and blends; the blend's scalars (:meth:`Auto._blend_scalars`); and ``c1``. What a
+    native call reads is an :class:`~optax_bilateral._src.numerics.Entry` of one vector."""
 
     heavy: jax.Array
-    due: jax.Array
-    computed: jax.Array
+    due: numerics.Entry
+    computed: numerics.Entry
     blends: jax.Array
     scalars: jax.Array
-    c1: jax.Array
+    c1: numerics.Entry
 
 
 @jax.tree_util.register_static
@@ -220,25 +220,18 @@ class Auto(SigmaRule):
     def prepare(self, state, plan, ctx):
         if state is None or state.residual is None or not (plan.filter_m and plan.filter_v):
             return ctx
-        c1, c2, inv_c1, inv_c2 = numerics.one_kernel((ctx.c1, ctx.c2, ctx.inv_c1, ctx.inv_c2))
-        ctx = ctx._replace(c1=c1, c2=c2, inv_c1=inv_c1, inv_c2=inv_c2)
-        return ctx._replace(decided=self._decide(state, plan, ctx))
-
-    def _decide(self, state, plan, ctx) -> Decisions:
-        """:class:`Decisions` from the leaf's state and the step count (``ctx``)."""
-        dtype = state.residual.dtype
-        phase = self._blend_phase(state.gate, ctx.count)
-        count = ctx.count
+        dtype, count = state.residual.dtype, ctx.count
+        phase = self._blend_phase(state.gate, count)
         heavy = (state.correlated > 0) & plan.one_operator
         due = ((count == FIRST_NOISE_STEP) | (count % self.check_period == 0)) & plan.one_operator
-        return Decisions(
-            heavy,
-            due,
-            (phase != SKIP) & ~heavy,
-            (phase == BLEND) & ~heavy,
-            self._blend_scalars(ctx, dtype),
-            jnp.asarray(ctx.c1, dtype),
+        # What the step's kernels and native calls read, in one XLA kernel.
+        c1, c2, inv_c1, inv_c2, due, computed = numerics.one_kernel(
+            (ctx.c1, ctx.c2, ctx.inv_c1, ctx.inv_c2, due, (phase != SKIP) & ~heavy)
         )
+        ctx = ctx._replace(c1=c1.value, c2=c2.value, inv_c1=inv_c1.value, inv_c2=inv_c2.value)
+        scalars = self._blend_scalars(ctx, dtype)
+        blends = (phase == BLEND) & ~heavy
+        return ctx._replace(decided=Decisions(heavy, due, computed, blends, scalars, c1))
 
     def sigma(self, guide, plan, state, ctx):
         if guide is None:  # self-guided: each field's own contrast
@@ -252,7 +245,7 @@ class Auto(SigmaRule):
             return super().combine(moments, op, sigma, state, ctx)
         axes = op.plan.axes
         if ctx.decided is None:  # not prepared (a rule that delegates to this one)
-            ctx = ctx._replace(decided=self._decide(state, op.plan, ctx))
+            ctx = self.prepare(state, op.plan, ctx)
         decided = ctx.decided
         heavy, learned = decided.heavy, state
         if op.plan.one_operator:  # self-guided: each field's own sigma_d, never heavier
@@ -269,7 +262,7 @@ class Auto(SigmaRule):
             lam, gate = weights(run=computed)
         else:
             lam, gate = lax.cond(
-                computed, weights, functools.partial(_no_weights, self, moments.m, axes)
+                computed.value, weights, functools.partial(_no_weights, self, moments.m, axes)
             )
         f = Filtered(
             m_f,
@@ -333,7 +326,7 @@ class Auto(SigmaRule):
             return self._correlated_noise(moments, axes, ctx, run=due).astype(m.dtype)
 
         stored = lambda: state.correlated.astype(m.dtype)
-        return _either(due, check, stored, both=runs_native(m))
+        return _either(due.value, check, stored, both=runs_native(m))
 
     # ------------------------------------------------------------------ statistics
 
@@ -381,7 +374,7 @@ class Auto(SigmaRule):
             at_rest, lambda: contrast().astype(step.dtype), lambda: scale, both=runs_native(guide)
         )
 
-    def _correlated_noise(self, moments, axes, ctx, run: jax.Array | bool = True) -> jax.Array:
+    def _correlated_noise(self, moments, axes, ctx, run: numerics.Entry) -> jax.Array:
         """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
         between neighbours of ``z = g - m_hat`` (``m_hat = m / c1``, the updated first moment
         bias-corrected), averaged over the spatial ``axes``, is at least ``correlated``, and
@@ -395,11 +388,12 @@ class Auto(SigmaRule):
         if moments.given is not None and runs_native(m):
             g, limit = moments.given, moments.limit
         dtype = jnp.promote_types(m.dtype, jnp.float32)
-        c1 = ctx.decided.c1.astype(dtype)
+        c1 = ctx.decided.c1
         g, m, stride = g.astype(dtype), m.astype(dtype), self._stride(g.shape, axes)
         lags, (noise, signal) = correlation_sums(
             g, m, moments.observed, c1, axes, stride, run, limit
         )
+        c1 = c1.value.astype(dtype)
         if not lags.shape[0]:
             return jnp.zeros([], bool)
         s00, s11, s01 = lags[:, 0], lags[:, 1], lags[:, 2]
@@ -408,17 +402,17 @@ class Auto(SigmaRule):
         lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / c1
         return (jnp.mean(corr) >= self.correlated) & (noise > self.noisy * lag * lag * signal)
 
-    def _blend_scalars(self, ctx: StepContext, dtype) -> jax.Array:
+    def _blend_scalars(self, ctx: StepContext, dtype, ratio=None) -> jax.Array:
         """The blend's scalars at this step, in ``dtype``: ``c1``, ``c2``; ``k``, the noise of
         ``m_hat`` per unit of ``v_hat - m_hat^2`` (eq. 24); the residual EMA's variance
         ratio; the factor ``(1 + b1 decay) / (1 - b1 decay)`` (``m_hat`` correlates) as its
         two parts; the residual's bias correction ``1 - decay^t``; 1 where the noise can be
-        told from the signal, else 0."""
+        told from the signal, else 0. ``ratio``: :func:`noise_ratio`'s, if computed already."""
         b1 = jnp.asarray(ctx.b1, dtype)
         c1, c2 = jnp.asarray(ctx.c1, dtype), jnp.asarray(ctx.c2, dtype)
         decay = jnp.asarray(self.residual_decay, dtype)
         bias = 1 - decay ** ctx.count.astype(dtype)
-        ratio, usable = noise_ratio(b1, c1, ctx.count)
+        ratio, usable = noise_ratio(b1, c1, ctx.count, ratio)
         k = jnp.where(usable, ratio / jnp.maximum(1 - ratio, MEMORY_EPS), 0)
         ema = _ema_variance_ratio(decay, bias)
         parts = [c1, c2, k, ema, 1 + b1 * decay, 1 - b1 * decay, bias, usable]
@@ -526,10 +520,13 @@ def _ema_variance_ratio(b: jax.Array, c: jax.Array) -> jax.Array:
     return (1 - b) * (2 - c) / ((1 + b) * c)
 
 
-def noise_ratio(b1: jax.Array, c1: jax.Array, count: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``(rho, usable)``: Var of ``m_hat`` per unit gradient variance, and whether the noise
-    can be told from the signal (the step has memory: ``t > 1``, ``b1 > 0``)."""
-    ratio = _ema_variance_ratio(b1, c1)
+def noise_ratio(
+    b1: jax.Array, c1: jax.Array, count: jax.Array, ratio=None
+) -> tuple[jax.Array, jax.Array]:
+    """``(rho, usable)``: Var of ``m_hat`` per unit gradient variance (``ratio``, if computed
+    already), and whether the noise can be told from the signal (the step has memory:
+    ``t > 1``, ``b1 > 0``)."""
+    ratio = _ema_variance_ratio(b1, c1) if ratio is None else ratio
     return ratio, (count > 1) & (ratio < 1 - MEMORY_EPS)
 
 

@@ -5,6 +5,8 @@ asks it,
 in this order, for
 
 * ``init``: the leaf's state (a ``NamedTuple`` of arrays the rule owns, or None);
+* ``prepare`` (a postfilter): what the step decides from the state and the count alone,
+  before it reads the leaf, in the step's context;
 * ``sigma``: this step's ``sigma_d`` (and the state with what it learned from the guide);
 * ``prefilter`` (a prefilter) or ``combine`` (a postfilter): the filtered gradient, or the
   ways this step may filter the moments (:class:`Filtered`: ``B m``, ``B v``, the weight
