@@ -419,10 +419,15 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
 }
 
 // Each operand's count of non-finite entries (count.h), one int32 per block: an output of b
-// entries splits its operand into b equal blocks (a vmapped call's batch).
-ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts) {
-  if (counts.size() != xs.size()) return invalid("one count per operand");
-  for (size_t k = 0; k < xs.size(); ++k) {
+// entries splits its operand into b equal blocks (a vmapped call's batch). `totals`: the
+// operands are the arrays, then as many int32 totals (one per block), and each count is added
+// to its total, saturating at INT32_MAX (the optimizers' running counts, without an XLA
+// kernel for each sum).
+ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts, bool totals) {
+  const size_t n_arrays = totals ? xs.size() / 2 : xs.size();
+  if (counts.size() != n_arrays || (totals && xs.size() % 2 != 0))
+    return invalid("one count per operand (and, with totals, one total per operand)");
+  for (size_t k = 0; k < n_arrays; ++k) {
     auto x = xs.get<ffi::AnyBuffer>(k);
     auto out = counts.get<ffi::AnyBuffer>(k);
     if (!x.has_value() || !out.has_value()) return invalid("operands and counts are buffers");
@@ -441,8 +446,17 @@ ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts) {
     const auto n = static_cast<int64_t>(x->element_count());
     if (blocks < 1 || n % blocks != 0)
       return invalid("each operand must split into its count's number of blocks");
-    ob::count_nonfinite(format, x->untyped_data(), blocks, n / blocks,
-                        static_cast<int32_t*>((*out)->untyped_data()));
+    auto* c = static_cast<int32_t*>((*out)->untyped_data());
+    ob::count_nonfinite(format, x->untyped_data(), blocks, n / blocks, c);
+    if (!totals) continue;
+    auto total = xs.get<ffi::AnyBuffer>(n_arrays + k);
+    if (!total.has_value() || total->element_type() != ffi::DataType::S32 ||
+        static_cast<int64_t>(total->element_count()) != blocks)
+      return invalid("each total must be int32, one per block of its operand");
+    const auto* t = static_cast<const int32_t*>(total->untyped_data());
+    const int64_t top = std::numeric_limits<int32_t>::max();
+    for (int64_t b = 0; b < blocks; ++b)
+      c[b] = static_cast<int32_t>(std::min<int64_t>(int64_t{t[b]} + c[b], top));
   }
   return ffi::Error::Success();
 }
@@ -535,8 +549,9 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
                                   .Attr<int64_t>("run_at"));  // run's entry
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
                               ffi::Ffi::Bind()
-                                  .RemainingArgs()   // the arrays
-                                  .RemainingRets());  // their counts, int32 (batch...)
+                                  .RemainingArgs()  // the arrays (then their totals)
+                                  .RemainingRets()  // their counts, int32 (batch...)
+                                  .Attr<bool>("totals"));
 #pragma GCC diagnostic pop
 
 namespace {

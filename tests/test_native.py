@@ -838,6 +838,28 @@ def test_nonfinite_counts_equal_jnp_on_drawn_arrays(dtype, seed):
         assert int(n) == int(np.sum(~np.isfinite(np.asarray(x, np.complex128)))), x
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_nonfinite_counts_add_to_their_totals_saturating(native, monkeypatch):
+    # The optimizers' running counts: the same FFI call adds each count to its total, at most
+    # int32's maximum, as the jnp form does where the call does not run.
+    if not native:
+        monkeypatch.setattr(numerics, "_counts_natively", lambda x: False)
+    top = np.iinfo(np.int32).max
+    xs = [jnp.asarray([np.nan, 1.0, np.inf]), jnp.asarray([1.0, 2.0]), jnp.asarray([np.nan] * 4)]
+    totals = [jnp.int32(5), jnp.int32(top - 1), jnp.int32(top - 4)]
+    program = jax.jit(lambda xs, totals: numerics.count_nonfinite(xs, totals))  # traced here
+    got = program(xs, totals)
+    assert [int(n) for n in got] == [7, top - 1, top]
+    assert all(n.dtype == jnp.int32 for n in got)
+    assert (program.lower(xs, totals).as_text().count(numerics.COUNT_TARGET) == 1) == native
+    # Batched: one total per batch element, unbatched totals broadcast.
+    batched = jax.vmap(lambda x, t: numerics.count_nonfinite([x], [t])[0])
+    got = batched(jnp.stack([xs[0], xs[0] * 0]), jnp.asarray([1, top], jnp.int32))
+    np.testing.assert_array_equal(got, [3, top])
+    with pytest.raises(ValueError, match="one total per array"):
+        numerics.count_nonfinite(xs, totals[:2])
+
+
 def test_nonfinite_counts_batch_and_are_not_differentiated():
     x = jnp.asarray([[1.0, np.nan, 2.0], [np.inf, -np.inf, np.nan]])
     count = lambda a, b: numerics.count_nonfinite([a, b])

@@ -193,21 +193,34 @@ _NATIVE_COUNT_DTYPES = frozenset(
 )
 
 
-def count_nonfinite(xs: Sequence[jax.Array]) -> list[jax.Array]:
-    """Each array's number of non-finite entries (NaN, +-inf; a complex entry once), as int32;
-    not differentiated.
+def count_nonfinite(
+    xs: Sequence[jax.Array], totals: Sequence[jax.Array] | None = None
+) -> list[jax.Array]:
+    """Each array's number of non-finite entries (NaN, +-inf; a complex entry once), as int32,
+    or with ``totals`` (int32 scalars, one per array) that number added to its total,
+    saturating at int32's maximum; not differentiated.
 
-    On the CPU with the native extension loaded, one XLA FFI call counts them all
-    (csrc/count.h, saturating at int32's maximum): an XLA reduction per array compiles in
-    about half of ``optax.adam``'s whole update and keeps an int32 copy of the array.
-    Elsewhere, and for other dtypes or arrays split over an explicit mesh, ``jnp.sum``.
+    On the CPU with the native extension loaded, one XLA FFI call counts them all and adds
+    them to their totals (csrc/count.h): an XLA reduction per array compiles in about half of
+    ``optax.adam``'s whole update and keeps an int32 copy of the array, and each sum would be
+    an XLA kernel of its own. Elsewhere, and for other dtypes or arrays split over an explicit
+    mesh, ``jnp.sum``.
     """
+    added: list[jax.Array | None] = [None] * len(xs) if totals is None else list(totals)
+    if len(added) != len(xs):
+        raise ValueError(f"count_nonfinite takes one total per array, got {len(added)}")
     native = [_counts_natively(x) for x in xs]
-    counts = iter(_native_counts([x for x, n in zip(xs, native) if n]))
-    return [
-        next(counts) if n else jnp.sum(~jnp.isfinite(x), dtype=jnp.int32)
-        for x, n in zip(xs, native)
-    ]
+    picked = [(x, t) for x, t, n in zip(xs, added, native) if n]
+    counts = iter(_native_counts([x for x, _ in picked], [t for _, t in picked]))
+    out = []
+    for x, total, n in zip(xs, added, native):
+        if n:
+            out.append(next(counts))
+            continue
+        count = jnp.sum(~jnp.isfinite(x), dtype=jnp.int32)
+        top = jnp.iinfo(jnp.int32).max
+        out.append(count if total is None else jnp.where(total > top - count, top, total + count))
+    return out
 
 
 def _counts_natively(x: jax.Array) -> bool:
@@ -220,12 +233,16 @@ def _counts_natively(x: jax.Array) -> bool:
     return (mesh is None or mesh.empty) and extension.registered()[0]
 
 
-def _native_counts(xs: list[jax.Array]) -> tuple[jax.Array, ...]:
+def _native_counts(xs: list[jax.Array], totals: list) -> tuple[jax.Array, ...]:
     if not xs:
         return ()
+    with_totals = totals[0] is not None
     call = jax.ffi.ffi_call(
         COUNT_TARGET,
         tuple(jax.ShapeDtypeStruct((), jnp.int32) for _ in xs),
         vmap_method="broadcast_all",  # a batch's counts: one block of its operand each
     )
-    return tuple(call(*(jax.lax.stop_gradient(x) for x in xs)))
+    operands = [jax.lax.stop_gradient(x) for x in xs]
+    if with_totals:
+        operands += [jnp.asarray(t, jnp.int32).reshape(()) for t in totals]
+    return tuple(call(*operands, totals=with_totals))

@@ -707,12 +707,8 @@ def _count_nonfinite(counts, updates):
     at int32's maximum); None stays None (a state from before the field existed)."""
     if counts is None:
         return None
-    top = jnp.iinfo(jnp.int32).max
     totals, treedef = jax.tree.flatten(counts)
-    news = numerics.count_nonfinite(treedef.flatten_up_to(updates))
-    return treedef.unflatten(
-        jnp.where(total > top - new, top, total + new) for total, new in zip(totals, news)
-    )
+    return treedef.unflatten(numerics.count_nonfinite(treedef.flatten_up_to(updates), totals))
 
 
 def _check_betas(betas, default) -> tuple:
