@@ -419,8 +419,8 @@ def test_subgrid_average_reads_nan_and_infinities_as_nan_to_num():
 
 def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monkeypatch):
     # The default update's program: the guide's contrast, the mean distances the scale takes,
-    # the correlated-noise check's sums and the blend (its two local averages inside) are one
-    # FFI call each; with the pure-JAX kernel chosen, none.
+    # the step's mean norm, the correlated-noise check's sums and the blend (its two local
+    # averages inside) are one FFI call each; with the pure-JAX kernel chosen, none.
     import optax_bilateral as ob
     from optax_bilateral._src.filter import local
 
@@ -432,7 +432,8 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
         return jax.jit(opt.update).lower(x, state, x).as_text()
 
     assert text().count(native.SUBGRID_TARGET) == 1  # the guide's contrast
-    assert text().count(native.TEXEL_MEAN_TARGET) == 2  # the guide's step and its contrast
+    # The guide's step and its contrast, and the step's mean norm (AutoState.direction).
+    assert text().count(native.TEXEL_MEAN_TARGET) == 3
     assert text().count(native.CORRELATION_TARGET) == 1  # the correlated-noise check
     assert text().count(native.BLEND_TARGET) == 1  # the blend, its averages inside
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")

@@ -46,7 +46,6 @@ from optax_bilateral._src.filter.local import (
     runs_native,
     subgrid_blend,
     texel_distance_mean,
-    texel_norm,
 )
 from optax_bilateral._src.rules.sigma import Filtered, Moments, SigmaRule, StepContext, cast_like
 from optax_bilateral._src.validation import check_integer, check_number
@@ -72,8 +71,8 @@ class AutoState(NamedTuple):
         leaf on a leaf of at most ``min_texels`` texels); None in a :func:`prefilter` or a
         memoryless postfilter (no moments).
       direction: the mean norm per texel of a postfilter's last output
-        ``m~ / (sqrt(v~) + eps)`` (a scalar; 0 before the first step); None in a
-        :func:`prefilter`.
+        ``m~ / (sqrt(v~) + eps)`` (a scalar; texels whose norm is NaN left out; 0 before the
+        first step); None in a :func:`prefilter`.
       gate: how far the blend was open at the last step (a scalar in [0, 1]; 0 at a step
         that skipped the blend's statistics); None where ``residual`` is. While it is 0,
         it is checked only every ``check_period`` (8) steps, from a sub-grid of the leaf,
@@ -224,12 +223,13 @@ class Auto(SigmaRule):
         phase = self._blend_phase(state.gate, count)
         heavy = (state.correlated > 0) & plan.one_operator
         due = ((count == FIRST_NOISE_STEP) | (count % self.check_period == 0)) & plan.one_operator
+        ratio = _ema_variance_ratio(jnp.asarray(ctx.b1, dtype), jnp.asarray(ctx.c1, dtype))
         # What the step's kernels and native calls read, in one XLA kernel.
-        c1, c2, inv_c1, inv_c2, due, computed = numerics.one_kernel(
-            (ctx.c1, ctx.c2, ctx.inv_c1, ctx.inv_c2, due, (phase != SKIP) & ~heavy)
+        c1, c2, inv_c1, inv_c2, ratio, due, computed = numerics.one_kernel(
+            (ctx.c1, ctx.c2, ctx.inv_c1, ctx.inv_c2, ratio, due, (phase != SKIP) & ~heavy)
         )
         ctx = ctx._replace(c1=c1.value, c2=c2.value, inv_c1=inv_c1.value, inv_c2=inv_c2.value)
-        scalars = self._blend_scalars(ctx, dtype)
+        scalars = self._blend_scalars(ctx, dtype, ratio.value)
         blends = (phase == BLEND) & ~heavy
         return ctx._replace(decided=Decisions(heavy, due, computed, blends, scalars, c1))
 
@@ -253,7 +253,7 @@ class Auto(SigmaRule):
             learned = learned._replace(correlated=correlated)
             sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
         m_f, v_f = self._cascade(op, moments, sigma, heavy)
-        residual = update_residual(self, moments, m_f, state.residual, ctx.c1, axes)
+        residual = update_residual(self, moments, m_f, state.residual, ctx.inv_c1, axes)
         learned = learned._replace(residual=residual)
         # The blend's statistics (at a CHECK step, the gate's check alone).
         computed = decided.computed
@@ -296,7 +296,9 @@ class Auto(SigmaRule):
     def after_step(self, d, state, plan):
         if state is None or state.direction is None:
             return state
-        direction = jnp.mean(texel_norm(d, plan.axes))  # d: the step at the sub-grid
+        # d: the step at the sub-grid; on the native kernel one FFI call (an XLA reduction
+        # and its scale would be two kernels).
+        direction = texel_distance_mean(d, None, plan.axes, 1)
         return state._replace(direction=direction.astype(state.direction.dtype))
 
     # ------------------------------------------------------------------ the parts
@@ -446,14 +448,20 @@ class Auto(SigmaRule):
 # ---------------------------------------------------------------------- the blend (auto, sure)
 
 
-def update_residual(rule: Auto, moments: Moments, bm: jax.Array, residual, c1, axes) -> jax.Array:
-    """The residual's EMA with this step's ``m_hat - B m_hat`` (``bm``: ``B m``) on the
-    sub-grid (:attr:`AutoState.residual`), kept where the entry is not observed."""
+def update_residual(
+    rule: Auto, moments: Moments, bm: jax.Array, residual, inv_c1, axes
+) -> jax.Array:
+    """The residual's EMA with this step's ``m_hat - B m_hat`` (``bm``: ``B m``; ``inv_c1``:
+    ``1 / c1``, the step's) on the sub-grid (:attr:`AutoState.residual`), kept where the
+    entry is not observed."""
     m = moments.m
     sub = lambda x: rule._subgrid(x, axes)
     decay = jnp.asarray(rule.residual_decay, m.dtype)
     residual = residual.astype(m.dtype)
-    new = decay * residual + (1 - decay) * sub(m - bm) / jnp.asarray(c1, m.dtype)
+    # The reciprocal as given: left to XLA, m / c1 is a product whose factor depends on the
+    # program around it (and may be a kernel of its own).
+    scale = jnp.asarray(inv_c1, m.dtype) * (1 - decay)
+    new = decay * residual + sub(m - bm) * scale
     return jnp.where(sub(moments.observed), new, residual)
 
 

@@ -178,7 +178,7 @@ class Sure(SigmaRule):
         """The chosen candidate's ``B m``, ``B v``, then ``"auto"``'s blend (:class:`Filtered`)."""
         axes = op.plan.axes
         m_f, v_f, chosen = self._select(moments, op, sigma, state, ctx)
-        residual = update_residual(self.auto, moments, m_f, state.residual, ctx.c1, axes)
+        residual = update_residual(self.auto, moments, m_f, state.residual, ctx.inv_c1, axes)
         scalars = self.auto._blend_scalars(ctx, moments.m.dtype)
         lam, gate = blend_weights(self.auto, moments, residual, scalars, axes)
         lam = upsample(self.auto, lam, moments.m.shape, axes)
