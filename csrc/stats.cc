@@ -62,7 +62,7 @@ void walks(const Subgrid& g, Walk& texels, Walk& channels) {
 }
 
 template <typename T>
-double run(const Subgrid& g, const T* a, const T* b) {
+double run(const Subgrid& g, const T* a, const T* b, T* kept) {
   Walk texels, channels;
   walks(g, texels, channels);
   const int64_t n_texels = texels.count(), n_channels = channels.count();
@@ -72,8 +72,10 @@ double run(const Subgrid& g, const T* a, const T* b) {
     double sum = 0;
     channels.a = channels.b = 0;
     for (int64_t c = 0; c < n_channels; ++c, channels.next()) {
-      const double x = static_cast<double>(a[texels.a + channels.a]) -
-                       (b ? static_cast<double>(b[texels.b + channels.b]) : 0.0);
+      const T value = a[texels.a + channels.a];
+      if (kept) kept[texels.b + channels.b] = value;
+      const double x =
+          static_cast<double>(value) - (b ? static_cast<double>(b[texels.b + channels.b]) : 0.0);
       sum += x * x;
     }
     if (std::isnan(sum)) continue;
@@ -219,12 +221,12 @@ int64_t texel_subgrid_size(const Subgrid& g) {
   return texels.count() * channels.count();
 }
 
-double texel_distance_mean(const Subgrid& g, const float* a, const float* b) {
-  return run(g, a, b);
+double texel_distance_mean(const Subgrid& g, const float* a, const float* b, float* kept) {
+  return run(g, a, b, kept);
 }
 
-double texel_distance_mean(const Subgrid& g, const double* a, const double* b) {
-  return run(g, a, b);
+double texel_distance_mean(const Subgrid& g, const double* a, const double* b, double* kept) {
+  return run(g, a, b, kept);
 }
 
 std::string check_noise_mask(const Subgrid& g, const std::vector<int64_t>& observed_shape) {

@@ -37,9 +37,12 @@ std::string check_texel_grid(const Subgrid& g);
 // The sub-grid's element count (b's).
 int64_t texel_subgrid_size(const Subgrid& g);
 
-// The mean above; `b` may be null (then the mean of ||a[s p]||).
-double texel_distance_mean(const Subgrid& g, const float* a, const float* b);
-double texel_distance_mean(const Subgrid& g, const double* a, const double* b);
+// The mean above; `b` may be null (then the mean of ||a[s p]||). `kept`, unless null, receives
+// a's sub-grid (b's shape): the values the mean read, for the rule to keep as the next b.
+double texel_distance_mean(const Subgrid& g, const float* a, const float* b,
+                           float* kept = nullptr);
+double texel_distance_mean(const Subgrid& g, const double* a, const double* b,
+                           double* kept = nullptr);
 
 // The blend's scalars: the step's (computed by the rule) and the rule's constants.
 template <typename T>

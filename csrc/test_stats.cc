@@ -80,7 +80,26 @@ void check(const ob::Subgrid& g, std::mt19937& rng) {
   for (bool with_b : {false, true}) {
     ++cases;
     const double want = reference(g, a64, with_b ? &b64 : nullptr);
-    const double got = ob::texel_distance_mean(g, a.data(), with_b ? b.data() : nullptr);
+    std::vector<T> kept(sub, T(-7));
+    const double got =
+        ob::texel_distance_mean(g, a.data(), with_b ? b.data() : nullptr, kept.data());
+    // kept: a's sub-grid, every entry written (the sub-grid of a's flat index i's point).
+    for (int64_t i = 0; i < size; ++i) {
+      auto idx = unravel(i, g.shape);
+      bool on = true;
+      int64_t at = 0;
+      for (size_t d = 0; d < idx.size(); ++d) {
+        const bool spatial_d = std::find(g.axes.begin(), g.axes.end(),
+                                         static_cast<int64_t>(d)) != g.axes.end();
+        if (spatial_d && idx[d] % g.stride) on = false;
+        const int64_t n = spatial_d ? (g.shape[d] - 1) / g.stride + 1 : g.shape[d];
+        at = at * n + (spatial_d ? idx[d] / g.stride : idx[d]);
+      }
+      const bool equal = std::isnan(a[i]) ? std::isnan(kept[at]) : kept[at] == a[i];
+      if (on && !equal && failures++ < 10)
+        std::printf("FAIL kept rank %zu stride %lld at %lld\n", g.shape.size(),
+                    static_cast<long long>(g.stride), static_cast<long long>(at));
+    }
     const bool same = std::isinf(want) ? got == want : std::fabs(got - want) <= 1e-12 * (1 + std::fabs(want));
     if (!same && failures++ < 10)
       std::printf("FAIL rank %zu stride %lld b %d: %.17g != %.17g\n", g.shape.size(),

@@ -515,8 +515,10 @@ def test_texel_distance_equals_the_float64_definition(case, stride, with_b, spec
     sub = a[tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(a.ndim))]
     b = rng.normal(size=sub.shape).astype(np.float32) if with_b else None
     a_, b_ = jnp.asarray(a), None if b is None else jnp.asarray(b)
-    got = local._native_distance(a_, b_, True, axes, stride)
-    assert float(local._native_distance(a_, b_, jnp.asarray(False), axes, stride)) == 0  # not run
+    got = local._native_distance(a_, b_, True, axes, stride, False)
+    assert (
+        float(local._native_distance(a_, b_, jnp.asarray(False), axes, stride, False)) == 0
+    )  # not run
     want = _texel_distance_float64(a, b, axes, stride)
     assert got.dtype == jnp.float32 and got.shape == ()
     # Sums in double: finite wherever the norms are (3e38 squared overflows float32 only).
@@ -528,6 +530,29 @@ def test_texel_distance_equals_the_float64_definition(case, stride, with_b, spec
         np.testing.assert_allclose(float(got), float(slices), rtol=1e-5)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_texel_distance_keeps_the_subgrid_it_read(dtype):
+    # keep=True: the mean and a's sub-grid from one call, the sub-grid equal to the slices'
+    # (NaN and all), as is its derivative.
+    from optax_bilateral._src.filter import local
+
+    rng = np.random.default_rng(1)
+    raw = rng.normal(size=(11, 9, 3))
+    raw[3, 4, 1] = np.nan
+    with jax_compat.enable_x64(dtype == jnp.float64):
+        a = jnp.asarray(raw, dtype)
+        for stride in (1, 2, 4):
+            b = local.every(a, (0, 1), stride) * 0.5
+            mean, kept = local.texel_distance_mean(a, b, (0, 1), stride, keep=True)
+            assert kept.dtype == dtype
+            np.testing.assert_array_equal(kept, local.every(a, (0, 1), stride))
+            assert mean == local.texel_distance_mean(a, b, (0, 1), stride)
+        grad = jax.grad(
+            lambda x: jnp.sum(local.texel_distance_mean(x, None, (0,), 2, keep=True)[1])
+        )
+        np.testing.assert_array_equal(grad(a), jax.grad(lambda x: jnp.sum(x[::2]))(a))
+
+
 def test_texel_distance_differentiates_batches_and_leaves_none_out():
     from optax_bilateral._src.filter import local
 
@@ -535,7 +560,7 @@ def test_texel_distance_differentiates_batches_and_leaves_none_out():
     b = jax.random.normal(jax.random.PRNGKey(3), (6, 5, 3))
 
     def native_distance(a, b, axes, stride):
-        return local._native_distance(a, b, True, axes, stride)
+        return local._native_distance(a, b, True, axes, stride, False)
 
     for f in (native_distance, local._distance):
         assert float(f(jnp.full((4, 4), jnp.nan), None, (0, 1), 1)) == 0.0  # every texel NaN

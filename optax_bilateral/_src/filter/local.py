@@ -96,17 +96,20 @@ def texel_distance_mean(
     axes: tuple[int, ...],
     stride: int,
     run: jax.Array | bool | Entry = True,
-) -> jax.Array:
+    keep: bool = False,
+) -> Any:
     """The mean over the sub-grid's texels ``p`` (every ``stride``-th along the spatial ``axes``)
     of ``||a[stride p] - b[p]||``, the norm over ``a``'s other axes (``b`` None: of
     ``||a[stride p]||``; else ``b`` has the sub-grid's shape), texels whose norm is NaN left
-    out, 0 when none is left. Where the filter runs on the native kernel, one FFI call
-    (csrc/stats.h, sums in double; its derivative the slices'), not the slices' XLA kernels,
-    which gives 0 without any work where ``run`` (a traced bool) is False."""
+    out, 0 when none is left. ``keep``: ``(mean, every(a, axes, stride))``, the sub-grid the
+    mean read. Where the filter runs on the native kernel, one FFI call (csrc/stats.h, sums in
+    double; its derivative the slices'), not the slices' XLA kernels, which gives 0 without
+    any work where ``run`` (a traced bool) is False."""
     axes = tuple(axes)
     if runs_native(a):
-        return _native_distance(a, b, Entry.of(run), axes, stride)
-    return _distance(a, b, axes, stride)
+        return _native_distance(a, b, Entry.of(run), axes, stride, keep)
+    mean = _distance(a, b, axes, stride)
+    return (mean, every(a, axes, stride)) if keep else mean
 
 
 def _distance(a, b, axes, stride):
@@ -114,15 +117,19 @@ def _distance(a, b, axes, stride):
     return _nan_skipping_mean(texel_norm(x if b is None else x - b, axes))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4))
-def _native_distance(a, b, run, axes, stride):
-    return native.texel_distance_mean(a, b, axes, stride, run)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5))
+def _native_distance(a, b, run, axes, stride, keep):
+    return native.texel_distance_mean(a, b, axes, stride, run, keep)
 
 
 @_native_distance.defjvp
-def _native_distance_jvp(axes, stride, primals, tangents):
+def _native_distance_jvp(axes, stride, keep, primals, tangents):
     # The slices' derivative (and their primal, equal up to float rounding; run or not).
-    return jax.jvp(lambda a, b: _distance(a, b, axes, stride), primals[:2], tangents[:2])
+    def slices(a, b):
+        mean = _distance(a, b, axes, stride)
+        return (mean, every(a, axes, stride)) if keep else mean
+
+    return jax.jvp(slices, primals[:2], tangents[:2])
 
 
 def correlation_sums(

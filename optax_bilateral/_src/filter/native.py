@@ -25,7 +25,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -258,18 +258,25 @@ def texel_distance_mean(
     axes: Sequence[int],
     stride: int,
     run: jax.Array | bool | Entry = True,
-) -> jax.Array:
+    keep: bool = False,
+) -> Any:
     """The mean over the sub-grid's texels of ``||a[stride p] - b[p]||`` (csrc/stats.h): one FFI
     call, sums in double; 0 without any work where ``run`` (a bool, may be traced, or an
-    :class:`~optax_bilateral._src.numerics.Entry`) is False.
-    Not differentiable:
+    :class:`~optax_bilateral._src.numerics.Entry`) is False. ``keep``: ``(mean, a's
+    sub-grid)``, the values the mean read (zeros where it does not run). Not differentiable:
     :func:`optax_bilateral._src.filter.local.texel_distance_mean` gives it a rule."""
     _require("the native texel statistics")
+    shape = [(n - 1) // stride + 1 if d in axes else n for d, n in enumerate(a.shape)]
     call = jax.ffi.ffi_call(
-        TEXEL_MEAN_TARGET, jax.ShapeDtypeStruct((), a.dtype), vmap_method="sequential"
+        TEXEL_MEAN_TARGET,
+        (
+            jax.ShapeDtypeStruct((), a.dtype),
+            jax.ShapeDtypeStruct(tuple(shape) if keep else (0,), a.dtype),
+        ),
+        vmap_method="sequential",
     )
     run = Entry.of(run)
-    return call(
+    mean, kept = call(
         a,
         jnp.zeros((0,), a.dtype) if b is None else b,
         run.vector,
@@ -277,7 +284,9 @@ def texel_distance_mean(
         stride=np.int64(stride),
         has_b=b is not None,
         run_at=np.int64(run.at),
+        keep=keep,
     )
+    return (mean, kept) if keep else mean
 
 
 def correlation_sums(

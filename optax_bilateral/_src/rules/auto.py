@@ -236,9 +236,9 @@ class Auto(SigmaRule):
     def sigma(self, guide, plan, state, ctx):
         if guide is None:  # self-guided: each field's own contrast
             return functools.partial(self._own_contrast, plan=plan), state
-        sigma = self._scale(guide, state.previous_guide, ctx.count, plan.axes, state.direction)
-        kept = self._kept_guide(guide, plan.axes).astype(state.previous_guide.dtype)
-        return sigma, state._replace(previous_guide=kept)
+        previous = state.previous_guide
+        sigma, kept = self._scale(guide, previous, ctx.count, plan.axes, state.direction)
+        return sigma, state._replace(previous_guide=kept.astype(previous.dtype))
 
     def combine(self, moments, op, sigma, state, ctx):
         if state.residual is None or not (op.plan.filter_m and op.plan.filter_v):
@@ -352,17 +352,20 @@ class Auto(SigmaRule):
         """Zeros shaped (and sharded) like :meth:`_kept_guide`: the first ``previous_guide``."""
         return numerics.zeros(self._kept_guide(jnp.asarray(guide), axes))
 
-    def _scale(self, guide, previous, count, axes, direction=None) -> jax.Array:
-        """The leaf's sigma_d at step ``count`` (1 = first); ``direction`` (a postfilter's
-        :attr:`AutoState.direction`) or None for the prefilter's and ``"sure"``'s step scale."""
-        if previous is None:
-            return self.contrast_factor * self._contrast(guide, axes)
+    def _scale(self, guide, previous, count, axes, direction=None):
+        """``(sigma_d, kept)``: the leaf's sigma_d at step ``count`` (1 = first) from its guide
+        and the ``previous`` one's sub-grid (:attr:`AutoState.previous_guide`), and this
+        guide's sub-grid (:meth:`_kept_guide`, read by the same native call as the step);
+        ``direction`` (a postfilter's :attr:`AutoState.direction`) or None for the
+        prefilter's and ``"sure"``'s step scale."""
         guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
         guide_axes = _guide_axes(guide, axes)
         stride = self._stride(guide.shape, guide_axes)
-        step = texel_distance_mean(guide, previous.astype(guide.dtype), guide_axes, stride)
-        # Only the first step (or a guide at rest) needs the contrast. (Written as at rest,
-        # not as moved: the native contrast's `run` then reads the same value as the select.)
+        previous = previous.astype(guide.dtype)
+        step, kept = texel_distance_mean(guide, previous, guide_axes, stride, keep=True)
+        # Only the first step (or a guide at rest) needs the contrast. The native contrast
+        # runs at every step (tens of microseconds at the sub-grid): a `run` flag would be an
+        # XLA kernel of its own.
         at_rest = (count <= 1) | ~(step > 0)
         if direction is None:
             scale = self.step_factor * step
@@ -371,10 +374,11 @@ class Auto(SigmaRule):
             rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
             scale = self.rate_factor * math.sqrt(channels) * rate
             at_rest = at_rest | ~(direction > 0)
-        contrast = lambda: self.contrast_factor * self._contrast(guide, axes, run=at_rest)
-        return _either(
+        contrast = lambda: self.contrast_factor * self._contrast(guide, axes)
+        sigma = _either(
             at_rest, lambda: contrast().astype(step.dtype), lambda: scale, both=runs_native(guide)
         )
+        return sigma, kept
 
     def _correlated_noise(self, moments, axes, ctx, run: numerics.Entry) -> jax.Array:
         """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
