@@ -260,6 +260,9 @@ class Auto(SigmaRule):
         weights = functools.partial(blend_weights, self, moments, residual, decided.scalars, axes)
         if runs_native(moments.m):  # zeros without any work where not computed
             lam, gate = weights(run=computed)
+            # Zeros already where not computed; the select keeps XLA's step kernel fast (it
+            # read the upsampled weights 4x slower without it: docs/auto_sigma.md).
+            lam = jnp.where(computed.value, lam, 0)
         else:
             lam, gate = lax.cond(
                 computed.value, weights, functools.partial(_no_weights, self, moments.m, axes)
@@ -363,9 +366,8 @@ class Auto(SigmaRule):
         stride = self._stride(guide.shape, guide_axes)
         previous = previous.astype(guide.dtype)
         step, kept = texel_distance_mean(guide, previous, guide_axes, stride, keep=True)
-        # Only the first step (or a guide at rest) needs the contrast. The native contrast
-        # runs at every step (tens of microseconds at the sub-grid): a `run` flag would be an
-        # XLA kernel of its own.
+        # Only the first step (or a guide at rest) needs the contrast. (Written as at rest,
+        # not as moved: the native contrast's `run` reads the same value as the select.)
         at_rest = (count <= 1) | ~(step > 0)
         if direction is None:
             scale = self.step_factor * step
@@ -374,7 +376,7 @@ class Auto(SigmaRule):
             rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
             scale = self.rate_factor * math.sqrt(channels) * rate
             at_rest = at_rest | ~(direction > 0)
-        contrast = lambda: self.contrast_factor * self._contrast(guide, axes)
+        contrast = lambda: self.contrast_factor * self._contrast(guide, axes, run=at_rest)
         sigma = _either(
             at_rest, lambda: contrast().astype(step.dtype), lambda: scale, both=runs_native(guide)
         )
