@@ -701,6 +701,7 @@ def test_native_statistics_read_their_flags_and_c1_from_one_vector_of_scalars():
     skipped = local.correlation_sums(g, m, observed, c1, axes, 2, run=off)
     assert not any(np.any(np.asarray(x)) for x in skipped)
     assert float(local.texel_distance_mean(g, None, axes, 2, run=off)) == 0
+    assert float(local.texel_distance_mean(g, None, axes, 2, run=jnp.int32(0))) == 0  # a bool
     np.testing.assert_array_equal(
         local.texel_distance_mean(g, None, axes, 2, run=on),
         local.texel_distance_mean(g, None, axes, 2),

@@ -144,6 +144,12 @@ class Entry:
         x = jnp.asarray(x)
         return cls(x.reshape(1), 0, x.dtype)
 
+    @classmethod
+    def flag(cls, x: Any) -> Entry:
+        """A native call's ``run`` flag: ``x`` (an :class:`Entry`, read as nonzero) or
+        ``bool(x)`` as the one entry of its own vector."""
+        return x if isinstance(x, Entry) else cls.of(jnp.asarray(x, bool))
+
 
 jax.tree_util.register_dataclass(Entry, data_fields=["vector"], meta_fields=["at", "dtype"])
 

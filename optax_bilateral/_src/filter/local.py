@@ -52,7 +52,7 @@ def local_average_subgrid(
         return tuple(every(f, axes, stride) for f in local_average(fields, axes))
     axes = tuple(axes)
     return tuple(
-        _native_taps(x, Entry.of(run), axes, stride, nan_to_num)
+        _native_taps(x, Entry.flag(run), axes, stride, nan_to_num)
         if runs_native(x)
         else _taps(jnp.nan_to_num(x) if nan_to_num else x, axes, stride)
         for x in fields
@@ -107,7 +107,7 @@ def texel_distance_mean(
     any work where ``run`` (a traced bool) is False."""
     axes = tuple(axes)
     if runs_native(a):
-        return _native_distance(a, b, Entry.of(run), axes, stride, keep)
+        return _native_distance(a, b, Entry.flag(run), axes, stride, keep)
     mean = _distance(a, b, axes, stride)
     return (mean, every(a, axes, stride)) if keep else mean
 
@@ -200,7 +200,7 @@ def subgrid_blend(m, v, residual, scalars, axes, stride, constants, reference, r
     describes the ``scalars`` and the ``constants``)."""
     if runs_native(m):
         how = BlendCall(tuple(axes), stride, constants, reference)
-        return _native_blend(m, v, residual, scalars, Entry.of(run), how)
+        return _native_blend(m, v, residual, scalars, Entry.flag(run), how)
     return reference(m, v, residual, scalars)
 
 

@@ -240,7 +240,7 @@ def subgrid_average(
         (jax.ShapeDtypeStruct(tuple(shape), x.dtype), jax.ShapeDtypeStruct((work,), x.dtype)),
         vmap_method="sequential",
     )
-    run = Entry.of(run)
+    run = Entry.flag(run)
     out, _ = call(
         x,
         run.vector,
@@ -275,7 +275,7 @@ def texel_distance_mean(
         ),
         vmap_method="sequential",
     )
-    run = Entry.of(run)
+    run = Entry.flag(run)
     mean, kept = call(
         a,
         jnp.zeros((0,), a.dtype) if b is None else b,
@@ -316,7 +316,7 @@ def correlation_sums(
     )
     mask = jnp.asarray(observed, bool)
     c1 = c1 if isinstance(c1, Entry) else Entry.of(jnp.asarray(c1, g.dtype))
-    run = Entry.of(run)
+    run = Entry.flag(run)
     return call(
         g,
         m,
@@ -355,7 +355,7 @@ def blend_weights(
         vmap_method="sequential",
     )
     gain, power, low, span = (float(c) for c in constants)
-    run = Entry.of(run)
+    run = Entry.flag(run)
     lam, gate = call(
         m,
         v,
