@@ -260,8 +260,8 @@ class Auto(SigmaRule):
         weights = functools.partial(blend_weights, self, moments, residual, decided.scalars, axes)
         if runs_native(moments.m):  # zeros without any work where not computed
             lam, gate = weights(run=computed)
-            # Zeros already where not computed; the select keeps XLA's step kernel fast (it
-            # read the upsampled weights 4x slower without it: docs/auto_sigma.md).
+            # Zeros already where not computed: the select is for XLA, whose step kernel reads
+            # the upsampled weights slowly without it (docs/auto_sigma.md's decisions).
             lam = jnp.where(computed.value, lam, 0)
         else:
             lam, gate = lax.cond(
