@@ -268,24 +268,39 @@ inline bool partner_row_on_grid(const Pass& pass, int64_t r, const Pair& pair) {
   return true;
 }
 
+// acc + w (the normaliser) and acc + w x (a channel), skipping a hole: with kHoles, a NaN
+// weight marks a pair that crosses a row's end in a block run as one row (run_block), where
+// the JAX kernels have no term; a real weight is never NaN (data_weight).
+template <typename T, bool kHoles>
+inline T plus_weight(T acc, T w) {
+  if constexpr (kHoles) return w == w ? acc + w : acc;
+  return acc + w;
+}
+
+template <typename T, bool kHoles>
+inline T plus_product(T acc, T w, T x) {
+  if constexpr (kHoles) return w == w ? acc + w * x : acc;
+  return acc + w * x;
+}
+
 // o[j] += w_0[j] + ... + w_{N-1}[j] (the normaliser), terms in order as in the JAX kernels.
-template <typename T, int N>
+template <typename T, int N, bool kHoles = false>
 void add_weights(T* __restrict__ o, const T* const* w, int64_t n) {
   const T* __restrict__ w0 = w[0];
   const T* __restrict__ w1 = N > 1 ? w[1] : nullptr;
   const T* __restrict__ w2 = N > 2 ? w[2] : nullptr;
   const T* __restrict__ w3 = N > 3 ? w[3] : nullptr;
   for (int64_t j = 0; j < n; ++j) {
-    T acc = o[j] + w0[j];
-    if constexpr (N > 1) acc = acc + w1[j];
-    if constexpr (N > 2) acc = acc + w2[j];
-    if constexpr (N > 3) acc = acc + w3[j];
+    T acc = plus_weight<T, kHoles>(o[j], w0[j]);
+    if constexpr (N > 1) acc = plus_weight<T, kHoles>(acc, w1[j]);
+    if constexpr (N > 2) acc = plus_weight<T, kHoles>(acc, w2[j]);
+    if constexpr (N > 3) acc = plus_weight<T, kHoles>(acc, w3[j]);
     o[j] = acc;
   }
 }
 
 // o[j] += w_0[j] x_0[j] + ... (a channel's sums past its first four terms).
-template <typename T, int N>
+template <typename T, int N, bool kHoles = false>
 void add_products(T* __restrict__ o, const T* const* w, const T* const* x, int64_t n) {
   const T* __restrict__ w0 = w[0];
   const T* __restrict__ w1 = N > 1 ? w[1] : nullptr;
@@ -296,10 +311,10 @@ void add_products(T* __restrict__ o, const T* const* w, const T* const* x, int64
   const T* __restrict__ x2 = N > 2 ? x[2] : nullptr;
   const T* __restrict__ x3 = N > 3 ? x[3] : nullptr;
   for (int64_t j = 0; j < n; ++j) {
-    T acc = o[j] + w0[j] * x0[j];
-    if constexpr (N > 1) acc = acc + w1[j] * x1[j];
-    if constexpr (N > 2) acc = acc + w2[j] * x2[j];
-    if constexpr (N > 3) acc = acc + w3[j] * x3[j];
+    T acc = plus_product<T, kHoles>(o[j], w0[j], x0[j]);
+    if constexpr (N > 1) acc = plus_product<T, kHoles>(acc, w1[j], x1[j]);
+    if constexpr (N > 2) acc = plus_product<T, kHoles>(acc, w2[j], x2[j]);
+    if constexpr (N > 3) acc = plus_product<T, kHoles>(acc, w3[j], x3[j]);
     o[j] = acc;
   }
 }
@@ -307,7 +322,7 @@ void add_products(T* __restrict__ o, const T* const* w, const T* const* x, int64
 // o[j] = (h0 c[j] + w_0[j] x_0[j] + ...) / den, from the reciprocal inv[j]; 0 where no
 // weight reaches (as the JAX kernels' where(den > 0, ..., 0): a masked point's sum may hold
 // 0 * inf). Up to four terms, in one loop.
-template <typename T, int N>
+template <typename T, int N, bool kHoles = false>
 void fused_channel(T* __restrict__ o, const T* __restrict__ c, T h0, const T* const* w,
                    const T* const* x, const T* __restrict__ inv, int64_t n) {
   const T* __restrict__ w0 = N > 0 ? w[0] : nullptr;
@@ -320,10 +335,10 @@ void fused_channel(T* __restrict__ o, const T* __restrict__ c, T h0, const T* co
   const T* __restrict__ x3 = N > 3 ? x[3] : nullptr;
   for (int64_t j = 0; j < n; ++j) {
     T acc = h0 * c[j];
-    if constexpr (N > 0) acc = acc + w0[j] * x0[j];
-    if constexpr (N > 1) acc = acc + w1[j] * x1[j];
-    if constexpr (N > 2) acc = acc + w2[j] * x2[j];
-    if constexpr (N > 3) acc = acc + w3[j] * x3[j];
+    if constexpr (N > 0) acc = plus_product<T, kHoles>(acc, w0[j], x0[j]);
+    if constexpr (N > 1) acc = plus_product<T, kHoles>(acc, w1[j], x1[j]);
+    if constexpr (N > 2) acc = plus_product<T, kHoles>(acc, w2[j], x2[j]);
+    if constexpr (N > 3) acc = plus_product<T, kHoles>(acc, w3[j], x3[j]);
     o[j] = inv[j] > 0 ? acc * inv[j] : T(0);
   }
 }
@@ -369,7 +384,7 @@ void cut_row(const Term<T>* terms, size_t nt, int64_t width, Scratch<T>& s) {
 }
 
 // The normaliser's terms over each cut of the row (cut_row): den[j] += sum of w.
-template <typename T>
+template <typename T, bool kHoles>
 void add_row_weights(T* den, const Scratch<T>& s) {
   const T* w[4];
   for (size_t k = 0; k + 1 < s.bounds.size(); ++k) {
@@ -380,10 +395,10 @@ void add_row_weights(T* den, const Scratch<T>& s) {
       const size_t m = last - t < 4 ? last - t : 4;
       for (size_t u = 0; u < m; ++u) w[u] = s.active[t + u]->w + (j0 - s.active[t + u]->at);
       switch (m) {
-        case 1: add_weights<T, 1>(den + j0, w, n); break;
-        case 2: add_weights<T, 2>(den + j0, w, n); break;
-        case 3: add_weights<T, 3>(den + j0, w, n); break;
-        default: add_weights<T, 4>(den + j0, w, n); break;
+        case 1: add_weights<T, 1, kHoles>(den + j0, w, n); break;
+        case 2: add_weights<T, 2, kHoles>(den + j0, w, n); break;
+        case 3: add_weights<T, 3, kHoles>(den + j0, w, n); break;
+        default: add_weights<T, 4, kHoles>(den + j0, w, n); break;
       }
     }
   }
@@ -391,7 +406,7 @@ void add_row_weights(T* den, const Scratch<T>& s) {
 
 // One channel's output over the row (cut_row): y = (h0 centre + sum of w x) * inv, the terms'
 // x read from xc + from; up to four terms a cut in one loop with the quotient.
-template <typename T>
+template <typename T, bool kHoles>
 void channel_sums(const Scratch<T>& s, T h0, T* __restrict__ y, const T* __restrict__ centre,
                   const T* xc, const T* __restrict__ inv) {
   const T* w[4] = {};
@@ -411,11 +426,11 @@ void channel_sums(const Scratch<T>& s, T h0, T* __restrict__ y, const T* __restr
     const T* c = centre + j0;
     const T* iv = inv + j0;
     switch (last - first) {
-      case 0: fused_channel<T, 0>(o, c, h0, w, x, iv, n); continue;
-      case 1: load(first, 1); fused_channel<T, 1>(o, c, h0, w, x, iv, n); continue;
-      case 2: load(first, 2); fused_channel<T, 2>(o, c, h0, w, x, iv, n); continue;
-      case 3: load(first, 3); fused_channel<T, 3>(o, c, h0, w, x, iv, n); continue;
-      case 4: load(first, 4); fused_channel<T, 4>(o, c, h0, w, x, iv, n); continue;
+      case 0: fused_channel<T, 0, kHoles>(o, c, h0, w, x, iv, n); continue;
+      case 1: load(first, 1); fused_channel<T, 1, kHoles>(o, c, h0, w, x, iv, n); continue;
+      case 2: load(first, 2); fused_channel<T, 2, kHoles>(o, c, h0, w, x, iv, n); continue;
+      case 3: load(first, 3); fused_channel<T, 3, kHoles>(o, c, h0, w, x, iv, n); continue;
+      case 4: load(first, 4); fused_channel<T, 4, kHoles>(o, c, h0, w, x, iv, n); continue;
       default: break;
     }
     // More than four terms (full mode): the sums four terms a loop, then the quotient.
@@ -424,14 +439,69 @@ void channel_sums(const Scratch<T>& s, T h0, T* __restrict__ y, const T* __restr
       const size_t m = last - t < 4 ? last - t : 4;
       load(t, m);
       switch (m) {
-        case 1: add_products<T, 1>(o, w, x, n); break;
-        case 2: add_products<T, 2>(o, w, x, n); break;
-        case 3: add_products<T, 3>(o, w, x, n); break;
-        default: add_products<T, 4>(o, w, x, n); break;
+        case 1: add_products<T, 1, kHoles>(o, w, x, n); break;
+        case 2: add_products<T, 2, kHoles>(o, w, x, n); break;
+        case 3: add_products<T, 3, kHoles>(o, w, x, n); break;
+        default: add_products<T, 4, kHoles>(o, w, x, n); break;
       }
     }
     for (int64_t j = 0; j < n; ++j) o[j] = iv[j] > 0 ? o[j] * iv[j] : T(0);
   }
+}
+
+// The normaliser and every channel's sums over one run of `width` points from flat index p
+// (a row's, or whole rows' run as one), the terms already cut (cut_row).
+template <typename T, bool kHoles>
+void run_sums(const PassArgs<T>& a, int64_t p, int64_t width, T h0, Scratch<T>& s) {
+  T* __restrict__ den = s.den.data();
+  if (a.valid) {
+    for (int64_t j = 0; j < width; ++j) den[j] = h0 * a.valid[p + j];
+  } else {
+    for (int64_t j = 0; j < width; ++j) den[j] = h0;
+  }
+  add_row_weights<T, kHoles>(den, s);
+  reciprocal(den, width);  // one divide per point, not per channel
+  for (int64_t c = 0; c < a.channels; ++c) {
+    const T* xc = a.x[c] + a.x_at;
+    channel_sums<T, kHoles>(s, h0, a.y[c] + a.y_at + p, xc + p, xc, den);
+  }
+}
+
+// Whole rows [r0, r1) of a pass whose pairs all move along the row, as one run of points:
+// each pair's weights in one call, a hole (NaN) where a pair crosses from one row into the
+// next, and the sums in a few long loops instead of a few short ones per row (rows of a 3-D
+// slab's last axis are short).
+template <typename T>
+void run_rows_as_one(const PassArgs<T>& a, int64_t r0, int64_t r1, Scratch<T>& s) {
+  const Pass& pass = *a.pass;
+  const int64_t L = pass.row_length, width = (r1 - r0) * L, p = r0 * L;
+  s.weights.resize(static_cast<size_t>(width) * pass.pairs.size());
+  s.dist.resize(static_cast<size_t>(width));
+  s.den.resize(static_cast<size_t>(width));
+  s.terms.resize(2 * pass.pairs.size());
+  size_t nt = 0;
+  for (size_t k = 0; k < pass.pairs.size(); ++k) {
+    const Pair& pair = pass.pairs[k];
+    const int64_t ol = pair.column_offset;
+    if (ol >= L) continue;  // no point of a row has its partner on it
+    T* w = s.weights.data() + static_cast<int64_t>(k) * width;
+    pair_weights(a, p, p + ol, width - ol, static_cast<T>(pair.tap), w, s.dist.data());
+    for (int64_t r = 0; r + 1 < r1 - r0; ++r)
+      std::fill_n(w + r * L + (L - ol), ol, std::numeric_limits<T>::quiet_NaN());
+    // Per pair, +o then -o, as the JAX kernels: w(q, q + o) x[q + o] and w(q - o, q) x[q - o].
+    s.terms[nt++] = {w, p + ol, 0, width - ol};
+    s.terms[nt++] = {w, p, ol, width - ol};
+  }
+  cut_row(s.terms.data(), nt, width, s);
+  run_sums<T, true>(a, p, width, static_cast<T>(pass.centre), s);
+}
+
+// Whether run_block may take rows [r0, r1) and columns [c0, c1) as one run (run_rows_as_one).
+inline bool rows_as_one(const Pass& pass, int64_t r0, int64_t r1, int64_t c0, int64_t c1) {
+  if (c0 != 0 || c1 != pass.row_length || r1 - r0 < 2) return false;
+  for (const Pair& pair : pass.pairs)
+    if (pair.flat_rows != 0) return false;
+  return true;
 }
 
 // Rows [r0, r1) and columns [c0, c1) of one pass: y = normalised sums of x's neighbours.
@@ -442,6 +512,7 @@ template <typename T>
 void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t c1,
                Scratch<T>& s) {
   const Pass& pass = *a.pass;
+  if (rows_as_one(pass, r0, r1, c0, c1)) return run_rows_as_one(a, r0, r1, s);
   const int64_t L = pass.row_length;
   const int64_t width = c1 - c0;
   const T h0 = static_cast<T>(pass.centre);
@@ -487,13 +558,6 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
     }
   }
   for (int64_t r = r0; r < r1; ++r) {
-    T* __restrict__ den = s.den.data();
-    const int64_t p = r * L + c0;
-    if (a.valid) {
-      for (int64_t j = 0; j < width; ++j) den[j] = h0 * a.valid[p + j];
-    } else {
-      for (int64_t j = 0; j < width; ++j) den[j] = h0;
-    }
     // The terms this row gets, in the pure-JAX kernels' order: per pair, +o then -o.
     // (weights, the neighbour's flat index, the first column, count)
     s.terms.resize(2 * np);
@@ -518,12 +582,7 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
     }
     // The row cut where a term starts or ends: each cut's sums in one loop.
     cut_row(terms, nt, width, s);
-    add_row_weights(den, s);
-    reciprocal(den, width);  // one divide per point, not per channel
-    for (int64_t c = 0; c < a.channels; ++c) {
-      const T* xc = a.x[c] + a.x_at;
-      channel_sums(s, h0, a.y[c] + a.y_at + p, xc + p, xc, den);
-    }
+    run_sums<T, false>(a, r * L + c0, width, h0, s);
   }
 }
 

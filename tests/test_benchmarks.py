@@ -256,11 +256,13 @@ def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
         ["--quick", "--shape", "16x16", "--levels", "2", "--log-guide", "--out", str(tmp_path)]
     )
     adam, ours = result["programs"]["adam"], result["programs"]["ours"]
-    # The filter runs in ours only, every traced call: the native kernel's custom call (what
-    # kernel="auto" takes on the CPU), or the pure-JAX kernels' weights (exp kernels).
+    # The filter runs in ours only, every traced call: the native kernel's custom call, named
+    # by its target (what kernel="auto" takes on the CPU), or the pure-JAX kernels' weights
+    # (exp kernels).
     from optax_bilateral._src.filter.front import resolve_kernel
 
-    filter_family = "ffi_call" if resolve_kernel("auto") == "native" else "exponential"
+    native = resolve_kernel("auto") == "native"
+    filter_family = "optax_bilateral_atrous" if native else "exponential"
     assert any(filter_family in f for f in ours["families"]), ours["families"]
     assert not any(filter_family in f for f in adam["families"])
     assert ours["kernels run per call"] > adam["kernels run per call"] >= 1

@@ -99,22 +99,31 @@ def test_equals_the_float64_reference_on_drawn_grids(
     np.testing.assert_allclose(np.asarray(out), want, rtol=RTOL, atol=ATOL)
 
 
-@given(
-    x=hnp.arrays(
-        np.float32,
-        (9, 8, 2),
-        elements=st.floats(np.float32(-1e30), np.float32(1e30), **F32)
-        | st.sampled_from([np.nan, np.inf, -np.inf]),
-    ),
-    g=hnp.arrays(
-        np.float32,
-        (9, 8, 2),
-        elements=st.floats(np.float32(-3e38), np.float32(3e38), **F32) | st.just(np.nan),
-    ),
-)
-def test_extreme_values_decided_as_the_plain_kernel(x, g):
+def _extreme_arrays(shape):
+    return st.tuples(
+        hnp.arrays(
+            np.float32,
+            shape,
+            elements=st.floats(np.float32(-1e30), np.float32(1e30), **F32)
+            | st.sampled_from([np.nan, np.inf, -np.inf]),
+        ),
+        hnp.arrays(
+            np.float32,
+            shape,
+            elements=st.floats(np.float32(-3e38), np.float32(3e38), **F32) | st.just(np.nan),
+        ),
+    )
+
+
+# 2-D, and 3-D, whose slabs' last-axis passes run their rows as one (a NaN or an infinity at a
+# row's end must not reach the next row).
+@pytest.mark.parametrize("shape", [(9, 8, 2), (3, 5, 6, 2)], ids=["2d", "3d"])
+@given(data=st.data())
+def test_extreme_values_decided_as_the_plain_kernel(shape, data):
     # Non-finite and huge fields, NaN and huge guides: same NaN places, same values.
-    a, b = _both(jnp.asarray(x), jnp.asarray(g), sigma_d=0.5, levels=2, spatial_axes=(0, 1))
+    x, g = data.draw(_extreme_arrays(shape))
+    axes = tuple(range(len(shape) - 1))
+    a, b = _both(jnp.asarray(x), jnp.asarray(g), sigma_d=0.5, levels=2, spatial_axes=axes)
     a, b = np.asarray(a), np.asarray(b)
     np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
     np.testing.assert_allclose(a, b, rtol=RTOL, atol=ATOL)

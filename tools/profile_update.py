@@ -8,9 +8,10 @@ Compiles ``bilateral_adam``'s update (the optimizer of ``tools.ab_update``: the
 texture experiment's, with ``--log-guide`` its log guide) and ``optax.adam``'s on the same
 arrays, times both untraced (``benchmark.interleaved``), then runs each ``--calls`` times
 under ``jax.profiler.trace`` and adds up, per call, the time of every compiled kernel
-(XLA fusion or custom call), grouped by family: the kernel's name without its ``.N``
-suffix. The native filter kernel (``kernel="auto"`` on the CPU) is one ``custom-call`` per
-cascade (family ``ffi_call``); with ``OPTAX_BILATERAL_KERNEL=xla_cpu``,
+(XLA fusion or custom call), grouped by family: a fusion's name without its ``.N``
+suffix, a custom call's target. The native filter kernel (``kernel="auto"`` on the CPU) is
+one custom call per cascade (``optax_bilateral_atrous_fields`` when it filters Adam's
+moments), each native statistic another; with ``OPTAX_BILATERAL_KERNEL=xla_cpu``,
 ``select_exponential_fusion`` kernels compute the weights (one exp per pair of taps),
 ``multiply_divide_fusion`` kernels are the passes, and ``wrapped_pad`` /
 ``*_pad_fusion`` kernels pad the fields for the next pass. Writes ``profile.json`` and
@@ -39,21 +40,23 @@ from experiments import common
 from experiments.benchmarks import suite as bm
 from tools import ab_update
 
-_KERNEL = re.compile(r"%([\w.\-]+) = [^=]*? (?:fusion|custom-call)\(")
+_KERNEL = re.compile(r"%([\w.\-]+) = [^=]*? (fusion|custom-call)\((.*)")
+_TARGET = re.compile(r'custom_call_target="([^"]+)"')
 
 
-def kernel_names(compiled) -> set[str]:
-    """Names of the kernels (XLA fusions, and custom calls: the native filter kernel) of a
-    compiled program, in every branch."""
-    return set(_KERNEL.findall(compiled.as_text()))
+def kernel_names(compiled) -> dict[str, str]:
+    """The kernels (XLA fusions, and custom calls: the native kernels) of a compiled program,
+    in every branch, each with its family: a fusion's name without its ``.N`` suffix
+    (``select_exponential_fusion.12`` -> ``select_exponential_fusion``), a custom call's
+    target (``optax_bilateral_atrous``), so that each native call is told apart."""
+    names = {}
+    for name, kind, rest in _KERNEL.findall(compiled.as_text()):
+        target = _TARGET.search(rest) if kind == "custom-call" else None
+        names[name] = target.group(1) if target else re.sub(r"\.\d+$", "", name)
+    return names
 
 
-def family(name: str) -> str:
-    """``select_exponential_fusion.12`` -> ``select_exponential_fusion``."""
-    return re.sub(r"\.\d+$", "", name)
-
-
-def traced_kernels(fn, args, names: set[str], calls: int) -> dict[str, dict]:
+def traced_kernels(fn, args, names: dict[str, str], calls: int) -> dict[str, dict]:
     """{family: {"kernels per call", "us per call"}} over ``calls`` traced calls of ``fn``."""
     jax.block_until_ready(fn(*args))
     with tempfile.TemporaryDirectory() as tmp:
@@ -68,8 +71,8 @@ def traced_kernels(fn, args, names: set[str], calls: int) -> dict[str, dict]:
     count, dur = collections.Counter(), collections.Counter()
     for e in events:
         if e.get("ph") == "X" and e.get("name") in names:
-            count[family(e["name"])] += 1
-            dur[family(e["name"])] += e["dur"]
+            count[names[e["name"]]] += 1
+            dur[names[e["name"]]] += e["dur"]
     return {k: {"kernels per call": count[k] / calls, "us per call": dur[k] / calls} for k in count}
 
 
