@@ -74,7 +74,16 @@ std::vector<Block> cut_blocks(const Pass& pass, int64_t channels) {
   int64_t reach = 0;  // the most rows a pair spans: a block recomputes that many rows' weights
   for (const Pair& p : pass.pairs) reach = std::max(reach, p.flat_rows);
   const int64_t per_point = (channels + 1) * static_cast<int64_t>(sizeof(T));
-  const int64_t width = L;  // rows whole: a pass along an outer axis moves along them
+  bool along_row = rows == 1;  // one row, every pair along it (a 1-D grid): cut in columns
+  int64_t most = 0;
+  for (const Pair& p : pass.pairs) {
+    along_row = along_row && p.flat_rows == 0;
+    most = std::max(most, p.column_offset);
+  }
+  // Rows whole (a pass along an outer axis moves along them), or a row cut in blocks that
+  // recompute at most 1/4 of their weights (those of the `o` points before them).
+  const int64_t width =
+      along_row ? std::min(L, std::max(kBlockBytes / per_point, 4 * most)) : L;
   int64_t height = std::max<int64_t>(1, kBlockBytes / (per_point * L));
   if (reach > 0) height = std::max(height, 4 * reach);  // recompute at most 1/4 of the rows
   height = std::min(height, rows);

@@ -496,6 +496,42 @@ void run_rows_as_one(const PassArgs<T>& a, int64_t r0, int64_t r1, Scratch<T>& s
   run_sums<T, true>(a, p, width, static_cast<T>(pass.centre), s);
 }
 
+// Columns [c0, c1) of row r of a pass whose pairs all move along the row (a 1-D grid's, cut
+// in blocks: atrous.cc, cut_blocks): each pair's weights for the block's points and the `o`
+// points before it whose partner lies in it, then the sums.
+template <typename T>
+void run_columns(const PassArgs<T>& a, int64_t r, int64_t c0, int64_t c1, Scratch<T>& s) {
+  const Pass& pass = *a.pass;
+  const int64_t L = pass.row_length, width = c1 - c0, row = r * L;
+  const size_t np = pass.pairs.size();
+  s.offsets.assign(np + 1, 0);
+  for (size_t k = 0; k < np; ++k) {  // pair k's weights w(p, p + o), p in [lo, hi)
+    const int64_t ol = pass.pairs[k].column_offset;
+    const int64_t lo = std::max<int64_t>(0, c0 - ol), hi = std::min(c1, L - ol);
+    s.offsets[k + 1] = s.offsets[k] + std::max<int64_t>(0, hi - lo);
+  }
+  s.weights.resize(static_cast<size_t>(s.offsets[np]));
+  s.dist.resize(static_cast<size_t>(s.offsets[np]));
+  s.den.resize(static_cast<size_t>(width));
+  s.terms.resize(2 * np);
+  size_t nt = 0;
+  for (size_t k = 0; k < np; ++k) {
+    const Pair& pair = pass.pairs[k];
+    const int64_t ol = pair.column_offset;
+    const int64_t lo = std::max<int64_t>(0, c0 - ol), hi = std::min(c1, L - ol);
+    if (hi <= lo) continue;
+    T* w = s.weights.data() + s.offsets[k];
+    pair_weights(a, row + lo, row + lo + ol, hi - lo, static_cast<T>(pair.tap), w, s.dist.data());
+    // Per pair, +o then -o, as the JAX kernels: w(q, q + o) x[q + o] for q in [c0, hi),
+    // w(q - o, q) x[q - o] for q in [max(c0, o), c1).
+    if (hi > c0) s.terms[nt++] = {w + (c0 - lo), row + c0 + ol, 0, hi - c0};
+    const int64_t q0 = std::max(c0, ol);
+    if (c1 > q0) s.terms[nt++] = {w + (q0 - ol - lo), row + q0 - ol, q0 - c0, c1 - q0};
+  }
+  cut_row(s.terms.data(), nt, width, s);
+  run_sums<T, false>(a, row + c0, width, static_cast<T>(pass.centre), s);
+}
+
 // Whether run_block may take rows [r0, r1) and columns [c0, c1) as one run (run_rows_as_one).
 inline bool rows_as_one(const Pass& pass, int64_t r0, int64_t r1, int64_t c0, int64_t c1) {
   if (c0 != 0 || c1 != pass.row_length || r1 - r0 < 2) return false;
@@ -513,6 +549,7 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
                Scratch<T>& s) {
   const Pass& pass = *a.pass;
   if (rows_as_one(pass, r0, r1, c0, c1)) return run_rows_as_one(a, r0, r1, s);
+  if (c0 != 0 || c1 != pass.row_length) return run_columns(a, r0, c0, c1, s);
   const int64_t L = pass.row_length;
   const int64_t width = c1 - c0;
   const T h0 = static_cast<T>(pass.centre);

@@ -155,7 +155,8 @@ int check(std::vector<int64_t> shape, int64_t C, int64_t G, double sigma, int le
 int main() {
   int failures = 0, cases = 0;
   const std::vector<std::vector<int64_t>> shapes = {{37}, {9, 13}, {40, 33}, {5, 7, 6}, {11, 9, 10},
-                                                     {3, 17}, {23, 4, 3}};
+                                                     {3, 17}, {23, 4, 3},
+                                                     {50000}};
   const double sigmas[] = {0.0, 0.3, 2.0, std::numeric_limits<double>::infinity()};
   unsigned seed = 0;
   for (const auto& shape : shapes)
@@ -164,7 +165,11 @@ int main() {
         for (int64_t G : {1, 3})
           for (bool masked : {false, true}) {
             // Level 3 of 40 x 33 has a stride of 8: 8 chains of 5 slabs, 4 of them cut.
-            const int levels = shape.size() == 3 ? (shape[0] == 23 ? 4 : 2) : shape[0] == 40 ? 4 : 3;
+            // A line of 50000 points runs in blocks of columns, each with the weights before it.
+            const int levels = shape.size() == 3   ? (shape[0] == 23 ? 4 : 2)
+                               : shape[0] == 40    ? 4
+                               : shape[0] == 50000 ? 7
+                                                   : 3;
             const int threads = 1 + (seed % 5);
             const bool nan_guide = seed % 4 == 1;
             failures += check(shape, 2, G, sigma, levels, separable, masked, nan_guide, threads,

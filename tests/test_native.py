@@ -173,6 +173,37 @@ def test_vmap_filters_each_batch_element():
         np.testing.assert_array_equal(np.asarray(batched[i]), np.asarray(f(xs[i])))
 
 
+def test_a_long_line_runs_in_blocks_as_the_plain_kernel(monkeypatch):
+    # A 1-D grid's passes run in blocks of columns (csrc/atrous.cc, cut_blocks; ~21845 points
+    # of two channels), each with the weights of the points before it whose partner lies in
+    # it: NaN guides and masked points on the blocks' edges, and on any thread count.
+    n, edge = 70_000, 21_845
+    rng = np.random.default_rng(5)
+    x = jnp.asarray(rng.normal(size=(n, 2)), jnp.float32)
+    g = rng.random((n, 1)).astype(np.float32)
+    g[[edge - 1, edge, 2 * edge + 3]] = np.nan
+    mask = rng.random(n) > 0.2
+    mask[[edge - 2, edge + 1, 2 * edge]] = False
+    run = lambda kernel: atrous_bilateral(
+        x,
+        jnp.asarray(g),
+        sigma_d=0.3,
+        levels=7,
+        spatial_axes=(0,),
+        mask=jnp.asarray(mask),
+        kernel=kernel,
+    )
+    outs = []
+    for threads in ("1", "2"):
+        monkeypatch.setenv(native.THREADS_ENV, threads)
+        jax.clear_caches()
+        outs.append(np.asarray(run("native")))
+    np.testing.assert_array_equal(outs[0], outs[1])
+    np.testing.assert_allclose(outs[0], np.asarray(run("plain")), rtol=RTOL, atol=ATOL)
+    monkeypatch.delenv(native.THREADS_ENV)
+    jax.clear_caches()
+
+
 def test_thread_count_does_not_change_the_result(monkeypatch):
     # Each block's sums run in the same order whatever thread takes it: bit-equal outputs.
     # The count is read when a program is traced: each is traced afresh, and says its count.
