@@ -274,6 +274,25 @@ def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
         profile_update.main(["--quick", "--calls", "0", "--out", str(tmp_path)])
 
 
+def test_compile_profile_counts_each_kernels_compile(tmp_path):
+    from tools import compile_profile
+
+    result = compile_profile.main(["--quick", "--wrapper", "MultiSteps", "--out", str(tmp_path)])
+    adam, ours = result["adam"], result["ours"]
+    # Ours has the rule's kernels beside Adam's. One FusionCompiler event per kernel where
+    # XLA's fusion emitters run (its default; this suite turns them off: tests/conftest.py).
+    assert ours["kernels"] > adam["kernels"] >= 1
+    for p in (adam, ours):
+        assert len(p["per kernel"]) in (0, p["kernels"])
+        assert all(k["ms"] > 0 and k["ops"] > 0 for k in p["per kernel"])
+        assert p["compile s"] > 0 and p["trace + lower s"] > 0
+        assert p["CpuCompiler::RunBackend ms"] > 0
+    assert (tmp_path / "compile_profile.json").exists()
+    assert (tmp_path / "compile_profile.md").exists()
+    with pytest.raises(ValueError, match="--shape"):
+        compile_profile.main(["--shape", "16", "--out", str(tmp_path)])
+
+
 def test_bench_gpu_quick_times_both_kernels(tmp_path):
     # Runs on the CPU backend here: checks the script, not the numbers.
     from experiments.benchmarks import gpu as bench_gpu
