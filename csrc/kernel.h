@@ -269,7 +269,7 @@ inline bool partner_row_on_grid(const Pass& pass, int64_t r, const Pair& pair) {
 }
 
 // acc + w (the normaliser) and acc + w x (a channel), skipping a hole: with kHoles, a NaN
-// weight marks a pair that crosses a row's end in a block run as one row (run_block), where
+// weight marks a pair that crosses a row's end in rows run as one (run_rows_as_one), where
 // the JAX kernels have no term; a real weight is never NaN (data_weight).
 template <typename T, bool kHoles>
 inline T plus_weight(T acc, T w) {

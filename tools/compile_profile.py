@@ -16,11 +16,7 @@ size (docs/research/compilation.md). Writes ``compile_profile.json`` and ``.md``
 from __future__ import annotations
 
 import collections
-import glob
-import gzip
-import json
 import re
-import tempfile
 import time
 
 import jax
@@ -29,6 +25,7 @@ import optax
 import optax_bilateral as ob
 from experiments import common
 from experiments.benchmarks import suite as bm
+from tools.profile_update import traced_events
 
 PHASES = (
     "CpuCompiler::RunBackend",
@@ -44,19 +41,16 @@ WRAPPERS = {
 
 
 def traced_compile(lowered):
-    """The compiled program, its seconds to compile and the XLA trace events (complete ones)
-    it made."""
-    with tempfile.TemporaryDirectory() as tmp:
-        with jax.profiler.trace(tmp, create_perfetto_trace=True):
-            t0 = time.perf_counter()
-            compiled = lowered.compile()
-            seconds = time.perf_counter() - t0
-        paths = glob.glob(f"{tmp}/**/*.trace.json.gz", recursive=True)
-        if not paths:
-            raise RuntimeError("jax.profiler.trace wrote no perfetto trace")
-        with gzip.open(paths[0]) as fh:
-            events = json.load(fh)["traceEvents"]
-    return compiled, seconds, [e for e in events if e.get("ph") == "X"]
+    """The compiled program, its seconds to compile and the XLA trace events it made."""
+    out = {}
+
+    def run():
+        t0 = time.perf_counter()
+        out["compiled"] = lowered.compile()
+        out["seconds"] = time.perf_counter() - t0
+
+    events = traced_events(run)
+    return out["compiled"], out["seconds"], events
 
 
 def profile(opt, shape) -> dict:

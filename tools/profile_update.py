@@ -56,21 +56,30 @@ def kernel_names(compiled) -> dict[str, str]:
     return names
 
 
-def traced_kernels(fn, args, names: dict[str, str], calls: int) -> dict[str, dict]:
-    """{family: {"kernels per call", "us per call"}} over ``calls`` traced calls of ``fn``."""
-    jax.block_until_ready(fn(*args))
+def traced_events(run) -> list[dict]:
+    """The complete events (``"ph": "X"``) of ``jax.profiler.trace`` around ``run()``."""
     with tempfile.TemporaryDirectory() as tmp:
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
-            for _ in range(calls):
-                jax.block_until_ready(fn(*args))
+            run()
         paths = glob.glob(f"{tmp}/**/*.trace.json.gz", recursive=True)
         if not paths:
             raise RuntimeError("jax.profiler.trace wrote no perfetto trace")
         with gzip.open(paths[0]) as fh:
             events = json.load(fh)["traceEvents"]
+    return [e for e in events if e.get("ph") == "X"]
+
+
+def traced_kernels(fn, args, names: dict[str, str], calls: int) -> dict[str, dict]:
+    """{family: {"kernels per call", "us per call"}} over ``calls`` traced calls of ``fn``."""
+    jax.block_until_ready(fn(*args))
+
+    def run():
+        for _ in range(calls):
+            jax.block_until_ready(fn(*args))
+
     count, dur = collections.Counter(), collections.Counter()
-    for e in events:
-        if e.get("ph") == "X" and e.get("name") in names:
+    for e in traced_events(run):
+        if e.get("name") in names:
             count[names[e["name"]]] += 1
             dur[names[e["name"]]] += e["dur"]
     return {k: {"kernels per call": count[k] / calls, "us per call": dur[k] / calls} for k in count}
