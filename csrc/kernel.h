@@ -574,16 +574,18 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
     const int64_t fo = pair.flat_rows, ol = pair.column_offset;
     const int64_t jlo = c0 > -ol ? c0 : -ol, jhi = c1 < L - ol ? c1 : L - ol;
     const int64_t first = r0 - fo > 0 ? r0 - fo : 0;
-    if (fo == 0 && c0 == 0 && c1 == L && jlo < jhi && r1 - r0 > 1) {
-      // A pair along whole rows: its weights for every row in one run over the block, row
-      // by row in the layout below (the points between two rows' ranges are computed and
-      // never read), not one short call a row.
-      const int64_t n = (r1 - r0 - 1) * L + (jhi - jlo);
+    // Rows [first, last) have their partner row inside the grid's memory.
+    const int64_t last = std::min(r1, pass.rows() - fo);
+    if (c0 == 0 && c1 == L && jlo < jhi && last - first > 1) {
+      // Whole rows: the pair's weights for all of them in one run over the block, row by
+      // row in the layout below (the points between two rows' ranges, and rows whose partner
+      // row is off the grid, are computed and never read), not one short call a row.
+      const int64_t n = (last - first - 1) * L + (jhi - jlo);
       if (static_cast<int64_t>(s.dist.size()) < n) s.dist.resize(static_cast<size_t>(n));
-      std::fill(on.begin() + row_index, on.begin() + row_index + (r1 - r0), char{1});
-      row_index += r1 - r0;
-      pair_weights(a, r0 * L + jlo, r0 * L + jlo + ol, n, static_cast<T>(pair.tap),
+      pair_weights(a, first * L + jlo, (first + fo) * L + jlo + ol, n, static_cast<T>(pair.tap),
                    s.weights.data() + offset[k] + jlo, s.dist.data());
+      for (int64_t rho = first; rho < r1; ++rho, ++row_index)
+        on[static_cast<size_t>(row_index)] = rho < last && partner_row_on_grid(pass, rho, pair);
       continue;
     }
     for (int64_t rho = first; rho < r1; ++rho, ++row_index) {
