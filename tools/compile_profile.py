@@ -16,7 +16,6 @@ size (docs/research/compilation.md). Writes ``compile_profile.json`` and ``.md``
 from __future__ import annotations
 
 import collections
-import re
 import time
 
 import jax
@@ -74,7 +73,7 @@ def profile(opt, shape) -> dict:
     return {
         "trace + lower s": lower_s,
         "compile s": compile_s,
-        "kernels": len(re.findall(r"= \S+ fusion\(", compiled.as_text() or "")),
+        "kernels": bm.kernel_count(compiled),
         **{f"{p} ms": ms[p] for p in PHASES},
         "per kernel": sorted(kernels, key=lambda k: -k["ms"]),
     }

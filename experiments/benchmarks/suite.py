@@ -1024,13 +1024,16 @@ def cold_compile_seconds(opt, shape) -> tuple[float, float]:
     return t1 - t0, time.perf_counter() - t1
 
 
+def kernel_count(compiled) -> int:
+    """The XLA kernels (fusions) of a compiled program: XLA compiles each on its own, so the
+    compile follows their number (docs/research/compilation.md)."""
+    return len(re.findall(r"= \S+ fusion\(", compiled.as_text() or ""))
+
+
 def xla_kernels(opt, shape) -> int:
-    """The XLA kernels (fusions) of ``jax.jit(opt.update)``'s compiled program for a leaf of
-    ``shape``: XLA compiles each on its own, so the compile follows their number
-    (docs/research/compilation.md)."""
+    """:func:`kernel_count` of ``jax.jit(opt.update)`` for a leaf of ``shape``."""
     params, grad = update_arrays(shape)
-    text = jax.jit(opt.update).lower(grad, opt.init(params), params).compile().as_text()
-    return len(re.findall(r"= \S+ fusion\(", text or ""))
+    return kernel_count(jax.jit(opt.update).lower(grad, opt.init(params), params).compile())
 
 
 def compile_ratios(quick: bool, repeats: int) -> list[dict]:
