@@ -63,6 +63,23 @@ void chunk(const PassArgs<T>& a, const SlabLevel<T>& l, const SlabPlanes<const T
   }
 }
 
+template <typename T>
+void full_chunk(const PassArgs<T>& a, const SlabPass& pass, const Chunk<T>& ch, Scratch<T>& s) {
+  switch (kIsa) {
+#if defined(__x86_64__)
+    case Isa::kAvx512:
+      if constexpr (std::is_same_v<T, float>) return avx512::full32(a, pass, ch, s);
+      else return avx512::full64(a, pass, ch, s);
+    case Isa::kAvx2:
+      if constexpr (std::is_same_v<T, float>) return avx2::full32(a, pass, ch, s);
+      else return avx2::full64(a, pass, ch, s);
+#endif
+    default:
+      if constexpr (std::is_same_v<T, float>) return baseline::full32(a, pass, ch, s);
+      else return baseline::full64(a, pass, ch, s);
+  }
+}
+
 // A block of a pass: rows [r0, r1), columns [c0, c1) of its view.
 struct Block {
   int64_t r0, r1, c0, c1;
@@ -71,22 +88,13 @@ struct Block {
 template <typename T>
 std::vector<Block> cut_blocks(const Pass& pass, int64_t channels) {
   const int64_t rows = pass.rows(), L = pass.row_length;
-  int64_t reach = 0;  // the most rows a pair spans: a block recomputes that many rows' weights
-  for (const Pair& p : pass.pairs) reach = std::max(reach, p.flat_rows);
   const int64_t per_point = (channels + 1) * static_cast<int64_t>(sizeof(T));
-  bool along_row = rows == 1;  // one row, every pair along it (a 1-D grid): cut in columns
   int64_t most = 0;
-  for (const Pair& p : pass.pairs) {
-    along_row = along_row && p.flat_rows == 0;
-    most = std::max(most, p.column_offset);
-  }
-  // Rows whole (a pass along an outer axis moves along them), or a row cut in blocks that
-  // recompute at most 1/4 of their weights (those of the `o` points before them).
-  const int64_t width =
-      along_row ? std::min(L, std::max(kBlockBytes / per_point, 4 * most)) : L;
-  int64_t height = std::max<int64_t>(1, kBlockBytes / (per_point * L));
-  if (reach > 0) height = std::max(height, 4 * reach);  // recompute at most 1/4 of the rows
-  height = std::min(height, rows);
+  for (const Pair& p : pass.pairs) most = std::max(most, p.column_offset);
+  // Whole rows, or one row (a 1-D grid) cut in blocks that recompute at most 1/4 of their
+  // weights (those of the `o` points before them).
+  const int64_t width = rows == 1 ? std::min(L, std::max(kBlockBytes / per_point, 4 * most)) : L;
+  const int64_t height = std::min(rows, std::max<int64_t>(1, kBlockBytes / (per_point * L)));
   std::vector<Block> blocks;
   for (int64_t r0 = 0; r0 < rows; r0 += height)
     for (int64_t c0 = 0; c0 < L; c0 += width)
@@ -317,8 +325,8 @@ void run_levels(const Cascade<T>& c, const PassArgs<T>& args, int threads, int64
   }
 }
 
-// Any other cascade: one step per pass, each cut into blocks, alternating between the output
-// and the working copy so that the last step writes the output.
+// A cascade on a 1-D grid: one step per pass, each cut into blocks, alternating between the
+// output and the working copy so that the last step writes the output.
 template <typename T>
 void run_passes(const Cascade<T>& c, const PassArgs<T>& args, const std::vector<Pass>& passes,
                 int threads, int64_t points) {
@@ -339,6 +347,46 @@ void run_passes(const Cascade<T>& c, const PassArgs<T>& args, const std::vector<
     const std::vector<Block> blocks = cut_blocks<T>(passes[i], c.channels);
     parallel(c, threads, blocks.size(), [&](size_t k, Scratch<T>& scratch) {
       block(a, blocks[k].r0, blocks[k].r1, blocks[k].c0, blocks[k].c1, scratch);
+    });
+  }
+}
+
+// The chains of a full pass's slabs, each whole, or cut in pieces where there are more threads
+// than chains (each piece recomputes the weights its first slabs read from before it).
+template <typename T>
+std::vector<Chunk<T>> plan_slab_chunks(const SlabPass& pass, int threads) {
+  const int64_t chains = std::min(pass.stride, pass.slabs);
+  const int64_t pieces = (threads + chains - 1) / chains;
+  std::vector<Chunk<T>> chunks;
+  for (int64_t r = 0; r < chains; ++r) {
+    const int64_t len = (pass.slabs - r + pass.stride - 1) / pass.stride;
+    const int64_t k = std::clamp<int64_t>(pieces, 1, len);
+    for (int64_t j = 0; j < k; ++j) chunks.push_back({r, len * j / k, len * (j + 1) / k, len});
+  }
+  return chunks;
+}
+
+// A full cascade on a grid of rank >= 2: one pass per level, slab by slab, alternating between
+// the output and the working copy so that the last pass writes the output.
+template <typename T>
+void run_full(const Cascade<T>& c, const PassArgs<T>& args, int threads, int64_t points) {
+  const std::vector<SlabPass> passes = make_slab_passes(c.shape, c.levels, c.start);
+  std::vector<const T*> in_ch(static_cast<size_t>(c.channels));
+  std::vector<T*> work_ch(in_ch.size()), out_ch(in_ch.size());
+  for (int64_t ch = 0; ch < c.channels; ++ch) {
+    in_ch[ch] = c.x + ch * points;
+    work_ch[ch] = c.work + ch * points;
+    out_ch[ch] = c.out + ch * points;
+  }
+  const size_t ns = passes.size();
+  for (size_t i = 0; i < ns; ++i) {
+    PassArgs<T> a = args;
+    const bool to_out = (ns - 1 - i) % 2 == 0;
+    a.y = to_out ? out_ch.data() : work_ch.data();
+    a.x = i == 0 ? in_ch.data() : to_out ? work_ch.data() : out_ch.data();
+    const std::vector<Chunk<T>> chunks = plan_slab_chunks<T>(passes[i], threads);
+    parallel(c, threads, chunks.size(), [&](size_t k, Scratch<T>& scratch) {
+      full_chunk(a, passes[i], chunks[k], scratch);
     });
   }
 }
@@ -372,6 +420,7 @@ void run(const Cascade<T>& c) {
   args.sigma_inf = std::isinf(sigma);
   args.neg_inv_sigma = sigma > 0 ? T(-1) / sigma : -std::numeric_limits<T>::infinity();
   if (c.separable && c.shape.size() >= 2) return run_levels(c, args, threads, points);
+  if (c.shape.size() >= 2) return run_full(c, args, threads, points);
   run_passes(c, args, passes, threads, points);
 }
 

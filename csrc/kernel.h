@@ -53,7 +53,6 @@ template <typename T>
 struct Scratch {
   std::vector<T> den, weights, dist;
   std::vector<int64_t> offsets;
-  std::vector<char> on;
   std::vector<Term<T>> terms;
   std::vector<int64_t> bounds;       // row_sums: where the row's terms start and end
   std::vector<const Term<T>*> active;  // the terms of each cut between them, in order
@@ -255,17 +254,6 @@ void pair_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap
   } else {
     for (int64_t j = 0; j < n; ++j) w[j] = tap * data_weight<T, true>(d2[j], true, nis, sinf);
   }
-}
-
-// Whether row `r` of the view moved by `pair` stays on the grid.
-inline bool partner_row_on_grid(const Pass& pass, int64_t r, const Pair& pair) {
-  for (size_t k = pass.row_shape.size(); k-- > 0;) {
-    const int64_t n = pass.row_shape[k];
-    const int64_t i = r % n + pair.row_offset[k];
-    if (i < 0 || i >= n) return false;
-    r /= n;
-  }
-  return true;
 }
 
 // acc + w (the normaliser) and acc + w x (a channel), skipping a hole: with kHoles, a NaN
@@ -532,96 +520,72 @@ void run_columns(const PassArgs<T>& a, int64_t r, int64_t c0, int64_t c1, Scratc
   run_sums<T, false>(a, row + c0, width, static_cast<T>(pass.centre), s);
 }
 
-// Whether run_block may take rows [r0, r1) and columns [c0, c1) as one run (run_rows_as_one).
-inline bool rows_as_one(const Pass& pass, int64_t r0, int64_t r1, int64_t c0, int64_t c1) {
-  if (c0 != 0 || c1 != pass.row_length || r1 - r0 < 2) return false;
-  for (const Pair& pair : pass.pairs)
-    if (pair.flat_rows != 0) return false;
-  return true;
-}
-
-// Rows [r0, r1) and columns [c0, c1) of one pass: y = normalised sums of x's neighbours.
-// First every pair's weights over the block's rows and the rows above it that its pairs
-// reach (each weight computed once, for both of its points), then the sums row by row, so
-// that a row's sums stay in L1 while every pair adds to them.
+// Rows [r0, r1) and columns [c0, c1) of a pass whose pairs all move along the row (separable
+// passes, a 1-D grid's full ones; a full pass of a grid of rank >= 2 runs slab by slab:
+// run_slab_chunk): y = normalised sums of x's neighbours. Whole rows as one run, a block of
+// columns row by row.
 template <typename T>
 void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t c1,
                Scratch<T>& s) {
-  const Pass& pass = *a.pass;
-  if (rows_as_one(pass, r0, r1, c0, c1)) return run_rows_as_one(a, r0, r1, s);
-  if (c0 != 0 || c1 != pass.row_length) return run_columns(a, r0, c0, c1, s);
-  const int64_t L = pass.row_length;
-  const int64_t width = c1 - c0;
-  const T h0 = static_cast<T>(pass.centre);
+  if (c0 == 0 && c1 == a.pass->row_length && r1 - r0 > 1) return run_rows_as_one(a, r0, r1, s);
+  for (int64_t r = r0; r < r1; ++r) run_columns(a, r, c0, c1, s);
+}
+
+// Positions [first, last) of one chain of slabs of a full pass (SlabPass; the chain and its
+// positions as a separable level's, Chunk), out of place: each pair's weights for a slab as it
+// comes (each weight once, kept for the slabs after it that read it), then the slab's sums as
+// one run of points, a NaN hole where a pair's partner wraps to another row.
+template <typename T>
+void run_slab_chunk(const PassArgs<T>& a, const SlabPass& pass, const Chunk<T>& ch,
+                    Scratch<T>& s) {
+  const int64_t M = pass.slab, st = pass.stride, len = ch.length;
   const size_t np = pass.pairs.size();
-  // Pair k's weight rows: rows [r0 - fo_k, r1), at offset[k] in s.weights; `on` says which
-  // rows have their partner on the grid (the others are never read).
-  std::vector<int64_t>& offset = s.offsets;
-  std::vector<char>& on = s.on;
-  offset.assign(np + 1, 0);
+  bool holes = false;
+  // Pair k's weights at position p: slot p % (slabs + 1) of its slots, from s.offsets[k].
+  s.offsets.assign(np + 1, 0);
   for (size_t k = 0; k < np; ++k) {
-    const int64_t fo = pass.pairs[k].flat_rows;
-    const int64_t first = r0 - fo > 0 ? r0 - fo : 0;
-    offset[k + 1] = offset[k] + (r1 - first) * width;
+    s.offsets[k + 1] = s.offsets[k] + (pass.pairs[k].slabs + 1) * M;
+    holes = holes || !pass.pairs[k].holes.empty();
   }
-  s.weights.resize(static_cast<size_t>(offset[np]));
-  s.on.assign(static_cast<size_t>(offset[np] / (width > 0 ? width : 1)), 0);
-  s.den.resize(static_cast<size_t>(width));
-  s.dist.resize(static_cast<size_t>(width));
-  int64_t row_index = 0;
-  for (size_t k = 0; k < np; ++k) {
-    const Pair& pair = pass.pairs[k];
-    const int64_t fo = pair.flat_rows, ol = pair.column_offset;
-    const int64_t jlo = c0 > -ol ? c0 : -ol, jhi = c1 < L - ol ? c1 : L - ol;
-    const int64_t first = r0 - fo > 0 ? r0 - fo : 0;
-    // Rows [first, last) have their partner row inside the grid's memory.
-    const int64_t last = std::min(r1, pass.rows() - fo);
-    if (c0 == 0 && c1 == L && jlo < jhi && last - first > 1) {
-      // Whole rows: the pair's weights for all of them in one run over the block, row by
-      // row in the layout below (the points between two rows' ranges, and rows whose partner
-      // row is off the grid, are computed and never read), not one short call a row.
-      const int64_t n = (last - first - 1) * L + (jhi - jlo);
-      if (static_cast<int64_t>(s.dist.size()) < n) s.dist.resize(static_cast<size_t>(n));
-      pair_weights(a, first * L + jlo, (first + fo) * L + jlo + ol, n, static_cast<T>(pair.tap),
-                   s.weights.data() + offset[k] + jlo, s.dist.data());
-      for (int64_t rho = first; rho < r1; ++rho, ++row_index)
-        on[static_cast<size_t>(row_index)] = rho < last && partner_row_on_grid(pass, rho, pair);
-      continue;
-    }
-    for (int64_t rho = first; rho < r1; ++rho, ++row_index) {
-      if (jlo >= jhi || !partner_row_on_grid(pass, rho, pair)) continue;
-      on[static_cast<size_t>(row_index)] = 1;
-      T* w = s.weights.data() + offset[k] + (rho - first) * width + (jlo - c0);
-      pair_weights(a, rho * L + jlo, (rho + fo) * L + jlo + ol, jhi - jlo, static_cast<T>(pair.tap),
-                   w, s.dist.data());
-    }
-  }
-  for (int64_t r = r0; r < r1; ++r) {
-    // The terms this row gets, in the pure-JAX kernels' order: per pair, +o then -o.
-    // (weights, the neighbour's flat index, the first column, count)
-    s.terms.resize(2 * np);
-    Term<T>* terms = s.terms.data();
+  s.ring.resize(static_cast<size_t>(s.offsets[np]));
+  s.dist.resize(static_cast<size_t>(M));
+  s.den.resize(static_cast<size_t>(M));
+  s.terms.resize(2 * np);
+  const auto slab = [&](int64_t pos) { return (ch.residue + pos * st) * M; };
+  const auto weights = [&](size_t k, int64_t p) {
+    return s.ring.data() + s.offsets[k] + (p % (pass.pairs[k].slabs + 1)) * M;
+  };
+  const auto compute = [&](size_t k, int64_t p) {  // if both slabs exist
+    const SlabPair& q = pass.pairs[k];
+    if (p < 0 || p + q.slabs >= len || q.hi <= q.lo) return;
+    T* w = weights(k, p);
+    pair_weights(a, slab(p) + q.lo, slab(p + q.slabs) + q.lo + q.flat, q.hi - q.lo,
+                 static_cast<T>(q.tap), w + q.lo, s.dist.data());
+    for (const auto& [first, n] : q.holes)
+      std::fill_n(w + first, n, std::numeric_limits<T>::quiet_NaN());
+  };
+  for (size_t k = 0; k < np; ++k)  // the weights the first slab's -o terms read
+    for (int64_t p = ch.first - pass.pairs[k].slabs; p < ch.first; ++p) compute(k, p);
+  for (int64_t pos = ch.first; pos < ch.last; ++pos) {
     size_t nt = 0;
     for (size_t k = 0; k < np; ++k) {
-      const Pair& pair = pass.pairs[k];
-      const int64_t fo = pair.flat_rows, ol = pair.column_offset;
-      const int64_t jlo = c0 > -ol ? c0 : -ol, jhi = c1 < L - ol ? c1 : L - ol;
-      if (jlo >= jhi) continue;
-      const int64_t first = r0 - fo > 0 ? r0 - fo : 0;
-      const int64_t base = offset[k] / width;
-      if (on[static_cast<size_t>(base + r - first)]) {  // +o: w(p, p + o) x[p + o]
-        const T* w = s.weights.data() + offset[k] + (r - first) * width + (jlo - c0);
-        terms[nt++] = {w, (r + fo) * L + jlo + ol, jlo - c0, jhi - jlo};
-      }
-      const int64_t rm = r - fo;  // -o: w(p - o, p) x[p - o], for columns jlo + ol ..
-      if (rm >= first && on[static_cast<size_t>(base + rm - first)]) {
-        const T* w = s.weights.data() + offset[k] + (rm - first) * width + (jlo - c0);
-        terms[nt++] = {w, rm * L + jlo, jlo + ol - c0, jhi - jlo};
-      }
+      const SlabPair& q = pass.pairs[k];
+      compute(k, pos);
+      if (q.hi <= q.lo) continue;
+      // Per pair, +o then -o, as the JAX kernels: w(p, p + o) x[p + o], w(p - o, p) x[p - o].
+      if (pos + q.slabs < len)
+        s.terms[nt++] = {weights(k, pos) + q.lo, slab(pos + q.slabs) + q.lo + q.flat, q.lo,
+                         q.hi - q.lo};
+      if (pos - q.slabs >= 0)
+        s.terms[nt++] = {weights(k, pos - q.slabs) + q.lo, slab(pos - q.slabs) + q.lo,
+                         q.lo + q.flat, q.hi - q.lo};
     }
-    // The row cut where a term starts or ends: each cut's sums in one loop.
-    cut_row(terms, nt, width, s);
-    run_sums<T, false>(a, r * L + c0, width, h0, s);
+    cut_row(s.terms.data(), nt, M, s);
+    if (holes) {
+      run_sums<T, true>(a, slab(pos), M, static_cast<T>(pass.centre), s);
+    } else {
+      run_sums<T, false>(a, slab(pos), M, static_cast<T>(pass.centre), s);
+    }
   }
 }
 

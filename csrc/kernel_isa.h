@@ -19,6 +19,9 @@ namespace optax_bilateral {
   void chunk64(const PassArgs<double>&, const SlabLevel<double>&,                           \
                const SlabPlanes<const double>&, const SlabPlanes<double>&, bool,            \
                const Chunk<double>&, Scratch<double>&);                                     \
+  void full32(const PassArgs<float>&, const SlabPass&, const Chunk<float>&, Scratch<float>&); \
+  void full64(const PassArgs<double>&, const SlabPass&, const Chunk<double>&,               \
+              Scratch<double>&);                                                            \
   void ldl32(const LdlFactor<float>&, float*, int64_t, int64_t, int64_t, float*);           \
   void ldl64(const LdlFactor<double>&, double*, int64_t, int64_t, int64_t, double*);        \
   void split32(const float*, float* const*, int64_t, int64_t);                              \
@@ -53,6 +56,14 @@ OB_DECLARE_ISA(avx512)
                const SlabPlanes<const double>& from, const SlabPlanes<double>& to,          \
                bool in_place, const Chunk<double>& ch, Scratch<double>& s) {                \
     run_chunk(a, l, from, to, in_place, ch, s);                                             \
+  }                                                                                         \
+  void full32(const PassArgs<float>& a, const SlabPass& p, const Chunk<float>& ch,          \
+              Scratch<float>& s) {                                                          \
+    run_slab_chunk(a, p, ch, s);                                                            \
+  }                                                                                         \
+  void full64(const PassArgs<double>& a, const SlabPass& p, const Chunk<double>& ch,        \
+              Scratch<double>& s) {                                                         \
+    run_slab_chunk(a, p, ch, s);                                                            \
   }                                                                                         \
   void ldl32(const LdlFactor<float>& f, float* b, int64_t k, int64_t c0, int64_t c1,         \
              float* z) {                                                                    \

@@ -42,7 +42,6 @@ Pass separable_pass(const std::vector<int64_t>& shape, size_t axis, int64_t stri
     pair.tap = kTaps[d];
     pair.row_offset.assign(pass.row_shape.size(), 0);
     pair.column_offset = d * stride * step;
-    pair.flat_rows = 0;
     pass.pairs.push_back(pair);
   }
   return pass;
@@ -95,10 +94,21 @@ Pass full_pass(const std::vector<int64_t>& shape, int64_t stride) {
       if (k + 1 < n) pair.row_offset.push_back(dd[k] * stride);
     }
     pair.column_offset = dd[n - 1] * stride;
-    pair.flat_rows = flat(pass.row_shape, pair.row_offset);
     pass.pairs.push_back(pair);
   }
   return pass;
+}
+
+// Points [first, last) of a slab, clipped to [q.lo, q.hi), as holes of q, runs merged.
+void add_hole(SlabPair& q, int64_t first, int64_t last) {
+  first = std::max(first, q.lo);
+  last = std::min(last, q.hi);
+  if (first >= last) return;
+  if (!q.holes.empty() && q.holes.back().first + q.holes.back().second == first) {
+    q.holes.back().second += last - first;
+  } else {
+    q.holes.emplace_back(first, last - first);
+  }
 }
 
 }  // namespace
@@ -117,6 +127,49 @@ std::vector<Pass> make_passes(const std::vector<int64_t>& shape, int levels, int
       Pass p = full_pass(shape, stride);
       if (!p.pairs.empty()) passes.push_back(std::move(p));
     }
+  }
+  return passes;
+}
+
+std::vector<SlabPass> make_slab_passes(const std::vector<int64_t>& shape, int levels, int start) {
+  std::vector<SlabPass> passes;
+  const size_t n = shape.size();
+  // A slab's rows (axes 1 .. n-2) and its row length.
+  const std::vector<int64_t> rows(shape.begin() + 1, shape.end() - 1);
+  const int64_t L = shape[n - 1], R = product(rows, 0, rows.size());
+  for (int i = start; i < levels; ++i) {
+    const int64_t stride = int64_t{1} << i;
+    const Pass full = full_pass(shape, stride);
+    if (full.pairs.empty()) continue;
+    SlabPass pass;
+    pass.slabs = shape[0];
+    pass.slab = R * L;
+    pass.stride = stride;
+    pass.centre = full.centre;
+    for (const Pair& p : full.pairs) {
+      SlabPair q;
+      q.tap = p.tap;
+      q.slabs = p.row_offset[0] / stride;
+      const std::vector<int64_t> in_slab(p.row_offset.begin() + 1, p.row_offset.end());
+      q.flat = flat(rows, in_slab) * L + p.column_offset;
+      q.lo = std::max<int64_t>(0, -q.flat);
+      q.hi = std::min(pass.slab, pass.slab - q.flat);
+      for (int64_t r = 0; r < R; ++r) {
+        bool row_on = true;  // row r of the slab moved by the pair's in-slab rows
+        for (int64_t k = static_cast<int64_t>(rows.size()), t = r; k-- > 0; t /= rows[k]) {
+          const int64_t j = t % rows[k] + in_slab[k];
+          row_on = row_on && j >= 0 && j < rows[k];
+        }
+        // The row's holes: all of it, or the columns the pair moves off its end.
+        const int64_t oc = p.column_offset;
+        int64_t first = r * L, last = r * L + L;
+        if (row_on && oc > 0) first += std::max<int64_t>(0, L - oc);
+        if (row_on && oc <= 0) last = r * L + std::min(L, -oc);
+        add_hole(q, first, last);
+      }
+      pass.pairs.push_back(std::move(q));
+    }
+    passes.push_back(std::move(pass));
   }
   return passes;
 }

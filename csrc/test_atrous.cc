@@ -155,7 +155,7 @@ int check(std::vector<int64_t> shape, int64_t C, int64_t G, double sigma, int le
 int main() {
   int failures = 0, cases = 0;
   const std::vector<std::vector<int64_t>> shapes = {{37}, {9, 13}, {40, 33}, {5, 7, 6}, {11, 9, 10},
-                                                     {3, 17}, {23, 4, 3},
+                                                     {3, 17}, {23, 4, 3}, {4, 5, 3, 6},
                                                      {50000}};
   const double sigmas[] = {0.0, 0.3, 2.0, std::numeric_limits<double>::infinity()};
   unsigned seed = 0;
