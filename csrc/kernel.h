@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <utility>
@@ -287,7 +288,7 @@ void add_weights(T* __restrict__ o, const T* const* w, int64_t n) {
   }
 }
 
-// o[j] += w_0[j] x_0[j] + ... (a channel's sums past its first four terms).
+// o[j] += w_0[j] x_0[j] + ... (four of a channel's many terms: strip_sums).
 template <typename T, int N, bool kHoles = false>
 void add_products(T* __restrict__ o, const T* const* w, const T* const* x, int64_t n) {
   const T* __restrict__ w0 = w[0];
@@ -393,7 +394,7 @@ void add_row_weights(T* den, const Scratch<T>& s) {
 }
 
 // One channel's output over the row (cut_row): y = (h0 centre + sum of w x) * inv, the terms'
-// x read from xc + from; up to four terms a cut in one loop with the quotient.
+// x read from xc + from; its up to four terms a cut in one loop with the quotient.
 template <typename T, bool kHoles>
 void channel_sums(const Scratch<T>& s, T h0, T* __restrict__ y, const T* __restrict__ centre,
                   const T* xc, const T* __restrict__ inv) {
@@ -419,26 +420,15 @@ void channel_sums(const Scratch<T>& s, T h0, T* __restrict__ y, const T* __restr
       case 2: load(first, 2); fused_channel<T, 2, kHoles>(o, c, h0, w, x, iv, n); continue;
       case 3: load(first, 3); fused_channel<T, 3, kHoles>(o, c, h0, w, x, iv, n); continue;
       case 4: load(first, 4); fused_channel<T, 4, kHoles>(o, c, h0, w, x, iv, n); continue;
-      default: break;
+      default: std::abort();  // at most two pairs, +o and -o each: run_sums
     }
-    // More than four terms (full mode): the sums four terms a loop, then the quotient.
-    for (int64_t j = 0; j < n; ++j) o[j] = h0 * c[j];
-    for (size_t t = first; t < last; t += 4) {
-      const size_t m = last - t < 4 ? last - t : 4;
-      load(t, m);
-      switch (m) {
-        case 1: add_products<T, 1, kHoles>(o, w, x, n); break;
-        case 2: add_products<T, 2, kHoles>(o, w, x, n); break;
-        case 3: add_products<T, 3, kHoles>(o, w, x, n); break;
-        default: add_products<T, 4, kHoles>(o, w, x, n); break;
-      }
-    }
-    for (int64_t j = 0; j < n; ++j) o[j] = iv[j] > 0 ? o[j] * iv[j] : T(0);
   }
 }
 
 // The normaliser and every channel's sums over one run of `width` points from flat index p
-// (a row's, or whole rows' run as one), the terms already cut (cut_row).
+// (a row's, or whole rows' run as one), the terms already cut (cut_row): a pass of at most two
+// pairs (separable, or a 1-D grid's full one), so at most four terms a cut, each channel's sums
+// and quotient in one loop. Full passes of more pairs: strip_sums.
 template <typename T, bool kHoles>
 void run_sums(const PassArgs<T>& a, int64_t p, int64_t width, T h0, Scratch<T>& s) {
   T* __restrict__ den = s.den.data();
@@ -452,6 +442,66 @@ void run_sums(const PassArgs<T>& a, int64_t p, int64_t width, T h0, Scratch<T>& 
   for (int64_t c = 0; c < a.channels; ++c) {
     const T* xc = a.x[c] + a.x_at;
     channel_sums<T, kHoles>(s, h0, a.y[c] + a.y_at + p, xc + p, xc, den);
+  }
+}
+
+// run_sums over strips of kStrip points, for runs of many terms (full passes): each group of
+// four terms' weights is read from memory once, by the normaliser and then every channel,
+// while the strip's sums stay in L1. The same sums in the same order as run_sums.
+template <typename T, bool kHoles>
+void strip_sums(const PassArgs<T>& a, int64_t p, int64_t width, T h0, Scratch<T>& s) {
+  constexpr int64_t kStrip = 512;
+  const int64_t C = a.channels;
+  s.den.resize(static_cast<size_t>(std::min(width, kStrip)));
+  T* __restrict__ den = s.den.data();
+  const std::vector<int64_t>& b = s.bounds;
+  const T* w[4];
+  const T* x[4];
+  size_t first_cut = 0;
+  for (int64_t j0 = 0; j0 < width; j0 += kStrip) {
+    const int64_t n = std::min(width - j0, kStrip);
+    if (a.valid) {
+      for (int64_t j = 0; j < n; ++j) den[j] = h0 * a.valid[p + j0 + j];
+    } else {
+      for (int64_t j = 0; j < n; ++j) den[j] = h0;
+    }
+    for (int64_t c = 0; c < C; ++c) {  // each channel's sums in its output's strip
+      const T* __restrict__ xc = a.x[c] + a.x_at + p + j0;
+      T* __restrict__ y = a.y[c] + a.y_at + p + j0;
+      for (int64_t j = 0; j < n; ++j) y[j] = h0 * xc[j];
+    }
+    while (b[first_cut + 1] <= j0) ++first_cut;
+    for (size_t k = first_cut; k + 1 < b.size() && b[k] < j0 + n; ++k) {
+      const int64_t lo = std::max(b[k], j0), m = std::min(b[k + 1], j0 + n) - lo;
+      const auto last = static_cast<size_t>(s.first_active[k + 1]);
+      for (auto t = static_cast<size_t>(s.first_active[k]); t < last; t += 4) {
+        const size_t g = last - t < 4 ? last - t : 4;
+        for (size_t u = 0; u < g; ++u) w[u] = s.active[t + u]->w + (lo - s.active[t + u]->at);
+        switch (g) {
+          case 1: add_weights<T, 1, kHoles>(den + (lo - j0), w, m); break;
+          case 2: add_weights<T, 2, kHoles>(den + (lo - j0), w, m); break;
+          case 3: add_weights<T, 3, kHoles>(den + (lo - j0), w, m); break;
+          default: add_weights<T, 4, kHoles>(den + (lo - j0), w, m); break;
+        }
+        for (int64_t c = 0; c < C; ++c) {
+          const T* xc = a.x[c] + a.x_at;
+          for (size_t u = 0; u < g; ++u)
+            x[u] = xc + s.active[t + u]->from + (lo - s.active[t + u]->at);
+          T* y = a.y[c] + a.y_at + p + lo;
+          switch (g) {
+            case 1: add_products<T, 1, kHoles>(y, w, x, m); break;
+            case 2: add_products<T, 2, kHoles>(y, w, x, m); break;
+            case 3: add_products<T, 3, kHoles>(y, w, x, m); break;
+            default: add_products<T, 4, kHoles>(y, w, x, m); break;
+          }
+        }
+      }
+    }
+    reciprocal(den, n);
+    for (int64_t c = 0; c < C; ++c) {
+      T* __restrict__ y = a.y[c] + a.y_at + p + j0;
+      for (int64_t j = 0; j < n; ++j) y[j] = den[j] > 0 ? y[j] * den[j] : T(0);
+    }
   }
 }
 
@@ -534,7 +584,7 @@ void run_block(const PassArgs<T>& a, int64_t r0, int64_t r1, int64_t c0, int64_t
 // Positions [first, last) of one chain of slabs of a full pass (SlabPass; the chain and its
 // positions as a separable level's, Chunk), out of place: each pair's weights for a slab as it
 // comes (each weight once, kept for the slabs after it that read it), then the slab's sums as
-// one run of points, a NaN hole where a pair's partner wraps to another row.
+// one run of points (strip_sums), a NaN hole where a pair's partner wraps to another row.
 template <typename T>
 void run_slab_chunk(const PassArgs<T>& a, const SlabPass& pass, const Chunk<T>& ch,
                     Scratch<T>& s) {
@@ -549,7 +599,6 @@ void run_slab_chunk(const PassArgs<T>& a, const SlabPass& pass, const Chunk<T>& 
   }
   s.ring.resize(static_cast<size_t>(s.offsets[np]));
   s.dist.resize(static_cast<size_t>(M));
-  s.den.resize(static_cast<size_t>(M));
   s.terms.resize(2 * np);
   const auto slab = [&](int64_t pos) { return (ch.residue + pos * st) * M; };
   const auto weights = [&](size_t k, int64_t p) {
@@ -582,9 +631,9 @@ void run_slab_chunk(const PassArgs<T>& a, const SlabPass& pass, const Chunk<T>& 
     }
     cut_row(s.terms.data(), nt, M, s);
     if (holes) {
-      run_sums<T, true>(a, slab(pos), M, static_cast<T>(pass.centre), s);
+      strip_sums<T, true>(a, slab(pos), M, static_cast<T>(pass.centre), s);
     } else {
-      run_sums<T, false>(a, slab(pos), M, static_cast<T>(pass.centre), s);
+      strip_sums<T, false>(a, slab(pos), M, static_cast<T>(pass.centre), s);
     }
   }
 }
