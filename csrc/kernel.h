@@ -180,8 +180,15 @@ void few_channel_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n
     }
     return d2;
   };
-  if (!kMasked && a.finite_sigma()) {
-    for (int64_t j = 0; j < n; ++j) w[j] = tap * exp_or_zero(std::sqrt(squared_distance(j)) * nis);
+  if (a.finite_sigma()) {
+    for (int64_t j = 0; j < n; ++j) {
+      const T e = tap * exp_or_zero(std::sqrt(squared_distance(j)) * nis);
+      if constexpr (kMasked) {
+        w[j] = (va[j] > 0) & (vb[j] > 0) ? e : T(0);
+      } else {
+        w[j] = e;
+      }
+    }
     return;
   }
   for (int64_t j = 0; j < n; ++j) {
@@ -204,14 +211,19 @@ void pair_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap
   if (a.guide_channels == 1) {
     const T* __restrict__ ga = a.guide + pa;
     const T* __restrict__ gb = a.guide + pb;
-    if (va) {
+    if (a.finite_sigma() && va) {
       for (int64_t j = 0; j < n; ++j) {
-        const T d = std::fabs(ga[j] * gs - gb[j] * gs);
-        w[j] = tap * data_weight<T, false>(d, (va[j] > 0) & (vb[j] > 0), nis, sinf);
+        const T e = tap * exp_or_zero(std::fabs(ga[j] * gs - gb[j] * gs) * nis);
+        w[j] = (va[j] > 0) & (vb[j] > 0) ? e : T(0);
       }
     } else if (a.finite_sigma()) {
       for (int64_t j = 0; j < n; ++j)
         w[j] = tap * exp_or_zero(std::fabs(ga[j] * gs - gb[j] * gs) * nis);
+    } else if (va) {
+      for (int64_t j = 0; j < n; ++j) {
+        const T d = std::fabs(ga[j] * gs - gb[j] * gs);
+        w[j] = tap * data_weight<T, false>(d, (va[j] > 0) & (vb[j] > 0), nis, sinf);
+      }
     } else {
       for (int64_t j = 0; j < n; ++j) {
         const T d = std::fabs(ga[j] * gs - gb[j] * gs);
@@ -249,7 +261,14 @@ void pair_weights(const PassArgs<T>& a, int64_t pa, int64_t pb, int64_t n, T tap
       }
     }
   }
-  if (va) {
+  if (a.finite_sigma() && va) {
+    for (int64_t j = 0; j < n; ++j) {
+      const T e = tap * exp_or_zero(std::sqrt(d2[j]) * nis);
+      w[j] = (va[j] > 0) & (vb[j] > 0) ? e : T(0);
+    }
+  } else if (a.finite_sigma()) {
+    for (int64_t j = 0; j < n; ++j) w[j] = tap * exp_or_zero(std::sqrt(d2[j]) * nis);
+  } else if (va) {
     for (int64_t j = 0; j < n; ++j)
       w[j] = tap * data_weight<T, true>(d2[j], (va[j] > 0) & (vb[j] > 0), nis, sinf);
   } else {

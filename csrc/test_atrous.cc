@@ -162,7 +162,7 @@ int main() {
   for (const auto& shape : shapes)
     for (bool separable : {true, false})
       for (double sigma : sigmas)
-        for (int64_t G : {1, 3})
+        for (int64_t G : {1, 3, 5})  // 5: the guide's distance summed in a buffer
           for (bool masked : {false, true}) {
             // Level 3 of 40 x 33 has a stride of 8: 8 chains of 5 slabs, 4 of them cut.
             // A line of 50000 points runs in blocks of columns, each with the weights before it.
