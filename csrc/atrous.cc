@@ -24,6 +24,11 @@ namespace {
 // The bytes a block's sums (its fields and normaliser) should take: within L2.
 constexpr int64_t kBlockBytes = 256 * 1024;
 
+// A 2-D grid's rows shorter than kShortRow points run kGroupPoints points of a chain's rows
+// at a time as one run (SlabLevel::group_rows); longer rows lose more to the gathering than
+// the fewer calls save.
+constexpr int64_t kShortRow = 512, kGroupPoints = 2048;
+
 const Isa kIsa = cpu_isa();
 
 // The instruction set's build of one block (kernel.h, run_block) or of one level's slabs.
@@ -163,6 +168,8 @@ std::vector<SlabLevel<T>> plan_levels(const Cascade<T>& c) {
     for (int64_t k : inner_shape) level.slab *= k;
     level.stride = int64_t{1} << i;
     level.inner = make_passes(inner_shape, i + 1, i, true);
+    if (inner_shape.size() == 1 && level.inner.size() == 1 && level.slab < kShortRow)
+      level.group_rows = std::max<int64_t>(1, kGroupPoints / level.slab);
     if (level.stride < c.shape[0] || !level.inner.empty()) levels.push_back(std::move(level));
   }
   return levels;

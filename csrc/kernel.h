@@ -62,6 +62,10 @@ struct Scratch {
   // run_chunk: two slabs of the fields, the axis-0 weights (5 slabs), the originals of the
   // last two slabs an in-place level overwrote (2 slabs of the fields)
   std::vector<T> slabs, ring, saved;
+  // run_chunk's groups of rows (SlabLevel::group_rows): their fields, results, guide and mask
+  // rows, one run of rows per channel, and the slab each row came from.
+  std::vector<T> group_x, group_y, group_guide, group_valid;
+  std::vector<int64_t> group_slabs;
   std::vector<T*> cur, other, to;  // the two slabs' channels, the output slab's
   std::vector<const T*> from;      // the input slab's channels
 };
@@ -75,6 +79,10 @@ struct SlabLevel {
   int64_t slabs = 0, slab = 0;   // n0, and the points of one slab (n1 * ... * n_{d-1})
   int64_t stride = 0;            // 2^level
   std::vector<Pass> inner;       // the passes along axes 1.., on one slab's grid
+  // A 2-D grid's slab is one row: its pass along the row runs for this many slabs of a chain
+  // at once, their rows gathered into one run (short rows: a call per row costs more than it
+  // computes); 1: slab by slab.
+  int64_t group_rows = 1;
 };
 
 // Where a level reads or writes its slabs: channel c of slab i at base[c] + i * stride[c].
@@ -733,10 +741,65 @@ void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes
   s.other.resize(static_cast<size_t>(C));
   s.from.resize(static_cast<size_t>(C));
   s.to.resize(static_cast<size_t>(C));
-  for (int64_t c = 0; c < C; ++c) {
-    s.cur[c] = s.slabs.data() + c * M;
-    s.other[c] = s.slabs.data() + (C + c) * M;
+  const int64_t group = level.group_rows, G = a.guide_channels;
+  if (group > 1) {  // a group's rows: channel c's at cur[c] (fields) and other[c] (results)
+    s.group_x.resize(static_cast<size_t>(C * group * M));
+    s.group_y.resize(static_cast<size_t>(C * group * M));
+    s.group_guide.resize(static_cast<size_t>(G * group * M));
+    s.group_valid.resize(static_cast<size_t>(a.valid ? group * M : 0));
+    s.group_slabs.clear();
   }
+  for (int64_t c = 0; c < C; ++c) {
+    s.cur[c] = group > 1 ? s.group_x.data() + c * group * M : s.slabs.data() + c * M;
+    s.other[c] = group > 1 ? s.group_y.data() + c * group * M : s.slabs.data() + (C + c) * M;
+  }
+  // Slab i's result, its channels at in[c], into `to`'s slab or the interleaved fields.
+  const auto write = [&](int64_t i, const T* const* in) {
+    if (a.interleaved) {
+      int64_t c = 0;
+      for (const auto& [field, nc] : *a.interleaved) {
+        T* out = field + i * M * nc;
+        switch (nc) {
+          case 1: std::memcpy(out, in[c], sizeof(T) * M); break;
+          case 2: interleave_channels<T, 2>(in + c, out, M); break;
+          case 3: interleave_channels<T, 3>(in + c, out, M); break;
+          case 4: interleave_channels<T, 4>(in + c, out, M); break;
+          default:
+            for (int64_t q = 0; q < nc; ++q)
+              for (int64_t j = 0; j < M; ++j) out[j * nc + q] = in[c + q][j];
+        }
+        c += nc;
+      }
+      return;
+    }
+    for (int64_t c = 0; c < C; ++c) {
+      T* y = to.at(i, static_cast<size_t>(c));
+      if (y != in[c]) std::memcpy(y, in[c], sizeof(T) * M);
+    }
+  };
+  // The group's pass along its rows as one run, then each row's result to its slab. Writing
+  // late is safe in place: a slab's original is read only by the slabs after it, from `saved`.
+  std::vector<const T*> row(static_cast<size_t>(C));
+  const auto run_group = [&] {
+    const auto rows = static_cast<int64_t>(s.group_slabs.size());
+    Pass pass = level.inner[0];
+    pass.row_shape = {rows};
+    PassArgs<T> b = a;
+    b.x = s.cur.data();
+    b.x_at = 0;
+    b.y = s.other.data();
+    b.y_at = 0;
+    b.guide = s.group_guide.data();
+    b.guide_stride = group * M;
+    b.valid = a.valid ? s.group_valid.data() : nullptr;
+    b.pass = &pass;
+    run_block(b, 0, rows, 0, M, s);
+    for (int64_t q = 0; q < rows; ++q) {
+      for (int64_t c = 0; c < C; ++c) row[c] = s.other[c] + q * M;
+      write(s.group_slabs[q], row.data());
+    }
+    s.group_slabs.clear();
+  };
   for (int64_t pos = ch.first; pos < ch.last; ++pos) {
     const int64_t i = slab(pos);
     for (int64_t c = 0; c < C; ++c) {
@@ -744,6 +807,7 @@ void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes
       s.to[c] = to.at(i, static_cast<size_t>(c));
     }
     const T* const* in = s.from.data();
+    const auto slot = static_cast<int64_t>(s.group_slabs.size());  // the row in the group
     if (axis0) {
       compute(1, pos);
       compute(2, pos);
@@ -773,7 +837,7 @@ void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes
       for (int64_t c = 0; c < C; ++c) {
         const T* x[4];
         for (int k = 0; k < nt; ++k) x[k] = original(partner[k], pos, c);
-        T* y = s.cur[c];
+        T* y = s.cur[c] + (group > 1 ? slot * M : 0);
         switch (nt) {
           case 0: fused_channel<T, 0>(y, s.from[c], h0, w, x, den, M); break;
           case 1: fused_channel<T, 1>(y, s.from[c], h0, w, x, den, M); break;
@@ -787,6 +851,18 @@ void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes
           std::memcpy(s.saved.data() + ((pos % 2) * C + c) * M, s.from[c], sizeof(T) * M);
       }
       in = s.cur.data();
+    }
+    if (group > 1) {  // the slab's fields, guide and mask as the group's next row
+      for (int64_t c = 0; c < C && !axis0; ++c)
+        std::memcpy(s.cur[c] + slot * M, s.from[c], sizeof(T) * M);
+      for (int64_t c = 0; c < G; ++c)
+        std::memcpy(s.group_guide.data() + (c * group + slot) * M,
+                    a.guide + c * a.guide_stride + i * M, sizeof(T) * M);
+      if (a.valid)
+        std::memcpy(s.group_valid.data() + slot * M, a.valid + i * M, sizeof(T) * M);
+      s.group_slabs.push_back(i);
+      if (slot + 1 == group || pos + 1 == ch.last) run_group();
+      continue;
     }
     for (size_t k = 0; k < level.inner.size(); ++k) {
       // The last pass writes the output slab itself, unless it reads it (no axis-0 pass and
@@ -804,25 +880,7 @@ void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes
       run_block(b, 0, level.inner[k].rows(), 0, level.inner[k].row_length, s);
       in = next;
     }
-    if (a.interleaved) {  // the slab's result into the fields, channels interleaved
-      int64_t c = 0;
-      for (const auto& [field, nc] : *a.interleaved) {
-        T* out = field + i * M * nc;
-        switch (nc) {
-          case 1: std::memcpy(out, in[c], sizeof(T) * M); break;
-          case 2: interleave_channels<T, 2>(in + c, out, M); break;
-          case 3: interleave_channels<T, 3>(in + c, out, M); break;
-          case 4: interleave_channels<T, 4>(in + c, out, M); break;
-          default:
-            for (int64_t k = 0; k < nc; ++k)
-              for (int64_t j = 0; j < M; ++j) out[j * nc + k] = in[c + k][j];
-        }
-        c += nc;
-      }
-    } else if (in != s.to.data()) {
-      for (int64_t c = 0; c < C; ++c)
-        if (s.to[c] != in[c]) std::memcpy(s.to[c], in[c], sizeof(T) * M);
-    }
+    if (in != s.to.data()) write(i, in);  // the slab's result into the fields
   }
 }
 

@@ -155,7 +155,7 @@ int check(std::vector<int64_t> shape, int64_t C, int64_t G, double sigma, int le
 int main() {
   int failures = 0, cases = 0;
   const std::vector<std::vector<int64_t>> shapes = {{37}, {9, 13}, {40, 33}, {5, 7, 6}, {11, 9, 10},
-                                                     {3, 17}, {23, 4, 3}, {4, 5, 3, 6},
+                                                     {3, 17}, {300, 7}, {23, 4, 3}, {4, 5, 3, 6},
                                                      {50000}};
   const double sigmas[] = {0.0, 0.3, 2.0, std::numeric_limits<double>::infinity()};
   unsigned seed = 0;
@@ -166,8 +166,9 @@ int main() {
           for (bool masked : {false, true}) {
             // Level 3 of 40 x 33 has a stride of 8: 8 chains of 5 slabs, 4 of them cut.
             // A line of 50000 points runs in blocks of columns, each with the weights before it.
+            // 300 rows of 7 points run in groups of 292 rows, the last group of each piece short.
             const int levels = shape.size() == 3   ? (shape[0] == 23 ? 4 : 2)
-                               : shape[0] == 40    ? 4
+                               : shape[0] == 40 || shape[0] == 300 ? 4
                                : shape[0] == 50000 ? 7
                                                    : 3;
             const int threads = 1 + (seed % 5);
