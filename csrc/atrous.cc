@@ -332,11 +332,11 @@ void run_levels(const Cascade<T>& c, const PassArgs<T>& args, int threads, int64
   }
 }
 
-// A cascade on a 1-D grid: one step per pass, each cut into blocks, alternating between the
-// output and the working copy so that the last step writes the output.
-template <typename T>
-void run_passes(const Cascade<T>& c, const PassArgs<T>& args, const std::vector<Pass>& passes,
-                int threads, int64_t points) {
+// Steps 0 .. n-1 of a cascade run out of place, step i as step(i, a) with a.x and a.y set:
+// alternating between the output and the working copy, so that the last step writes the output.
+template <typename T, typename F>
+void alternate(const Cascade<T>& c, const PassArgs<T>& args, size_t n, int64_t points,
+               const F& step) {
   std::vector<const T*> in_ch(static_cast<size_t>(c.channels));
   std::vector<T*> work_ch(in_ch.size()), out_ch(in_ch.size());
   for (int64_t ch = 0; ch < c.channels; ++ch) {
@@ -344,18 +344,26 @@ void run_passes(const Cascade<T>& c, const PassArgs<T>& args, const std::vector<
     work_ch[ch] = c.work + ch * points;
     out_ch[ch] = c.out + ch * points;
   }
-  const size_t ns = passes.size();
-  for (size_t i = 0; i < ns; ++i) {
+  for (size_t i = 0; i < n; ++i) {
     PassArgs<T> a = args;
-    const bool to_out = (ns - 1 - i) % 2 == 0;
+    const bool to_out = (n - 1 - i) % 2 == 0;
     a.y = to_out ? out_ch.data() : work_ch.data();
     a.x = i == 0 ? in_ch.data() : to_out ? work_ch.data() : out_ch.data();
+    step(i, a);
+  }
+}
+
+// A cascade on a 1-D grid: one step per pass, each cut into blocks.
+template <typename T>
+void run_passes(const Cascade<T>& c, const PassArgs<T>& args, const std::vector<Pass>& passes,
+                int threads, int64_t points) {
+  alternate(c, args, passes.size(), points, [&](size_t i, PassArgs<T>& a) {
     a.pass = &passes[i];
     const std::vector<Block> blocks = cut_blocks<T>(passes[i], c.channels);
     parallel(c, threads, blocks.size(), [&](size_t k, Scratch<T>& scratch) {
       block(a, blocks[k].r0, blocks[k].r1, blocks[k].c0, blocks[k].c1, scratch);
     });
-  }
+  });
 }
 
 // The chains of a full pass's slabs, each whole, or cut in pieces where there are more threads
@@ -373,29 +381,16 @@ std::vector<Chunk<T>> plan_slab_chunks(const SlabPass& pass, int threads) {
   return chunks;
 }
 
-// A full cascade on a grid of rank >= 2: one pass per level, slab by slab, alternating between
-// the output and the working copy so that the last pass writes the output.
+// A full cascade on a grid of rank >= 2: one step per level, slab by slab.
 template <typename T>
 void run_full(const Cascade<T>& c, const PassArgs<T>& args, int threads, int64_t points) {
   const std::vector<SlabPass> passes = make_slab_passes(c.shape, c.levels, c.start);
-  std::vector<const T*> in_ch(static_cast<size_t>(c.channels));
-  std::vector<T*> work_ch(in_ch.size()), out_ch(in_ch.size());
-  for (int64_t ch = 0; ch < c.channels; ++ch) {
-    in_ch[ch] = c.x + ch * points;
-    work_ch[ch] = c.work + ch * points;
-    out_ch[ch] = c.out + ch * points;
-  }
-  const size_t ns = passes.size();
-  for (size_t i = 0; i < ns; ++i) {
-    PassArgs<T> a = args;
-    const bool to_out = (ns - 1 - i) % 2 == 0;
-    a.y = to_out ? out_ch.data() : work_ch.data();
-    a.x = i == 0 ? in_ch.data() : to_out ? work_ch.data() : out_ch.data();
+  alternate(c, args, passes.size(), points, [&](size_t i, PassArgs<T>& a) {
     const std::vector<Chunk<T>> chunks = plan_slab_chunks<T>(passes[i], threads);
     parallel(c, threads, chunks.size(), [&](size_t k, Scratch<T>& scratch) {
       full_chunk(a, passes[i], chunks[k], scratch);
     });
-  }
+  });
 }
 
 template <typename T>

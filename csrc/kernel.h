@@ -60,7 +60,8 @@ struct Scratch {
   std::vector<int64_t> first_active;   // cut k's terms: active[first_active[k], [k + 1])
   std::vector<int64_t> cut_key;        // what the cuts were made for: most rows repeat it
   // run_chunk: two slabs of the fields, the axis-0 weights (5 slabs), the originals of the
-  // last two slabs an in-place level overwrote (2 slabs of the fields)
+  // last two slabs an in-place level overwrote (2 slabs of the fields); run_slab_chunk: each
+  // pair's slots of weights in `ring`
   std::vector<T> slabs, ring, saved;
   // run_chunk's groups of rows (SlabLevel::group_rows): their fields, results, guide and mask
   // rows, one run of rows per channel, and the slab each row came from.

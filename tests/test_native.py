@@ -204,12 +204,21 @@ def test_a_long_line_runs_in_blocks_as_the_plain_kernel(monkeypatch):
     jax.clear_caches()
 
 
-def test_thread_count_does_not_change_the_result(monkeypatch):
+# Separable 2-D; full 3-D (chains of slabs, level 0's cut in pieces, each recomputing the
+# weights before it); a 2-D grid of short rows (run in groups of rows). Each holds at least
+# 2^15 point-channels, below which a call runs on one thread (csrc/atrous.h).
+@pytest.mark.parametrize(
+    "shape, separable",
+    [((128, 96, 3), True), ((40, 24, 20, 2), False), ((2400, 7, 2), True)],
+    ids=["2d", "full-3d", "short-rows"],
+)
+def test_thread_count_does_not_change_the_result(shape, separable, monkeypatch):
     # Each block's sums run in the same order whatever thread takes it: bit-equal outputs.
     # The count is read when a program is traced: each is traced afresh, and says its count.
     rng = np.random.default_rng(3)
-    x = jnp.asarray(rng.normal(size=(96, 80, 3)), jnp.float32)
-    g = jnp.asarray(rng.random((96, 80)), jnp.float32)
+    x = jnp.asarray(rng.normal(size=shape), jnp.float32)
+    g = jnp.asarray(rng.random(shape[:-1]), jnp.float32)
+    axes = tuple(range(len(shape) - 1))
     outs = []
     for n in ("1", "3"):
         monkeypatch.setenv(native.THREADS_ENV, n)
@@ -217,7 +226,13 @@ def test_thread_count_does_not_change_the_result(monkeypatch):
         jax.clear_caches()
         f = jax.jit(
             lambda x, g: atrous_bilateral(
-                x, g, sigma_d=0.2, levels=4, spatial_axes=(0, 1), kernel="native"
+                x,
+                g,
+                sigma_d=0.2,
+                levels=4,
+                spatial_axes=axes,
+                separable=separable,
+                kernel="native",
             )
         )
         assert f"threads = {n} : i64" in f.lower(x, g).as_text()
