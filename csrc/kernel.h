@@ -336,6 +336,37 @@ void add_products(T* __restrict__ o, const T* const* w, const T* const* x, int64
   }
 }
 
+// add_weights / add_products for g (1-4) terms, g known only at run time.
+template <typename T, bool kHoles = false>
+void add_weight_terms(T* o, const T* const* w, size_t g, int64_t n) {
+  switch (g) {
+    case 1: return add_weights<T, 1, kHoles>(o, w, n);
+    case 2: return add_weights<T, 2, kHoles>(o, w, n);
+    case 3: return add_weights<T, 3, kHoles>(o, w, n);
+    default: return add_weights<T, 4, kHoles>(o, w, n);
+  }
+}
+
+template <typename T, bool kHoles = false>
+void add_product_terms(T* o, const T* const* w, const T* const* x, size_t g, int64_t n) {
+  switch (g) {
+    case 1: return add_products<T, 1, kHoles>(o, w, x, n);
+    case 2: return add_products<T, 2, kHoles>(o, w, x, n);
+    case 3: return add_products<T, 3, kHoles>(o, w, x, n);
+    default: return add_products<T, 4, kHoles>(o, w, x, n);
+  }
+}
+
+// den[j] = h0 valid[j] (h0 where every point is valid): the centre's term of the normaliser.
+template <typename T>
+void start_normaliser(T* __restrict__ den, const T* __restrict__ valid, T h0, int64_t n) {
+  if (valid) {
+    for (int64_t j = 0; j < n; ++j) den[j] = h0 * valid[j];
+  } else {
+    for (int64_t j = 0; j < n; ++j) den[j] = h0;
+  }
+}
+
 // o[j] = (h0 c[j] + w_0[j] x_0[j] + ...) / den, from the reciprocal inv[j]; 0 where no
 // weight reaches (as the JAX kernels' where(den > 0, ..., 0): a masked point's sum may hold
 // 0 * inf). Up to four terms, in one loop.
@@ -411,12 +442,7 @@ void add_row_weights(T* den, const Scratch<T>& s) {
     for (size_t t = first; t < last; t += 4) {
       const size_t m = last - t < 4 ? last - t : 4;
       for (size_t u = 0; u < m; ++u) w[u] = s.active[t + u]->w + (j0 - s.active[t + u]->at);
-      switch (m) {
-        case 1: add_weights<T, 1, kHoles>(den + j0, w, n); break;
-        case 2: add_weights<T, 2, kHoles>(den + j0, w, n); break;
-        case 3: add_weights<T, 3, kHoles>(den + j0, w, n); break;
-        default: add_weights<T, 4, kHoles>(den + j0, w, n); break;
-      }
+      add_weight_terms<T, kHoles>(den + j0, w, m, n);
     }
   }
 }
@@ -459,12 +485,8 @@ void channel_sums(const Scratch<T>& s, T h0, T* __restrict__ y, const T* __restr
 // and quotient in one loop. Full passes of more pairs: strip_sums.
 template <typename T, bool kHoles>
 void run_sums(const PassArgs<T>& a, int64_t p, int64_t width, T h0, Scratch<T>& s) {
-  T* __restrict__ den = s.den.data();
-  if (a.valid) {
-    for (int64_t j = 0; j < width; ++j) den[j] = h0 * a.valid[p + j];
-  } else {
-    for (int64_t j = 0; j < width; ++j) den[j] = h0;
-  }
+  T* den = s.den.data();
+  start_normaliser(den, a.valid ? a.valid + p : nullptr, h0, width);
   add_row_weights<T, kHoles>(den, s);
   reciprocal(den, width);  // one divide per point, not per channel
   for (int64_t c = 0; c < a.channels; ++c) {
@@ -488,11 +510,7 @@ void strip_sums(const PassArgs<T>& a, int64_t p, int64_t width, T h0, Scratch<T>
   size_t first_cut = 0;
   for (int64_t j0 = 0; j0 < width; j0 += kStrip) {
     const int64_t n = std::min(width - j0, kStrip);
-    if (a.valid) {
-      for (int64_t j = 0; j < n; ++j) den[j] = h0 * a.valid[p + j0 + j];
-    } else {
-      for (int64_t j = 0; j < n; ++j) den[j] = h0;
-    }
+    start_normaliser(den, a.valid ? a.valid + p + j0 : nullptr, h0, n);
     for (int64_t c = 0; c < C; ++c) {  // each channel's sums in its output's strip
       const T* __restrict__ xc = a.x[c] + a.x_at + p + j0;
       T* __restrict__ y = a.y[c] + a.y_at + p + j0;
@@ -505,23 +523,12 @@ void strip_sums(const PassArgs<T>& a, int64_t p, int64_t width, T h0, Scratch<T>
       for (auto t = static_cast<size_t>(s.first_active[k]); t < last; t += 4) {
         const size_t g = last - t < 4 ? last - t : 4;
         for (size_t u = 0; u < g; ++u) w[u] = s.active[t + u]->w + (lo - s.active[t + u]->at);
-        switch (g) {
-          case 1: add_weights<T, 1, kHoles>(den + (lo - j0), w, m); break;
-          case 2: add_weights<T, 2, kHoles>(den + (lo - j0), w, m); break;
-          case 3: add_weights<T, 3, kHoles>(den + (lo - j0), w, m); break;
-          default: add_weights<T, 4, kHoles>(den + (lo - j0), w, m); break;
-        }
+        add_weight_terms<T, kHoles>(den + (lo - j0), w, g, m);
         for (int64_t c = 0; c < C; ++c) {
           const T* xc = a.x[c] + a.x_at;
           for (size_t u = 0; u < g; ++u)
             x[u] = xc + s.active[t + u]->from + (lo - s.active[t + u]->at);
-          T* y = a.y[c] + a.y_at + p + lo;
-          switch (g) {
-            case 1: add_products<T, 1, kHoles>(y, w, x, m); break;
-            case 2: add_products<T, 2, kHoles>(y, w, x, m); break;
-            case 3: add_products<T, 3, kHoles>(y, w, x, m); break;
-            default: add_products<T, 4, kHoles>(y, w, x, m); break;
-          }
+          add_product_terms<T, kHoles>(a.y[c] + a.y_at + p + lo, w, x, g, m);
         }
       }
     }
@@ -820,20 +827,9 @@ void run_chunk(const PassArgs<T>& a, const SlabLevel<T>& level, const SlabPlanes
         if (pos + d < len) w[nt] = weights_of(d, pos), partner[nt++] = pos + d;
         if (pos - d >= 0) w[nt] = weights_of(d, pos - d), partner[nt++] = pos - d;
       }
-      T* __restrict__ den = s.den.data();
-      const T* v = a.valid ? a.valid + i * M : nullptr;
-      if (v) {
-        for (int64_t j = 0; j < M; ++j) den[j] = h0 * v[j];
-      } else {
-        for (int64_t j = 0; j < M; ++j) den[j] = h0;
-      }
-      switch (nt) {
-        case 1: add_weights<T, 1>(den, w, M); break;
-        case 2: add_weights<T, 2>(den, w, M); break;
-        case 3: add_weights<T, 3>(den, w, M); break;
-        case 4: add_weights<T, 4>(den, w, M); break;
-        default: break;
-      }
+      T* den = s.den.data();
+      start_normaliser(den, a.valid ? a.valid + i * M : nullptr, h0, M);
+      if (nt > 0) add_weight_terms<T>(den, w, static_cast<size_t>(nt), M);
       reciprocal(den, M);
       for (int64_t c = 0; c < C; ++c) {
         const T* x[4];
