@@ -42,11 +42,47 @@ ffi::Error invalid(const std::string& message) {
   return ffi::Error(ffi::ErrorCode::kInvalidArgument, "optax_bilateral native kernel: " + message);
 }
 
+// Entry `at` of a bool or float vector operand (a scalar is a vector of one), or nothing where
+// there is none. The step's scalars come as one vector, which XLA computes in one kernel where
+// it would compute each scalar operand in a kernel of its own (numerics.one_kernel).
+std::optional<double> entry(const ffi::AnyBuffer& v, int64_t at) {
+  if (at < 0 || at >= static_cast<int64_t>(v.element_count())) return std::nullopt;
+  switch (v.element_type()) {
+    case ffi::DataType::PRED: return static_cast<const bool*>(v.untyped_data())[at] ? 1.0 : 0.0;
+    case ffi::DataType::F32: return static_cast<const float*>(v.untyped_data())[at];
+    case ffi::DataType::F64: return static_cast<const double*>(v.untyped_data())[at];
+    default: return std::nullopt;
+  }
+}
+
+// A cascade's `deeper` operand: where its entry `deeper_at` is > 0, `more` levels after the
+// call's own, all at sigma_d times `factor` (sigma_d="auto"'s heavier filter, decided by its
+// state: one call, no conditional around two). An empty operand (0,) never deepens.
+struct Deeper {
+  int64_t more = 0;
+  double factor = 1.0;
+};
+
+// The levels and sigma_d this call runs: the attributes', or deeper's where its flag says so.
+template <typename T>
+std::optional<ffi::Error> resolve_deeper(const ffi::AnyBuffer& flag, int64_t at, Deeper deeper,
+                                         int64_t& levels, T& sigma) {
+  if (deeper.more < 0 || levels + deeper.more > 62)
+    return invalid("need deeper_levels >= 0 and levels + deeper_levels <= 62");
+  if (flag.element_count() == 0) return std::nullopt;
+  const std::optional<double> on = entry(flag, at);
+  if (!on) return invalid("deeper must be a bool or float vector with an entry at deeper_at");
+  if (*on > 0) {
+    levels += deeper.more;
+    sigma = sigma * static_cast<T>(deeper.factor);  // as XLA's product of the two
+  }
+  return std::nullopt;
+}
+
 // The cascade's settings from the call's attributes, then the cascade on XLA's threads.
 template <typename T>
-ffi::Error run_on(ob::Cascade<T>& c, ffi::ThreadPool& pool, ffi::AnyBuffer sigma,
-                  int64_t levels, int64_t start, bool separable, int64_t threads) {
-  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
+ffi::Error run_on(ob::Cascade<T>& c, ffi::ThreadPool& pool, int64_t levels, int64_t start,
+                  bool separable, int64_t threads) {
   c.levels = static_cast<int>(levels);
   c.start = static_cast<int>(start);
   c.separable = separable;
@@ -59,9 +95,10 @@ ffi::Error run_on(ob::Cascade<T>& c, ffi::ThreadPool& pool, ffi::AnyBuffer sigma
 
 template <typename T>
 ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
-                     ffi::AnyBuffer sigma, ffi::AnyBuffer* out, ffi::AnyBuffer* work,
-                     int64_t levels, int64_t start, bool separable, bool has_valid,
-                     int64_t threads, ffi::ThreadPool& pool) {
+                     ffi::AnyBuffer sigma, const ffi::AnyBuffer& flag, int64_t flag_at,
+                     Deeper deeper, ffi::AnyBuffer* out, ffi::AnyBuffer* work, int64_t levels,
+                     int64_t start, bool separable, bool has_valid, int64_t threads,
+                     ffi::ThreadPool& pool) {
   const auto xd = x.dimensions(), gd = guide.dimensions();
   if (xd.size() < 2 || gd.size() != xd.size())
     return invalid("fields (C, *S) and guide (G, *S) must have the same rank >= 2");
@@ -77,6 +114,8 @@ ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer vali
                        static_cast<int64_t>(x.element_count()))
     return invalid("valid must have the spatial shape");
   if (sigma.element_count() != 1) return invalid("sigma_d must be a scalar");
+  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
+  if (auto error = resolve_deeper(flag, flag_at, deeper, levels, c.sigma_d)) return *error;
   c.x = static_cast<const T*>(x.untyped_data());
   c.guide = static_cast<const T*>(guide.untyped_data());
   c.valid = has_valid ? static_cast<const T*>(valid.untyped_data()) : nullptr;
@@ -85,13 +124,15 @@ ffi::Error run_typed(ffi::AnyBuffer x, ffi::AnyBuffer guide, ffi::AnyBuffer vali
   if (work->element_count() != x.element_count() &&
       ob::needs_working_copy(c.shape, static_cast<int>(levels), static_cast<int>(start), separable))
     return invalid("this cascade needs a working copy of the fields' size");
-  return run_on(c, pool, sigma, levels, start, separable, threads);
+  return run_on(c, pool, levels, start, separable, threads);
 }
 
 ffi::Error atrous(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer guide,
-                  ffi::AnyBuffer valid, ffi::AnyBuffer sigma, ffi::Result<ffi::AnyBuffer> out,
-                  ffi::Result<ffi::AnyBuffer> work, int64_t levels, int64_t start, bool separable,
-                  bool has_valid, int64_t threads) {
+                  ffi::AnyBuffer valid, ffi::AnyBuffer sigma, ffi::AnyBuffer flag,
+                  ffi::Result<ffi::AnyBuffer> out, ffi::Result<ffi::AnyBuffer> work,
+                  int64_t levels, int64_t start, bool separable, bool has_valid, int64_t threads,
+                  int64_t deeper_at, int64_t deeper_levels, double deeper_factor) {
+  const Deeper deeper{deeper_levels, deeper_factor};
   const auto type = x.element_type();
   if (guide.element_type() != type || out->element_type() != type ||
       sigma.element_type() != type || (has_valid && valid.element_type() != type))
@@ -100,11 +141,11 @@ ffi::Error atrous(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer guide,
     return invalid("need 0 <= start <= levels <= 62");
   switch (type) {
     case ffi::DataType::F32:
-      return run_typed<float>(x, guide, valid, sigma, &*out, &*work, levels, start, separable,
-                              has_valid, threads, pool);
+      return run_typed<float>(x, guide, valid, sigma, flag, deeper_at, deeper, &*out, &*work,
+                              levels, start, separable, has_valid, threads, pool);
     case ffi::DataType::F64:
-      return run_typed<double>(x, guide, valid, sigma, &*out, &*work, levels, start, separable,
-                               has_valid, threads, pool);
+      return run_typed<double>(x, guide, valid, sigma, flag, deeper_at, deeper, &*out, &*work,
+                               levels, start, separable, has_valid, threads, pool);
     default:
       return invalid("fields must be float32 or float64");
   }
@@ -112,7 +153,8 @@ ffi::Error atrous(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer guide,
 
 template <typename T>
 ffi::Error run_fields_typed(ffi::ThreadPool& pool, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
-                            ffi::AnyBuffer sigma, ffi::RemainingArgs fields,
+                            ffi::AnyBuffer sigma, const ffi::AnyBuffer& flag,
+                            int64_t flag_at, Deeper deeper, ffi::RemainingArgs fields,
                             ffi::RemainingRets outs, int64_t levels, int64_t start,
                             bool has_valid, int64_t threads) {
   const auto gd = guide.dimensions();
@@ -140,17 +182,21 @@ ffi::Error run_fields_typed(ffi::ThreadPool& pool, ffi::AnyBuffer guide, ffi::An
   if (has_valid && static_cast<int64_t>(valid.element_count()) != points)
     return invalid("valid must have the spatial shape");
   if (sigma.element_count() != 1) return invalid("sigma_d must be a scalar");
+  c.sigma_d = *static_cast<const T*>(sigma.untyped_data());
+  if (auto error = resolve_deeper(flag, flag_at, deeper, levels, c.sigma_d)) return *error;
   c.guide = static_cast<const T*>(guide.untyped_data());
   c.valid = has_valid ? static_cast<const T*>(valid.untyped_data()) : nullptr;
-  return run_on(c, pool, sigma, levels, start, true, threads);
+  return run_on(c, pool, levels, start, true, threads);
 }
 
 // The separable cascade on fields whose channels are interleaved, (points, c_k) each:
 // their planes are taken apart inside the call, and the outputs written interleaved.
 ffi::Error atrous_fields(ffi::ThreadPool pool, ffi::AnyBuffer guide, ffi::AnyBuffer valid,
-                         ffi::AnyBuffer sigma, ffi::RemainingArgs fields,
+                         ffi::AnyBuffer sigma, ffi::AnyBuffer flag, ffi::RemainingArgs fields,
                          ffi::RemainingRets outs, int64_t levels, int64_t start,
-                         bool has_valid, int64_t threads) {
+                         bool has_valid, int64_t threads, int64_t deeper_at,
+                         int64_t deeper_levels, double deeper_factor) {
+  const Deeper deeper{deeper_levels, deeper_factor};
   if (levels < 0 || start < 0 || start > levels || levels > 62)
     return invalid("need 0 <= start <= levels <= 62");
   if (guide.dimensions().size() < 2) return invalid("guide must be (G, *S)");
@@ -159,11 +205,11 @@ ffi::Error atrous_fields(ffi::ThreadPool pool, ffi::AnyBuffer guide, ffi::AnyBuf
     return invalid("guide, valid and sigma_d must share one dtype");
   switch (guide.element_type()) {
     case ffi::DataType::F32:
-      return run_fields_typed<float>(pool, guide, valid, sigma, fields, outs, levels, start,
-                                     has_valid, threads);
+      return run_fields_typed<float>(pool, guide, valid, sigma, flag, deeper_at, deeper, fields,
+                                     outs, levels, start, has_valid, threads);
     case ffi::DataType::F64:
-      return run_fields_typed<double>(pool, guide, valid, sigma, fields, outs, levels, start,
-                                      has_valid, threads);
+      return run_fields_typed<double>(pool, guide, valid, sigma, flag, deeper_at, deeper,
+                                      fields, outs, levels, start, has_valid, threads);
     default:
       return invalid("fields must be float32 or float64");
   }
@@ -208,19 +254,6 @@ ob::Subgrid subgrid_of(const ffi::AnyBuffer& x, ffi::Span<const int64_t> axes, i
   g.axes.assign(axes.begin(), axes.end());
   g.stride = stride;
   return g;
-}
-
-// Entry `at` of a bool or float vector operand (a scalar is a vector of one), or nothing where
-// there is none. The step's scalars come as one vector, which XLA computes in one kernel where
-// it would compute each scalar operand in a kernel of its own (numerics.one_kernel).
-std::optional<double> entry(const ffi::AnyBuffer& v, int64_t at) {
-  if (at < 0 || at >= static_cast<int64_t>(v.element_count())) return std::nullopt;
-  switch (v.element_type()) {
-    case ffi::DataType::PRED: return static_cast<const bool*>(v.untyped_data())[at] ? 1.0 : 0.0;
-    case ffi::DataType::F32: return static_cast<const float*>(v.untyped_data())[at];
-    case ffi::DataType::F64: return static_cast<const double*>(v.untyped_data())[at];
-    default: return std::nullopt;
-  }
 }
 
 // A statistic's `run` flag, entry `run_at` of its operand (nonzero: true): false where the
@@ -479,25 +512,33 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrous, atrous,
                                   .Arg<ffi::AnyBuffer>()  // guide (G, *S)
                                   .Arg<ffi::AnyBuffer>()  // valid (*S), or (0,) without a mask
                                   .Arg<ffi::AnyBuffer>()  // sigma_d, a scalar
+                                  .Arg<ffi::AnyBuffer>()  // deeper's flag vector, or (0,)
                                   .Ret<ffi::AnyBuffer>()  // the filtered fields
                                   .Ret<ffi::AnyBuffer>()  // the working copy
                                   .Attr<int64_t>("levels")
                                   .Attr<int64_t>("start")
                                   .Attr<bool>("separable")
                                   .Attr<bool>("has_valid")
-                                  .Attr<int64_t>("threads"));
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int64_t>("deeper_at")
+                                  .Attr<int64_t>("deeper_levels")
+                                  .Attr<double>("deeper_factor"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrousFields, atrous_fields,
                               ffi::Ffi::Bind()
                                   .Ctx<ffi::ThreadPool>()
                                   .Arg<ffi::AnyBuffer>()  // guide (G, *S)
                                   .Arg<ffi::AnyBuffer>()  // valid (*S), or (0,)
                                   .Arg<ffi::AnyBuffer>()  // sigma_d, a scalar
+                                  .Arg<ffi::AnyBuffer>()  // deeper's flag vector, or (0,)
                                   .RemainingArgs()        // the fields, (points, c_k)
                                   .RemainingRets()        // their outputs, alike
                                   .Attr<int64_t>("levels")
                                   .Attr<int64_t>("start")
                                   .Attr<bool>("has_valid")
-                                  .Attr<int64_t>("threads"));
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int64_t>("deeper_at")
+                                  .Attr<int64_t>("deeper_levels")
+                                  .Attr<double>("deeper_factor"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLdl, ldl,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // b (n, k)

@@ -23,6 +23,7 @@ import jaxprs
 from optax_bilateral import atrous_bilateral
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter import native
+from optax_bilateral._src.filter.bilateral import Deeper
 from reference import atrous_reference
 
 # float32 sums of <= 125 taps over a few levels, in another order than the JAX kernels'.
@@ -59,6 +60,112 @@ def test_a_continued_cascade_is_the_whole_cascade_bit_for_bit(shape, axes):
     continued = run(run((m, v), levels=3), levels=5, first_level=3)
     for a, b in zip(whole, continued):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def _deeper_case(shape, axes, masked, dtype=jnp.float32):
+    rng = np.random.default_rng(5)
+    m, v = (jnp.asarray(rng.normal(size=shape), dtype) for _ in range(2))
+    spatial = tuple(shape[a] for a in axes)
+    if masked:  # a guide that cannot hold NaN: the filter's own mask
+        g = jnp.asarray(rng.integers(0, 4, size=spatial), jnp.int32)
+        mask = jnp.asarray(rng.random(spatial) > 0.2)
+    else:
+        lead = shape[: len(axes)]  # the guide's axes are the fields' (spatial_axes)
+        g = jnp.asarray(rng.normal(size=lead + (2,)), dtype).at[(1,) * len(axes)].set(jnp.nan)
+        mask = None
+    return (m, v), g, mask
+
+
+@pytest.mark.parametrize(
+    "shape, axes, separable, masked, dtype",
+    [
+        ((40, 36, 3), (0, 1), True, False, jnp.float32),  # the fields' target
+        ((40, 36, 3), (0, 1), True, True, jnp.float32),
+        ((9, 10, 2), (1, 0), True, False, jnp.float32),  # planes: axes not in order
+        ((12, 11, 2), (0, 1), False, False, jnp.float32),  # planes: full
+        ((300, 2), (0,), True, True, jnp.float64),
+    ],
+    ids=["fields", "fields-masked", "planes-reordered", "planes-full", "planes-1d-float64"],
+)
+@pytest.mark.parametrize("flag", [0.0, 1.0, jnp.nan, True])
+def test_a_deeper_cascade_is_one_call_equal_to_either_cascade_bit_for_bit(
+    shape, axes, separable, masked, dtype, flag
+):
+    # "auto"'s heavier filter on the native kernel: one call reads the stored flag (> 0: two
+    # more levels at 1.5 sigma_d) where a conditional chose between two calls.
+    from optax_bilateral._src.filter.front import atrous_bilateral_deeper
+
+    with jax_compat.enable_x64(dtype == jnp.float64):
+        fields, g, mask = _deeper_case(shape, axes, masked, dtype)
+        kw = dict(spatial_axes=axes, separable=separable, mask=mask)
+        vector = jnp.asarray([0.0, flag], jnp.bool_ if flag is True else dtype)
+        deeper = Deeper(2, 1.5, numerics.Entry(vector, 1, vector.dtype))
+        sigma = jnp.asarray(0.4, dtype)
+        got = jax.jit(
+            lambda f, g, s: atrous_bilateral_deeper(f, g, deeper, sigma_d=s, levels=3, **kw)
+        )(fields, g, sigma)
+        deep = bool(flag > 0)
+        want = atrous_bilateral(
+            fields,
+            g,
+            sigma_d=sigma * 1.5 if deep else sigma,
+            levels=5 if deep else 3,
+            kernel="native",
+            **kw,
+        )
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        hlo = (
+            jax.jit(lambda f, s: atrous_bilateral_deeper(f, g, deeper, sigma_d=s, levels=3, **kw))
+            .lower(fields, sigma)
+            .as_text()
+        )
+        assert hlo.count("optax_bilateral_atrous") == 1 and "case" not in hlo
+
+
+@pytest.mark.parametrize("flag", [0.0, 1.0])
+def test_a_deeper_cascade_takes_the_other_kernels_derivatives_and_batches(flag, monkeypatch):
+    # Its derivative is the plain kernel's in a conditional, and on the pure-JAX kernels the
+    # cascade itself is that conditional.
+    from optax_bilateral._src.filter.front import atrous_bilateral_deeper
+
+    fields, g, _ = _deeper_case((10, 9, 2), (0, 1), False)
+    deeper = Deeper(1, 2.0, numerics.Entry.of(jnp.asarray(flag, jnp.float32)))
+
+    def loss(m, g, s, kernel="native"):
+        monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", kernel)
+        out = atrous_bilateral_deeper(
+            (m, fields[1]), g, deeper, sigma_d=s, levels=2, spatial_axes=(0, 1)
+        )
+        return jnp.sum(out[0] ** 2) + jnp.sum(jnp.sin(out[1]))
+
+    args = (fields[0], jnp.nan_to_num(g), jnp.asarray(0.3))
+    try:
+        np.testing.assert_allclose(loss(*args), loss(*args, kernel="plain"), rtol=1e-5)
+        got = jax.grad(loss, argnums=(0, 1, 2))(*args)
+        want = jax.grad(functools.partial(loss, kernel="plain"), argnums=(0, 1, 2))(*args)
+        for a, b in zip(got, want):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+        assert float(jnp.abs(got[2])) > 0
+        batched = jax.vmap(lambda m: loss(m, *args[1:]))(jnp.stack([args[0], -args[0]]))
+        unbatched = [loss(s * args[0], *args[1:]) for s in (1, -1)]
+        np.testing.assert_allclose(np.asarray(batched), unbatched, rtol=1e-6)
+    finally:
+        monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
+        jax.clear_caches()
+
+
+def test_a_deeper_cascade_refuses_a_flag_it_cannot_read():
+    x = jnp.ones((2, 8, 8))
+    g = jnp.ones((1, 8, 8))
+    bad = Deeper(1, 1.5, numerics.Entry(jnp.ones((1,)), 3, jnp.float32))
+    with pytest.raises(Exception, match="deeper must be a bool or float vector"):
+        jax.block_until_ready(native.filter_planes(x, g, None, jnp.float32(0.4), 2, True, 0, bad))
+    too_deep = Deeper(61, 1.5, numerics.Entry.of(jnp.float32(1)))
+    with pytest.raises(Exception, match="levels \\+ deeper_levels <= 62"):
+        jax.block_until_ready(
+            native.filter_planes(x, g, None, jnp.float32(0.4), 2, True, 0, too_deep)
+        )
 
 
 # Shapes from a small set (each compiles a program), data drawn freely.
@@ -505,15 +612,14 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
     )
 
 
-@pytest.mark.parametrize("shape, conds", [((40, 40, 3), 1), ((12, 12, 12, 1), 0)])
-def test_the_defaults_statistics_run_without_conditionals_where_they_are_native(
-    shape, conds, monkeypatch
-):
+@pytest.mark.parametrize("shape, heavier", [((40, 40, 3), 1), ((12, 12, 12, 1), 0)])
+def test_the_defaults_run_without_conditionals_where_they_are_native(shape, heavier, monkeypatch):
     # On the native kernel "auto"'s statistics (the contrast, the correlated-noise check, the
-    # blend) run at every step and a select keeps what the step uses; one way filters and
-    # blends or not, so the update holds one conditional in 2-D (the correlated noise's more
-    # levels) and none in 3-D (no more levels there). The pure-JAX kernels keep a conditional
-    # around each statistic, whose slices would cost full-size passes at every step.
+    # blend) run at every step and a select keeps what the step uses, and the correlated
+    # noise's heavier filter (more levels in 2-D) is decided inside the filter's one call: the
+    # update holds no conditional. The pure-JAX kernels keep a conditional around each
+    # statistic, whose slices would cost full-size passes at every step, and one around the
+    # heavier filter's levels.
     import optax_bilateral as ob
 
     x = jnp.ones(shape)
@@ -524,11 +630,11 @@ def test_the_defaults_statistics_run_without_conditionals_where_they_are_native(
         jaxpr = jax.make_jaxpr(opt.update)(x, state, x).jaxpr
         return sum(e.primitive.name == "cond" for e in jaxprs.eqns(jaxpr))
 
-    assert conditionals() == conds
+    assert conditionals() == 0
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
     jax.clear_caches()
     try:
-        assert conditionals() == conds + 3
+        assert conditionals() == 3 + heavier
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
         jax.clear_caches()

@@ -532,10 +532,10 @@ def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d
     """Clean and unobserved texels take one path (a NaN guide leaves the unobserved out), so
     a fixed sigma_d's update holds one cascade of F levels per transform: no second copy in a
     branch, which would double the compile time. ``"auto"``'s postfilter holds one cascade for
-    the step, blended or not (``Auto.combine``: the blend is taken after it), plus, in
-    2-D, the correlated-noise step's one more level (a cascade of F + 1 levels in that way
-    where the native kernel runs: one call either way, and no copy of the first cascade's
-    output into the branch's); its statistics run no filter level."""
+    the step, blended or not (``Auto.combine``: the blend is taken after it), whose
+    correlated-noise way runs, in 2-D, one more level: inside the same call where the native
+    kernel runs (its ``deeper_levels``), else as a cascade continuing the first in a
+    conditional; its statistics run no filter level."""
     theta = jax.random.uniform(KEY, (64, 64, 3))  # large enough for every level's offsets
     opt = ob.bilateral_adam(0.1, sigma_d=sigma_d, levels=3, prefilter=prefilter)
     jaxpr = jax.make_jaxpr(opt.update)(_grads(0, theta), opt.init(theta), theta).jaxpr
@@ -555,25 +555,23 @@ def test_clean_and_unobserved_texels_share_one_filter_cascade(prefilter, sigma_d
         return out
 
     def levels_run(f):
-        """The levels a cascade runs: its native calls' ``levels - start``, or (pure-JAX
-        kernels) its weights' exps, F = 3 on two axes holding 8 (2 pairs per pass, shared
-        between levels) and one more level 4."""
+        """``(levels, more)``: the levels a cascade runs and those it may add: its native
+        calls' ``levels - start`` and ``deeper_levels``, or (pure-JAX kernels) its weights'
+        exps, F = 3 on two axes holding 8 (2 pairs per pass, shared between levels) and one
+        more level 4."""
         calls = [e for e in jaxprs.eqns(f) if e.primitive.name == "ffi_call"]
         if not calls:
-            return {8: 3, 4: 1}[str(f).count(" exp ")]
-        attrs = [dict(e.params["attributes"]) for e in calls]
-        return sum(int(a["levels"]) - int(a["start"]) for a in attrs)
+            return {8: 3, 4: 1}[str(f).count(" exp ")], 0
+        (a,) = [dict(e.params["attributes"]) for e in calls]
+        return int(a["levels"]) - int(a["start"]), int(a["deeper_levels"])
 
-    cascades = filters(jaxpr)
-    levels = [levels_run(f) for f in cascades]
-    native_calls = [jaxprs.eqns(f) for f in cascades]
-    native_calls = [[e for e in es if e.primitive.name == "ffi_call"] for es in native_calls]
+    runs = [levels_run(f) for f in filters(jaxpr)]
     if sigma_d == 0.1:
-        assert levels == [3] * (1 + prefilter), levels
-    elif all(len(c) == 1 for c in native_calls):  # each way one native call, F or F + 1 levels
-        assert levels == [3] * (1 + prefilter) + [4], levels
+        assert runs == [(3, 0)] * (1 + prefilter), runs
+    elif runs[-1][1]:  # native: the correlated-noise way inside the postfilter's one call
+        assert runs == [(3, 0)] * prefilter + [(3, 1)], runs
     else:  # the correlated-noise step's one more level, continuing the cascade
-        assert levels == [3] * (1 + prefilter) + [1], levels
+        assert runs == [(3, 0)] * (1 + prefilter) + [(1, 0)], runs
 
 
 # --- Interop ------------------------------------------------------------------------------

@@ -15,11 +15,13 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from typing import cast
+from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
 from jax import lax
+
+from optax_bilateral._src.numerics import Entry
 
 # B3-spline taps h[d] for d = -2..2, indexed by |d|.
 TAPS = (3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0)
@@ -28,6 +30,35 @@ TAPS = (3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0)
 Pair = tuple[tuple[int, ...], float]
 
 LOG_GUIDE_EPS = 1e-8  # log(|theta| + 1e-8), as the authors' texture runs
+
+
+class Deeper(NamedTuple):
+    """``levels`` more levels after a cascade's own, the whole cascade at sigma_d times
+    ``factor``, where ``flag`` (read as > 0) says so at run time (``sigma_d="auto"``'s heavier
+    filter for correlated noise). The native kernel decides inside its one call, where a
+    ``lax.cond`` would choose between two cascades (:meth:`cascade`), whose conditional costs
+    XLA kernels to compile."""
+
+    levels: int
+    factor: float
+    flag: Entry
+
+    @property
+    def static(self) -> tuple[int, float, int]:
+        """What a compiled program fixes: the levels, the factor and the flag's entry."""
+        return self.levels, self.factor, self.flag.at
+
+    @classmethod
+    def of(cls, static: tuple[int, float, int], vector: jax.Array) -> Deeper:
+        levels, factor, at = static
+        return cls(levels, factor, Entry(vector, at, vector.dtype))
+
+    def cascade(self, run: Callable[[Any, int], Any], sigma: Any, levels: int) -> Any:
+        """``run(sigma, levels)``, or where the flag says so
+        ``run(sigma * factor, levels + self.levels)``, in a ``lax.cond``."""
+        deep = self.flag.vector[self.flag.at] > 0
+        heavier = lambda: run(sigma * self.factor, levels + self.levels)
+        return lax.cond(deep, heavier, lambda: run(sigma, levels))
 
 
 def log_transform(x):

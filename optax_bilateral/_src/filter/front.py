@@ -13,6 +13,7 @@ the single-device ones.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -23,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from optax_bilateral._src.filter import atrous, layout, native, plain, sharded
-from optax_bilateral._src.filter.bilateral import log_transform
+from optax_bilateral._src.filter.bilateral import Deeper, log_transform
 from optax_bilateral._src.validation import check_levels, check_sigma_d, normalize_axes
 
 if TYPE_CHECKING:
@@ -59,6 +60,37 @@ class Kernel(Protocol):
         """Levels ``start .. levels - 1``: x (C, *plane), g (G, *spatial), valid (*spatial) or
         None -> (C, *spatial)."""
         ...
+
+
+@dataclasses.dataclass(frozen=True)
+class DeeperNative:
+    """The native kernel with :class:`Deeper`'s levels, decided inside its one call."""
+
+    deeper: Deeper
+
+    def plane_shape(self, spatial_shape: Sequence[int]) -> tuple[int, ...]:
+        return native.plane_shape(spatial_shape)
+
+    def filter_planes(self, x, g, valid, sigma, levels, separable, start=0):
+        return native.filter_planes(x, g, valid, sigma, levels, separable, start, self.deeper)
+
+    def filter_fields(self, fields, g, valid, sigma, levels, start=0):
+        return native.filter_fields(fields, g, valid, sigma, levels, start, self.deeper)
+
+
+@dataclasses.dataclass(frozen=True)
+class DeeperCond:
+    """Any other kernel with :class:`Deeper`'s levels: two cascades in a ``lax.cond``."""
+
+    kernel: Kernel
+    deeper: Deeper
+
+    def plane_shape(self, spatial_shape: Sequence[int]) -> tuple[int, ...]:
+        return self.kernel.plane_shape(spatial_shape)
+
+    def filter_planes(self, x, g, valid, sigma, levels, separable, start=0):
+        run = lambda s, top: self.kernel.filter_planes(x, g, valid, s, top, separable, start)
+        return self.deeper.cascade(run, sigma, levels)
 
 
 # The single-device kernels, by the name `atrous_bilateral(kernel=...)` takes.
@@ -229,6 +261,40 @@ def atrous_bilateral(
     )
 
 
+def atrous_bilateral_deeper(
+    fields: Fields,
+    guide: jax.typing.ArrayLike,
+    deeper: Deeper,
+    *,
+    sigma_d: jax.typing.ArrayLike,
+    levels: int,
+    spatial_axes: Sequence[int],
+    separable: bool = True,
+    mask: Mask | None = None,
+    guide_axes: Sequence[int] | None = None,
+) -> Fields:
+    """:func:`atrous_bilateral` (cross-guided, on one device), and where ``deeper``'s flag says
+    so ``deeper.levels`` more levels, the whole cascade at ``sigma_d * deeper.factor``: on
+    the native kernel one call that decides at run time, on the others a ``lax.cond``."""
+    check_levels(deeper.levels, "deeper.levels")
+    if isinstance(spatial_axes, list):
+        spatial_axes = tuple(spatial_axes)
+    if isinstance(guide_axes, list):
+        guide_axes = tuple(guide_axes)
+    kernel = resolve_kernel("auto")
+    run = _Run(check_levels(levels), 0, bool(separable), False, False, kernel, deeper.static)
+    return _filter_jit(
+        fields,
+        guide,
+        sigma_d,
+        mask,
+        deeper.flag.vector,
+        spatial_axes=spatial_axes,
+        guide_axes=guide_axes,
+        run=run,
+    )
+
+
 class _Arguments(NamedTuple):
     """The checked arguments: fields as a tuple, normalised axes, the spatial shape."""
 
@@ -315,16 +381,18 @@ class _Run(NamedTuple):
     self_guided: bool  # each field guides itself, every level by its own input
     log_guide: bool
     kernel: str
+    deeper: tuple[int, float, int] | None = None  # Deeper.static; its flag is traced
 
 
 @functools.partial(jax.jit, static_argnames=("spatial_axes", "guide_axes", "run"))
-def _filter_jit(fields, guide, sigma_d, mask, *, spatial_axes, guide_axes, run: _Run):
-    """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d stays
-    traced."""
+def _filter_jit(fields, guide, sigma_d, mask, flag=None, *, spatial_axes, guide_axes, run: _Run):
+    """One compiled program per (shapes, dtypes, shardings, static settings); sigma_d (and
+    ``flag``, :class:`Deeper`'s vector where ``run.deeper``) stays traced."""
     args = _checked(fields, guide, mask, spatial_axes, guide_axes)
     if 0 in args.shape:  # an empty grid: no point to filter, no neighbour to read
         return args.fields[0] if args.single else args.fields
-    if run.levels == run.start:  # only a mask to apply (the front door returns early without one)
+    if run.levels == run.start and run.deeper is None:  # only a mask to apply (the front door
+        # returns early without one)
         mask = args.mask
         assert mask is not None
         out = tuple(
@@ -339,19 +407,25 @@ def _filter_jit(fields, guide, sigma_d, mask, *, spatial_axes, guide_axes, run: 
         )
     else:
         out = _filter_route(
-            args.fields, args.field_axes, args.guide, args.guide_axes, args, sigma_d, run
+            args.fields, args.field_axes, args.guide, args.guide_axes, args, sigma_d, run, flag
         )
     return out[0] if args.single else out
 
 
-def _filter_route(fields, field_axes, guide, guide_axes, args, sigma_d, run: _Run):
+def _filter_route(fields, field_axes, guide, guide_axes, args, sigma_d, run: _Run, flag=None):
     """The single-device kernel, or the sharded one when the fields' type says so."""
     filter_blocks = functools.partial(
         _filter_blocks, field_axes=field_axes, guide_axes=guide_axes, run=run
     )
     partition = sharded.spatial_partition(fields[0], field_axes[0])
     if partition is None:
-        return filter_blocks(fields, guide, args.mask, sigma_d, KERNELS[run.kernel])
+        kernel = KERNELS[run.kernel]
+        if run.deeper is not None and flag is not None:
+            deeper = Deeper.of(run.deeper, flag)
+            kernel = DeeperNative(deeper) if kernel is native else DeeperCond(kernel, deeper)
+        return filter_blocks(fields, guide, args.mask, sigma_d, kernel)
+    if run.deeper is not None:
+        raise ValueError("a deeper cascade runs on one device; these fields are split")
     return sharded.filter_sharded(
         filter_blocks,
         partition,

@@ -33,7 +33,7 @@ import numpy as np
 
 from optax_bilateral._src import extension
 from optax_bilateral._src.filter import plain
-from optax_bilateral._src.filter.bilateral import level_passes
+from optax_bilateral._src.filter.bilateral import Deeper, level_passes
 from optax_bilateral._src.numerics import Entry
 
 TARGET = "optax_bilateral_atrous"
@@ -90,6 +90,29 @@ def plane_shape(spatial_shape: Sequence[int]) -> tuple[int, ...]:
     return tuple(spatial_shape)
 
 
+def _flag(deeper: Deeper | None, dtype) -> tuple[jax.Array, tuple[int, float, int]]:
+    """The call's ``deeper`` operand and its static part: ``(0,)`` (never) without one."""
+    if deeper is None:
+        return jnp.zeros((0,), dtype), (0, 1.0, 0)
+    return deeper.flag.vector, deeper.static
+
+
+def _pure(run, sigma, levels: int, flag: jax.Array, more: tuple[int, float, int]):
+    """The call's meaning in JAX (its derivative): ``run(sigma, levels)``, and where ``flag``
+    is not empty :class:`Deeper`'s levels where it says so."""
+    if not flag.shape[0]:
+        return run(sigma, levels)
+    return Deeper.of(more, flag).cascade(run, sigma, levels)
+
+
+class Span(NamedTuple):
+    """A call's static levels: ``start .. levels - 1``, and :class:`Deeper`'s static part."""
+
+    start: int
+    levels: int
+    more: tuple[int, float, int]
+
+
 def filter_planes(
     x: jax.Array,
     g: jax.Array,
@@ -98,17 +121,22 @@ def filter_planes(
     levels: int,
     separable: bool,
     start: int = 0,
+    deeper: Deeper | None = None,
 ) -> jax.Array:
-    """Levels ``start .. levels - 1``: x (C, *S) zero where invalid, g (G, *S), valid (*S)
-    float 0/1 or None, sigma a scalar in x's dtype. Returns (C, *S)."""
+    """Levels ``start .. levels - 1`` (and :class:`Deeper`'s where its flag says so): x (C, *S)
+    zero where invalid, g (G, *S), valid (*S) float 0/1 or None, sigma a scalar in x's
+    dtype. Returns (C, *S)."""
     _require("the native filter kernel")
     x = x.reshape(x.shape[:1] + g.shape[1:])
-    return _cascade(x, g, valid, sigma, levels, bool(separable), start)
+    flag, more = _flag(deeper, x.dtype)
+    return _cascade(x, g, valid, sigma, flag, bool(separable), Span(start, levels, more))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6))
-def _cascade(x, g, valid, sigma, levels, separable, start):
-    work = x.shape if _needs_work(g.shape[1:], levels, start, separable) else (0,)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(5, 6))
+def _cascade(x, g, valid, sigma, flag, separable, span):
+    # The working copy for the deepest cascade the call may run.
+    start, levels, more = span
+    work = x.shape if _needs_work(g.shape[1:], levels + more[0], start, separable) else (0,)
     call = jax.ffi.ffi_call(
         TARGET,
         (jax.ShapeDtypeStruct(x.shape, x.dtype), jax.ShapeDtypeStruct(work, x.dtype)),
@@ -119,13 +147,24 @@ def _cascade(x, g, valid, sigma, levels, separable, start):
         g,
         jnp.zeros((0,), x.dtype) if valid is None else valid.astype(x.dtype),
         jnp.asarray(sigma, x.dtype).reshape(()),
+        flag,
         levels=np.int64(levels),
         start=np.int64(start),
         separable=bool(separable),
         has_valid=valid is not None,
         threads=np.int64(threads()),
+        **_deeper_attributes(more),
     )
     return out
+
+
+def _deeper_attributes(more: tuple[int, float, int]) -> dict[str, Any]:
+    extra, factor, at = more
+    return {
+        "deeper_at": np.int64(at),
+        "deeper_levels": np.int64(extra),
+        "deeper_factor": np.float64(factor),
+    }
 
 
 def _needs_work(shape, levels, start, separable) -> bool:
@@ -151,21 +190,24 @@ def filter_fields(
     sigma: jax.Array,
     levels: int,
     start: int = 0,
+    deeper: Deeper | None = None,
 ) -> tuple[jax.Array, ...]:
     """The separable cascade on fields in their own layout, ``(*S, ...)`` with the spatial
     axes first (zero where invalid, in the compute dtype), with guide planes ``g`` (G, *S):
     their channels are taken apart and put back inside the call, so no planar copy of the
-    fields is made. Returns the fields' shapes."""
+    fields is made; and :class:`Deeper`'s levels where its flag says so. Returns the
+    fields' shapes."""
     _require("the native filter kernel")
-    return _fields_cascade(tuple(fields), g, valid, sigma, levels, start)
+    flag, more = _flag(deeper, g.dtype)
+    return _fields_cascade(tuple(fields), g, valid, sigma, flag, Span(start, levels, more))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5))
-def _fields_cascade(fields, g, valid, sigma, levels, start):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(5,))
+def _fields_cascade(fields, g, valid, sigma, flag, span):
     # The fields and outputs in their own shapes (the call reads each as (points, c_k) from its
     # element count): a reshape around the call would let XLA pick a layout for the outputs
     # that the code after it then copies back.
-    dtype = g.dtype
+    dtype, (start, levels, more) = g.dtype, span
     call = jax.ffi.ffi_call(
         FIELDS_TARGET,
         tuple(jax.ShapeDtypeStruct(f.shape, dtype) for f in fields),
@@ -175,38 +217,47 @@ def _fields_cascade(fields, g, valid, sigma, levels, start):
         g,
         jnp.zeros((0,), dtype) if valid is None else valid.astype(dtype),
         jnp.asarray(sigma, dtype).reshape(()),
+        flag,
         *fields,
         levels=np.int64(levels),
         start=np.int64(start),
         has_valid=valid is not None,
         threads=np.int64(threads()),
+        **_deeper_attributes(more),
     )
     return tuple(outs)
 
 
 @_fields_cascade.defjvp
-def _fields_cascade_jvp(levels, start, primals, tangents):
-    # The plain kernel's derivative, on the fields' planes.
+def _fields_cascade_jvp(span, primals, tangents):
+    # The plain kernel's derivative, on the fields' planes (the flag is not differentiated).
+    flag, (start, levels, more) = primals[4], span
+
     def pure(fields, g, valid, sigma):
         n = g.ndim - 1
         planes = [jnp.moveaxis(f.reshape(f.shape[:n] + (-1,)), -1, 0) for f in fields]
-        y = plain.filter_planes(jnp.concatenate(planes), g, valid, sigma, levels, True, start)
+        x = jnp.concatenate(planes)
+        run = lambda s, top: plain.filter_planes(x, g, valid, s, top, True, start)
+        y = _pure(run, sigma, levels, flag, more)
         out, at = [], 0
         for f, p in zip(fields, planes):
             out.append(jnp.moveaxis(y[at : at + p.shape[0]], 0, -1).reshape(f.shape))
             at += p.shape[0]
         return tuple(out)
 
-    return jax.jvp(pure, primals, tangents)
+    return jax.jvp(pure, primals[:4], tangents[:4])
 
 
 @_cascade.defjvp
-def _cascade_jvp(levels, separable, start, primals, tangents):
+def _cascade_jvp(separable, span, primals, tangents):
     # The pure-JAX kernel's derivative (and its primal, equal up to float rounding).
-    def pure(x, g, valid, sigma):
-        return plain.filter_planes(x, g, valid, sigma, levels, separable, start)
+    flag, (start, levels, more) = primals[4], span
 
-    return jax.jvp(pure, primals, tangents)
+    def pure(x, g, valid, sigma):
+        run = lambda s, top: plain.filter_planes(x, g, valid, s, top, separable, start)
+        return _pure(run, sigma, levels, flag, more)
+
+    return jax.jvp(pure, primals[:4], tangents[:4])
 
 
 def takes_subgrid(x: jax.Array) -> bool:

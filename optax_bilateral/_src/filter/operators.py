@@ -28,7 +28,8 @@ import jax.numpy as jnp
 from jax.experimental.layout import Layout, with_layout_constraint
 
 from optax_bilateral._src.filter import layout, sharded
-from optax_bilateral._src.filter.front import atrous_bilateral
+from optax_bilateral._src.filter.bilateral import Deeper
+from optax_bilateral._src.filter.front import atrous_bilateral, atrous_bilateral_deeper
 
 # A field's sigma_d: a scalar, or (a self-guided operator) a function of the field.
 Sigma = Any
@@ -88,6 +89,21 @@ class CrossGuided:
             mask=self.mask,
             guide_axes=self.guide_axes,
             first_level=first_level,
+        )
+
+    def apply_deeper(self, fields, sigma, deeper: Deeper):
+        """:meth:`apply` at the plan's F, and where ``deeper``'s flag says so its more levels
+        at its larger sigma_d, decided at run time (:func:`atrous_bilateral_deeper`)."""
+        return atrous_bilateral_deeper(
+            fields,
+            self.guide,
+            deeper,
+            sigma_d=sigma,
+            levels=self.plan.levels,
+            spatial_axes=self.plan.axes,
+            separable=self.plan.separable,
+            mask=self.mask,
+            guide_axes=self.guide_axes,
         )
 
 

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from optax_bilateral._src import numerics
-from optax_bilateral._src.filter.bilateral import log_transform
+from optax_bilateral._src.filter.bilateral import Deeper, log_transform
 from optax_bilateral._src.filter.local import (
     correlation_sums,
     every,
@@ -47,6 +47,7 @@ from optax_bilateral._src.filter.local import (
     subgrid_blend,
     texel_distance_mean,
 )
+from optax_bilateral._src.filter.operators import CrossGuided
 from optax_bilateral._src.rules.sigma import Filtered, Moments, SigmaRule, StepContext, cast_like
 from optax_bilateral._src.validation import check_integer, check_number
 
@@ -247,12 +248,11 @@ class Auto(SigmaRule):
         if ctx.decided is None:  # not prepared (a rule that delegates to this one)
             ctx = self.prepare(state, op.plan, ctx)
         decided = ctx.decided
-        heavy, learned = decided.heavy, state
+        learned = state
         if op.plan.one_operator:  # self-guided: each field's own sigma_d, never heavier
             correlated = self._check_correlation(moments, axes, state, ctx)
             learned = learned._replace(correlated=correlated)
-            sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
-        m_f, v_f = self._cascade(op, moments, sigma, heavy)
+        m_f, v_f = self._cascade(op, moments, sigma, state.correlated, decided.heavy)
         residual = update_residual(self, moments, m_f, state.residual, ctx.inv_c1, axes)
         learned = learned._replace(residual=residual)
         # The blend's statistics (at a CHECK step, the gate's check alone).
@@ -276,19 +276,22 @@ class Auto(SigmaRule):
         )
         return None, (lambda: f,)
 
-    def _cascade(self, op, moments, sigma, heavy):
+    def _cascade(self, op, moments, sigma, correlated, heavy):
         """``(B m, B v)`` at ``sigma``; where the noise is correlated (``heavy``, a traced
-        bool), :attr:`heavy_levels` more levels after the plan's F."""
+        bool: the stored ``correlated`` > 0), at ``sigma`` times :attr:`heavy_factor` and with
+        :attr:`heavy_levels` more levels after the plan's F."""
         fields = (moments.m, moments.v)
-        extra = self.heavy_levels[len(op.plan.axes) - 1] if op.plan.one_operator else 0
+        if not op.plan.one_operator:
+            return op.apply(fields, sigma)
+        extra = self.heavy_levels[len(op.plan.axes) - 1]
+        if runs_native(moments.m) and isinstance(op, CrossGuided):
+            # One native call that reads the stored flag: no conditional, no select of sigma_d.
+            deeper = Deeper(extra, self.heavy_factor, numerics.Entry.of(correlated))
+            return op.apply_deeper(fields, sigma, deeper)
+        sigma = jnp.where(heavy, sigma * self.heavy_factor, sigma)
         if not extra:
             return op.apply(fields, sigma)
         levels = op.plan.levels
-        if runs_native(moments.m):
-            # Each branch its own cascade from the moments: neither passes its input through,
-            # so XLA gives the kernel's outputs to the conditional's without copies.
-            more = lambda: op.apply(fields, sigma, levels=levels + extra)
-            return lax.cond(heavy, more, lambda: op.apply(fields, sigma))
         out = op.apply(fields, sigma)
         more = lambda: op.apply(out, sigma, levels=levels + extra, first_level=levels)
         return lax.cond(heavy, more, lambda: out)
