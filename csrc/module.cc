@@ -301,12 +301,15 @@ ffi::Error local_average(ffi::AnyBuffer x, ffi::AnyBuffer run, ffi::Result<ffi::
   }
 }
 
-// The mean distance of a's texels at the sub-grid from b's (stats.h), or their mean norm; with
-// `keep`, also a's sub-grid (what the rule keeps as the next b).
+// The mean distance of a's texels at the sub-grid from b's (stats.h), or their mean norm, times
+// `scale`; where `run` is false, entry `otherwise_at` of `otherwise` ((0,): 0) and no work (the
+// rule's choice between the two, made here rather than in a select kernel of XLA's); with
+// `keep`, also a's sub-grid (what the rule keeps as the next b; zeros where not run).
 ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffer run,
-                               ffi::Result<ffi::AnyBuffer> out, ffi::Result<ffi::AnyBuffer> kept,
-                               ffi::Span<const int64_t> axes, int64_t stride, bool has_b,
-                               int64_t run_at, bool keep) {
+                               ffi::AnyBuffer otherwise, ffi::Result<ffi::AnyBuffer> out,
+                               ffi::Result<ffi::AnyBuffer> kept, ffi::Span<const int64_t> axes,
+                               int64_t stride, bool has_b, int64_t run_at, bool keep,
+                               int64_t otherwise_at, double scale) {
   const ob::Subgrid g = subgrid_of(a, axes, stride);
   const std::string problem = ob::check_texel_grid(g);
   if (!problem.empty()) return invalid(problem);
@@ -319,19 +322,29 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffe
   if (kept->element_type() != type ||
       static_cast<int64_t>(kept->element_count()) != (keep ? ob::texel_subgrid_size(g) : 0))
     return invalid("kept must be a's sub-grid with keep, else empty, of a's dtype");
-  if (auto done = unless_run(run, run_at, {&*out, &*kept})) return *done;
+  std::optional<double> fallback = 0.0;
+  if (otherwise.element_count() != 0) fallback = entry(otherwise, otherwise_at);
+  if (!fallback) return invalid("otherwise must be a float vector with an entry at otherwise_at");
+  if (auto done = unless_run(run, run_at, {&*out, &*kept})) {
+    if (type == ffi::DataType::F32) *static_cast<float*>(out->untyped_data()) = static_cast<float>(*fallback);
+    if (type == ffi::DataType::F64) *static_cast<double*>(out->untyped_data()) = *fallback;
+    return *done;
+  }
   switch (type) {
-    case ffi::DataType::F32:
-      *static_cast<float*>(out->untyped_data()) = static_cast<float>(ob::texel_distance_mean(
-          g, static_cast<const float*>(a.untyped_data()),
-          has_b ? static_cast<const float*>(b.untyped_data()) : nullptr,
-          keep ? static_cast<float*>(kept->untyped_data()) : nullptr));
+    case ffi::DataType::F32:  // the mean as float, then the product in float, as XLA's
+      *static_cast<float*>(out->untyped_data()) =
+          static_cast<float>(ob::texel_distance_mean(
+              g, static_cast<const float*>(a.untyped_data()),
+              has_b ? static_cast<const float*>(b.untyped_data()) : nullptr,
+              keep ? static_cast<float*>(kept->untyped_data()) : nullptr)) *
+          static_cast<float>(scale);
       return ffi::Error::Success();
     case ffi::DataType::F64:
-      *static_cast<double*>(out->untyped_data()) = ob::texel_distance_mean(
-          g, static_cast<const double*>(a.untyped_data()),
-          has_b ? static_cast<const double*>(b.untyped_data()) : nullptr,
-          keep ? static_cast<double*>(kept->untyped_data()) : nullptr);
+      *static_cast<double*>(out->untyped_data()) =
+          ob::texel_distance_mean(g, static_cast<const double*>(a.untyped_data()),
+                                  has_b ? static_cast<const double*>(b.untyped_data()) : nullptr,
+                                  keep ? static_cast<double*>(kept->untyped_data()) : nullptr) *
+          scale;
       return ffi::Error::Success();
     default:
       return invalid("the texel distance takes float32 or float64");
@@ -560,13 +573,16 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralTexelDistanceMean, texel_distance_me
                                   .Arg<ffi::AnyBuffer>()  // a (*shape)
                                   .Arg<ffi::AnyBuffer>()  // b (the sub-grid's shape), or (0,)
                                   .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
+                                  .Arg<ffi::AnyBuffer>()  // otherwise: a float vector, or (0,)
                                   .Ret<ffi::AnyBuffer>()  // the mean, a scalar
                                   .Ret<ffi::AnyBuffer>()  // a's sub-grid (keep), or (0,)
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride")
                                   .Attr<bool>("has_b")
                                   .Attr<int64_t>("run_at")  // run's entry
-                                  .Attr<bool>("keep"));
+                                  .Attr<bool>("keep")
+                                  .Attr<int64_t>("otherwise_at")
+                                  .Attr<double>("scale"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // grad (*shape)

@@ -676,9 +676,10 @@ def test_texel_distance_equals_the_float64_definition(case, stride, with_b, spec
     sub = a[tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(a.ndim))]
     b = rng.normal(size=sub.shape).astype(np.float32) if with_b else None
     a_, b_ = jnp.asarray(a), None if b is None else jnp.asarray(b)
-    got = local._native_distance(a_, b_, True, axes, stride, False)
+    got = local._native_distance(a_, b_, True, None, axes, stride, False, 1.0)
     assert (
-        float(local._native_distance(a_, b_, jnp.asarray(False), axes, stride, False)) == 0
+        float(local._native_distance(a_, b_, jnp.asarray(False), None, axes, stride, False, 1.0))
+        == 0
     )  # not run
     want = _texel_distance_float64(a, b, axes, stride)
     assert got.dtype == jnp.float32 and got.shape == ()
@@ -714,6 +715,43 @@ def test_texel_distance_keeps_the_subgrid_it_read(dtype):
         np.testing.assert_array_equal(grad(a), jax.grad(lambda x: jnp.sum(x[::2]))(a))
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_texel_distance_scales_itself_or_gives_its_fallback_without_work(dtype):
+    # "auto"'s sigma_d on the native kernel: the contrast's call gives contrast_factor times
+    # the mean where the guide is at rest, else the step's scale, an entry of the vector the
+    # flag is read from (one call, no select kernel after it); bit-equal to the product and
+    # the select, and differentiable in both.
+    from optax_bilateral._src.filter import local
+
+    with jax_compat.enable_x64(dtype == jnp.float64):
+        a = jax.random.normal(jax.random.PRNGKey(4), (12, 10, 3), dtype)
+        plain_mean = local.texel_distance_mean(a, None, (0, 1), 2)
+
+        def chosen(a, at_rest, fallback):
+            at_rest, fallback = numerics.one_kernel((at_rest, fallback))
+            return local.texel_distance_mean(
+                a, None, (0, 1), 2, at_rest, otherwise=fallback, scale=1.7
+            )
+
+        f = jax.jit(chosen)
+        fallback = jnp.asarray(0.123, dtype)
+        assert f(a, True, fallback) == jnp.asarray(1.7, dtype) * plain_mean
+        assert f(a, False, fallback) == fallback
+        for at_rest in (True, False):
+            got = jax.grad(lambda a, s, r=at_rest: f(a, r, s * a[0, 0, 0]), argnums=(0, 1))(a, 2.0)
+            want = jax.grad(
+                lambda a, s, r=at_rest: jnp.where(
+                    r, 1.7 * local._distance(a, None, (0, 1), 2), s * a[0, 0, 0]
+                ),
+                argnums=(0, 1),
+            )(a, 2.0)
+            for x, y in zip(got, want):
+                np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-7)
+    with pytest.raises(Exception, match="otherwise must be a float vector"):
+        bad = numerics.Entry(jnp.zeros((1,)), 2, jnp.float32)
+        jax.block_until_ready(native.texel_distance_mean(a, None, (0, 1), 2, False, otherwise=bad))
+
+
 def test_texel_distance_differentiates_batches_and_leaves_none_out():
     from optax_bilateral._src.filter import local
 
@@ -721,7 +759,7 @@ def test_texel_distance_differentiates_batches_and_leaves_none_out():
     b = jax.random.normal(jax.random.PRNGKey(3), (6, 5, 3))
 
     def native_distance(a, b, axes, stride):
-        return local._native_distance(a, b, True, axes, stride, False)
+        return local._native_distance(a, b, True, None, axes, stride, False, 1.0)
 
     for f in (native_distance, local._distance):
         assert float(f(jnp.full((4, 4), jnp.nan), None, (0, 1), 1)) == 0.0  # every texel NaN

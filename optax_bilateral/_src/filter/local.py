@@ -97,19 +97,22 @@ def texel_distance_mean(
     stride: int,
     run: jax.Array | bool | Entry = True,
     keep: bool = False,
+    otherwise: Entry | None = None,
+    scale: float = 1.0,
 ) -> Any:
-    """The mean over the sub-grid's texels ``p`` (every ``stride``-th along the spatial ``axes``)
-    of ``||a[stride p] - b[p]||``, the norm over ``a``'s other axes (``b`` None: of
-    ``||a[stride p]||``; else ``b`` has the sub-grid's shape), texels whose norm is NaN left
-    out, 0 when none is left. ``keep``: ``(mean, every(a, axes, stride))``, the sub-grid the
-    mean read. Where the filter runs on the native kernel, one FFI call (csrc/stats.h, sums in
-    double; its derivative the slices'), not the slices' XLA kernels, which gives 0 without
-    any work where ``run`` (a traced bool) is False."""
+    """``scale`` times the mean over the sub-grid's texels ``p`` (every ``stride``-th along the
+    spatial ``axes``) of ``||a[stride p] - b[p]||``, the norm over ``a``'s other axes (``b``
+    None: of ``||a[stride p]||``; else ``b`` has the sub-grid's shape), texels whose norm is
+    NaN left out, 0 when none is left; with ``otherwise`` (an
+    :class:`~optax_bilateral._src.numerics.Entry`), its value where ``run`` is False. ``keep``:
+    ``(mean, every(a, axes, stride))``, the sub-grid the mean read. Where the filter runs on
+    the native kernel, one FFI call (csrc/stats.h, sums in double; its derivative the
+    slices'), not the slices' XLA kernels, which does no work where ``run`` (a traced bool)
+    is False: 0 (or ``otherwise``) and zeros."""
     axes = tuple(axes)
     if runs_native(a):
-        return _native_distance(a, b, Entry.flag(run), axes, stride, keep)
-    mean = _distance(a, b, axes, stride)
-    return (mean, every(a, axes, stride)) if keep else mean
+        return _native_distance(a, b, Entry.flag(run), otherwise, axes, stride, keep, scale)
+    return _slices(a, b, Entry.flag(run), otherwise, axes, stride, keep, scale)
 
 
 def _distance(a, b, axes, stride):
@@ -117,19 +120,29 @@ def _distance(a, b, axes, stride):
     return _nan_skipping_mean(texel_norm(x if b is None else x - b, axes))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5))
-def _native_distance(a, b, run, axes, stride, keep):
-    return native.texel_distance_mean(a, b, axes, stride, run, keep)
+def _slices(a, b, run, otherwise, axes, stride, keep, scale):
+    """:func:`texel_distance_mean` in XLA's slices (its derivative on the native kernel)."""
+    mean = _distance(a, b, axes, stride)
+    mean = mean if scale == 1 else scale * mean
+    mean = mean if otherwise is None else jnp.where(run.value, mean, otherwise.value)
+    return (mean, every(a, axes, stride)) if keep else mean
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6, 7))
+def _native_distance(a, b, run, otherwise, axes, stride, keep, scale):
+    return native.texel_distance_mean(a, b, axes, stride, run, keep, otherwise, scale)
 
 
 @_native_distance.defjvp
-def _native_distance_jvp(axes, stride, keep, primals, tangents):
+def _native_distance_jvp(axes, stride, keep, scale, primals, tangents):
     # The slices' derivative (and their primal, equal up to float rounding; run or not).
-    def slices(a, b):
-        mean = _distance(a, b, axes, stride)
-        return (mean, every(a, axes, stride)) if keep else mean
+    a, b, run, otherwise = primals
 
-    return jax.jvp(slices, primals[:2], tangents[:2])
+    def slices(a, b, otherwise):
+        return _slices(a, b, run, otherwise, axes, stride, keep, scale)
+
+    ta, tb, _, t_otherwise = tangents
+    return jax.jvp(slices, (a, b, otherwise), (ta, tb, t_otherwise))
 
 
 def correlation_sums(

@@ -310,11 +310,14 @@ def texel_distance_mean(
     stride: int,
     run: jax.Array | bool | Entry = True,
     keep: bool = False,
+    otherwise: Entry | None = None,
+    scale: float = 1.0,
 ) -> Any:
-    """The mean over the sub-grid's texels of ``||a[stride p] - b[p]||`` (csrc/stats.h): one FFI
-    call, sums in double; 0 without any work where ``run`` (a bool, may be traced, or an
-    :class:`~optax_bilateral._src.numerics.Entry`) is False. ``keep``: ``(mean, a's
-    sub-grid)``, the values the mean read (zeros where it does not run). Not differentiable:
+    """``scale`` times the mean over the sub-grid's texels of ``||a[stride p] - b[p]||``
+    (csrc/stats.h): one FFI call, sums in double; without any work where ``run`` (a bool, may
+    be traced, or an :class:`~optax_bilateral._src.numerics.Entry`) is False, ``otherwise``'s
+    value (default 0). ``keep``: ``(mean, a's sub-grid)``, the values the mean read (zeros
+    where it does not run). Not differentiable:
     :func:`optax_bilateral._src.filter.local.texel_distance_mean` gives it a rule."""
     _require("the native texel statistics")
     shape = [(n - 1) // stride + 1 if d in axes else n for d, n in enumerate(a.shape)]
@@ -331,11 +334,14 @@ def texel_distance_mean(
         a,
         jnp.zeros((0,), a.dtype) if b is None else b,
         run.vector,
+        jnp.zeros((0,), a.dtype) if otherwise is None else otherwise.vector,
         axes=np.asarray(axes, np.int64),
         stride=np.int64(stride),
         has_b=b is not None,
         run_at=np.int64(run.at),
         keep=keep,
+        otherwise_at=np.int64(0 if otherwise is None else otherwise.at),
+        scale=np.float64(scale),
     )
     return (mean, kept) if keep else mean
 

@@ -311,18 +311,22 @@ class Auto(SigmaRule):
 
     def _own_contrast(self, field, plan):
         guide = log_transform(field) if plan.log_guide else field
-        return self.contrast_factor * self._contrast(guide, plan.axes)
+        return self._contrast(guide, plan.axes)
 
-    def _contrast(self, guide, axes, run: jax.Array | bool = True):
-        """The guide's mean distance from its local average (one low-pass level of the
-        filter): the scale of its texel-to-texel variation; over the sub-grid of a large leaf
-        (:meth:`_stride`; the local averages computed there only, so a large leaf's first
-        step holds no full-size temporaries)."""
+    def _contrast(self, guide, axes, run: jax.Array | bool | numerics.Entry = True, otherwise=None):
+        """:attr:`contrast_factor` times the guide's mean distance from its local average (one
+        low-pass level of the filter): the scale of its texel-to-texel variation; over the
+        sub-grid of a large leaf (:meth:`_stride`; the local averages computed there only, so
+        a large leaf's first step holds no full-size temporaries). With ``otherwise`` (an
+        :class:`~optax_bilateral._src.numerics.Entry`, native only): its value where ``run``
+        is False."""
         guide = guide.astype(jnp.promote_types(guide.dtype, jnp.float32))
         axes = _guide_axes(guide, axes)
         stride = self._stride(guide.shape, axes)
         (local,) = local_average_subgrid((guide,), axes, stride, nan_to_num=True, run=run)
-        return texel_distance_mean(guide, local, axes, stride, run)
+        return texel_distance_mean(
+            guide, local, axes, stride, run, otherwise=otherwise, scale=self.contrast_factor
+        )
 
     def _check_correlation(self, moments, axes, state, ctx):
         """The new :attr:`AutoState.correlated`: :meth:`_correlated_noise` where it is due
@@ -379,11 +383,11 @@ class Auto(SigmaRule):
             rate = step / jnp.where(direction > 0, direction, 1).astype(step.dtype)
             scale = self.rate_factor * math.sqrt(channels) * rate
             at_rest = at_rest | ~(direction > 0)
-        contrast = lambda: self.contrast_factor * self._contrast(guide, axes, run=at_rest)
-        sigma = _either(
-            at_rest, lambda: contrast().astype(step.dtype), lambda: scale, both=runs_native(guide)
-        )
-        return sigma, kept
+        if runs_native(guide):  # the contrast's native call chooses: no select kernel after it
+            at_rest, scale = numerics.one_kernel((at_rest, scale))
+            return self._contrast(guide, axes, run=at_rest, otherwise=scale), kept
+        contrast = lambda: self._contrast(guide, axes).astype(step.dtype)
+        return lax.cond(at_rest, contrast, lambda: scale), kept
 
     def _correlated_noise(self, moments, axes, ctx, run: numerics.Entry) -> jax.Array:
         """Whether the leaf's gradient noise is spatially correlated: the lag-1 correlation
