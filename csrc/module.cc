@@ -373,28 +373,37 @@ void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
   ob::correlation_sums(g, pairs, noise, sums);
 }
 
-// The correlated-noise check's sums (stats.h), (3 pairs + 2) of grad's dtype, of
-// z = clip(grad, -limit, limit) - m / c1 and y = m / c1 where observed (a bool mask,
-// broadcast), else 0.
-ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
-                            ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
-                            ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
-                            int64_t stride, double limit, int64_t c1_at, int64_t run_at) {
+// The correlated-noise check's operands, checked: the sub-grid, the pair axes and c1.
+struct NoiseCall {
+  ob::Subgrid grid;
+  std::vector<int64_t> pairs;
+  double c1 = 1;
+};
+
+std::optional<ffi::Error> check_noise_call(const ffi::AnyBuffer& grad, const ffi::AnyBuffer& m,
+                                           const ffi::AnyBuffer& observed,
+                                           const ffi::AnyBuffer& c1, ffi::Span<const int64_t> axes,
+                                           ffi::Span<const int64_t> pair_axes, int64_t stride,
+                                           double limit, int64_t c1_at, NoiseCall& call) {
   if (!(limit > 0)) return invalid("limit must be > 0 (inf: no clip)");
-  const ob::Subgrid g = subgrid_of(grad, axes, stride);
+  call.grid = subgrid_of(grad, axes, stride);
+  const ob::Subgrid& g = call.grid;
   const std::string problem = ob::check_texel_grid(g);
   if (!problem.empty()) return invalid(problem);
-  std::vector<int64_t> pairs(pair_axes.begin(), pair_axes.end());
+  std::vector<int64_t>& pairs = call.pairs;
+  pairs.assign(pair_axes.begin(), pair_axes.end());
   for (size_t k = 0; k < pairs.size(); ++k) {
     if (std::find(g.axes.begin(), g.axes.end(), pairs[k]) == g.axes.end() ||
         std::find(pairs.begin(), pairs.begin() + static_cast<std::ptrdiff_t>(k), pairs[k]) !=
             pairs.begin() + static_cast<std::ptrdiff_t>(k))
       return invalid("each pair axis must be a spatial axis, named once");
   }
-  const auto type = grad.element_type();
   const auto dims = grad.dimensions(), md = m.dimensions();
-  if (m.element_type() != type || !std::equal(dims.begin(), dims.end(), md.begin(), md.end()))
+  if (m.element_type() != grad.element_type() ||
+      !std::equal(dims.begin(), dims.end(), md.begin(), md.end()))
     return invalid("grad and m must share their shape and dtype");
+  if (grad.element_type() != ffi::DataType::F32 && grad.element_type() != ffi::DataType::F64)
+    return invalid("the correlation sums take float32 or float64");
   if (observed.element_type() != ffi::DataType::PRED)
     return invalid("observed must be a bool mask");
   const auto od = observed.dimensions();
@@ -404,25 +413,84 @@ ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
   const std::optional<double> c = entry(c1, c1_at);
   if (!c || c1.element_type() == ffi::DataType::PRED)
     return invalid("c1 must be a float vector with an entry at c1_at");
-  if (out->element_type() != type || out->element_count() != 3 * pairs.size() + 2)
+  call.c1 = *c;
+  return std::nullopt;
+}
+
+// The sums (stats.h) in double, (3 pairs + 2), each rounded to grad's dtype T as the sums'
+// output holds it.
+template <typename T>
+std::vector<double> noise_sums(const NoiseCall& call, const ffi::AnyBuffer& grad,
+                               const ffi::AnyBuffer& m, const ffi::AnyBuffer& observed,
+                               double limit) {
+  std::vector<double> sums(3 * call.pairs.size() + 2);
+  correlation_typed<T>(call.grid, call.pairs, grad, m, observed, static_cast<T>(call.c1), limit,
+                       sums.data());
+  for (double& x : sums) x = static_cast<T>(x);
+  return sums;
+}
+
+// The correlated-noise check's sums (stats.h), (3 pairs + 2) of grad's dtype, of
+// z = clip(grad, -limit, limit) - m / c1 and y = m / c1 where observed (a bool mask,
+// broadcast), else 0.
+ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
+                            ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
+                            ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
+                            int64_t stride, double limit, int64_t c1_at, int64_t run_at) {
+  NoiseCall call;
+  if (auto error = check_noise_call(grad, m, observed, c1, axes, pair_axes, stride, limit, c1_at,
+                                    call))
+    return *error;
+  const auto type = grad.element_type();
+  if (out->element_type() != type || out->element_count() != 3 * call.pairs.size() + 2)
     return invalid("the sums are (3 pair axes + 2) of grad's dtype");
   if (auto done = unless_run(run, run_at, {&*out})) return *done;
-  std::vector<double> sums(3 * pairs.size() + 2);
-  switch (type) {
-    case ffi::DataType::F32: {
-      correlation_typed<float>(g, pairs, grad, m, observed, static_cast<float>(*c), limit,
-                               sums.data());
-      auto* o = static_cast<float*>(out->untyped_data());
-      for (size_t k = 0; k < sums.size(); ++k) o[k] = static_cast<float>(sums[k]);
-      return ffi::Error::Success();
-    }
-    case ffi::DataType::F64:
-      correlation_typed<double>(g, pairs, grad, m, observed, *c, limit, sums.data());
-      std::copy(sums.begin(), sums.end(), static_cast<double*>(out->untyped_data()));
-      return ffi::Error::Success();
-    default:
-      return invalid("the correlation sums take float32 or float64");
+  if (type == ffi::DataType::F32) {
+    const std::vector<double> sums = noise_sums<float>(call, grad, m, observed, limit);
+    std::copy(sums.begin(), sums.end(), static_cast<float*>(out->untyped_data()));
+  } else {
+    const std::vector<double> sums = noise_sums<double>(call, grad, m, observed, limit);
+    std::copy(sums.begin(), sums.end(), static_cast<double*>(out->untyped_data()));
   }
+  return ffi::Error::Success();
+}
+
+// The test's answer (noise_test) where `run` says it is due, else entry `stored_at` of
+// `stored` (the answer kept from the last check): one call where XLA would compute the answer
+// and the choice in a kernel of their own. `lag` is entry lag_at of c1's vector.
+ffi::Error correlated_noise(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
+                            ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::AnyBuffer stored,
+                            ffi::Result<ffi::AnyBuffer> out, ffi::Span<const int64_t> axes,
+                            ffi::Span<const int64_t> pair_axes, int64_t stride, double limit,
+                            int64_t c1_at, int64_t run_at, int64_t lag_at, int64_t stored_at,
+                            double correlated, double noisy) {
+  NoiseCall call;
+  if (auto error = check_noise_call(grad, m, observed, c1, axes, pair_axes, stride, limit, c1_at,
+                                    call))
+    return *error;
+  const auto type = grad.element_type();
+  if (out->element_type() != type || out->element_count() != 1)
+    return invalid("the answer is a scalar of grad's dtype");
+  if (call.pairs.empty()) return invalid("the test needs at least one pair axis");
+  const std::optional<double> lag = entry(c1, lag_at);
+  const std::optional<double> kept = entry(stored, stored_at);
+  if (!lag || !kept) return invalid("lag and stored must be float vectors with their entries");
+  if (auto done = unless_run(run, run_at, {&*out})) {
+    if (type == ffi::DataType::F32) *static_cast<float*>(out->untyped_data()) = static_cast<float>(*kept);
+    if (type == ffi::DataType::F64) *static_cast<double*>(out->untyped_data()) = *kept;
+    return *done;
+  }
+  if (type == ffi::DataType::F32) {
+    const std::vector<double> sums = noise_sums<float>(call, grad, m, observed, limit);
+    *static_cast<float*>(out->untyped_data()) =
+        ob::noise_test<float>(sums.data(), call.pairs.size(), static_cast<float>(*lag),
+                              correlated, noisy);
+  } else {
+    const std::vector<double> sums = noise_sums<double>(call, grad, m, observed, limit);
+    *static_cast<double*>(out->untyped_data()) =
+        ob::noise_test<double>(sums.data(), call.pairs.size(), *lag, correlated, noisy);
+  }
+  return ffi::Error::Success();
 }
 
 // sigma_d="auto"'s blend at the sub-grid (stats.h): lam gate (the sub-grid's shape) and gate.
@@ -597,6 +665,25 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                                   .Attr<double>("limit")  // |grad| clipped to it
                                   .Attr<int64_t>("c1_at")  // c1's entry
                                   .Attr<int64_t>("run_at"));  // run's entry
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelatedNoise, correlated_noise,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // grad (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // m (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
+                                  .Arg<ffi::AnyBuffer>()  // c1 and lag: a float vector
+                                  .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
+                                  .Arg<ffi::AnyBuffer>()  // stored: a float vector
+                                  .Ret<ffi::AnyBuffer>()  // the answer, a scalar
+                                  .Attr<ffi::Span<const int64_t>>("axes")
+                                  .Attr<ffi::Span<const int64_t>>("pair_axes")
+                                  .Attr<int64_t>("stride")
+                                  .Attr<double>("limit")
+                                  .Attr<int64_t>("c1_at")
+                                  .Attr<int64_t>("run_at")
+                                  .Attr<int64_t>("lag_at")
+                                  .Attr<int64_t>("stored_at")
+                                  .Attr<double>("correlated")
+                                  .Attr<double>("noisy"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // m (*shape)
@@ -631,6 +718,7 @@ PyObject* registrations(PyObject*, PyObject*) {
       {"optax_bilateral_texel_distance_mean",
        reinterpret_cast<void*>(&OptaxBilateralTexelDistanceMean)},
       {"optax_bilateral_correlation_sums", reinterpret_cast<void*>(&OptaxBilateralCorrelationSums)},
+      {"optax_bilateral_correlated_noise", reinterpret_cast<void*>(&OptaxBilateralCorrelatedNoise)},
       {"optax_bilateral_blend_weights", reinterpret_cast<void*>(&OptaxBilateralBlendWeights)},
       {"optax_bilateral_count_nonfinite", reinterpret_cast<void*>(&OptaxBilateralCountNonfinite)},
   };

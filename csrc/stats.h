@@ -22,6 +22,7 @@
 // are accumulated in double in index order: deterministic, and finite wherever the norms are.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <string>
@@ -81,5 +82,24 @@ void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes,
                       const Noise<float>& noise, double* out);
 void correlation_sums(const Subgrid& g, const std::vector<int64_t>& pair_axes,
                       const Noise<double>& noise, double* out);
+
+// sigma_d="auto"'s correlated-noise test from correlation_sums' sums (each already rounded to
+// T), in T's arithmetic in the order XLA evaluates its JAX form (rules/auto.py,
+// _correlated_noise): the lag-1 correlations' mean (times 1 / n: XLA divides by a constant so)
+// at least `correlated`, and the noise's energy above noisy lag^2 times the signal's. 1 or 0.
+template <typename T>
+T noise_test(const double* sums, size_t pairs, T lag, double correlated, double noisy) {
+  T total = 0;
+  for (size_t k = 0; k < pairs; ++k) {
+    const T s00 = static_cast<T>(sums[3 * k]), s11 = static_cast<T>(sums[3 * k + 1]);
+    const T den = std::sqrt(s00 * s11);
+    total = total + (den > 0 ? static_cast<T>(sums[3 * k + 2]) / den : T(0));
+  }
+  const T mean = total * (T(1) / static_cast<T>(pairs));
+  const T noise = static_cast<T>(sums[3 * pairs]), signal = static_cast<T>(sums[3 * pairs + 1]);
+  const bool correlated_now = mean >= static_cast<T>(correlated);
+  const bool noisy_now = noise > static_cast<T>(noisy) * lag * lag * signal;
+  return correlated_now && noisy_now ? T(1) : T(0);
+}
 
 }  // namespace optax_bilateral

@@ -145,6 +145,37 @@ std::vector<double> correlation_reference(const ob::Subgrid& g, const std::vecto
   return out;
 }
 
+// noise_test at the edges of its thresholds: the lags' mean correlation, written out here in T
+// in the test's order, passes at itself and fails at the next T above it; the noise's energy
+// likewise against noisy lag^2 times the signal's (noisy chosen to land on it).
+template <typename T>
+void check_noise_test(std::vector<double> sums, size_t pairs, T lag) {
+  for (double& x : sums) x = static_cast<T>(x);
+  T total = 0;
+  for (size_t k = 0; k < pairs; ++k) {
+    const T den = std::sqrt(static_cast<T>(sums[3 * k]) * static_cast<T>(sums[3 * k + 1]));
+    total = total + (den > 0 ? static_cast<T>(sums[3 * k + 2]) / den : T(0));
+  }
+  const T mean = total * (T(1) / static_cast<T>(pairs));
+  const T noise = static_cast<T>(sums[3 * pairs]), signal = static_cast<T>(sums[3 * pairs + 1]);
+  const T above = std::nextafter(mean, std::numeric_limits<T>::infinity());
+  const bool quiet = !(noise > T(0) * lag * lag * signal);  // an all-zero z (nothing observed)
+  const T at_mean = ob::noise_test<T>(sums.data(), pairs, lag, mean, 0.0);
+  const T past_mean = ob::noise_test<T>(sums.data(), pairs, lag, above, 0.0);
+  ++cases;
+  if ((at_mean != (quiet ? T(0) : T(1)) || past_mean != T(0)) && failures++ < 10)
+    std::printf("FAIL noise test at its mean %.9g: %g, above it: %g\n", double(mean),
+                double(at_mean), double(past_mean));
+  if (!(signal > 0) || quiet) return;
+  const T ratio = noise / (lag * lag * signal);  // noise > noisy lag^2 signal iff noisy < ratio
+  const T below = std::nextafter(ratio, T(0));
+  const bool pass = noise > below * lag * lag * signal;
+  ++cases;
+  if (ob::noise_test<T>(sums.data(), pairs, lag, -2.0, below) != (pass ? T(1) : T(0)) &&
+      failures++ < 10)
+    std::printf("FAIL noise test at noisy %.9g\n", double(below));
+}
+
 // z and y from a gradient, a first moment and a mask broadcast along some dimensions, as Noise
 // defines them (in T), for the float64 reference; then the native sums.
 template <typename T>
@@ -195,6 +226,7 @@ void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
       break;
     }
   }
+  if (!pairs.empty()) check_noise_test<T>(got, pairs.size(), c1);
 }
 
 // One level of the B-spline at stride 1 along `axis` of `shape`, its taps on the grid only.

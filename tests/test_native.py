@@ -5,6 +5,7 @@ take it too, parametrised by kernel; `make sanitize` runs its C++ test under Add
 and UBSan.)"""
 
 import functools
+import math
 import os
 import subprocess
 import sys
@@ -596,13 +597,15 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
     assert text().count(native.SUBGRID_TARGET) == 1  # the guide's contrast
     # The guide's step and its contrast, and the step's mean norm (AutoState.direction).
     assert text().count(native.TEXEL_MEAN_TARGET) == 3
-    assert text().count(native.CORRELATION_TARGET) == 1  # the correlated-noise check
+    assert text().count(native.NOISE_TEST_TARGET) == 1  # the correlated-noise check
+    assert native.CORRELATION_TARGET not in text()  # (its sums inside that call)
     assert text().count(native.BLEND_TARGET) == 1  # the blend, its averages inside
     monkeypatch.setenv("OPTAX_BILATERAL_KERNEL", "xla_cpu")
     jax.clear_caches()
     try:
         assert native.SUBGRID_TARGET not in text() and native.TEXEL_MEAN_TARGET not in text()
         assert native.CORRELATION_TARGET not in text() and native.BLEND_TARGET not in text()
+        assert native.NOISE_TEST_TARGET not in text()
         slices = local.local_average_subgrid((x,), (0, 1), 2)[0]
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
@@ -776,6 +779,80 @@ def test_texel_distance_differentiates_batches_and_leaves_none_out():
         [float(local._distance(x, b, (0, 1), 2)) for x in batch],
         rtol=1e-5,
     )
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    case=st.sampled_from([((23, 1), (0,)), ((9, 8, 2), (0, 1)), ((5, 6, 7, 1), (0, 1, 2))]),
+    smooth=st.integers(0, 3),
+    correlated=st.floats(-1, 1),
+    noisy=st.floats(0, 4),
+    due=st.booleans(),
+    stored=st.sampled_from([0.0, 1.0]),
+    dtype=st.sampled_from([jnp.float32, jnp.float64]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_the_correlated_noise_test_answers_as_its_jax_form(
+    case, smooth, correlated, noisy, due, stored, dtype, seed
+):
+    # "auto"'s correlated-noise test as one native call: its sums' test in the float
+    # arithmetic of the JAX form (rules/auto.py, Auto._correlated_noise), the stored answer
+    # where it is not due; equal to the bit (an answer, 1 or 0, at any threshold).
+    from optax_bilateral._src.filter import local
+
+    shape, axes = case
+    rng = np.random.default_rng(seed)
+    raw = rng.normal(size=shape)
+    for a in axes[:1] * smooth:  # correlated along the first axis, more with each pass
+        raw = raw + np.roll(raw, 1, axis=a)
+    with jax_compat.enable_x64(dtype == jnp.float64):
+        g = jnp.asarray(raw, dtype)
+        m = jnp.asarray(0.3 * rng.normal(size=shape), dtype)
+        observed = jnp.asarray(
+            rng.random(shape[: len(axes)] + (1,) * (len(shape) - len(axes))) > 0.1
+        )
+        c1, lag = numerics.one_kernel((jnp.asarray(0.6, dtype), jnp.asarray(0.3, dtype)))
+        stored_entry = numerics.Entry.of(jnp.asarray(stored, dtype))
+        test = local.NoiseTest(correlated, noisy, lag, stored_entry)
+        run = numerics.Entry.flag(jnp.asarray(due))
+        got = local.correlated_noise(g, m, observed, c1, axes, 1, run, math.inf, test)
+        lags, (noise, signal) = local.correlation_sums(g, m, observed, c1, axes, 1)
+        den = jnp.sqrt(lags[:, 0] * lags[:, 1])
+        corr = jnp.where(den > 0, lags[:, 2] / jnp.where(den > 0, den, 1), 0)
+        x = lag.value.astype(dtype)
+        answer = (jnp.mean(corr) >= correlated) & (noise > noisy * x * x * signal)
+        want = jnp.where(due, answer.astype(dtype), stored)
+        assert got.dtype == dtype and got.shape == ()
+        assert float(got) == float(want), (float(jnp.mean(corr)), float(noise), float(signal))
+        # At the threshold's edge: the mean itself, and the next float above it.
+        mean = np.asarray(jnp.mean(corr))
+        for edge in (mean, np.nextafter(mean, np.inf)):
+            at_edge = test._replace(correlated=float(edge), noisy=0.0)
+            got = local.correlated_noise(g, m, observed, c1, axes, 1, run, math.inf, at_edge)
+            answer = (jnp.mean(corr) >= float(edge)) & (noise > 0.0 * x * x * signal)
+            assert float(got) == float(jnp.where(due, answer.astype(dtype), stored))
+
+
+def test_the_correlated_noise_test_refuses_what_it_cannot_read():
+    from optax_bilateral._src.filter import local
+
+    g = jnp.ones((6, 5, 1))
+    c1, lag = numerics.one_kernel((jnp.float32(0.5), jnp.float32(0.2)))
+    run = numerics.Entry.flag(True)
+    stored = numerics.Entry.of(jnp.float32(0))
+    test = local.NoiseTest(0.5, 0.25, lag, stored)
+    with pytest.raises(ValueError, match="one vector"):
+        other = numerics.Entry.of(jnp.float32(0.2))
+        local.correlated_noise(g, g, g > 0, c1, (0, 1), 1, run, math.inf, test._replace(lag=other))
+    with pytest.raises(ValueError, match="at least one pair axis"):
+        local.correlated_noise(
+            jnp.ones((1, 1, 2)), jnp.ones((1, 1, 2)), True, c1, (0, 1), 1, run, math.inf, test
+        )
+    bad = test._replace(stored=numerics.Entry(stored.vector, 4, jnp.float32))
+    with pytest.raises(Exception, match="lag and stored must be float vectors"):
+        jax.block_until_ready(
+            local.correlated_noise(g, g, g > 0, c1, (0, 1), 1, run, math.inf, bad)
+        )
 
 
 def _correlation_float64(z, y, axes, stride):

@@ -20,6 +20,7 @@ from jax import lax
 from optax_bilateral._src.filter import native, sharded
 from optax_bilateral._src.filter.bilateral import TAPS
 from optax_bilateral._src.filter.front import atrous_bilateral, resolve_kernel
+from optax_bilateral._src.filter.native import NoiseTest
 from optax_bilateral._src.numerics import Entry, value
 
 
@@ -178,6 +179,26 @@ def correlation_sums(
     ]
     energies = _sums(jnp.square(every(z, axes, stride)), jnp.square(every(y, axes, stride)))
     return jnp.stack(lags) if lags else jnp.zeros((0, 3), z.dtype), energies
+
+
+def correlated_noise(
+    g: jax.Array,
+    m: jax.Array,
+    observed: jax.Array,
+    c1: Entry,
+    axes: tuple[int, ...],
+    stride: int,
+    run: Entry,
+    limit: float,
+    test: NoiseTest,
+) -> jax.Array:
+    """``test``'s answer from :func:`correlation_sums`' sums where ``run`` says it is due, else
+    the stored one, as 1 or 0 in ``g``'s dtype: one native FFI call (the native kernel only;
+    ``sigma_d="auto"``'s JAX form of the test runs over :func:`correlation_sums`)."""
+    axes = tuple(axes)
+    g, m = lax.stop_gradient(g), lax.stop_gradient(m)
+    pairs = tuple(a for a in axes if g.shape[a] > 1)
+    return native.correlated_noise(g, m, observed, c1, axes, pairs, stride, run, limit, test)
 
 
 def neighbours(

@@ -41,6 +41,7 @@ FIELDS_TARGET = "optax_bilateral_atrous_fields"
 SUBGRID_TARGET = "optax_bilateral_local_average"
 TEXEL_MEAN_TARGET = "optax_bilateral_texel_distance_mean"
 CORRELATION_TARGET = "optax_bilateral_correlation_sums"
+NOISE_TEST_TARGET = "optax_bilateral_correlated_noise"
 BLEND_TARGET = "optax_bilateral_blend_weights"
 THREADS_ENV = extension.THREADS_ENV
 NATIVE_ENV = extension.NATIVE_ENV
@@ -386,6 +387,65 @@ def correlation_sums(
         limit=np.float64(limit),
         c1_at=np.int64(c1.at),
         run_at=np.int64(run.at),
+    )
+
+
+class NoiseTest(NamedTuple):
+    """``sigma_d="auto"``'s correlated-noise test from :func:`correlation_sums`' sums: the
+    lag-1 correlations' mean at least ``correlated`` and the noise's energy above ``noisy``
+    times ``lag**2`` times the signal's; ``stored`` is the answer where the test does not run.
+    ``lag`` and ``stored`` are :class:`~optax_bilateral._src.numerics.Entry`."""
+
+    correlated: float
+    noisy: float
+    lag: Entry
+    stored: Entry
+
+
+def correlated_noise(
+    g: jax.Array,
+    m: jax.Array,
+    observed: jax.Array,
+    c1: Entry,
+    axes: Sequence[int],
+    pair_axes: Sequence[int],
+    stride: int,
+    run: Entry,
+    limit: float,
+    test: NoiseTest,
+) -> jax.Array:
+    """``test``'s answer (1 or 0, in ``g``'s dtype) from :func:`correlation_sums`' sums where
+    ``run`` says it is due, else ``test.stored``'s value, without reading anything: one FFI
+    call (csrc/module.cc, the test in the float arithmetic of its JAX form, whose
+    ``c1`` and ``lag`` are entries of one vector). Not differentiable."""
+    _require("the native texel statistics")
+    if not limit > 0:
+        raise ValueError(f"limit must be > 0 (inf: no clip), got {limit!r}")
+    if not pair_axes:
+        raise ValueError("the correlated-noise test needs at least one pair axis")
+    if c1.vector is not test.lag.vector:
+        raise ValueError("c1 and test.lag must be entries of one vector")
+    call = jax.ffi.ffi_call(
+        NOISE_TEST_TARGET, jax.ShapeDtypeStruct((), g.dtype), vmap_method="sequential"
+    )
+    mask = jnp.asarray(observed, bool)
+    return call(
+        g,
+        m,
+        mask.reshape((1,) * (g.ndim - mask.ndim) + mask.shape),
+        c1.vector,
+        run.vector,
+        test.stored.vector,
+        axes=np.asarray(axes, np.int64),
+        pair_axes=np.asarray(pair_axes, np.int64),
+        stride=np.int64(stride),
+        limit=np.float64(limit),
+        c1_at=np.int64(c1.at),
+        run_at=np.int64(run.at),
+        lag_at=np.int64(test.lag.at),
+        stored_at=np.int64(test.stored.at),
+        correlated=np.float64(test.correlated),
+        noisy=np.float64(test.noisy),
     )
 
 

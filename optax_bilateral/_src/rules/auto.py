@@ -40,6 +40,8 @@ from jax import lax
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import Deeper, log_transform
 from optax_bilateral._src.filter.local import (
+    NoiseTest,
+    correlated_noise,
     correlation_sums,
     every,
     local_average_subgrid,
@@ -115,6 +117,7 @@ class Decisions(NamedTuple):
     blends: jax.Array
     scalars: jax.Array
     c1: numerics.Entry
+    lag: numerics.Entry  # 1 - (1 - b1) / c1: the correlated-noise test's (_correlated_noise)
 
 
 @jax.tree_util.register_static
@@ -225,14 +228,15 @@ class Auto(SigmaRule):
         heavy = (state.correlated > 0) & plan.one_operator
         due = ((count == FIRST_NOISE_STEP) | (count % self.check_period == 0)) & plan.one_operator
         ratio = _ema_variance_ratio(jnp.asarray(ctx.b1, dtype), jnp.asarray(ctx.c1, dtype))
+        lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / jnp.asarray(ctx.c1, dtype)
         # What the step's kernels and native calls read, in one XLA kernel.
-        c1, c2, inv_c1, inv_c2, ratio, due, computed = numerics.one_kernel(
-            (ctx.c1, ctx.c2, ctx.inv_c1, ctx.inv_c2, ratio, due, (phase != SKIP) & ~heavy)
+        c1, c2, inv_c1, inv_c2, ratio, due, computed, lag = numerics.one_kernel(
+            (ctx.c1, ctx.c2, ctx.inv_c1, ctx.inv_c2, ratio, due, (phase != SKIP) & ~heavy, lag)
         )
         ctx = ctx._replace(c1=c1.value, c2=c2.value, inv_c1=inv_c1.value, inv_c2=inv_c2.value)
         scalars = self._blend_scalars(ctx, dtype, ratio.value)
         blends = (phase == BLEND) & ~heavy
-        return ctx._replace(decided=Decisions(heavy, due, computed, blends, scalars, c1))
+        return ctx._replace(decided=Decisions(heavy, due, computed, blends, scalars, c1, lag))
 
     def sigma(self, guide, plan, state, ctx):
         if guide is None:  # self-guided: each field's own contrast
@@ -333,12 +337,21 @@ class Auto(SigmaRule):
         (:class:`Decisions`: the second step, the first with a noise estimate, and every
         ``check_period``-th), else the stored one."""
         m, due = moments.m, ctx.decided.due
+        stored = state.correlated.astype(m.dtype)
+        if runs_native(m) and any(m.shape[a] > 1 for a in axes):
+            # One native call tests where due and passes the stored answer on elsewhere.
+            g, m, limit, stride = self._noise_inputs(moments, axes)
+            test = NoiseTest(
+                self.correlated, self.noisy, ctx.decided.lag, numerics.Entry.of(stored)
+            )
+            return correlated_noise(
+                g, m, moments.observed, ctx.decided.c1, axes, stride, due, limit, test
+            )
 
         def check():
             return self._correlated_noise(moments, axes, ctx, run=due).astype(m.dtype)
 
-        stored = lambda: state.correlated.astype(m.dtype)
-        return _either(due.value, check, stored, both=runs_native(m))
+        return lax.cond(due.value, check, lambda: stored)
 
     # ------------------------------------------------------------------ statistics
 
@@ -397,25 +410,28 @@ class Auto(SigmaRule):
         least ``noisy`` times ``m_hat``'s. Sums run over the sub-grid and the observed
         entries; False at the first step or with ``b1 = 0``. ``run`` (a traced bool): the
         native sums do no work where it is False (their caller discards the answer)."""
-        # The gradient as given where the sums run natively: they mask and clip it where they
-        # read it (the observed gradient would be a full-size temporary for them alone).
-        g, m, limit = moments.g, moments.m, math.inf
-        if moments.given is not None and runs_native(m):
-            g, limit = moments.given, moments.limit
-        dtype = jnp.promote_types(m.dtype, jnp.float32)
+        g, m, limit, stride = self._noise_inputs(moments, axes)
         c1 = ctx.decided.c1
-        g, m, stride = g.astype(dtype), m.astype(dtype), self._stride(g.shape, axes)
         lags, (noise, signal) = correlation_sums(
             g, m, moments.observed, c1, axes, stride, run, limit
         )
-        c1 = c1.value.astype(dtype)
         if not lags.shape[0]:
             return jnp.zeros([], bool)
         s00, s11, s01 = lags[:, 0], lags[:, 1], lags[:, 2]
         den = jnp.sqrt(s00 * s11)
         corr = jnp.where(den > 0, s01 / jnp.where(den > 0, den, 1), 0)
-        lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / c1
+        lag = ctx.decided.lag.value.astype(m.dtype)
         return (jnp.mean(corr) >= self.correlated) & (noise > self.noisy * lag * lag * signal)
+
+    def _noise_inputs(self, moments, axes):
+        """``(g, m, limit, stride)`` for the correlated-noise test: the gradient as given
+        where the sums run natively (they mask and clip it where they read it: the observed
+        gradient would be a full-size temporary for them alone), in at least float32."""
+        g, m, limit = moments.g, moments.m, math.inf
+        if moments.given is not None and runs_native(m):
+            g, limit = moments.given, moments.limit
+        dtype = jnp.promote_types(m.dtype, jnp.float32)
+        return g.astype(dtype), m.astype(dtype), limit, self._stride(g.shape, axes)
 
     def _blend_scalars(self, ctx: StepContext, dtype, ratio=None) -> jax.Array:
         """The blend's scalars at this step, in ``dtype``: ``c1``, ``c2``; ``k``, the noise of
