@@ -157,8 +157,17 @@ def test_a_deeper_cascade_takes_the_other_kernels_derivatives_and_batches(flag, 
 
 
 def test_a_deeper_cascade_refuses_a_flag_it_cannot_read():
+    from optax_bilateral._src.filter.front import atrous_bilateral_deeper
+
     x = jnp.ones((2, 8, 8))
     g = jnp.ones((1, 8, 8))
+    flag = Deeper(1, 1.5, numerics.Entry.of(jnp.float32(1)))
+    with pytest.raises(ValueError, match="sigma_d"):
+        atrous_bilateral_deeper(x, g[0], flag, sigma_d=-1.0, levels=2, spatial_axes=(1, 2))
+    with pytest.raises(ValueError, match=r"deeper\.levels must be"):
+        atrous_bilateral_deeper(
+            x, g[0], flag._replace(levels=-1), sigma_d=0.4, levels=2, spatial_axes=(1, 2)
+        )
     bad = Deeper(1, 1.5, numerics.Entry(jnp.ones((1,)), 3, jnp.float32))
     with pytest.raises(Exception, match="deeper must be a bool or float vector"):
         jax.block_until_ready(native.filter_planes(x, g, None, jnp.float32(0.4), 2, True, 0, bad))

@@ -277,6 +277,7 @@ def atrous_bilateral_deeper(
     so ``deeper.levels`` more levels, the whole cascade at ``sigma_d * deeper.factor``: on
     the native kernel one call that decides at run time, on the others a ``lax.cond``."""
     check_levels(deeper.levels, "deeper.levels")
+    check_sigma_d(sigma_d)
     if isinstance(spatial_axes, list):
         spatial_axes = tuple(spatial_axes)
     if isinstance(guide_axes, list):
