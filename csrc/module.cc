@@ -256,6 +256,13 @@ ob::Subgrid subgrid_of(const ffi::AnyBuffer& x, ffi::Span<const int64_t> axes, i
   return g;
 }
 
+// A float32 or float64 scalar output set to `value` (a statistic's answer where it did not run).
+void set_scalar(ffi::AnyBuffer& out, double value) {
+  if (out.element_type() == ffi::DataType::F32)
+    *static_cast<float*>(out.untyped_data()) = static_cast<float>(value);
+  if (out.element_type() == ffi::DataType::F64) *static_cast<double*>(out.untyped_data()) = value;
+}
+
 // A statistic's `run` flag, entry `run_at` of its operand (nonzero: true): false where the
 // caller discards the outputs (the rule's selects). Then the call is done: zeros in `outs`, no
 // work. An invalid `run` is an error; otherwise nothing (the call goes on).
@@ -326,8 +333,7 @@ ffi::Error texel_distance_mean(ffi::AnyBuffer a, ffi::AnyBuffer b, ffi::AnyBuffe
   if (otherwise.element_count() != 0) fallback = entry(otherwise, otherwise_at);
   if (!fallback) return invalid("otherwise must be a float vector with an entry at otherwise_at");
   if (auto done = unless_run(run, run_at, {&*out, &*kept})) {
-    if (type == ffi::DataType::F32) *static_cast<float*>(out->untyped_data()) = static_cast<float>(*fallback);
-    if (type == ffi::DataType::F64) *static_cast<double*>(out->untyped_data()) = *fallback;
+    set_scalar(*out, *fallback);
     return *done;
   }
   switch (type) {
@@ -476,8 +482,7 @@ ffi::Error correlated_noise(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
   const std::optional<double> kept = entry(stored, stored_at);
   if (!lag || !kept) return invalid("lag and stored must be float vectors with their entries");
   if (auto done = unless_run(run, run_at, {&*out})) {
-    if (type == ffi::DataType::F32) *static_cast<float*>(out->untyped_data()) = static_cast<float>(*kept);
-    if (type == ffi::DataType::F64) *static_cast<double*>(out->untyped_data()) = *kept;
+    set_scalar(*out, *kept);
     return *done;
   }
   if (type == ffi::DataType::F32) {
