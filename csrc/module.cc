@@ -379,6 +379,15 @@ void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
   ob::correlation_sums(g, pairs, noise, sums);
 }
 
+// An observed mask for the grid g: bool, of g's rank, each dimension g's or 1 (broadcast).
+std::optional<ffi::Error> check_mask(const ob::Subgrid& g, const ffi::AnyBuffer& observed) {
+  if (observed.element_type() != ffi::DataType::PRED) return invalid("observed must be a bool mask");
+  const auto od = observed.dimensions();
+  const std::string problem = ob::check_noise_mask(g, std::vector<int64_t>(od.begin(), od.end()));
+  if (!problem.empty()) return invalid(problem);
+  return std::nullopt;
+}
+
 // The correlated-noise check's operands, checked: the sub-grid, the pair axes and c1.
 struct NoiseCall {
   ob::Subgrid grid;
@@ -410,12 +419,7 @@ std::optional<ffi::Error> check_noise_call(const ffi::AnyBuffer& grad, const ffi
     return invalid("grad and m must share their shape and dtype");
   if (grad.element_type() != ffi::DataType::F32 && grad.element_type() != ffi::DataType::F64)
     return invalid("the correlation sums take float32 or float64");
-  if (observed.element_type() != ffi::DataType::PRED)
-    return invalid("observed must be a bool mask");
-  const auto od = observed.dimensions();
-  const std::string mask_problem =
-      ob::check_noise_mask(g, std::vector<int64_t>(od.begin(), od.end()));
-  if (!mask_problem.empty()) return invalid(mask_problem);
+  if (auto error = check_mask(g, observed)) return *error;
   const std::optional<double> c = entry(c1, c1_at);
   if (!c || c1.element_type() == ffi::DataType::PRED)
     return invalid("c1 must be a float vector with an entry at c1_at");
@@ -542,6 +546,73 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
     default:
       return invalid("the blend takes float32 or float64");
   }
+}
+
+// The step's mean texel norm at the sub-grid (stats.h's step_norm) from its parts: m, v, B m,
+// B v (*shape), lam (the sub-grid's shape, or (0,) without has_lam), observed (a bool mask,
+// broadcast); inv_c1 and inv_c2 are entries of `scalars`. The blend is taken where has_lam,
+// entry blend_at of `scalars` is nonzero and entry gate_at of `gate` is > 0 (sigma_d="auto":
+// its statistics computed at this step, its gate open since the last).
+template <typename T>
+void step_norm_typed(const ob::Subgrid& g, ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer bm,
+                     ffi::AnyBuffer bv, ffi::AnyBuffer lam, ffi::AnyBuffer observed, bool blend,
+                     double inv_c1, double inv_c2, double eps, double eps_root,
+                     ffi::AnyBuffer& out) {
+  const auto od = observed.dimensions();
+  const ob::Step<T> s{static_cast<const T*>(m.untyped_data()),
+                      static_cast<const T*>(v.untyped_data()),
+                      static_cast<const T*>(bm.untyped_data()),
+                      static_cast<const T*>(bv.untyped_data()),
+                      blend ? static_cast<const T*>(lam.untyped_data()) : nullptr,
+                      static_cast<const bool*>(observed.untyped_data()),
+                      std::vector<int64_t>(od.begin(), od.end()),
+                      blend,
+                      static_cast<T>(inv_c1),
+                      static_cast<T>(inv_c2),
+                      static_cast<T>(eps),
+                      static_cast<T>(eps_root)};
+  *static_cast<T*>(out.untyped_data()) = static_cast<T>(ob::step_norm(g, s));
+}
+
+ffi::Error step_norm(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer bm, ffi::AnyBuffer bv,
+                     ffi::AnyBuffer lam, ffi::AnyBuffer observed, ffi::AnyBuffer scalars,
+                     ffi::AnyBuffer gate, ffi::Result<ffi::AnyBuffer> out,
+                     ffi::Span<const int64_t> axes, int64_t stride, bool has_lam,
+                     int64_t inv_c1_at, int64_t inv_c2_at, int64_t blend_at, int64_t gate_at,
+                     double eps, double eps_root) {
+  const ob::Subgrid g = subgrid_of(m, axes, stride);
+  const std::string problem = ob::check_texel_grid(g);
+  if (!problem.empty()) return invalid(problem);
+  const auto type = m.element_type();
+  if (type != ffi::DataType::F32 && type != ffi::DataType::F64)
+    return invalid("the step's norm takes float32 or float64");
+  const auto dims = m.dimensions();
+  for (ffi::AnyBuffer* b : {&v, &bm, &bv}) {
+    const auto bd = b->dimensions();
+    if (b->element_type() != type || !std::equal(dims.begin(), dims.end(), bd.begin(), bd.end()))
+      return invalid("m, v, B m and B v must share their shape and dtype");
+  }
+  const int64_t sub = has_lam ? ob::texel_subgrid_size(g) : 0;
+  if (static_cast<int64_t>(lam.element_count()) != sub || (has_lam && lam.element_type() != type))
+    return invalid("lam must have the sub-grid's shape and m's dtype with has_lam, else be empty");
+  if (auto error = check_mask(g, observed)) return *error;
+  if (out->element_type() != type || out->element_count() != 1)
+    return invalid("the norm is a scalar of m's dtype");
+  const std::optional<double> inv_c1 = entry(scalars, inv_c1_at);
+  const std::optional<double> inv_c2 = entry(scalars, inv_c2_at);
+  const std::optional<double> computed = entry(scalars, blend_at);
+  const std::optional<double> open = entry(gate, gate_at);
+  if (!inv_c1 || !inv_c2 || !computed || !open || scalars.element_type() == ffi::DataType::PRED)
+    return invalid("scalars must be a float vector with entries at inv_c1_at, inv_c2_at and "
+                   "blend_at, and gate a vector with one at gate_at");
+  const bool blend = has_lam && *computed != 0 && *open > 0;
+  if (type == ffi::DataType::F32)
+    step_norm_typed<float>(g, m, v, bm, bv, lam, observed, blend, *inv_c1, *inv_c2, eps, eps_root,
+                           *out);
+  else
+    step_norm_typed<double>(g, m, v, bm, bv, lam, observed, blend, *inv_c1, *inv_c2, eps,
+                            eps_root, *out);
+  return ffi::Error::Success();
 }
 
 // Each operand's count of non-finite entries (count.h), one int32 per block: an output of b
@@ -705,6 +776,26 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralBlendWeights, blend_weights,
                                   .Attr<double>("low")
                                   .Attr<double>("span")
                                   .Attr<int64_t>("run_at"));  // run's entry
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralStepNorm, step_norm,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // m (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // v (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // B m (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // B v (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // lam (the sub-grid's shape), or (0,)
+                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
+                                  .Arg<ffi::AnyBuffer>()  // the step's scalars: a float vector
+                                  .Arg<ffi::AnyBuffer>()  // gate: a bool or float vector
+                                  .Ret<ffi::AnyBuffer>()  // the mean norm, a scalar
+                                  .Attr<ffi::Span<const int64_t>>("axes")
+                                  .Attr<int64_t>("stride")
+                                  .Attr<bool>("has_lam")
+                                  .Attr<int64_t>("inv_c1_at")
+                                  .Attr<int64_t>("inv_c2_at")
+                                  .Attr<int64_t>("blend_at")
+                                  .Attr<int64_t>("gate_at")
+                                  .Attr<double>("eps")
+                                  .Attr<double>("eps_root"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
                               ffi::Ffi::Bind()
                                   .RemainingArgs()  // the arrays (then their totals)
@@ -725,6 +816,7 @@ PyObject* registrations(PyObject*, PyObject*) {
       {"optax_bilateral_correlation_sums", reinterpret_cast<void*>(&OptaxBilateralCorrelationSums)},
       {"optax_bilateral_correlated_noise", reinterpret_cast<void*>(&OptaxBilateralCorrelatedNoise)},
       {"optax_bilateral_blend_weights", reinterpret_cast<void*>(&OptaxBilateralBlendWeights)},
+      {"optax_bilateral_step_norm", reinterpret_cast<void*>(&OptaxBilateralStepNorm)},
       {"optax_bilateral_count_nonfinite", reinterpret_cast<void*>(&OptaxBilateralCountNonfinite)},
   };
   PyObject* dict = PyDict_New();

@@ -16,6 +16,10 @@
 //     lam = usable and S > 0 ? clamp(1 - f / (gain S), 0, 1)^power : 0,
 //     gate = clamp((mean lam - low) / span, 0, 1);   out = lam gate,
 //   each operation in T, in that order (the mean's sum in double).
+// * step_norm: the mean over the sub-grid's texels p of ||d[s p]||, as texel_distance_mean's,
+//   of the postfilter's step before its learning rate (optimizer/step.py), computed from its
+//   parts where the mean reads it (Step): sigma_d="auto"'s direction, with no XLA kernel
+//   computing the step a second time at the sub-grid.
 //
 // `shape` is a's row-major shape, `axes` its spatial axes (each once), `stride` s >= 1 along
 // them; b (optional) has the sub-grid's shape: each spatial axis cut to (n - 1) / s + 1. Sums
@@ -58,6 +62,27 @@ float blend_weights(const Subgrid& g, const float* m, const float* v, const floa
                     const Blend<float>& b, float* out);
 double blend_weights(const Subgrid& g, const double* m, const double* v, const double* r,
                      const Blend<double>& b, double* out);
+
+// The step's parts: the updated moments m, v and the filtered B m, B v (g.shape), the blend's
+// weight lam (the sub-grid's shape; null: none), the observed entries (broadcast, as Noise's).
+// Per entry, in T, as XLA evaluates the JAX form (numerics.masked_step of sigma.blend's, the
+// blend's product and sum one fused multiply-add):
+//   m~ = blend ? fma(lam, m, (1 - lam) B m) : B m,   v~ alike,
+//   h = fma(v~, inv_c2, eps_root),   den = (h > 0 ? sqrt(h) : 0) + eps,
+//   d = observed and den > 0 ? (m~ inv_c1) / den : 0.
+template <typename T>
+struct Step {
+  const T *m, *v, *bm, *bv;
+  const T* lam;
+  const bool* observed;
+  std::vector<int64_t> observed_shape;
+  bool blend;
+  T inv_c1, inv_c2, eps, eps_root;
+};
+
+// The mean above of the step's texel norms (each norm in double from d in T).
+double step_norm(const Subgrid& g, const Step<float>& s);
+double step_norm(const Subgrid& g, const Step<double>& s);
 
 // The correlated-noise check's fields, computed where the sums read them (no full-size copy):
 // y = m / c1 and z = clip(grad, -limit, limit) - y where `observed`, else 0, each operation in

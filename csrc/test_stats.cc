@@ -2,7 +2,7 @@
 // unravelled indices: ranks 1 to 4, every subset of spatial axes, strides 1 to 5, float and
 // double; the mean distance with and without b, NaN and infinite entries; the correlation sums
 // over every spatial axis of length > 1; the blend (its local averages written out as 5-tap
-// sums); and check_texel_grid's verdicts on bad shapes.
+// sums); the step's mean norm from its parts; and check_texel_grid's verdicts on bad shapes.
 // Built and run by `make sanitize` under AddressSanitizer and UndefinedBehaviorSanitizer;
 // exits non-zero on a mismatch.
 #include <algorithm>
@@ -33,33 +33,52 @@ int64_t ravel(const std::vector<int64_t>& idx, const std::vector<int64_t>& shape
   return p;
 }
 
+// The sub-grid's shape and its texels' (the channel dimensions cut to 1), and their sizes.
+struct Shapes {
+  std::vector<bool> spatial;
+  std::vector<int64_t> sub, texel_shape;
+  int64_t n = 1, texels = 1;
+
+  explicit Shapes(const ob::Subgrid& g) : spatial(g.shape.size(), false), sub(g.shape) {
+    for (int64_t ax : g.axes) spatial[ax] = true;
+    texel_shape = g.shape;
+    for (size_t d = 0; d < sub.size(); ++d) {
+      if (spatial[d]) sub[d] = (g.shape[d] - 1) / g.stride + 1;
+      texel_shape[d] = spatial[d] ? sub[d] : 1;
+    }
+    for (size_t d = 0; d < sub.size(); ++d) n *= sub[d], texels *= texel_shape[d];
+  }
+  // Sub-grid entry i's index in the grid (at) and its texel's (t).
+  void locate(int64_t i, int64_t stride, std::vector<int64_t>& at, std::vector<int64_t>& t) const {
+    at = t = unravel(i, sub);
+    for (size_t d = 0; d < at.size(); ++d) {
+      if (spatial[d]) at[d] *= stride;
+      if (!spatial[d]) t[d] = 0;
+    }
+  }
+};
+
+// The mean of the texels' norms from their squared sums, NaN ones left out (0 if none is left).
+double mean_norm(const std::vector<double>& sums) {
+  double total = 0;
+  int64_t counted = 0;
+  for (double x : sums)
+    if (!std::isnan(x)) total += std::sqrt(x), ++counted;
+  return counted ? total / static_cast<double>(counted) : 0.0;
+}
+
 // Every entry of the sub-grid visited in order, its squared difference added to its texel's
 // sum (found by zeroing the channel coordinates), then the mean of the finite norms.
 double reference(const ob::Subgrid& g, const std::vector<double>& a, const std::vector<double>* b) {
-  std::vector<bool> spatial(g.shape.size(), false);
-  for (int64_t ax : g.axes) spatial[ax] = true;
-  std::vector<int64_t> sub = g.shape, texel_shape = g.shape;
-  for (size_t d = 0; d < sub.size(); ++d) {
-    if (spatial[d]) sub[d] = (g.shape[d] - 1) / g.stride + 1;
-    texel_shape[d] = spatial[d] ? sub[d] : 1;
-  }
-  int64_t n = 1, texels = 1;
-  for (size_t d = 0; d < sub.size(); ++d) n *= sub[d], texels *= texel_shape[d];
-  std::vector<double> sums(texels, 0.0);
-  for (int64_t i = 0; i < n; ++i) {
-    auto idx = unravel(i, sub), at = idx, t = idx;
-    for (size_t d = 0; d < idx.size(); ++d) {
-      if (spatial[d]) at[d] *= g.stride;
-      if (!spatial[d]) t[d] = 0;
-    }
+  const Shapes s(g);
+  std::vector<double> sums(s.texels, 0.0);
+  std::vector<int64_t> at, t;
+  for (int64_t i = 0; i < s.n; ++i) {
+    s.locate(i, g.stride, at, t);
     const double x = a[ravel(at, g.shape)] - (b ? (*b)[i] : 0.0);
-    sums[ravel(t, texel_shape)] += x * x;
+    sums[ravel(t, s.texel_shape)] += x * x;
   }
-  double total = 0;
-  int64_t counted = 0;
-  for (double s : sums)
-    if (!std::isnan(s)) total += std::sqrt(s), ++counted;
-  return counted ? total / counted : 0.0;
+  return mean_norm(sums);
 }
 
 template <typename T>
@@ -318,6 +337,73 @@ void check_blend(const ob::Subgrid& g, std::mt19937& rng) {
                 static_cast<long long>(g.stride), static_cast<double>(gate), want.back());
 }
 
+// The step's mean texel norm (stats.h's Step) by its formula in double, through unravelled
+// indices: each sub-grid entry's step added to its texel's squared norm, then the mean of the
+// norms that are not NaN.
+double step_reference(const ob::Subgrid& g, const std::vector<double>* p[5],
+                      const std::vector<int64_t>& mask_shape, const bool* observed, bool blend,
+                      const double k[4]) {
+  const Shapes s(g);
+  std::vector<double> sums(s.texels, 0.0);
+  std::vector<int64_t> at, t;
+  for (int64_t i = 0; i < s.n; ++i) {
+    s.locate(i, g.stride, at, t);
+    auto o = at;
+    for (size_t d = 0; d < o.size(); ++d)
+      if (mask_shape[d] == 1) o[d] = 0;
+    const int64_t a = ravel(at, g.shape);
+    const double lam = blend ? (*p[4])[i] : 0.0;
+    const auto mixed = [&](int x, int bx) {
+      return blend ? lam * (*p[x])[a] + (1 - lam) * (*p[bx])[a] : (*p[bx])[a];
+    };
+    const double h = mixed(1, 3) * k[1] + k[3];
+    const double den = (h > 0 ? std::sqrt(h) : 0.0) + k[2];
+    const double step = observed[ravel(o, mask_shape)] && den > 0 ? mixed(0, 2) * k[0] / den : 0;
+    sums[ravel(t, s.texel_shape)] += step * step;
+  }
+  return mean_norm(sums);
+}
+
+template <typename T>
+void check_step(const ob::Subgrid& g, std::mt19937& rng) {
+  std::normal_distribution<double> normal(0.0, 1.0);
+  int64_t n = 1;
+  for (int64_t d : g.shape) n *= d;
+  const int64_t sub = ob::texel_subgrid_size(g);
+  std::vector<int64_t> mask_shape;
+  for (int64_t d : g.shape) mask_shape.push_back(rng() % 3 == 0 ? 1 : d);
+  int64_t n_mask = 1;
+  for (int64_t d : mask_shape) n_mask *= d;
+  std::unique_ptr<bool[]> observed(new bool[static_cast<size_t>(n_mask)]);
+  for (int64_t i = 0; i < n_mask; ++i) observed[i] = rng() % 5 != 0;
+  std::vector<T> x[5] = {std::vector<T>(n), std::vector<T>(n), std::vector<T>(n),
+                         std::vector<T>(n), std::vector<T>(sub)};
+  std::vector<double> x64[5];
+  for (int64_t i = 0; i < n; ++i) {
+    x[0][i] = static_cast<T>(normal(rng)), x[2][i] = static_cast<T>(normal(rng));
+    x[1][i] = static_cast<T>(std::fabs(normal(rng))), x[3][i] = static_cast<T>(normal(rng));
+    if (rng() % 50 == 0) x[2][i] = std::numeric_limits<T>::quiet_NaN();  // its texel left out
+  }
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  for (int64_t i = 0; i < sub; ++i) x[4][i] = static_cast<T>(unit(rng));
+  for (int j = 0; j < 5; ++j) x64[j].assign(x[j].begin(), x[j].end());
+  const bool blend = rng() % 2;
+  // eps_root 0 or not; B v may be negative there (h <= 0: den = eps).
+  const double k[4] = {3.7, 50.2, 1e-8, rng() % 2 ? 0.0 : 1e-3};
+  const ob::Step<T> step{x[0].data(), x[1].data(), x[2].data(), x[3].data(),
+                         blend ? x[4].data() : nullptr, observed.get(), mask_shape, blend,
+                         static_cast<T>(k[0]), static_cast<T>(k[1]), static_cast<T>(k[2]),
+                         static_cast<T>(k[3])};
+  const std::vector<double>* parts[5] = {&x64[0], &x64[1], &x64[2], &x64[3], &x64[4]};
+  const double want = step_reference(g, parts, mask_shape, observed.get(), blend, k);
+  const double got = ob::step_norm(g, step);
+  ++cases;
+  const double tol = sizeof(T) == 4 ? 2e-5 : 1e-12;
+  if (!(std::fabs(got - want) <= tol * (1 + std::fabs(want))) && failures++ < 10)
+    std::printf("FAIL step norm rank %zu stride %lld: %.17g != %.17g\n", g.shape.size(),
+                static_cast<long long>(g.stride), got, want);
+}
+
 void refused(const ob::Subgrid& g, const char* why) {
   ++cases;
   if (ob::check_texel_grid(g).empty() && failures++ < 10) std::printf("FAIL not refused: %s\n", why);
@@ -346,6 +432,8 @@ int main() {
         check_correlation<double>(g, rng);
         check_blend<float>(g, rng);
         check_blend<double>(g, rng);
+        check_step<float>(g, rng);
+        check_step<double>(g, rng);
       }
     }
   }

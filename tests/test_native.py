@@ -4,6 +4,7 @@ batchable through them, and absent without harm. (test_atrous.py's float64-refer
 take it too, parametrised by kernel; `make sanitize` runs its C++ test under AddressSanitizer
 and UBSan.)"""
 
+import dataclasses
 import functools
 import math
 import os
@@ -591,8 +592,9 @@ def test_subgrid_average_reads_nan_and_infinities_as_nan_to_num():
 
 def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monkeypatch):
     # The default update's program: the guide's contrast, the mean distances the scale takes,
-    # the step's mean norm, the correlated-noise check's sums and the blend (its two local
-    # averages inside) are one FFI call each; with the pure-JAX kernel chosen, none.
+    # the step's mean norm (from the step's parts), the correlated-noise check's sums and the
+    # blend (its two local averages inside) are one FFI call each; with the pure-JAX kernel
+    # chosen, none.
     import optax_bilateral as ob
     from optax_bilateral._src.filter import local
 
@@ -604,8 +606,8 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
         return jax.jit(opt.update).lower(x, state, x).as_text()
 
     assert text().count(native.SUBGRID_TARGET) == 1  # the guide's contrast
-    # The guide's step and its contrast, and the step's mean norm (AutoState.direction).
-    assert text().count(native.TEXEL_MEAN_TARGET) == 3
+    assert text().count(native.TEXEL_MEAN_TARGET) == 2  # the guide's step and its contrast
+    assert text().count(native.STEP_NORM_TARGET) == 1  # AutoState.direction
     assert text().count(native.NOISE_TEST_TARGET) == 1  # the correlated-noise check
     assert native.CORRELATION_TARGET not in text()  # (its sums inside that call)
     assert text().count(native.BLEND_TARGET) == 1  # the blend, its averages inside
@@ -614,7 +616,7 @@ def test_the_rules_statistics_call_the_native_average_where_the_filter_does(monk
     try:
         assert native.SUBGRID_TARGET not in text() and native.TEXEL_MEAN_TARGET not in text()
         assert native.CORRELATION_TARGET not in text() and native.BLEND_TARGET not in text()
-        assert native.NOISE_TEST_TARGET not in text()
+        assert native.NOISE_TEST_TARGET not in text() and native.STEP_NORM_TARGET not in text()
         slices = local.local_average_subgrid((x,), (0, 1), 2)[0]
     finally:
         monkeypatch.delenv("OPTAX_BILATERAL_KERNEL")
@@ -1120,6 +1122,156 @@ def test_blend_differentiates_and_batches_as_the_rules_formula():
     np.testing.assert_allclose(
         batched, [float(reference(x, v, residual, scalars)[1]) for x in (m, 2 * m)], rtol=1e-5
     )
+
+
+def _step_parts(seed, shape, axes, stride, dtype, computed=True, gate=0.5, eps_root=0.0):
+    """A postfilter step's parts (sigma_d="auto"'s direction reads them, native.step_norm):
+    moments and their filtered ones, the blend's weight at the sub-grid, a mask with a fifth
+    of the texels unobserved, and the step's flags; the call's fixed part with the rule's JAX
+    form (auto._step_norm_reference) as its derivative."""
+    from optax_bilateral._src.filter import local
+    from optax_bilateral._src.rules import auto
+
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=shape)
+    v = rng.random(shape) + m**2 * rng.random(shape)
+    bm, bv = m * rng.random(shape), v * (0.5 + rng.random(shape))
+    sub = tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(len(shape)))
+    lam = rng.random(m[sub].shape)
+    mask_shape = tuple(n if d in axes else 1 for d, n in enumerate(shape))
+    observed = jnp.asarray(rng.random(mask_shape) > 0.2)
+    parts = [jnp.asarray(x, dtype) for x in (m, v, bm, bv, lam)] + [observed]
+    inv_c1, inv_c2, done = numerics.one_kernel(
+        (jnp.asarray(1 / 0.271, dtype), jnp.asarray(1 / 0.0199, dtype), jnp.asarray(computed))
+    )
+    flags = native.StepFlags.of(inv_c1, inv_c2, done, jnp.asarray(gate, dtype))
+    where = auto._SubgridStep(tuple(axes), stride, 1e-8, eps_root)
+    how = local.StepNormCall(*where, functools.partial(auto._step_norm_reference, where=where))
+    return parts, flags, how
+
+
+STEP_GRIDS = [
+    ((24, 20, 3), (0, 1), 2),
+    ((16, 12, 2), (0, 1), 1),
+    ((9, 7, 5, 1), (0, 1, 2), 2),
+    ((33,), (0,), 4),  # 1-D, no channel axis
+    ((3, 10, 11), (1, 2), 3),  # channels first
+]
+
+
+@pytest.mark.parametrize("shape, axes, stride", STEP_GRIDS)
+@pytest.mark.parametrize("computed, gate", [(True, 0.5), (True, 0.0), (False, 0.5)])
+def test_step_norm_equals_the_step_at_the_subgrid_in_jax(shape, axes, stride, computed, gate):
+    # The blend taken (computed, the gate open), its statistics computed with the gate still
+    # shut (a CHECK step), and neither: equal to the postfilter's step computed at the
+    # sub-grid and its mean texel norm, which the update took before (the goldens hold the
+    # update's bits).
+    from optax_bilateral._src.filter import local
+
+    for seed in range(2):
+        parts, flags, how = _step_parts(seed, shape, axes, stride, jnp.float32, computed, gate)
+        got = local.step_norm(*parts, flags, how)
+        want = how.reference(*parts, flags)
+        assert got.dtype == jnp.float32 and got.shape == ()
+        assert float(want) > 0
+        np.testing.assert_allclose(float(got), float(want), rtol=1e-6)
+    # Without a blend's weight (the rule's blend off): B m and B v as they are.
+    parts[4] = None
+    np.testing.assert_allclose(
+        float(local.step_norm(*parts, flags, how)), float(how.reference(*parts, flags)), rtol=1e-6
+    )
+
+
+@pytest.mark.parametrize("eps_root", [0.0, 1e-4])
+def test_step_norm_in_float64_and_at_its_edges(eps_root):
+    # float64, eps_root > 0; a NaN in B m leaves its texel out (NaN norm), a texel with every
+    # entry unobserved has norm 0, v~ = 0 with eps = 0 gives d = 0 (no 0/0), and a grid of
+    # NaN texels alone gives 0.
+    from optax_bilateral._src.filter import local
+
+    with jax_compat.enable_x64():
+        parts, flags, how = _step_parts(3, (12, 10, 2), (0, 1), 2, jnp.float64, eps_root=eps_root)
+        m, v, bm, bv, lam, observed = parts
+        bm = bm.at[2, 4, 1].set(jnp.nan)
+        observed = observed.at[4, 6].set(False)
+        got = local.step_norm(m, v, bm, bv, lam, observed, flags, how)
+        want = how.reference(m, v, bm, bv, lam, observed, flags)
+        assert got.dtype == jnp.float64
+        np.testing.assert_allclose(float(got), float(want), rtol=1e-13)
+        from optax_bilateral._src.rules import auto
+
+        where = auto._SubgridStep((0, 1), 2, 0.0, 0.0)
+        zero_v = how._replace(eps=0.0, eps_root=0.0)
+        zero_v = zero_v._replace(reference=functools.partial(how.reference.func, where=where))
+        args = (m, jnp.zeros_like(v), bm, jnp.zeros_like(bv), None, observed, flags)
+        assert float(local.step_norm(*args, zero_v)) == float(zero_v.reference(*args)) == 0.0
+        nan = jnp.full_like(bm, jnp.nan)
+        assert float(local.step_norm(m, v, nan, bv, None, observed, flags, how)) == 0.0
+
+
+def test_step_norm_differentiates_and_batches_as_its_jax_form():
+    from optax_bilateral._src.filter import local
+
+    parts, flags, how = _step_parts(1, (12, 10, 2), (0, 1), 2, jnp.float32)
+    m, v, bm, bv, lam, observed = parts
+
+    def loss(f):
+        return lambda m, bm, lam: f(m, v, bm, bv, lam, observed, flags) ** 2
+
+    native_norm = lambda *a: local.step_norm(*a, how)
+    got = jax.grad(loss(native_norm), argnums=(0, 1, 2))(m, bm, lam)
+    want = jax.grad(loss(how.reference), argnums=(0, 1, 2))(m, bm, lam)
+    for a, b in zip(got, want):
+        assert np.any(np.asarray(b) != 0)
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    batched = jax.vmap(lambda m: native_norm(m, v, bm, bv, lam, observed, flags))(
+        jnp.stack([m, 2 * m])
+    )
+    want = [float(how.reference(x, v, bm, bv, lam, observed, flags)) for x in (m, 2 * m)]
+    np.testing.assert_allclose(batched, want, rtol=1e-6)
+
+
+def test_step_norm_refuses_operands_it_cannot_read():
+    parts, flags, _ = _step_parts(0, (8, 6, 2), (0, 1), 2, jnp.float32)
+    m, v, bm, bv, lam, observed = parts
+    call = lambda *a, flags=flags: native.step_norm(*a, flags, (0, 1), 2, 1e-8, 0.0)
+    with pytest.raises(Exception, match="lam must have the sub-grid's shape"):
+        call(m, v, bm, bv, lam[:-1], observed)
+    with pytest.raises(Exception, match="m, v, B m and B v must share"):
+        call(m, v, bm[:, :-1], bv, lam, observed)
+    with pytest.raises(Exception, match="each dimension of the observed mask"):
+        call(m, v, bm, bv, lam, observed[:, :-1])
+    with pytest.raises(Exception, match="scalars must be a float vector"):
+        call(m, v, bm, bv, lam, observed, flags=dataclasses.replace(flags, inv_c2_at=3))
+    with pytest.raises(ValueError, match="entries of one vector"):
+        one, two = numerics.one_kernel((jnp.float32(1),)), numerics.one_kernel((jnp.float32(2),))
+        native.StepFlags.of(one[0], two[0], one[0], jnp.float32(0))
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda ob, optax: ob.sparse_adam(0.02),  # B m boosted: from the step at the sub-grid
+        lambda ob, optax: optax.chain(
+            ob.postfilter(second_moment="uniform"), optax.scale_by_learning_rate(0.02)
+        ),
+        lambda ob, optax: optax.inject_hyperparams(ob.bilateral_adam)(0.02, eps=1e-8),
+    ],
+)
+def test_the_step_norm_reads_the_parts_only_where_they_are_the_steps(make):
+    # The native norm reads B m, B v and the sub-grid's weight as buffers; where the step's
+    # B m is a product (sparse_adam's boost), its second moment one for the leaf, or Adam's
+    # eps traced, "auto"'s direction comes from the step computed at the sub-grid.
+    import optax
+
+    import optax_bilateral as ob
+
+    x = jnp.ones((40, 40, 3))
+    opt = make(ob, optax)
+    state = opt.init(x)
+    text = jax.jit(opt.update).lower(x, state, x).as_text()
+    assert native.STEP_NORM_TARGET not in text
+    assert native.TEXEL_MEAN_TARGET in text
 
 
 # The optimizers' non-finite counts (numerics.count_nonfinite): one FFI call for every leaf.

@@ -120,6 +120,12 @@ def safe_step(
     return jnp.where(ok, (m_f * inv_c1.astype(m_f.dtype)) / jnp.where(ok, den, 1), 0)
 
 
+def masked_step(m_f, v_f, inv_c1, inv_c2, eps, eps_root, observed) -> jax.Array:
+    """:func:`safe_step` where ``observed`` (broadcastable), else 0: the step at the entries
+    whose gradient it uses (supplement eq. 10)."""
+    return jnp.where(observed, safe_step(m_f, v_f, inv_c1, inv_c2, eps, eps_root), 0)
+
+
 @dataclasses.dataclass(frozen=True)
 class Entry:
     """Entry ``at`` of ``vector``: a scalar of ``dtype`` computed with others in one XLA

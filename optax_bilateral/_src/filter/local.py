@@ -20,7 +20,7 @@ from jax import lax
 from optax_bilateral._src.filter import native, sharded
 from optax_bilateral._src.filter.bilateral import TAPS
 from optax_bilateral._src.filter.front import atrous_bilateral, resolve_kernel
-from optax_bilateral._src.filter.native import NoiseTest
+from optax_bilateral._src.filter.native import NoiseTest, StepFlags
 from optax_bilateral._src.numerics import Entry, value
 
 
@@ -260,6 +260,38 @@ def _native_blend_jvp(how, primals, tangents):
     out, tangent = jax.jvp(how.reference, primals[:4], tangents[:4])
     zero = lambda x: jnp.where(run, x, jnp.zeros_like(x))
     return jax.tree.map(zero, out), jax.tree.map(zero, tangent)
+
+
+class StepNormCall(NamedTuple):
+    """What is fixed about a native step norm's call: the sub-grid, Adam's ``eps`` and
+    ``eps_root``, and the JAX form that is its derivative."""
+
+    axes: tuple[int, ...]
+    stride: int
+    eps: float
+    eps_root: float
+    reference: Any
+
+
+def step_norm(m, v, bm, bv, lam, observed, flags: StepFlags, how: StepNormCall) -> jax.Array:
+    """The postfilter step's mean texel norm at the sub-grid, computed from its parts
+    (:func:`native.step_norm`: one FFI call, where XLA would compute the step at the sub-grid
+    in a kernel of its own and the mean in a second call); its derivative is
+    ``how.reference``'s, the rule's JAX form (``reference(m, v, bm, bv, lam, observed,
+    flags)``). The native kernel only: the caller checks :func:`runs_native`."""
+    return _native_step_norm(m, v, bm, bv, lam, observed, flags, how)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(7,))
+def _native_step_norm(m, v, bm, bv, lam, observed, flags, how: StepNormCall):
+    return native.step_norm(
+        m, v, bm, bv, lam, observed, flags, how.axes, how.stride, how.eps, how.eps_root
+    )
+
+
+@_native_step_norm.defjvp
+def _native_step_norm_jvp(how, primals, tangents):
+    return jax.jvp(how.reference, primals, tangents)
 
 
 def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:

@@ -22,6 +22,7 @@ for ``kernel="native"`` raises with that reason.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -43,6 +44,7 @@ TEXEL_MEAN_TARGET = "optax_bilateral_texel_distance_mean"
 CORRELATION_TARGET = "optax_bilateral_correlation_sums"
 NOISE_TEST_TARGET = "optax_bilateral_correlated_noise"
 BLEND_TARGET = "optax_bilateral_blend_weights"
+STEP_NORM_TARGET = "optax_bilateral_step_norm"
 THREADS_ENV = extension.THREADS_ENV
 NATIVE_ENV = extension.NATIVE_ENV
 threads = extension.threads
@@ -488,3 +490,95 @@ def blend_weights(
         run_at=np.int64(run.at),
     )
     return lam, gate
+
+
+@dataclasses.dataclass(frozen=True)
+class StepFlags:
+    """What :func:`step_norm` reads besides the step's parts: the step's vector of scalars (its
+    one XLA kernel of them, :func:`~optax_bilateral._src.numerics.one_kernel`), which holds
+    ``1 / c1``, ``1 / c2`` and whether the blend's statistics were computed at this step, at
+    ``inv_c1_at``, ``inv_c2_at`` and ``computed_at``; and ``gate``, the rule's gate before the
+    step (a scalar). The blend is taken where computed and the gate is > 0."""
+
+    scalars: jax.Array
+    gate: jax.Array
+    inv_c1_at: int
+    inv_c2_at: int
+    computed_at: int
+
+    @classmethod
+    def of(cls, inv_c1: Entry, inv_c2: Entry, computed: Entry, gate: jax.Array) -> StepFlags:
+        """From three entries of one vector and the gate."""
+        if not inv_c1.vector is inv_c2.vector is computed.vector:
+            raise ValueError("inv_c1, inv_c2 and computed must be entries of one vector")
+        return cls(inv_c1.vector, jnp.asarray(gate), inv_c1.at, inv_c2.at, computed.at)
+
+    @property
+    def inv_c1(self) -> Entry:
+        return Entry(self.scalars, self.inv_c1_at, self.scalars.dtype)
+
+    @property
+    def inv_c2(self) -> Entry:
+        return Entry(self.scalars, self.inv_c2_at, self.scalars.dtype)
+
+    @property
+    def computed(self) -> Entry:
+        return Entry(self.scalars, self.computed_at, jnp.bool_)
+
+    @property
+    def blends(self) -> jax.Array:
+        """Whether the step takes the blend (computed and the gate open)."""
+        return self.computed.value & (self.gate > 0)
+
+
+jax.tree_util.register_dataclass(
+    StepFlags,
+    data_fields=["scalars", "gate"],
+    meta_fields=["inv_c1_at", "inv_c2_at", "computed_at"],
+)
+
+
+def step_norm(
+    m: jax.Array,
+    v: jax.Array,
+    bm: jax.Array,
+    bv: jax.Array,
+    lam: jax.Array | None,
+    observed: jax.Array,
+    flags: StepFlags,
+    axes: Sequence[int],
+    stride: int,
+    eps: float,
+    eps_root: float,
+) -> jax.Array:
+    """The mean texel norm at the sub-grid (every ``stride``-th texel along ``axes``) of the
+    postfilter's step before its learning rate (csrc/stats.h), computed from its parts where
+    the mean reads them: the moments ``m``, ``v``, the filtered ``bm``, ``bv`` (one shape and
+    float dtype), the blend's weight ``lam`` at the sub-grid (None: no blend) and the
+    ``observed`` entries (bool, broadcastable against ``m``), with ``flags``' scalars and
+    Adam's ``eps``, ``eps_root``. One FFI call, norms and mean in double; not differentiable:
+    :func:`optax_bilateral._src.filter.local.step_norm` gives it a rule."""
+    _require("the native texel statistics")
+    call = jax.ffi.ffi_call(
+        STEP_NORM_TARGET, jax.ShapeDtypeStruct((), m.dtype), vmap_method="sequential"
+    )
+    mask = jnp.asarray(observed, bool)
+    return call(
+        m,
+        v,
+        bm,
+        bv,
+        jnp.zeros((0,), m.dtype) if lam is None else lam,
+        mask.reshape((1,) * (m.ndim - mask.ndim) + mask.shape),
+        flags.scalars,
+        flags.gate.reshape(1),
+        axes=np.asarray(axes, np.int64),
+        stride=np.int64(stride),
+        has_lam=lam is not None,
+        inv_c1_at=np.int64(flags.inv_c1_at),
+        inv_c2_at=np.int64(flags.inv_c2_at),
+        blend_at=np.int64(flags.computed_at),
+        gate_at=np.int64(0),
+        eps=np.float64(eps),
+        eps_root=np.float64(eps_root),
+    )

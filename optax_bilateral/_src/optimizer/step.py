@@ -31,7 +31,7 @@ from jax import lax
 
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter import layout, operators
-from optax_bilateral._src.rules.sigma import Moments, SigmaRule, StepContext, blend
+from optax_bilateral._src.rules.sigma import Moments, SigmaRule, Step, StepContext, blend
 
 
 class LeafPlan(NamedTuple):
@@ -111,7 +111,6 @@ def postfilter_leaf(
         sigma, state = rule.sigma(guide, plan.filter, state, ctx)
         fields = Moments(m, v, g_obs, observed.entries, g, plan.limit)
         index, ways = rule.combine(fields, op, sigma, state, ctx)
-        sample = rule.step_sample(plan.filter)
 
         def finish(way):
             f = way()
@@ -127,8 +126,12 @@ def postfilter_leaf(
             d = step_at(_whole)
             # The rule reads the step at its own sample, computed there: the whole step then has
             # one reader, the learning rate, which XLA fuses into it (no full-size temporary).
-            seen = d if sample is None else sample(d) if plan.uniform else step_at(sample)
-            return d, rule.after_step(seen, f.state, plan.filter)
+            # With one second moment for the leaf, the sample of the whole step.
+            at = (lambda select: select(d)) if plan.uniform else step_at
+            step = Step(
+                d, at, m, v, f, observed.entries, adam.eps, adam.eps_root, ctx, plan.uniform
+            )
+            return d, rule.after_step(rule.read_step(step, plan.filter), f.state, plan.filter)
 
         if index is None:
             d, state = finish(*ways)
@@ -195,5 +198,6 @@ def bounded_step(m_f, v_f, v, observed: Observed, adam: AdamHyper, ctx: StepCont
     if uniform:
         v_f = jnp.where(observed.entries, v_f, v)
         v_f = jnp.broadcast_to(jnp.max(v_f), v_f.shape)
-    d = numerics.safe_step(m_f, v_f, ctx.inv_c1, ctx.inv_c2, adam.eps, adam.eps_root)
-    return jnp.where(observed.entries, d, 0)
+    return numerics.masked_step(
+        m_f, v_f, ctx.inv_c1, ctx.inv_c2, adam.eps, adam.eps_root, observed.entries
+    )

@@ -41,16 +41,26 @@ from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import Deeper, log_transform
 from optax_bilateral._src.filter.local import (
     NoiseTest,
+    StepFlags,
+    StepNormCall,
     correlated_noise,
     correlation_sums,
     every,
     local_average_subgrid,
     runs_native,
+    step_norm,
     subgrid_blend,
     texel_distance_mean,
 )
 from optax_bilateral._src.filter.operators import CrossGuided
-from optax_bilateral._src.rules.sigma import Filtered, Moments, SigmaRule, StepContext, cast_like
+from optax_bilateral._src.rules.sigma import (
+    Filtered,
+    Moments,
+    SigmaRule,
+    StepContext,
+    blend,
+    cast_like,
+)
 from optax_bilateral._src.validation import check_integer, check_number
 
 SKIP, CHECK, BLEND = 0, 1, 2  # what a postfilter step computes of the blend (blend_phase)
@@ -118,6 +128,7 @@ class Decisions(NamedTuple):
     scalars: jax.Array
     c1: numerics.Entry
     lag: numerics.Entry  # 1 - (1 - b1) / c1: the correlated-noise test's (_correlated_noise)
+    flags: StepFlags  # what the native step norm reads (Auto.read_step)
 
 
 @jax.tree_util.register_static
@@ -236,7 +247,10 @@ class Auto(SigmaRule):
         ctx = ctx._replace(c1=c1.value, c2=c2.value, inv_c1=inv_c1.value, inv_c2=inv_c2.value)
         scalars = self._blend_scalars(ctx, dtype, ratio.value)
         blends = (phase == BLEND) & ~heavy
-        return ctx._replace(decided=Decisions(heavy, due, computed, blends, scalars, c1, lag))
+        # The blend is taken where computed and the gate open: phase BLEND, not heavy.
+        flags = StepFlags.of(inv_c1, inv_c2, computed, state.gate)
+        decided = Decisions(heavy, due, computed, blends, scalars, c1, lag, flags)
+        return ctx._replace(decided=decided)
 
     def sigma(self, guide, plan, state, ctx):
         if guide is None:  # self-guided: each field's own contrast
@@ -262,8 +276,10 @@ class Auto(SigmaRule):
         # The blend's statistics (at a CHECK step, the gate's check alone).
         computed = decided.computed
         weights = functools.partial(blend_weights, self, moments, residual, decided.scalars, axes)
+        native_lam = None
         if runs_native(moments.m):  # zeros without any work where not computed
             lam, gate = weights(run=computed)
+            native_lam = lam
             # Zeros already where not computed: the select is for XLA, whose step kernel reads
             # the upsampled weights slowly without it (docs/auto_sigma.md's decisions).
             lam = jnp.where(computed.value, lam, 0)
@@ -277,6 +293,7 @@ class Auto(SigmaRule):
             upsample(self, lam, moments.m.shape, axes),
             cast_like(learned._replace(gate=gate), state),
             blends=decided.blends,
+            subgrid_lam=native_lam,
         )
         return None, (lambda: f,)
 
@@ -303,12 +320,38 @@ class Auto(SigmaRule):
     def step_sample(self, plan):
         return functools.partial(self._subgrid, axes=plan.axes)
 
-    def after_step(self, d, state, plan):
+    def read_step(self, step, plan):
+        """The step's direction (:attr:`AutoState.direction`): its mean texel norm at the
+        sub-grid. Where the statistics run natively, one FFI call computes the step there from
+        its parts (:func:`~optax_bilateral._src.filter.local.step_norm`), with no XLA kernel for
+        the step at the sub-grid; else the step computed there and its mean norm."""
+        f, decided = step.filtered, step.ctx.decided
+        if decided is None:  # not prepared (a rule that delegates to this one)
+            return self._direction(step, plan)
+        native = (
+            f.subgrid_lam is not None
+            and not step.uniform
+            and step.d.dtype == step.m.dtype == f.m.dtype
+            and all(isinstance(x, Real) for x in (step.eps, step.eps_root))
+        )
+        if not native:
+            return self._direction(step, plan)
+        where = _SubgridStep(
+            plan.axes, self._stride(step.m.shape, plan.axes), float(step.eps), float(step.eps_root)
+        )
+        reference = functools.partial(_step_norm_reference, where=where)
+        how = StepNormCall(*where, reference)
+        parts = (step.m, step.v, f.m, f.v, f.subgrid_lam, step.observed)
+        return step_norm(*parts, decided.flags, how)
+
+    def _direction(self, step, plan):
+        """:meth:`read_step` from the step computed at the sub-grid (on the native kernel the
+        mean in one FFI call: an XLA reduction and its scale would be two kernels)."""
+        return texel_distance_mean(step.at(self.step_sample(plan)), None, plan.axes, 1)
+
+    def after_step(self, direction, state, plan):
         if state is None or state.direction is None:
             return state
-        # d: the step at the sub-grid; on the native kernel one FFI call (an XLA reduction
-        # and its scale would be two kernels).
-        direction = texel_distance_mean(d, None, plan.axes, 1)
         return state._replace(direction=direction.astype(state.direction.dtype))
 
     # ------------------------------------------------------------------ the parts
@@ -525,6 +568,28 @@ def _blend_reference(rule: Auto, m, v, residual, scalars, *, axes, stride):
     lam = rule._blend_weight(m, v, residual, scalars, axes)
     gate = rule._gate(lam)
     return lam * gate, gate
+
+
+class _SubgridStep(NamedTuple):
+    """Where :func:`_step_norm_reference` computes the step, and Adam's ``eps``, ``eps_root``."""
+
+    axes: tuple[int, ...]
+    stride: int
+    eps: float
+    eps_root: float
+
+
+def _step_norm_reference(m, v, bm, bv, lam, observed, flags, where: _SubgridStep):
+    """:meth:`Auto.read_step`'s native norm in JAX (its derivative): the step at the
+    sub-grid, as the postfilter computes it there (:func:`blend`,
+    :func:`~optax_bilateral._src.numerics.masked_step`), and its mean texel norm."""
+    at = functools.partial(every, axes=where.axes, s=where.stride)
+    blends = flags.blends
+    lam = None if lam is None else jnp.where(flags.computed.value, lam, 0)
+    m_t, v_t = blend(lam, at(m), at(bm), blends), blend(lam, at(v), at(bv), blends)
+    inv_c1, inv_c2 = flags.inv_c1.value, flags.inv_c2.value
+    d = numerics.masked_step(m_t, v_t, inv_c1, inv_c2, where.eps, where.eps_root, at(observed))
+    return texel_distance_mean(d, None, where.axes, 1)
 
 
 def _no_weights(rule: Auto, m: jax.Array, axes) -> tuple[jax.Array, jax.Array]:

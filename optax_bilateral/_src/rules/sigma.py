@@ -13,8 +13,9 @@ in this order, for
   ``lam`` of a per-entry blend with the unfiltered ones, :func:`blend`) and which one it
   takes; the step compiles each way with its own bounded step (so the filter's last pass
   fuses into it) and runs the one chosen;
-* ``after_step``: the state with what the step taught it (a postfilter), read at the entries
-  ``step_sample`` selects.
+* ``read_step`` and ``after_step``: what the rule reads of the step (by default the step at
+  the entries ``step_sample`` selects, computed there) and the state with what it taught (a
+  postfilter).
 
 Two declarations are read once, when a transform is built: ``default_levels`` (the leaf's
 F when the transform's ``levels`` is None) and ``check`` (whether the rule can run in a
@@ -95,6 +96,30 @@ class Filtered(NamedTuple):
     lam: jax.Array | None
     state: Any
     blends: jax.Array | None = None
+    # lam before it was spread over the leaf, at the rule's sub-grid, where a native statistic
+    # of the rule reads it (SigmaRule.read_step); None: not given.
+    subgrid_lam: jax.Array | None = None
+
+
+class Step(NamedTuple):
+    """A postfilter leaf's step before its learning rate, for :meth:`SigmaRule.read_step`:
+    ``d`` (the whole step), ``at`` (the step at the entries a select function picks, computed
+    there: the whole one then has the learning rate for its one reader), and the parts the
+    step divides, for a rule that computes what it reads from them in one native call: the
+    updated moments, the way taken (:class:`Filtered`), the observed entries (broadcastable
+    against the leaf), Adam's ``eps`` and ``eps_root``, the step's context, and whether the
+    second moment is one for the leaf (``second_moment="uniform"``)."""
+
+    d: jax.Array
+    at: Callable[[Callable[[jax.Array], jax.Array]], jax.Array]
+    m: jax.Array
+    v: jax.Array
+    filtered: Filtered
+    observed: jax.Array
+    eps: Any
+    eps_root: Any
+    ctx: StepContext
+    uniform: bool
 
 
 class SigmaRule:
@@ -164,16 +189,23 @@ class SigmaRule:
         return None, (filtered,)
 
     def step_sample(self, plan) -> Callable[[jax.Array], jax.Array] | None:
-        """The entries of the step that :meth:`after_step` reads: a function that selects them
-        from any leaf-shaped (or broadcastable) array, or None for the whole step. The step is
-        then computed there a second time, so the whole one is read by the learning rate
-        alone."""
+        """The entries of the step that :meth:`read_step` reads by default: a function that
+        selects them from any leaf-shaped (or broadcastable) array, or None for the whole step.
+        The step is then computed there a second time, so the whole one is read by the
+        learning rate alone."""
         del plan
         return None
 
-    def after_step(self, d: jax.Array, state, plan) -> Any:
-        """The state with what the step ``d`` (its direction, before the learning rate, at
-        :meth:`step_sample`'s entries) taught."""
+    def read_step(self, step: Step, plan) -> Any:
+        """What :meth:`after_step` reads of the ``step``: the step at :meth:`step_sample`'s
+        entries (the whole step where it gives None)."""
+        sample = self.step_sample(plan)
+        return step.d if sample is None else step.at(sample)
+
+    def after_step(self, d: Any, state, plan) -> Any:
+        """The state with what the step taught: ``d``, what :meth:`read_step` read of it (by
+        default its direction, before the learning rate, at :meth:`step_sample`'s
+        entries)."""
         del d, plan
         return state
 

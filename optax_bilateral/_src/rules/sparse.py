@@ -138,6 +138,11 @@ class Sparse(SigmaRule):
     def step_sample(self, plan):
         return self.auto.step_sample(plan)
 
+    def read_step(self, step, plan):
+        # From the step at the sub-grid: B m is boosted there, which a native norm from the
+        # parts would read as a full-size array of its own.
+        return self.auto._direction(step, plan)
+
     def after_step(self, d, state, plan):
         return state._replace(auto=self.auto.after_step(d, state.auto, plan))
 
