@@ -549,35 +549,34 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
 }
 
 // The step's mean texel norm at the sub-grid (stats.h's step_norm) from its parts: m, v, B m,
-// B v (*shape), lam (the sub-grid's shape, or (0,) without has_lam), observed (a bool mask,
-// broadcast); inv_c1 and inv_c2 are entries of `scalars`. The blend is taken where has_lam,
-// entry blend_at of `scalars` is nonzero and entry gate_at of `gate` is > 0 (sigma_d="auto":
-// its statistics computed at this step, its gate open since the last).
+// B v and the gradient as given (*shape; a texel observed where its gradient is finite, and
+// with drop_zero not all 0), lam (the sub-grid's shape, or (0,) without has_lam); inv_c1 and
+// inv_c2 are entries of `scalars`. The blend is taken where has_lam, entry blend_at of
+// `scalars` is nonzero and entry gate_at of `gate` is > 0 (sigma_d="auto": its statistics
+// computed at this step, its gate open since the last).
 template <typename T>
-void step_norm_typed(const ob::Subgrid& g, ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer bm,
-                     ffi::AnyBuffer bv, ffi::AnyBuffer lam, ffi::AnyBuffer observed, bool blend,
-                     double inv_c1, double inv_c2, double eps, double eps_root,
-                     ffi::AnyBuffer& out) {
-  const auto od = observed.dimensions();
-  const ob::Step<T> s{static_cast<const T*>(m.untyped_data()),
-                      static_cast<const T*>(v.untyped_data()),
-                      static_cast<const T*>(bm.untyped_data()),
-                      static_cast<const T*>(bv.untyped_data()),
+void step_norm_typed(const ob::Subgrid& g, const ffi::AnyBuffer* parts[5], ffi::AnyBuffer lam,
+                     bool drop_zero, bool blend, const double k[4], ffi::AnyBuffer& out) {
+  const auto data = [](const ffi::AnyBuffer* b) { return static_cast<const T*>(b->untyped_data()); };
+  const ob::Step<T> s{data(parts[0]),
+                      data(parts[1]),
+                      data(parts[2]),
+                      data(parts[3]),
+                      data(parts[4]),
                       blend ? static_cast<const T*>(lam.untyped_data()) : nullptr,
-                      static_cast<const bool*>(observed.untyped_data()),
-                      std::vector<int64_t>(od.begin(), od.end()),
+                      drop_zero,
                       blend,
-                      static_cast<T>(inv_c1),
-                      static_cast<T>(inv_c2),
-                      static_cast<T>(eps),
-                      static_cast<T>(eps_root)};
+                      static_cast<T>(k[0]),
+                      static_cast<T>(k[1]),
+                      static_cast<T>(k[2]),
+                      static_cast<T>(k[3])};
   *static_cast<T*>(out.untyped_data()) = static_cast<T>(ob::step_norm(g, s));
 }
 
 ffi::Error step_norm(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer bm, ffi::AnyBuffer bv,
-                     ffi::AnyBuffer lam, ffi::AnyBuffer observed, ffi::AnyBuffer scalars,
+                     ffi::AnyBuffer grad, ffi::AnyBuffer lam, ffi::AnyBuffer scalars,
                      ffi::AnyBuffer gate, ffi::Result<ffi::AnyBuffer> out,
-                     ffi::Span<const int64_t> axes, int64_t stride, bool has_lam,
+                     ffi::Span<const int64_t> axes, int64_t stride, bool has_lam, bool drop_zero,
                      int64_t inv_c1_at, int64_t inv_c2_at, int64_t blend_at, int64_t gate_at,
                      double eps, double eps_root) {
   const ob::Subgrid g = subgrid_of(m, axes, stride);
@@ -587,15 +586,15 @@ ffi::Error step_norm(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer bm, ffi:
   if (type != ffi::DataType::F32 && type != ffi::DataType::F64)
     return invalid("the step's norm takes float32 or float64");
   const auto dims = m.dimensions();
-  for (ffi::AnyBuffer* b : {&v, &bm, &bv}) {
+  const ffi::AnyBuffer* parts[5] = {&m, &v, &bm, &bv, &grad};
+  for (const ffi::AnyBuffer* b : parts) {
     const auto bd = b->dimensions();
     if (b->element_type() != type || !std::equal(dims.begin(), dims.end(), bd.begin(), bd.end()))
-      return invalid("m, v, B m and B v must share their shape and dtype");
+      return invalid("m, v, B m, B v and the gradient must share their shape and dtype");
   }
   const int64_t sub = has_lam ? ob::texel_subgrid_size(g) : 0;
   if (static_cast<int64_t>(lam.element_count()) != sub || (has_lam && lam.element_type() != type))
     return invalid("lam must have the sub-grid's shape and m's dtype with has_lam, else be empty");
-  if (auto error = check_mask(g, observed)) return *error;
   if (out->element_type() != type || out->element_count() != 1)
     return invalid("the norm is a scalar of m's dtype");
   const std::optional<double> inv_c1 = entry(scalars, inv_c1_at);
@@ -606,12 +605,11 @@ ffi::Error step_norm(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer bm, ffi:
     return invalid("scalars must be a float vector with entries at inv_c1_at, inv_c2_at and "
                    "blend_at, and gate a vector with one at gate_at");
   const bool blend = has_lam && *computed != 0 && *open > 0;
+  const double k[4] = {*inv_c1, *inv_c2, eps, eps_root};
   if (type == ffi::DataType::F32)
-    step_norm_typed<float>(g, m, v, bm, bv, lam, observed, blend, *inv_c1, *inv_c2, eps, eps_root,
-                           *out);
+    step_norm_typed<float>(g, parts, lam, drop_zero, blend, k, *out);
   else
-    step_norm_typed<double>(g, m, v, bm, bv, lam, observed, blend, *inv_c1, *inv_c2, eps,
-                            eps_root, *out);
+    step_norm_typed<double>(g, parts, lam, drop_zero, blend, k, *out);
   return ffi::Error::Success();
 }
 
@@ -782,14 +780,15 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralStepNorm, step_norm,
                                   .Arg<ffi::AnyBuffer>()  // v (*shape)
                                   .Arg<ffi::AnyBuffer>()  // B m (*shape)
                                   .Arg<ffi::AnyBuffer>()  // B v (*shape)
+                                  .Arg<ffi::AnyBuffer>()  // the gradient as given (*shape)
                                   .Arg<ffi::AnyBuffer>()  // lam (the sub-grid's shape), or (0,)
-                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
                                   .Arg<ffi::AnyBuffer>()  // the step's scalars: a float vector
                                   .Arg<ffi::AnyBuffer>()  // gate: a bool or float vector
                                   .Ret<ffi::AnyBuffer>()  // the mean norm, a scalar
                                   .Attr<ffi::Span<const int64_t>>("axes")
                                   .Attr<int64_t>("stride")
                                   .Attr<bool>("has_lam")
+                                  .Attr<bool>("drop_zero")
                                   .Attr<int64_t>("inv_c1_at")
                                   .Attr<int64_t>("inv_c2_at")
                                   .Attr<int64_t>("blend_at")

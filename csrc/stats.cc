@@ -173,10 +173,10 @@ void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const 
   out[3 * pair_axes.size()] = zz, out[3 * pair_axes.size() + 1] = yy;
 }
 
-// The step at one entry (Step): a, its offset in g.shape's arrays; b, in lam's (the sub-grid's);
-// o, in the mask.
+// The step at one entry (Step) of an observed texel: a, its offset in g.shape's arrays; b,
+// in lam's (the sub-grid's).
 template <typename T>
-T step_at(const Step<T>& s, int64_t a, int64_t b, int64_t o) {
+T step_at(const Step<T>& s, int64_t a, int64_t b) {
   const auto blended = [&](const T* x, const T* bx) {
     if (!s.blend) return bx[a];
     const T lam = s.lam[b];
@@ -185,34 +185,31 @@ T step_at(const Step<T>& s, int64_t a, int64_t b, int64_t o) {
   const T m = blended(s.m, s.bm), v = blended(s.v, s.bv);
   const T h = std::fma(v, s.inv_c2, s.eps_root);
   const T den = (h > T(0) ? std::sqrt(h) : T(0)) + s.eps;
-  return s.observed[o] && den > T(0) ? (m * s.inv_c1) / den : T(0);
+  return den > T(0) ? (m * s.inv_c1) / den : T(0);
 }
 
 template <typename T>
 double mean_step_norm(const Subgrid& g, const Step<T>& s) {
   Walk texels, channels;  // offsets into g.shape's arrays (a) and into the sub-grid's (b)
   walks(g, texels, channels);
-  // The mask's offsets: the same walk over its broadcast strides.
-  std::vector<bool> spatial(g.shape.size(), false);
-  for (int64_t ax : g.axes) spatial[static_cast<size_t>(ax)] = true;
-  const auto mask = broadcast_strides(s.observed_shape);
-  Walk mask_texels, mask_channels;
-  for (size_t d = 0; d < g.shape.size(); ++d) {
-    if (spatial[d])
-      mask_texels.add(kept(g.shape[d], g.stride), g.stride * mask[d], 0);
-    else
-      mask_channels.add(g.shape[d], mask[d], 0);
-  }
   const int64_t n_texels = texels.count(), n_channels = channels.count();
   double total = 0;
   int64_t counted = 0;
-  for (int64_t t = 0; t < n_texels; ++t, texels.next(), mask_texels.next()) {
+  for (int64_t t = 0; t < n_texels; ++t, texels.next()) {
+    bool finite = true, zero = true;
+    channels.a = channels.b = 0;
+    for (int64_t c = 0; c < n_channels; ++c, channels.next()) {
+      const T x = s.grad[texels.a + channels.a];
+      finite = finite && std::isfinite(x);
+      zero = zero && x == T(0);
+    }
+    const bool observed = finite && !(s.drop_zero && zero);
     double sum = 0;
-    channels.a = channels.b = mask_channels.a = 0;
-    for (int64_t c = 0; c < n_channels; ++c, channels.next(), mask_channels.next()) {
-      const double d = static_cast<double>(step_at(s, texels.a + channels.a,
-                                                   texels.b + channels.b,
-                                                   mask_texels.a + mask_channels.a));
+    channels.a = channels.b = 0;
+    for (int64_t c = 0; c < n_channels; ++c, channels.next()) {
+      const double d = observed ? static_cast<double>(step_at(s, texels.a + channels.a,
+                                                              texels.b + channels.b))
+                                : 0.0;
       sum += d * d;
     }
     if (std::isnan(sum)) continue;

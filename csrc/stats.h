@@ -63,20 +63,20 @@ float blend_weights(const Subgrid& g, const float* m, const float* v, const floa
 double blend_weights(const Subgrid& g, const double* m, const double* v, const double* r,
                      const Blend<double>& b, double* out);
 
-// The step's parts: the updated moments m, v and the filtered B m, B v (g.shape), the blend's
-// weight lam (the sub-grid's shape; null: none), the observed entries (broadcast, as Noise's).
-// Per entry, in T, as XLA evaluates the JAX form (numerics.masked_step of sigma.blend's, the
-// blend's product and sum one fused multiply-add):
+// The step's parts: the updated moments m, v, the filtered B m, B v and the gradient as the
+// leaf received it (g.shape), and the blend's weight lam (the sub-grid's shape; null: none). A
+// texel is observed where all its channels of the gradient are finite (with drop_zero, and
+// not all 0: mask_unobserved), as optimizer/step.py's observe. Per entry, in T, as XLA
+// evaluates the JAX form (numerics.masked_step of sigma.blend's, the blend's product and sum
+// one fused multiply-add):
 //   m~ = blend ? fma(lam, m, (1 - lam) B m) : B m,   v~ alike,
 //   h = fma(v~, inv_c2, eps_root),   den = (h > 0 ? sqrt(h) : 0) + eps,
 //   d = observed and den > 0 ? (m~ inv_c1) / den : 0.
 template <typename T>
 struct Step {
-  const T *m, *v, *bm, *bv;
+  const T *m, *v, *bm, *bv, *grad;
   const T* lam;
-  const bool* observed;
-  std::vector<int64_t> observed_shape;
-  bool blend;
+  bool drop_zero, blend;
   T inv_c1, inv_c2, eps, eps_root;
 };
 

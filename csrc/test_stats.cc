@@ -338,28 +338,34 @@ void check_blend(const ob::Subgrid& g, std::mt19937& rng) {
 }
 
 // The step's mean texel norm (stats.h's Step) by its formula in double, through unravelled
-// indices: each sub-grid entry's step added to its texel's squared norm, then the mean of the
-// norms that are not NaN.
-double step_reference(const ob::Subgrid& g, const std::vector<double>* p[5],
-                      const std::vector<int64_t>& mask_shape, const bool* observed, bool blend,
-                      const double k[4]) {
+// indices: each texel observed or not from its gradient (every channel finite; with drop_zero,
+// not all 0), each sub-grid entry's step added to its texel's squared norm, then the mean of
+// the norms that are not NaN.
+double step_reference(const ob::Subgrid& g, const std::vector<double>* p[6], bool drop_zero,
+                      bool blend, const double k[4]) {
   const Shapes s(g);
   std::vector<double> sums(s.texels, 0.0);
+  std::vector<bool> finite(s.texels, true), zero(s.texels, true);
   std::vector<int64_t> at, t;
   for (int64_t i = 0; i < s.n; ++i) {
     s.locate(i, g.stride, at, t);
-    auto o = at;
-    for (size_t d = 0; d < o.size(); ++d)
-      if (mask_shape[d] == 1) o[d] = 0;
-    const int64_t a = ravel(at, g.shape);
-    const double lam = blend ? (*p[4])[i] : 0.0;
+    const double x = (*p[4])[ravel(at, g.shape)];
+    const int64_t texel = ravel(t, s.texel_shape);
+    finite[texel] = finite[texel] && std::isfinite(x);
+    zero[texel] = zero[texel] && x == 0;
+  }
+  for (int64_t i = 0; i < s.n; ++i) {
+    s.locate(i, g.stride, at, t);
+    const int64_t a = ravel(at, g.shape), texel = ravel(t, s.texel_shape);
+    const double lam = blend ? (*p[5])[i] : 0.0;
     const auto mixed = [&](int x, int bx) {
       return blend ? lam * (*p[x])[a] + (1 - lam) * (*p[bx])[a] : (*p[bx])[a];
     };
     const double h = mixed(1, 3) * k[1] + k[3];
     const double den = (h > 0 ? std::sqrt(h) : 0.0) + k[2];
-    const double step = observed[ravel(o, mask_shape)] && den > 0 ? mixed(0, 2) * k[0] / den : 0;
-    sums[ravel(t, s.texel_shape)] += step * step;
+    const bool observed = finite[texel] && !(drop_zero && zero[texel]);
+    const double step = observed && den > 0 ? mixed(0, 2) * k[0] / den : 0;
+    sums[texel] += step * step;
   }
   return mean_norm(sums);
 }
@@ -370,32 +376,39 @@ void check_step(const ob::Subgrid& g, std::mt19937& rng) {
   int64_t n = 1;
   for (int64_t d : g.shape) n *= d;
   const int64_t sub = ob::texel_subgrid_size(g);
-  std::vector<int64_t> mask_shape;
-  for (int64_t d : g.shape) mask_shape.push_back(rng() % 3 == 0 ? 1 : d);
-  int64_t n_mask = 1;
-  for (int64_t d : mask_shape) n_mask *= d;
-  std::unique_ptr<bool[]> observed(new bool[static_cast<size_t>(n_mask)]);
-  for (int64_t i = 0; i < n_mask; ++i) observed[i] = rng() % 5 != 0;
-  std::vector<T> x[5] = {std::vector<T>(n), std::vector<T>(n), std::vector<T>(n),
-                         std::vector<T>(n), std::vector<T>(sub)};
-  std::vector<double> x64[5];
+  // m, v, B m, B v, the gradient (g.shape) and lam (the sub-grid's).
+  std::vector<T> x[6] = {std::vector<T>(n), std::vector<T>(n), std::vector<T>(n),
+                         std::vector<T>(n), std::vector<T>(n), std::vector<T>(sub)};
+  std::vector<double> x64[6];
+  const T inf = std::numeric_limits<T>::infinity(), nan = std::numeric_limits<T>::quiet_NaN();
   for (int64_t i = 0; i < n; ++i) {
     x[0][i] = static_cast<T>(normal(rng)), x[2][i] = static_cast<T>(normal(rng));
     x[1][i] = static_cast<T>(std::fabs(normal(rng))), x[3][i] = static_cast<T>(normal(rng));
-    if (rng() % 50 == 0) x[2][i] = std::numeric_limits<T>::quiet_NaN();  // its texel left out
+    if (rng() % 50 == 0) x[2][i] = nan;  // its texel left out, if observed
+    // The gradient: some entries not finite, some 0 (whole texels of 0 where channels are few).
+    const unsigned r = rng() % 20;
+    x[4][i] = r == 0 ? nan : r == 1 ? -inf : r < 6 ? T(0) : static_cast<T>(normal(rng));
   }
   std::uniform_real_distribution<double> unit(0.0, 1.0);
-  for (int64_t i = 0; i < sub; ++i) x[4][i] = static_cast<T>(unit(rng));
-  for (int j = 0; j < 5; ++j) x64[j].assign(x[j].begin(), x[j].end());
-  const bool blend = rng() % 2;
+  for (int64_t i = 0; i < sub; ++i) x[5][i] = static_cast<T>(unit(rng));
+  for (int j = 0; j < 6; ++j) x64[j].assign(x[j].begin(), x[j].end());
+  const bool blend = rng() % 2, drop_zero = rng() % 2;
   // eps_root 0 or not; B v may be negative there (h <= 0: den = eps).
   const double k[4] = {3.7, 50.2, 1e-8, rng() % 2 ? 0.0 : 1e-3};
-  const ob::Step<T> step{x[0].data(), x[1].data(), x[2].data(), x[3].data(),
-                         blend ? x[4].data() : nullptr, observed.get(), mask_shape, blend,
-                         static_cast<T>(k[0]), static_cast<T>(k[1]), static_cast<T>(k[2]),
+  const ob::Step<T> step{x[0].data(),
+                         x[1].data(),
+                         x[2].data(),
+                         x[3].data(),
+                         x[4].data(),
+                         blend ? x[5].data() : nullptr,
+                         drop_zero,
+                         blend,
+                         static_cast<T>(k[0]),
+                         static_cast<T>(k[1]),
+                         static_cast<T>(k[2]),
                          static_cast<T>(k[3])};
-  const std::vector<double>* parts[5] = {&x64[0], &x64[1], &x64[2], &x64[3], &x64[4]};
-  const double want = step_reference(g, parts, mask_shape, observed.get(), blend, k);
+  const std::vector<double>* parts[6] = {&x64[0], &x64[1], &x64[2], &x64[3], &x64[4], &x64[5]};
+  const double want = step_reference(g, parts, drop_zero, blend, k);
   const double got = ob::step_norm(g, step);
   ++cases;
   const double tol = sizeof(T) == 4 ? 2e-5 : 1e-12;

@@ -1124,12 +1124,13 @@ def test_blend_differentiates_and_batches_as_the_rules_formula():
     )
 
 
-def _step_parts(seed, shape, axes, stride, dtype, computed=True, gate=0.5, eps_root=0.0):
+def _step_parts(seed, shape, axes, stride, dtype, computed=True, gate=0.5, drop_zero=False):
     """A postfilter step's parts (sigma_d="auto"'s direction reads them, native.step_norm):
-    moments and their filtered ones, the blend's weight at the sub-grid, a mask with a fifth
-    of the texels unobserved, and the step's flags; the call's fixed part with the rule's JAX
-    form (auto._step_norm_reference) as its derivative."""
-    from optax_bilateral._src.filter import local
+    moments and their filtered ones, the blend's weight at the sub-grid, and the observed mask
+    with the gradient it comes from (a tenth of the texels with a NaN or an infinite entry,
+    a tenth all 0: unobserved with drop_zero, as mask_unobserved); the step's flags; the call's
+    fixed part with the rule's JAX form (auto._step_norm_reference) as its derivative."""
+    from optax_bilateral._src.filter import layout
     from optax_bilateral._src.rules import auto
 
     rng = np.random.default_rng(seed)
@@ -1138,16 +1139,26 @@ def _step_parts(seed, shape, axes, stride, dtype, computed=True, gate=0.5, eps_r
     bm, bv = m * rng.random(shape), v * (0.5 + rng.random(shape))
     sub = tuple(slice(None, None, stride) if d in axes else slice(None) for d in range(len(shape)))
     lam = rng.random(m[sub].shape)
-    mask_shape = tuple(n if d in axes else 1 for d, n in enumerate(shape))
-    observed = jnp.asarray(rng.random(mask_shape) > 0.2)
+    grad = rng.normal(size=shape)
+    texel = tuple(n if d in axes else 1 for d, n in enumerate(shape))
+    which = np.broadcast_to(rng.random(texel), shape)
+    grad = np.where(which < 0.1, 0.0, grad)  # whole texels of 0
+    grad[rng.random(shape) < 0.1 / max(1, grad.size // np.prod(texel))] = np.nan
+    grad[(which > 0.95) & (rng.random(shape) < 0.5)] = -np.inf
+    given = jnp.asarray(grad, dtype)
+    spatial = tuple(sorted(axes))
+    texels = layout.texel_mask(jnp.isfinite(given), spatial)
+    if drop_zero:
+        texels = texels & ~layout.texel_mask(given == 0, spatial)
+    observed = layout.expand_mask(texels, len(shape), spatial)
     parts = [jnp.asarray(x, dtype) for x in (m, v, bm, bv, lam)] + [observed]
     inv_c1, inv_c2, done = numerics.one_kernel(
         (jnp.asarray(1 / 0.271, dtype), jnp.asarray(1 / 0.0199, dtype), jnp.asarray(computed))
     )
     flags = native.StepFlags.of(inv_c1, inv_c2, done, jnp.asarray(gate, dtype))
-    where = auto._SubgridStep(tuple(axes), stride, 1e-8, eps_root)
-    how = local.StepNormCall(*where, functools.partial(auto._step_norm_reference, where=where))
-    return parts, flags, how
+    where = auto._SubgridStep(tuple(axes), stride, 1e-8, 0.0)
+    reference = functools.partial(auto._step_norm_reference, where=where)
+    return parts, given, flags, native.StepCall(*where, drop_zero, reference)
 
 
 STEP_GRIDS = [
@@ -1163,14 +1174,15 @@ STEP_GRIDS = [
 @pytest.mark.parametrize("computed, gate", [(True, 0.5), (True, 0.0), (False, 0.5)])
 def test_step_norm_equals_the_step_at_the_subgrid_in_jax(shape, axes, stride, computed, gate):
     # The blend taken (computed, the gate open), its statistics computed with the gate still
-    # shut (a CHECK step), and neither: equal to the postfilter's step computed at the
-    # sub-grid and its mean texel norm, which the update took before (the goldens hold the
-    # update's bits).
+    # shut (a CHECK step), and neither; all-zero texels observed or not (mask_unobserved):
+    # equal to the postfilter's step computed at the sub-grid and its mean texel norm, which
+    # the update took before (the goldens hold the update's bits).
     from optax_bilateral._src.filter import local
 
-    for seed in range(2):
-        parts, flags, how = _step_parts(seed, shape, axes, stride, jnp.float32, computed, gate)
-        got = local.step_norm(*parts, flags, how)
+    for seed, drop_zero in ((0, False), (1, True)):
+        case = _step_parts(seed, shape, axes, stride, jnp.float32, computed, gate, drop_zero)
+        parts, given, flags, how = case
+        got = local.step_norm(tuple(parts), given, flags, how)
         want = how.reference(*parts, flags)
         assert got.dtype == jnp.float32 and got.shape == ()
         assert float(want) > 0
@@ -1178,47 +1190,56 @@ def test_step_norm_equals_the_step_at_the_subgrid_in_jax(shape, axes, stride, co
     # Without a blend's weight (the rule's blend off): B m and B v as they are.
     parts[4] = None
     np.testing.assert_allclose(
-        float(local.step_norm(*parts, flags, how)), float(how.reference(*parts, flags)), rtol=1e-6
+        float(local.step_norm(tuple(parts), given, flags, how)),
+        float(how.reference(*parts, flags)),
+        rtol=1e-6,
     )
 
 
 @pytest.mark.parametrize("eps_root", [0.0, 1e-4])
 def test_step_norm_in_float64_and_at_its_edges(eps_root):
-    # float64, eps_root > 0; a NaN in B m leaves its texel out (NaN norm), a texel with every
-    # entry unobserved has norm 0, v~ = 0 with eps = 0 gives d = 0 (no 0/0), and a grid of
-    # NaN texels alone gives 0.
+    # float64, eps_root > 0; a NaN in B m leaves its texel out (NaN norm), v~ = 0 with eps = 0
+    # gives d = 0 (no 0/0), a grid of NaN texels alone gives 0, and a gradient of no finite
+    # texel (none observed) gives 0.
     from optax_bilateral._src.filter import local
+    from optax_bilateral._src.rules import auto
+
+    def with_eps(how, eps, eps_root):
+        where = auto._SubgridStep(how.axes, how.stride, eps, eps_root)
+        return how._replace(
+            eps=eps,
+            eps_root=eps_root,
+            reference=functools.partial(auto._step_norm_reference, where=where),
+        )
 
     with jax_compat.enable_x64():
-        parts, flags, how = _step_parts(3, (12, 10, 2), (0, 1), 2, jnp.float64, eps_root=eps_root)
-        m, v, bm, bv, lam, observed = parts
-        bm = bm.at[2, 4, 1].set(jnp.nan)
-        observed = observed.at[4, 6].set(False)
-        got = local.step_norm(m, v, bm, bv, lam, observed, flags, how)
-        want = how.reference(m, v, bm, bv, lam, observed, flags)
+        parts, given, flags, how = _step_parts(3, (12, 10, 2), (0, 1), 2, jnp.float64)
+        how = with_eps(how, 1e-8, eps_root)
+        parts[2] = parts[2].at[2, 4, 1].set(jnp.nan)
+        got = local.step_norm(tuple(parts), given, flags, how)
         assert got.dtype == jnp.float64
-        np.testing.assert_allclose(float(got), float(want), rtol=1e-13)
-        from optax_bilateral._src.rules import auto
-
-        where = auto._SubgridStep((0, 1), 2, 0.0, 0.0)
-        zero_v = how._replace(eps=0.0, eps_root=0.0)
-        zero_v = zero_v._replace(reference=functools.partial(how.reference.func, where=where))
-        args = (m, jnp.zeros_like(v), bm, jnp.zeros_like(bv), None, observed, flags)
-        assert float(local.step_norm(*args, zero_v)) == float(zero_v.reference(*args)) == 0.0
-        nan = jnp.full_like(bm, jnp.nan)
-        assert float(local.step_norm(m, v, nan, bv, None, observed, flags, how)) == 0.0
+        np.testing.assert_allclose(float(got), float(how.reference(*parts, flags)), rtol=1e-13)
+        zero = with_eps(how, 0.0, 0.0)
+        m, v, bm, bv, _, observed = parts
+        flat = (m, jnp.zeros_like(v), bm, jnp.zeros_like(bv), None, observed)
+        assert float(local.step_norm(flat, given, flags, zero)) == 0.0
+        assert float(zero.reference(*flat, flags)) == 0.0
+        nan = (m, v, jnp.full_like(bm, jnp.nan), bv, None, observed)
+        assert float(local.step_norm(nan, given, flags, how)) == 0.0
+        none = jnp.full_like(given, jnp.inf)
+        assert float(local.step_norm(tuple(parts), none, flags, how)) == 0.0
 
 
 def test_step_norm_differentiates_and_batches_as_its_jax_form():
     from optax_bilateral._src.filter import local
 
-    parts, flags, how = _step_parts(1, (12, 10, 2), (0, 1), 2, jnp.float32)
+    parts, given, flags, how = _step_parts(1, (12, 10, 2), (0, 1), 2, jnp.float32)
     m, v, bm, bv, lam, observed = parts
 
     def loss(f):
         return lambda m, bm, lam: f(m, v, bm, bv, lam, observed, flags) ** 2
 
-    native_norm = lambda *a: local.step_norm(*a, how)
+    native_norm = lambda *a: local.step_norm(a[:6], given, a[6], how)
     got = jax.grad(loss(native_norm), argnums=(0, 1, 2))(m, bm, lam)
     want = jax.grad(loss(how.reference), argnums=(0, 1, 2))(m, bm, lam)
     for a, b in zip(got, want):
@@ -1232,17 +1253,17 @@ def test_step_norm_differentiates_and_batches_as_its_jax_form():
 
 
 def test_step_norm_refuses_operands_it_cannot_read():
-    parts, flags, _ = _step_parts(0, (8, 6, 2), (0, 1), 2, jnp.float32)
-    m, v, bm, bv, lam, observed = parts
-    call = lambda *a, flags=flags: native.step_norm(*a, flags, (0, 1), 2, 1e-8, 0.0)
+    parts, given, flags, how = _step_parts(0, (8, 6, 2), (0, 1), 2, jnp.float32)
+    m, v, bm, bv, lam, _ = parts
+    call = lambda *a, flags=flags: native.step_norm(*a, flags, how)
     with pytest.raises(Exception, match="lam must have the sub-grid's shape"):
-        call(m, v, bm, bv, lam[:-1], observed)
-    with pytest.raises(Exception, match="m, v, B m and B v must share"):
-        call(m, v, bm[:, :-1], bv, lam, observed)
-    with pytest.raises(Exception, match="each dimension of the observed mask"):
-        call(m, v, bm, bv, lam, observed[:, :-1])
+        call(m, v, bm, bv, given, lam[:-1])
+    with pytest.raises(Exception, match="m, v, B m, B v and the gradient must share"):
+        call(m, v, bm[:, :-1], bv, given, lam)
+    with pytest.raises(Exception, match="m, v, B m, B v and the gradient must share"):
+        call(m, v, bm, bv, given.astype(jnp.bfloat16), lam)
     with pytest.raises(Exception, match="scalars must be a float vector"):
-        call(m, v, bm, bv, lam, observed, flags=dataclasses.replace(flags, inv_c2_at=3))
+        call(m, v, bm, bv, given, lam, flags=dataclasses.replace(flags, inv_c2_at=3))
     with pytest.raises(ValueError, match="entries of one vector"):
         one, two = numerics.one_kernel((jnp.float32(1),)), numerics.one_kernel((jnp.float32(2),))
         native.StepFlags.of(one[0], two[0], one[0], jnp.float32(0))

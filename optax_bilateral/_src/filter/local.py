@@ -20,7 +20,7 @@ from jax import lax
 from optax_bilateral._src.filter import native, sharded
 from optax_bilateral._src.filter.bilateral import TAPS
 from optax_bilateral._src.filter.front import atrous_bilateral, resolve_kernel
-from optax_bilateral._src.filter.native import NoiseTest, StepFlags
+from optax_bilateral._src.filter.native import NoiseTest, StepCall, StepFlags
 from optax_bilateral._src.numerics import Entry, value
 
 
@@ -262,36 +262,28 @@ def _native_blend_jvp(how, primals, tangents):
     return jax.tree.map(zero, out), jax.tree.map(zero, tangent)
 
 
-class StepNormCall(NamedTuple):
-    """What is fixed about a native step norm's call: the sub-grid, Adam's ``eps`` and
-    ``eps_root``, and the JAX form that is its derivative."""
-
-    axes: tuple[int, ...]
-    stride: int
-    eps: float
-    eps_root: float
-    reference: Any
-
-
-def step_norm(m, v, bm, bv, lam, observed, flags: StepFlags, how: StepNormCall) -> jax.Array:
-    """The postfilter step's mean texel norm at the sub-grid, computed from its parts
-    (:func:`native.step_norm`: one FFI call, where XLA would compute the step at the sub-grid
-    in a kernel of its own and the mean in a second call); its derivative is
-    ``how.reference``'s, the rule's JAX form (``reference(m, v, bm, bv, lam, observed,
-    flags)``). The native kernel only: the caller checks :func:`runs_native`."""
-    return _native_step_norm(m, v, bm, bv, lam, observed, flags, how)
+def step_norm(parts: tuple, given: jax.Array, flags: StepFlags, how: StepCall) -> jax.Array:
+    """The postfilter step's mean texel norm at the sub-grid from its ``parts``, ``(m, v, B m,
+    B v, lam, observed)`` (:func:`native.step_norm`: one FFI call, where XLA would compute the
+    step at the sub-grid in a kernel of its own and the mean in a second call), its texels
+    observed or not from the gradient as ``given`` (which gives ``observed``, the step's mask:
+    XLA need not write the mask out for the call); its derivative is ``how.reference``'s, the
+    rule's JAX form (``reference(*parts, flags)``). The native kernel only: the caller checks
+    :func:`runs_native`."""
+    return _native_step_norm(parts, given, flags, how)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(7,))
-def _native_step_norm(m, v, bm, bv, lam, observed, flags, how: StepNormCall):
-    return native.step_norm(
-        m, v, bm, bv, lam, observed, flags, how.axes, how.stride, how.eps, how.eps_root
-    )
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _native_step_norm(parts, given, flags, how: StepCall):
+    m, v, bm, bv, lam, _ = parts  # the mask read from the gradient
+    return native.step_norm(m, v, bm, bv, given, lam, flags, how)
 
 
 @_native_step_norm.defjvp
 def _native_step_norm_jvp(how, primals, tangents):
-    return jax.jvp(how.reference, primals, tangents)
+    # The mask is piecewise constant in the gradient: no derivative through it.
+    (parts, _, flags), (t_parts, _, t_flags) = primals, tangents
+    return jax.jvp(lambda p, f: how.reference(*p, f), (parts, flags), (t_parts, t_flags))
 
 
 def texel_norm(x: jax.Array, axes: tuple[int, ...]) -> jax.Array:

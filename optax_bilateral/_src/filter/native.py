@@ -492,6 +492,19 @@ def blend_weights(
     return lam, gate
 
 
+class StepCall(NamedTuple):
+    """What is fixed about a step norm's call: the sub-grid (every ``stride``-th texel along
+    ``axes``), Adam's ``eps`` and ``eps_root``, whether an all-zero texel is unobserved
+    (``mask_unobserved``), and the JAX form that is its derivative (:func:`step_norm`)."""
+
+    axes: tuple[int, ...]
+    stride: int
+    eps: float
+    eps_root: float
+    drop_zero: bool
+    reference: Any
+
+
 @dataclasses.dataclass(frozen=True)
 class StepFlags:
     """What :func:`step_norm` reads besides the step's parts: the step's vector of scalars (its
@@ -543,42 +556,40 @@ def step_norm(
     v: jax.Array,
     bm: jax.Array,
     bv: jax.Array,
+    grad: jax.Array,
     lam: jax.Array | None,
-    observed: jax.Array,
     flags: StepFlags,
-    axes: Sequence[int],
-    stride: int,
-    eps: float,
-    eps_root: float,
+    how: StepCall,
 ) -> jax.Array:
-    """The mean texel norm at the sub-grid (every ``stride``-th texel along ``axes``) of the
-    postfilter's step before its learning rate (csrc/stats.h), computed from its parts where
-    the mean reads them: the moments ``m``, ``v``, the filtered ``bm``, ``bv`` (one shape and
-    float dtype), the blend's weight ``lam`` at the sub-grid (None: no blend) and the
-    ``observed`` entries (bool, broadcastable against ``m``), with ``flags``' scalars and
-    Adam's ``eps``, ``eps_root``. One FFI call, norms and mean in double; not differentiable:
+    """The mean texel norm at the sub-grid (every ``how.stride``-th texel along ``how.axes``)
+    of the postfilter's step before its learning rate (csrc/stats.h), computed from its parts
+    where the mean reads them: the moments ``m``, ``v``, the filtered ``bm``, ``bv`` and the
+    gradient as the leaf received it (one shape and float dtype: a texel is observed where its
+    gradient is finite, and with ``how.drop_zero`` not all 0), the blend's weight ``lam`` at
+    the sub-grid (None: no blend), with ``flags``' scalars and Adam's ``how.eps``,
+    ``how.eps_root``. One FFI call, norms and mean in double; not differentiable:
     :func:`optax_bilateral._src.filter.local.step_norm` gives it a rule."""
     _require("the native texel statistics")
     call = jax.ffi.ffi_call(
         STEP_NORM_TARGET, jax.ShapeDtypeStruct((), m.dtype), vmap_method="sequential"
     )
-    mask = jnp.asarray(observed, bool)
     return call(
         m,
         v,
         bm,
         bv,
+        grad,
         jnp.zeros((0,), m.dtype) if lam is None else lam,
-        mask.reshape((1,) * (m.ndim - mask.ndim) + mask.shape),
         flags.scalars,
         flags.gate.reshape(1),
-        axes=np.asarray(axes, np.int64),
-        stride=np.int64(stride),
+        axes=np.asarray(how.axes, np.int64),
+        stride=np.int64(how.stride),
         has_lam=lam is not None,
+        drop_zero=bool(how.drop_zero),
         inv_c1_at=np.int64(flags.inv_c1_at),
         inv_c2_at=np.int64(flags.inv_c2_at),
         blend_at=np.int64(flags.computed_at),
         gate_at=np.int64(0),
-        eps=np.float64(eps),
-        eps_root=np.float64(eps_root),
+        eps=np.float64(how.eps),
+        eps_root=np.float64(how.eps_root),
     )

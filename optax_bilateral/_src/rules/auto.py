@@ -41,8 +41,8 @@ from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import Deeper, log_transform
 from optax_bilateral._src.filter.local import (
     NoiseTest,
+    StepCall,
     StepFlags,
-    StepNormCall,
     correlated_noise,
     correlation_sums,
     every,
@@ -331,7 +331,8 @@ class Auto(SigmaRule):
         native = (
             f.subgrid_lam is not None
             and not step.uniform
-            and step.d.dtype == step.m.dtype == f.m.dtype
+            and step.d.dtype == step.m.dtype == f.m.dtype == step.given.dtype
+            and step.given.shape == step.m.shape
             and all(isinstance(x, Real) for x in (step.eps, step.eps_root))
         )
         if not native:
@@ -340,9 +341,9 @@ class Auto(SigmaRule):
             plan.axes, self._stride(step.m.shape, plan.axes), float(step.eps), float(step.eps_root)
         )
         reference = functools.partial(_step_norm_reference, where=where)
-        how = StepNormCall(*where, reference)
+        how = StepCall(*where, step.drop_zero, reference)
         parts = (step.m, step.v, f.m, f.v, f.subgrid_lam, step.observed)
-        return step_norm(*parts, decided.flags, how)
+        return step_norm(parts, step.given, decided.flags, how)
 
     def _direction(self, step, plan):
         """:meth:`read_step` from the step computed at the sub-grid (on the native kernel the

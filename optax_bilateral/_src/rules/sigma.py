@@ -107,8 +107,10 @@ class Step(NamedTuple):
     there: the whole one then has the learning rate for its one reader), and the parts the
     step divides, for a rule that computes what it reads from them in one native call: the
     updated moments, the way taken (:class:`Filtered`), the observed entries (broadcastable
-    against the leaf), Adam's ``eps`` and ``eps_root``, the step's context, and whether the
-    second moment is one for the leaf (``second_moment="uniform"``)."""
+    against the leaf) and their sources (the gradient as the leaf received it; whether an
+    all-zero texel is unobserved, ``mask_unobserved``), Adam's ``eps`` and ``eps_root``, the
+    step's context, and whether the second moment is one for the leaf
+    (``second_moment="uniform"``)."""
 
     d: jax.Array
     at: Callable[[Callable[[jax.Array], jax.Array]], jax.Array]
@@ -116,6 +118,8 @@ class Step(NamedTuple):
     v: jax.Array
     filtered: Filtered
     observed: jax.Array
+    given: jax.Array
+    drop_zero: bool
     eps: Any
     eps_root: Any
     ctx: StepContext
