@@ -800,3 +800,15 @@ def test_heavy_levels_sets_the_levels_a_correlated_step_adds():
 def test_heavy_levels_must_be_three_non_negative_ints(bad):
     with pytest.raises(ValueError, match="heavy_levels must be a tuple of 3 ints"):
         ob.auto_sigma(heavy_levels=bad)
+
+
+@pytest.mark.parametrize("period", [1, 3, 8])
+def test_the_check_steps_are_the_multiples_of_the_check_period(period):
+    # lax.rem (truncated) in place of jnp.remainder (floored): the same multiples, negative
+    # counts and int32's ends included.
+    rule = ob.Auto(check_period=period)
+    top = np.iinfo(np.int32).max
+    counts = np.array([0, 1, 2, 7, 8, 9, 16, 24, 25, -1, -8, -9, top, top - 7, -top - 1], np.int32)
+    got = np.asarray(rule._check_step(jnp.asarray(counts)))
+    np.testing.assert_array_equal(got, counts.astype(np.int64) % period == 0)
+    assert got.any() and (period == 1 or not got.all())

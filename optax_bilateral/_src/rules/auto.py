@@ -237,7 +237,7 @@ class Auto(SigmaRule):
         dtype, count = state.residual.dtype, ctx.count
         phase = self._blend_phase(state.gate, count)
         heavy = (state.correlated > 0) & plan.one_operator
-        due = ((count == FIRST_NOISE_STEP) | (count % self.check_period == 0)) & plan.one_operator
+        due = ((count == FIRST_NOISE_STEP) | self._check_step(count)) & plan.one_operator
         ratio = _ema_variance_ratio(jnp.asarray(ctx.b1, dtype), jnp.asarray(ctx.c1, dtype))
         lag = 1 - (1 - jnp.asarray(ctx.b1, dtype)) / jnp.asarray(ctx.c1, dtype)
         # What the step's kernels and native calls read, in one XLA kernel.
@@ -510,11 +510,17 @@ class Auto(SigmaRule):
         low, high = self.gate_bounds
         return jnp.clip((jnp.mean(lam) - low) / (high - low), 0, 1)
 
+    def _check_step(self, count: jax.Array) -> jax.Array:
+        """Whether ``count`` is a multiple of :attr:`check_period`: ``lax.rem``, the truncated
+        remainder, is 0 exactly where Python's floored ``%`` is, in one operation, not the
+        dozen of ``jnp.remainder``'s sign corrections."""
+        return lax.rem(count, jnp.asarray(self.check_period, count.dtype)) == 0
+
     def _blend_phase(self, gate: jax.Array, count: jax.Array) -> jax.Array:
         """What this step computes of the blend: ``BLEND`` (its statistics and the blend) if
         the gate was open at the last step; else ``CHECK`` (the gate alone,
         :func:`blend_weights`) at a multiple of ``check_period``; else ``SKIP`` (nothing)."""
-        check = jnp.where(count % self.check_period == 0, CHECK, SKIP)
+        check = jnp.where(self._check_step(count), CHECK, SKIP)
         return jnp.where(gate > 0, BLEND, check).astype(jnp.int32)
 
 
