@@ -128,8 +128,8 @@ def postfilter_leaf(
             # one reader, the learning rate, which XLA fuses into it (no full-size temporary).
             # With one second moment for the leaf, the sample of the whole step.
             at = (lambda select: select(d)) if plan.uniform else step_at
-            mask = (observed.entries, g, plan.mask_unobserved)
-            step = Step(d, at, m, v, f, *mask, adam.eps, adam.eps_root, ctx, plan.uniform)
+            parts = (m, v, f, observed.entries, g, plan.mask_unobserved)
+            step = Step(d, at, *parts, adam.eps, adam.eps_root, ctx, plan.uniform)
             return d, rule.after_step(rule.read_step(step, plan.filter), f.state, plan.filter)
 
         if index is None:

@@ -329,7 +329,7 @@ class Auto(SigmaRule):
         if decided is None:  # not prepared (a rule that delegates to this one)
             return self._direction(step, plan)
         native = (
-            f.subgrid_lam is not None
+            f.subgrid_lam is not None  # the blend ran natively (combine): the statistics do
             and not step.uniform
             and step.d.dtype == step.m.dtype == f.m.dtype == step.given.dtype
             and step.given.shape == step.m.shape
