@@ -557,19 +557,10 @@ ffi::Error blend_weights(ffi::AnyBuffer m, ffi::AnyBuffer v, ffi::AnyBuffer r,
 template <typename T>
 void step_norm_typed(const ob::Subgrid& g, const ffi::AnyBuffer* parts[5], ffi::AnyBuffer lam,
                      bool drop_zero, bool blend, const double k[4], ffi::AnyBuffer& out) {
-  const auto data = [](const ffi::AnyBuffer* b) { return static_cast<const T*>(b->untyped_data()); };
-  const ob::Step<T> s{data(parts[0]),
-                      data(parts[1]),
-                      data(parts[2]),
-                      data(parts[3]),
-                      data(parts[4]),
-                      blend ? static_cast<const T*>(lam.untyped_data()) : nullptr,
-                      drop_zero,
-                      blend,
-                      static_cast<T>(k[0]),
-                      static_cast<T>(k[1]),
-                      static_cast<T>(k[2]),
-                      static_cast<T>(k[3])};
+  const T* arrays[5];
+  for (int i = 0; i < 5; ++i) arrays[i] = static_cast<const T*>(parts[i]->untyped_data());
+  const ob::Step<T> s = ob::step_of<T>(arrays, static_cast<const T*>(lam.untyped_data()),
+                                       drop_zero, blend, k);
   *static_cast<T*>(out.untyped_data()) = static_cast<T>(ob::step_norm(g, s));
 }
 

@@ -80,6 +80,16 @@ struct Step {
   T inv_c1, inv_c2, eps, eps_root;
 };
 
+// A Step from its arrays (m, v, B m, B v, the gradient), lam (read only with blend) and the
+// scalars (inv_c1, inv_c2, eps, eps_root), each rounded to T.
+template <typename T>
+Step<T> step_of(const T* const arrays[5], const T* lam, bool drop_zero, bool blend,
+                const double scalars[4]) {
+  return {arrays[0], arrays[1], arrays[2], arrays[3], arrays[4], blend ? lam : nullptr,
+          drop_zero, blend, static_cast<T>(scalars[0]), static_cast<T>(scalars[1]),
+          static_cast<T>(scalars[2]), static_cast<T>(scalars[3])};
+}
+
 // The mean above of the step's texel norms (each norm in double from d in T).
 double step_norm(const Subgrid& g, const Step<float>& s);
 double step_norm(const Subgrid& g, const Step<double>& s);

@@ -395,18 +395,8 @@ void check_step(const ob::Subgrid& g, std::mt19937& rng) {
   const bool blend = rng() % 2, drop_zero = rng() % 2;
   // eps_root 0 or not; B v may be negative there (h <= 0: den = eps).
   const double k[4] = {3.7, 50.2, 1e-8, rng() % 2 ? 0.0 : 1e-3};
-  const ob::Step<T> step{x[0].data(),
-                         x[1].data(),
-                         x[2].data(),
-                         x[3].data(),
-                         x[4].data(),
-                         blend ? x[5].data() : nullptr,
-                         drop_zero,
-                         blend,
-                         static_cast<T>(k[0]),
-                         static_cast<T>(k[1]),
-                         static_cast<T>(k[2]),
-                         static_cast<T>(k[3])};
+  const T* arrays[5] = {x[0].data(), x[1].data(), x[2].data(), x[3].data(), x[4].data()};
+  const ob::Step<T> step = ob::step_of<T>(arrays, x[5].data(), drop_zero, blend, k);
   const std::vector<double>* parts[6] = {&x64[0], &x64[1], &x64[2], &x64[3], &x64[4], &x64[5]};
   const double want = step_reference(g, parts, drop_zero, blend, k);
   const double got = ob::step_norm(g, step);
