@@ -1,6 +1,6 @@
 // The Python extension optax_bilateral._native: the XLA FFI handlers (the a-trous cascade, the
-// rules' sub-grid averages and statistics, the mesh solves, the non-finite counts) and the capsules that
-// register them (jax.ffi.register_ffi_target).
+// rules' sub-grid averages and statistics, the mesh solves, the non-finite counts, the step's
+// order) and the capsules that register them (jax.ffi.register_ffi_target).
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -647,6 +647,25 @@ ffi::Error count_nonfinite(ffi::RemainingArgs xs, ffi::RemainingRets counts, boo
   return ffi::Error::Success();
 }
 
+// The arrays themselves, once the tokens exist: outputs 0..n-1 are operands 0..n-1, aliased
+// (XLA gives each output its operand's buffer), and the operands after them are tokens. What
+// reads the outputs is then scheduled after the tokens' producers: an update's last kernel
+// runs after the statistic read from its parts, and may write its output over one of them.
+// Nothing moves; where XLA gave an output a buffer of its own, its operand is copied there.
+ffi::Error after(ffi::RemainingArgs xs, ffi::RemainingRets ys) {
+  if (xs.size() < ys.size()) return invalid("one operand per output, then the tokens");
+  for (size_t k = 0; k < ys.size(); ++k) {
+    auto x = xs.get<ffi::AnyBuffer>(k);
+    auto y = ys.get<ffi::AnyBuffer>(k);
+    if (!x.has_value() || !y.has_value()) return invalid("operands and outputs are buffers");
+    if (x->element_type() != (*y)->element_type() || x->size_bytes() != (*y)->size_bytes())
+      return invalid("each output must have its operand's dtype and size");
+    if (x->untyped_data() != (*y)->untyped_data() && x->size_bytes() > 0)
+      std::memcpy((*y)->untyped_data(), x->untyped_data(), x->size_bytes());
+  }
+  return ffi::Error::Success();
+}
+
 }  // namespace
 
 #pragma GCC diagnostic push
@@ -786,6 +805,10 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralStepNorm, step_norm,
                                   .Attr<int64_t>("gate_at")
                                   .Attr<double>("eps")
                                   .Attr<double>("eps_root"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAfter, after,
+                              ffi::Ffi::Bind()
+                                  .RemainingArgs()   // the arrays, then the tokens
+                                  .RemainingRets());  // the arrays, aliased to their operands
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCountNonfinite, count_nonfinite,
                               ffi::Ffi::Bind()
                                   .RemainingArgs()  // the arrays (then their totals)
@@ -808,6 +831,7 @@ PyObject* registrations(PyObject*, PyObject*) {
       {"optax_bilateral_blend_weights", reinterpret_cast<void*>(&OptaxBilateralBlendWeights)},
       {"optax_bilateral_step_norm", reinterpret_cast<void*>(&OptaxBilateralStepNorm)},
       {"optax_bilateral_count_nonfinite", reinterpret_cast<void*>(&OptaxBilateralCountNonfinite)},
+      {"optax_bilateral_after", reinterpret_cast<void*>(&OptaxBilateralAfter)},
   };
   PyObject* dict = PyDict_New();
   if (!dict) return nullptr;

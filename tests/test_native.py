@@ -1365,3 +1365,70 @@ def test_nonfinite_counts_batch_and_are_not_differentiated():
 
     grad = jax.grad(loss)(jnp.sin(p).at[3].set(np.nan))
     assert bool(jnp.all(jnp.isfinite(grad)))
+
+
+# The postfilter's order (numerics.after): one FFI call passes arrays through after a token.
+def test_after_passes_arrays_through_unchanged_after_its_tokens():
+    xs = (
+        jnp.asarray([np.nan, -0.0, np.inf, 1e-45, -3e38], jnp.float32),
+        jnp.arange(6.0, dtype=jnp.float64 if jax.config.jax_enable_x64 else jnp.float32),
+        jnp.asarray([[1, -2], [3, 4]], jnp.int32),
+        jnp.zeros((0, 3), jnp.float16),
+    )
+    tokens = {"direction": jnp.float32(0.5), "count": jnp.int32(3)}
+    program = jax.jit(numerics.after)
+    got = program(xs, tokens)
+    for x, y in zip(xs, got, strict=True):
+        assert y.dtype == x.dtype and y.shape == x.shape
+        np.testing.assert_array_equal(np.asarray(y).view(np.uint8), np.asarray(x).view(np.uint8))
+    compiled = program.lower(xs, tokens).compile().as_text()
+    assert compiled.count(numerics.AFTER_TARGET) == 1
+    assert "output_to_operand_aliasing" in compiled  # no copies: the outputs are the operands
+    # Nothing to wait for, or nothing to pass: no call.
+    assert numerics.after(xs, None) is xs and numerics.after((), tokens) == ()
+
+
+def test_after_is_the_identity_under_grad_and_vmap():
+    x = jnp.linspace(-1.0, 2.0, 12).reshape(3, 4)
+    square_after_sum = lambda x: numerics.after((x * x,), jnp.sum(x))[0]
+    np.testing.assert_allclose(jax.grad(lambda x: jnp.sum(square_after_sum(x)))(x), 2 * x)
+    np.testing.assert_array_equal(jax.vmap(square_after_sum)(x), x * x)
+    # A batched array after an unbatched token, and the reverse.
+    a, b = jax.vmap(lambda r, t: numerics.after((r, x[0]), t), (0, None))(x, jnp.float32(1))
+    np.testing.assert_array_equal(a, x)
+    np.testing.assert_array_equal(b, jnp.broadcast_to(x[0], x.shape))
+    (c,) = jax.vmap(lambda t: numerics.after((x,), t))(jnp.arange(3.0))
+    np.testing.assert_array_equal(c, jnp.broadcast_to(x, (3, *x.shape)))
+
+
+def test_the_after_target_copies_where_not_aliased_and_checks_sizes():
+    # Called without aliases (XLA gives the output its own buffer), it copies its operand.
+    x, token = jnp.arange(5.0), jnp.float32(0)
+    copy = jax.ffi.ffi_call(numerics.AFTER_TARGET, jax.ShapeDtypeStruct(x.shape, x.dtype))
+    np.testing.assert_array_equal(jax.jit(copy)(x, token), x)
+    wrong = jax.ffi.ffi_call(numerics.AFTER_TARGET, jax.ShapeDtypeStruct((4,), x.dtype))
+    with pytest.raises(Exception, match="each output must have its operand's dtype and size"):
+        jax.block_until_ready(jax.jit(wrong)(x, token))
+    several = jax.ffi.ffi_call(numerics.AFTER_TARGET, (jax.ShapeDtypeStruct(x.shape, x.dtype),) * 2)
+    with pytest.raises(Exception, match="one operand per output, then the tokens"):
+        jax.block_until_ready(jax.jit(several)(x))
+
+
+@pytest.mark.parametrize(
+    "make, ordered",
+    [
+        (lambda ob: ob.bilateral_adam(0.02), True),  # "auto" reads its parts, not the step
+        (lambda ob: ob.bilateral_adam(0.02, sigma_d=0.2), False),  # a rule that reads it
+    ],
+)
+def test_the_step_runs_after_a_read_that_did_not_need_it(make, ordered):
+    # The postfilter computes the whole step after the rule's read where the read computed its
+    # own (then its last kernel may write over B m or B v, docs/performance.md); where the
+    # read took the whole step, that one step, unordered.
+    import optax_bilateral as ob
+
+    params = jnp.linspace(0.0, 1.0, 48 * 48 * 2).reshape(48, 48, 2)
+    opt = make(ob)
+    state = opt.init(params)
+    text = jax.jit(opt.update).lower(params, state, params).as_text()
+    assert (numerics.AFTER_TARGET in text) == ordered

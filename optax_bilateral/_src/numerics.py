@@ -7,6 +7,8 @@
 * A zero denominator gives a zero step, with finite derivatives (:func:`safe_step`).
 * A traced ``sigma_d`` that is negative or NaN makes the update NaN (:func:`sigma_guard`).
 * Non-finite gradient entries are counted per leaf (:func:`count_nonfinite`).
+* A kernel can be made to run after a value it does not read (:func:`after`): the postfilter's
+  step after its rule's read, so that it may write its output over what it reads.
 
 The step counter uses :func:`optax.safe_increment`.
 """
@@ -236,7 +238,12 @@ def count_nonfinite(
 
 
 def _counts_natively(x: jax.Array) -> bool:
-    if x.size == 0 or x.dtype not in _NATIVE_COUNT_DTYPES or jax.default_backend() != "cpu":
+    return x.size > 0 and x.dtype in _NATIVE_COUNT_DTYPES and _native_cpu(x)
+
+
+def _native_cpu(x: jax.Array) -> bool:
+    """Whether an FFI call of this extension can take ``x``: on the CPU, not split over a mesh."""
+    if jax.default_backend() != "cpu":
         return False
     try:  # a mesh in the type (explicit, or inside shard_map): no rule splits the FFI call
         mesh = getattr(jax.typeof(x).sharding, "mesh", None)
@@ -258,3 +265,38 @@ def _native_counts(xs: list[jax.Array], totals: list) -> tuple[jax.Array, ...]:
     if with_totals:
         operands += [jnp.asarray(t, jnp.int32).reshape(()) for t in totals]
     return tuple(call(*operands, totals=with_totals))
+
+
+AFTER_TARGET = "optax_bilateral_after"
+
+
+def after(arrays: tuple[jax.Array, ...], tokens: Any) -> tuple[jax.Array, ...]:
+    """``arrays`` as they are, read after ``tokens`` (a pytree of arrays) are computed.
+
+    XLA orders kernels by data alone, and its CPU pipeline drops ``lax.optimization_barrier``
+    before it schedules. On the CPU with the native extension loaded, one FFI call that does
+    nothing passes the arrays through (its outputs aliased to them, so nothing is copied) with
+    the tokens as operands: a kernel that reads its outputs runs after the tokens' producers,
+    and may write over an array it reads last. Elsewhere, ``arrays``. Its derivative is the
+    identity's.
+    """
+    leaves = tuple(jax.tree.leaves(tokens))
+    if not arrays or not leaves or not all(map(_native_cpu, arrays + leaves)):
+        return arrays
+    return _after(arrays, leaves)
+
+
+@jax.custom_jvp
+def _after(arrays: tuple[jax.Array, ...], tokens: tuple[jax.Array, ...]) -> tuple:
+    call = jax.ffi.ffi_call(
+        AFTER_TARGET,
+        tuple(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in arrays),
+        vmap_method="broadcast_all",
+        input_output_aliases={k: k for k in range(len(arrays))},
+    )
+    return tuple(call(*arrays, *tokens))
+
+
+@_after.defjvp
+def _after_jvp(primals, tangents):
+    return _after(*primals), tangents[0]

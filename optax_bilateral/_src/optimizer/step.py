@@ -115,7 +115,7 @@ def postfilter_leaf(
         def finish(way):
             f = way()
 
-            def step_at(at):  # the step at the entries `at` selects from leaf-shaped arrays
+            def step_at(at, f=f):  # the step at the entries `at` selects from leaf-shaped arrays
                 lam = None if f.lam is None else at(f.lam)
                 m_t = blend(lam, at(m), at(f.m), f.blends)
                 v_t = blend(lam, at(v), at(f.v), f.blends)
@@ -123,14 +123,18 @@ def postfilter_leaf(
                 d = bounded_step(m_t, v_t, at(v), obs, adam, ctx, plan.uniform)
                 return rule.guard(d.astype(g.dtype), sigma)
 
-            d = step_at(_whole)
+            whole = _Once(functools.partial(step_at, _whole))
             # The rule reads the step at its own sample, computed there: the whole step then has
             # one reader, the learning rate, which XLA fuses into it (no full-size temporary).
             # With one second moment for the leaf, the sample of the whole step.
-            at = (lambda select: select(d)) if plan.uniform else step_at
+            at = (lambda select: select(whole())) if plan.uniform else step_at
             parts = (m, v, f, observed.entries, g, plan.mask_unobserved)
-            step = Step(d, at, *parts, adam.eps, adam.eps_root, ctx, plan.uniform)
-            return d, rule.after_step(rule.read_step(step, plan.filter), f.state, plan.filter)
+            step = Step(whole, at, *parts, adam.eps, adam.eps_root, ctx, plan.uniform)
+            read = rule.read_step(step, plan.filter)
+            if whole.value is None:  # not read: computed after the read, it may overwrite B m
+                bm, bv = numerics.after((f.m, f.v), read)
+                whole.value = step_at(_whole, f._replace(m=bm, v=bv))
+            return whole(), rule.after_step(read, f.state, plan.filter)
 
         if index is None:
             d, state = finish(*ways)
@@ -143,6 +147,18 @@ def postfilter_leaf(
 
 def _whole(x):
     return x
+
+
+class _Once:
+    """A value computed at its first call (``value``: None until then)."""
+
+    def __init__(self, compute):
+        self.compute, self.value = compute, None
+
+    def __call__(self):
+        if self.value is None:
+            self.value = self.compute()
+        return self.value
 
 
 @functools.partial(jax.jit, static_argnames=("plan",), inline=True)

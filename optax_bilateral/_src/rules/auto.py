@@ -331,7 +331,7 @@ class Auto(SigmaRule):
         native = (
             f.subgrid_lam is not None  # the blend ran natively (combine): the statistics do
             and not step.uniform
-            and step.d.dtype == step.m.dtype == f.m.dtype == step.given.dtype
+            and step.given.dtype == step.m.dtype == f.m.dtype  # the step's dtype: given's
             and step.given.shape == step.m.shape
             and all(isinstance(x, Real) for x in (step.eps, step.eps_root))
         )

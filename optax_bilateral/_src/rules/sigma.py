@@ -103,8 +103,9 @@ class Filtered(NamedTuple):
 
 class Step(NamedTuple):
     """A postfilter leaf's step before its learning rate, for :meth:`SigmaRule.read_step`:
-    ``d`` (the whole step), ``at`` (the step at the entries a select function picks, computed
-    there: the whole one then has the learning rate for its one reader), and the parts the
+    ``d`` (the whole step, computed where a rule reads it; ``whole`` computes it), ``at`` (the
+    step at the entries a select function picks, computed there: the whole one then has the
+    learning rate for its one reader, after the read), and the parts the
     step divides, for a rule that computes what it reads from them in one native call: the
     updated moments, the way taken (:class:`Filtered`), the observed entries (broadcastable
     against the leaf) and their sources (the gradient as the leaf received it; whether an
@@ -112,7 +113,7 @@ class Step(NamedTuple):
     step's context, and whether the second moment is one for the leaf
     (``second_moment="uniform"``)."""
 
-    d: jax.Array
+    whole: Callable[[], jax.Array]
     at: Callable[[Callable[[jax.Array], jax.Array]], jax.Array]
     m: jax.Array
     v: jax.Array
@@ -124,6 +125,11 @@ class Step(NamedTuple):
     eps_root: Any
     ctx: StepContext
     uniform: bool
+
+    @property
+    def d(self) -> jax.Array:
+        """The whole step."""
+        return self.whole()
 
 
 class SigmaRule:
