@@ -368,14 +368,16 @@ T in_range(double limit) {
 template <typename T>
 void correlation_typed(const ob::Subgrid& g, const std::vector<int64_t>& pairs,
                        ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
-                       T c1, double limit, double* sums) {
+                       T c1, double limit, bool drop_zero, double* sums) {
   const auto od = observed.dimensions();
+  const bool given = observed.element_count() > 0;  // else the texels' mask from grad
   const ob::Noise<T> noise{static_cast<const T*>(grad.untyped_data()),
                            static_cast<const T*>(m.untyped_data()),
-                           static_cast<const bool*>(observed.untyped_data()),
+                           given ? static_cast<const bool*>(observed.untyped_data()) : nullptr,
                            std::vector<int64_t>(od.begin(), od.end()),
                            c1,
-                           in_range<T>(limit)};
+                           in_range<T>(limit),
+                           drop_zero};
   ob::correlation_sums(g, pairs, noise, sums);
 }
 
@@ -419,7 +421,12 @@ std::optional<ffi::Error> check_noise_call(const ffi::AnyBuffer& grad, const ffi
     return invalid("grad and m must share their shape and dtype");
   if (grad.element_type() != ffi::DataType::F32 && grad.element_type() != ffi::DataType::F64)
     return invalid("the correlation sums take float32 or float64");
-  if (auto error = check_mask(g, observed)) return *error;
+  // An empty bool mask: the texels' mask is read from grad (stats.h's Noise).
+  const bool from_grad =
+      observed.element_count() == 0 && observed.element_type() == ffi::DataType::PRED;
+  if (!from_grad) {
+    if (auto error = check_mask(g, observed)) return *error;
+  }
   const std::optional<double> c = entry(c1, c1_at);
   if (!c || c1.element_type() == ffi::DataType::PRED)
     return invalid("c1 must be a float vector with an entry at c1_at");
@@ -432,21 +439,22 @@ std::optional<ffi::Error> check_noise_call(const ffi::AnyBuffer& grad, const ffi
 template <typename T>
 std::vector<double> noise_sums(const NoiseCall& call, const ffi::AnyBuffer& grad,
                                const ffi::AnyBuffer& m, const ffi::AnyBuffer& observed,
-                               double limit) {
+                               double limit, bool drop_zero) {
   std::vector<double> sums(3 * call.pairs.size() + 2);
   correlation_typed<T>(call.grid, call.pairs, grad, m, observed, static_cast<T>(call.c1), limit,
-                       sums.data());
+                       drop_zero, sums.data());
   for (double& x : sums) x = static_cast<T>(x);
   return sums;
 }
 
 // The correlated-noise check's sums (stats.h), (3 pairs + 2) of grad's dtype, of
 // z = clip(grad, -limit, limit) - m / c1 and y = m / c1 where observed (a bool mask,
-// broadcast), else 0.
+// broadcast; empty: each texel's from grad, the gradient as given, with drop_zero), else 0.
 ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffer observed,
                             ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::Result<ffi::AnyBuffer> out,
                             ffi::Span<const int64_t> axes, ffi::Span<const int64_t> pair_axes,
-                            int64_t stride, double limit, int64_t c1_at, int64_t run_at) {
+                            int64_t stride, double limit, bool drop_zero, int64_t c1_at,
+                            int64_t run_at) {
   NoiseCall call;
   if (auto error = check_noise_call(grad, m, observed, c1, axes, pair_axes, stride, limit, c1_at,
                                     call))
@@ -456,10 +464,10 @@ ffi::Error correlation_sums(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
     return invalid("the sums are (3 pair axes + 2) of grad's dtype");
   if (auto done = unless_run(run, run_at, {&*out})) return *done;
   if (type == ffi::DataType::F32) {
-    const std::vector<double> sums = noise_sums<float>(call, grad, m, observed, limit);
+    const std::vector<double> sums = noise_sums<float>(call, grad, m, observed, limit, drop_zero);
     std::copy(sums.begin(), sums.end(), static_cast<float*>(out->untyped_data()));
   } else {
-    const std::vector<double> sums = noise_sums<double>(call, grad, m, observed, limit);
+    const std::vector<double> sums = noise_sums<double>(call, grad, m, observed, limit, drop_zero);
     std::copy(sums.begin(), sums.end(), static_cast<double*>(out->untyped_data()));
   }
   return ffi::Error::Success();
@@ -472,8 +480,8 @@ ffi::Error correlated_noise(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
                             ffi::AnyBuffer c1, ffi::AnyBuffer run, ffi::AnyBuffer stored,
                             ffi::Result<ffi::AnyBuffer> out, ffi::Span<const int64_t> axes,
                             ffi::Span<const int64_t> pair_axes, int64_t stride, double limit,
-                            int64_t c1_at, int64_t run_at, int64_t lag_at, int64_t stored_at,
-                            double correlated, double noisy) {
+                            bool drop_zero, int64_t c1_at, int64_t run_at, int64_t lag_at,
+                            int64_t stored_at, double correlated, double noisy) {
   NoiseCall call;
   if (auto error = check_noise_call(grad, m, observed, c1, axes, pair_axes, stride, limit, c1_at,
                                     call))
@@ -490,12 +498,12 @@ ffi::Error correlated_noise(ffi::AnyBuffer grad, ffi::AnyBuffer m, ffi::AnyBuffe
     return *done;
   }
   if (type == ffi::DataType::F32) {
-    const std::vector<double> sums = noise_sums<float>(call, grad, m, observed, limit);
+    const std::vector<double> sums = noise_sums<float>(call, grad, m, observed, limit, drop_zero);
     *static_cast<float*>(out->untyped_data()) =
         ob::noise_test<float>(sums.data(), call.pairs.size(), static_cast<float>(*lag),
                               correlated, noisy);
   } else {
-    const std::vector<double> sums = noise_sums<double>(call, grad, m, observed, limit);
+    const std::vector<double> sums = noise_sums<double>(call, grad, m, observed, limit, drop_zero);
     *static_cast<double*>(out->untyped_data()) =
         ob::noise_test<double>(sums.data(), call.pairs.size(), *lag, correlated, noisy);
   }
@@ -739,7 +747,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // grad (*shape)
                                   .Arg<ffi::AnyBuffer>()  // m (*shape)
-                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
+                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s; (0,):
+                                                          // the texels' from grad)
                                   .Arg<ffi::AnyBuffer>()  // c1: a float vector
                                   .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
                                   .Ret<ffi::AnyBuffer>()  // the sums (3 pair axes + 2)
@@ -747,13 +756,15 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelationSums, correlation_sums,
                                   .Attr<ffi::Span<const int64_t>>("pair_axes")
                                   .Attr<int64_t>("stride")
                                   .Attr<double>("limit")  // |grad| clipped to it
+                                  .Attr<bool>("drop_zero")  // with no mask: all-0 texels out
                                   .Attr<int64_t>("c1_at")  // c1's entry
                                   .Attr<int64_t>("run_at"));  // run's entry
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelatedNoise, correlated_noise,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // grad (*shape)
                                   .Arg<ffi::AnyBuffer>()  // m (*shape)
-                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s)
+                                  .Arg<ffi::AnyBuffer>()  // observed, bool (*shape or 1s; (0,):
+                                                          // the texels' from grad)
                                   .Arg<ffi::AnyBuffer>()  // c1 and lag: a float vector
                                   .Arg<ffi::AnyBuffer>()  // run: a bool or float vector
                                   .Arg<ffi::AnyBuffer>()  // stored: a float vector
@@ -762,6 +773,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralCorrelatedNoise, correlated_noise,
                                   .Attr<ffi::Span<const int64_t>>("pair_axes")
                                   .Attr<int64_t>("stride")
                                   .Attr<double>("limit")
+                                  .Attr<bool>("drop_zero")
                                   .Attr<int64_t>("c1_at")
                                   .Attr<int64_t>("run_at")
                                   .Attr<int64_t>("lag_at")

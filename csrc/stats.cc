@@ -11,16 +11,17 @@ namespace {
 
 int64_t kept(int64_t n, int64_t stride) { return (n - 1) / stride + 1; }
 
-// A row-major walk over `sizes` that keeps an offset into a and one into b, each with its own
-// step per axis.
+// A row-major walk over `sizes` that keeps an offset into a, one into b and one into c, each
+// with its own step per axis.
 struct Walk {
-  std::vector<int64_t> sizes, step_a, step_b, idx;
-  int64_t a = 0, b = 0;
+  std::vector<int64_t> sizes, step_a, step_b, step_c, idx;
+  int64_t a = 0, b = 0, c = 0;
 
-  void add(int64_t size, int64_t sa, int64_t sb) {
+  void add(int64_t size, int64_t sa, int64_t sb, int64_t sc = 0) {
     sizes.push_back(size);
     step_a.push_back(sa);
     step_b.push_back(sb);
+    step_c.push_back(sc);
     idx.push_back(0);
   }
   int64_t count() const {
@@ -32,9 +33,11 @@ struct Walk {
     for (size_t d = sizes.size(); d-- > 0;) {
       a += step_a[d];
       b += step_b[d];
+      c += step_c[d];
       if (++idx[d] < sizes[d]) return;
       a -= step_a[d] * sizes[d];
       b -= step_b[d] * sizes[d];
+      c -= step_c[d] * sizes[d];
       idx[d] = 0;
     }
   }
@@ -114,14 +117,33 @@ std::vector<int64_t> broadcast_strides(const std::vector<int64_t>& shape) {
   return out;
 }
 
+// Where a Noise reads whether an entry is observed: its mask at offset b, or (no mask) the
+// texel whose first channel is at offset c of grad, from its channels at c + `channels`.
 template <typename T>
-T noise_y(const Noise<T>& n, int64_t a, int64_t o) {
-  return n.observed[o] ? n.m[a] / n.c1 : T(0);
+struct Observed {
+  const Noise<T>& noise;
+  std::vector<int64_t> channels;
+
+  bool operator()(int64_t b, int64_t c) const {
+    if (noise.observed) return noise.observed[b];
+    bool finite = true, zero = true;
+    for (int64_t o : channels) {
+      const T x = noise.grad[c + o];
+      finite = finite && std::isfinite(x);
+      zero = zero && x == T(0);
+    }
+    return finite && !(noise.drop_zero && zero);
+  }
+};
+
+template <typename T>
+T noise_y(const Noise<T>& n, int64_t a, bool observed) {
+  return observed ? n.m[a] / n.c1 : T(0);
 }
 
 template <typename T>
-T noise_z(const Noise<T>& n, int64_t a, int64_t o) {
-  if (!n.observed[o]) return T(0);
+T noise_z(const Noise<T>& n, int64_t a, bool observed) {
+  if (!observed) return T(0);
   const T g = std::min(std::max(n.grad[a], -n.limit), n.limit);  // jnp.clip's order
   return g - n.m[a] / n.c1;
 }
@@ -132,25 +154,39 @@ void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const 
   std::vector<bool> spatial(g.shape.size(), false);
   for (int64_t ax : g.axes) spatial[static_cast<size_t>(ax)] = true;
   const auto step = strides_of(g.shape);
-  const auto mask = broadcast_strides(noise.observed_shape);
+  const auto mask = noise.observed ? broadcast_strides(noise.observed_shape)
+                                   : std::vector<int64_t>(g.shape.size(), 0);
+  // texel(d): grad's step along a spatial axis d, 0 along the channels (offset c of a Walk).
+  std::vector<int64_t> texel(g.shape.size(), 0);
+  Walk channel_walk;
+  for (size_t d = 0; d < g.shape.size(); ++d) {
+    if (spatial[d])
+      texel[d] = step[d];
+    else
+      channel_walk.add(g.shape[d], step[d], 0);
+  }
+  Observed<T> seen{noise, {}};
+  for (int64_t i = 0, n = channel_walk.count(); i < n; ++i, channel_walk.next())
+    seen.channels.push_back(channel_walk.a);
   const int64_t q = g.stride > 2 ? g.stride : 2;
   for (size_t k = 0; k < pair_axes.size(); ++k) {
     const size_t along = static_cast<size_t>(pair_axes[k]);
     Walk pairs;
     for (size_t d = 0; d < g.shape.size(); ++d) {
       if (d == along)
-        pairs.add(g.shape[d] / q, q * step[d], q * mask[d]);
+        pairs.add(g.shape[d] / q, q * step[d], q * mask[d], q * texel[d]);
       else if (spatial[d])
-        pairs.add(kept(g.shape[d], g.stride), g.stride * step[d], g.stride * mask[d]);
+        pairs.add(kept(g.shape[d], g.stride), g.stride * step[d], g.stride * mask[d],
+                  g.stride * texel[d]);
       else
-        pairs.add(g.shape[d], step[d], mask[d]);
+        pairs.add(g.shape[d], step[d], mask[d], 0);
     }
     double s00 = 0, s11 = 0, s01 = 0;
     const int64_t n = pairs.count();
     for (int64_t i = 0; i < n; ++i, pairs.next()) {
-      const double x0 = static_cast<double>(noise_z(noise, pairs.a, pairs.b));
-      const double x1 =
-          static_cast<double>(noise_z(noise, pairs.a + step[along], pairs.b + mask[along]));
+      const double x0 = static_cast<double>(noise_z(noise, pairs.a, seen(pairs.b, pairs.c)));
+      const bool on1 = seen(pairs.b + mask[along], pairs.c + step[along]);
+      const double x1 = static_cast<double>(noise_z(noise, pairs.a + step[along], on1));
       s00 += x0 * x0;
       s11 += x1 * x1;
       s01 += x0 * x1;
@@ -160,13 +196,15 @@ void correlation(const Subgrid& g, const std::vector<int64_t>& pair_axes, const 
   Walk sub;
   for (size_t d = 0; d < g.shape.size(); ++d) {
     const int64_t s = spatial[d] ? g.stride : 1;
-    sub.add(spatial[d] ? kept(g.shape[d], g.stride) : g.shape[d], s * step[d], s * mask[d]);
+    sub.add(spatial[d] ? kept(g.shape[d], g.stride) : g.shape[d], s * step[d], s * mask[d],
+            s * texel[d]);
   }
   double zz = 0, yy = 0;
   const int64_t n = sub.count();
   for (int64_t i = 0; i < n; ++i, sub.next()) {
-    const double a = static_cast<double>(noise_z(noise, sub.a, sub.b));
-    const double b = static_cast<double>(noise_y(noise, sub.a, sub.b));
+    const bool on = seen(sub.b, sub.c);
+    const double a = static_cast<double>(noise_z(noise, sub.a, on));
+    const double b = static_cast<double>(noise_y(noise, sub.a, on));
     zz += a * a;
     yy += b * b;
   }

@@ -97,7 +97,9 @@ double step_norm(const Subgrid& g, const Step<double>& s);
 // The correlated-noise check's fields, computed where the sums read them (no full-size copy):
 // y = m / c1 and z = clip(grad, -limit, limit) - y where `observed`, else 0, each operation in
 // T (auto.py's order; the clip is the step's, so grad may be the gradient as given). grad and
-// m have g.shape; observed has its rank, each dimension g.shape's or 1 (broadcast).
+// m have g.shape; observed has its rank, each dimension g.shape's or 1 (broadcast), or is null:
+// then a texel is observed where all its channels of grad (the gradient as given) are finite
+// and, with drop_zero, not all 0, as Step's (no mask for XLA to write out).
 template <typename T>
 struct Noise {
   const T* grad;
@@ -106,6 +108,7 @@ struct Noise {
   std::vector<int64_t> observed_shape;
   T c1;
   T limit = std::numeric_limits<T>::infinity();
+  bool drop_zero = false;
 };
 
 // The first problem with a Noise's mask shape for the grid g, or "".

@@ -196,30 +196,51 @@ void check_noise_test(std::vector<double> sums, size_t pairs, T lag) {
 }
 
 // z and y from a gradient, a first moment and a mask broadcast along some dimensions, as Noise
-// defines them (in T), for the float64 reference; then the native sums.
+// defines them (in T), for the float64 reference; then the native sums. `from_grad`: no mask,
+// each texel observed or not from its gradient (every channel finite; with drop_zero, not all
+// 0), some of whose entries are not finite or 0.
 template <typename T>
-void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
+void check_correlation(const ob::Subgrid& g, std::mt19937& rng, bool from_grad) {
   std::normal_distribution<double> normal(0.0, 2.0);
   int64_t n = 1;
   for (int64_t d : g.shape) n *= d;
+  std::vector<bool> spatial(g.shape.size(), false);
+  for (int64_t ax : g.axes) spatial[static_cast<size_t>(ax)] = true;
   std::vector<int64_t> mask_shape;
-  for (int64_t d : g.shape) mask_shape.push_back(rng() % 3 == 0 ? 1 : d);
+  for (size_t d = 0; d < g.shape.size(); ++d)
+    mask_shape.push_back((from_grad ? !spatial[d] : rng() % 3 == 0) ? 1 : g.shape[d]);
   int64_t n_mask = 1;
   for (int64_t d : mask_shape) n_mask *= d;
-  std::unique_ptr<bool[]> observed(new bool[static_cast<size_t>(n_mask)]);
-  for (int64_t i = 0; i < n_mask; ++i) observed[i] = rng() % 4 != 0;
-  const T c1 = static_cast<T>(0.1 + 0.9 * (rng() % 1000) / 1000.0);
-  // Half the cases clip the gradient (to about its spread: many entries are clipped).
-  const T limit = rng() % 2 ? static_cast<T>(1.5) : std::numeric_limits<T>::infinity();
-  std::vector<T> grad(n), m(n);
-  std::vector<double> z64(n), y64(n);
-  for (int64_t i = 0; i < n; ++i) {
-    grad[i] = static_cast<T>(normal(rng)), m[i] = static_cast<T>(normal(rng));
+  const auto mask_at = [&](int64_t i) {
     auto idx = unravel(i, g.shape);
     for (size_t d = 0; d < idx.size(); ++d)
       if (mask_shape[d] == 1) idx[d] = 0;
-    const bool on = observed[ravel(idx, mask_shape)];
-    if (!on && rng() % 2) grad[i] = std::numeric_limits<T>::quiet_NaN();  // never read
+    return ravel(idx, mask_shape);
+  };
+  const T c1 = static_cast<T>(0.1 + 0.9 * (rng() % 1000) / 1000.0);
+  // Half the cases clip the gradient (to about its spread: many entries are clipped).
+  const T limit = rng() % 2 ? static_cast<T>(1.5) : std::numeric_limits<T>::infinity();
+  const bool drop_zero = from_grad && rng() % 2;
+  std::vector<T> grad(n), m(n);
+  for (int64_t i = 0; i < n; ++i) grad[i] = static_cast<T>(normal(rng)), m[i] = static_cast<T>(normal(rng));
+  std::unique_ptr<bool[]> observed(new bool[static_cast<size_t>(n_mask)]);
+  if (from_grad) {  // the texel mask, as the native call makes it
+    const T inf = std::numeric_limits<T>::infinity(), nan = std::numeric_limits<T>::quiet_NaN();
+    std::vector<bool> finite(n_mask, true), zero(n_mask, true);
+    for (int64_t i = 0; i < n; ++i) {
+      const unsigned r = rng() % 20;
+      grad[i] = r == 0 ? nan : r == 1 ? -inf : r < 6 ? T(0) : grad[i];
+      finite[mask_at(i)] = finite[mask_at(i)] && std::isfinite(grad[i]);
+      zero[mask_at(i)] = zero[mask_at(i)] && grad[i] == T(0);
+    }
+    for (int64_t t = 0; t < n_mask; ++t) observed[t] = finite[t] && !(drop_zero && zero[t]);
+  } else {
+    for (int64_t i = 0; i < n_mask; ++i) observed[i] = rng() % 4 != 0;
+  }
+  std::vector<double> z64(n), y64(n);
+  for (int64_t i = 0; i < n; ++i) {
+    const bool on = observed[mask_at(i)];
+    if (!from_grad && !on && rng() % 2) grad[i] = std::numeric_limits<T>::quiet_NaN();  // unread
     const T y = m[i] / c1;
     const T clipped = grad[i] < -limit ? -limit : grad[i] > limit ? limit : grad[i];
     z64[i] = on ? static_cast<T>(clipped - y) : T(0);
@@ -235,13 +256,15 @@ void check_correlation(const ob::Subgrid& g, std::mt19937& rng) {
     ++failures;
     return;
   }
-  const ob::Noise<T> noise{grad.data(), m.data(), observed.get(), mask_shape, c1, limit};
+  const ob::Noise<T> noise{grad.data(), m.data(), from_grad ? nullptr : observed.get(),
+                           from_grad ? std::vector<int64_t>{} : mask_shape, c1, limit, drop_zero};
   ob::correlation_sums(g, pairs, noise, got.data());
   ++cases;
   for (size_t k = 0; k < want.size(); ++k) {
-    if (std::fabs(got[k] - want[k]) > 1e-12 * (1 + std::fabs(want[k])) && failures++ < 10) {
-      std::printf("FAIL correlation rank %zu stride %lld sum %zu: %.17g != %.17g\n",
-                  g.shape.size(), static_cast<long long>(g.stride), k, got[k], want[k]);
+    if (!(std::fabs(got[k] - want[k]) <= 1e-12 * (1 + std::fabs(want[k]))) && failures++ < 10) {
+      std::printf("FAIL correlation rank %zu stride %lld sum %zu%s: %.17g != %.17g\n",
+                  g.shape.size(), static_cast<long long>(g.stride), k,
+                  from_grad ? " (mask from the gradient)" : "", got[k], want[k]);
       break;
     }
   }
@@ -431,8 +454,10 @@ int main() {
         }
         check<float>(g, rng);
         check<double>(g, rng);
-        check_correlation<float>(g, rng);
-        check_correlation<double>(g, rng);
+        for (bool from_grad : {false, true}) {
+          check_correlation<float>(g, rng, from_grad);
+          check_correlation<double>(g, rng, from_grad);
+        }
         check_blend<float>(g, rng);
         check_blend<double>(g, rng);
         check_step<float>(g, rng);

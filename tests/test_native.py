@@ -952,6 +952,69 @@ def test_correlation_sums_clip_the_given_gradient_where_they_read_it(dtype):
             np.testing.assert_allclose(got[1], slices[1], rtol=1e-5)
 
 
+@pytest.mark.parametrize("drop_zero", [False, True])
+@pytest.mark.parametrize(
+    "shape, axes",
+    [((12, 10, 3), (0, 1)), ((3, 9, 8), (1, 2)), ((16, 11, 1), (0, 1)), ((40,), (0,))],
+)
+def test_the_noise_calls_make_the_texels_mask_from_the_given_gradient(shape, axes, drop_zero):
+    # native.FromGradient: each texel observed where all its channels of the gradient as given
+    # are finite and, with drop_zero, not all 0 (as observe makes the mask): the same sums and
+    # answer, to the bit, as with that mask passed in; drop_zero changes them.
+    rng = np.random.default_rng(1)
+    channels = tuple(a for a in range(len(shape)) if a not in axes)
+    texel_shape = tuple(1 if a in channels else n for a, n in enumerate(shape))
+    raw = rng.normal(size=shape) * 3
+    pick = rng.random(shape)
+    raw[pick < 0.05], raw[(pick >= 0.05) & (pick < 0.08)] = np.nan, -np.inf
+    raw[(pick >= 0.08) & (pick < 0.2)] = 0.0
+    raw = np.where(rng.random(texel_shape) < 0.2, 0.0, raw)  # whole texels of 0
+    finite = np.all(np.isfinite(raw), axis=channels, keepdims=True)
+    zero = np.all(raw == 0, axis=channels, keepdims=True)
+    g = jnp.asarray(raw, jnp.float32)
+    m = jnp.asarray(rng.normal(size=shape), jnp.float32)
+    c1, lag = numerics.one_kernel((jnp.float32(0.6), jnp.float32(0.3)))
+    pairs = tuple(a for a in axes if shape[a] > 1)
+    mask = jnp.asarray(finite & ~(drop_zero & zero))
+    for stride in (1, 2):
+        sums = functools.partial(
+            native.correlation_sums,
+            g,
+            m,
+            c1=c1,
+            axes=axes,
+            pair_axes=pairs,
+            stride=stride,
+            limit=2.0,
+        )
+        got, want = sums(native.FromGradient(drop_zero)), sums(mask)
+        np.testing.assert_array_equal(got, want)
+        assert np.all(np.isfinite(np.asarray(got)))
+        if drop_zero:  # all-0 texels left out: y's energy changes
+            assert not np.array_equal(got, sums(native.FromGradient(False)))
+    test = native.NoiseTest(0.0, 0.0, lag, numerics.Entry.of(jnp.float32(0.5)))
+    answers = [
+        native.correlated_noise(g, m, obs, c1, axes, pairs, 1, numerics.Entry.flag(True), 2.0, test)
+        for obs in (native.FromGradient(drop_zero), mask)
+    ]
+    assert float(answers[0]) == float(answers[1]) in (0.0, 1.0)
+
+
+def test_the_defaults_write_no_texel_mask_for_a_one_channel_leaf():
+    # The correlated-noise call makes the texels' mask from the gradient where it reads it: on
+    # a one-channel leaf (where the moments' selects fuse the mask into their kernels) the
+    # compiled update writes no bool array of the leaf's shape.
+    import optax_bilateral as ob
+
+    x = jnp.linspace(0.0, 1.0, 32 * 32).reshape(32, 32, 1)
+    opt = ob.bilateral_adam(0.02)
+    state = opt.init(x)
+    compiled = jax.jit(opt.update).lower(x, state, x).compile().as_text()
+    entry = compiled[compiled.index("\nENTRY") :]
+    assert native.NOISE_TEST_TARGET in entry
+    assert "pred[32,32,1]" not in entry and "pred[32,32]" not in entry
+
+
 @pytest.mark.parametrize("limit", [0.0, -1.0, float("nan")])
 def test_correlation_sums_refuse_a_limit_that_is_not_positive(limit):
     g = jnp.ones((6, 5, 2))

@@ -20,7 +20,7 @@ from jax import lax
 from optax_bilateral._src.filter import native, sharded
 from optax_bilateral._src.filter.bilateral import TAPS
 from optax_bilateral._src.filter.front import atrous_bilateral, resolve_kernel
-from optax_bilateral._src.filter.native import NoiseTest, StepCall, StepFlags
+from optax_bilateral._src.filter.native import FromGradient, NoiseTest, StepCall, StepFlags
 from optax_bilateral._src.numerics import Entry, value
 
 
@@ -184,7 +184,7 @@ def correlation_sums(
 def correlated_noise(
     g: jax.Array,
     m: jax.Array,
-    observed: jax.Array,
+    observed: jax.Array | FromGradient,
     c1: Entry,
     axes: tuple[int, ...],
     stride: int,
@@ -194,7 +194,9 @@ def correlated_noise(
 ) -> jax.Array:
     """``test``'s answer from :func:`correlation_sums`' sums where ``run`` says it is due, else
     the stored one, as 1 or 0 in ``g``'s dtype: one native FFI call (the native kernel only;
-    ``sigma_d="auto"``'s JAX form of the test runs over :func:`correlation_sums`)."""
+    ``sigma_d="auto"``'s JAX form of the test runs over :func:`correlation_sums`). With
+    ``observed`` a :class:`FromGradient`, ``g`` is the gradient as given and the call makes
+    the texels' mask from it where it reads."""
     axes = tuple(axes)
     g, m = lax.stop_gradient(g), lax.stop_gradient(m)
     pairs = tuple(a for a in axes if g.shape[a] > 1)

@@ -349,10 +349,27 @@ def texel_distance_mean(
     return (mean, kept) if keep else mean
 
 
+class FromGradient(NamedTuple):
+    """The observed texels, read by a native statistic from the gradient as given where it
+    reads it (``g``): every channel finite and, with ``drop_zero`` (``mask_unobserved``), not
+    all 0, as optimizer/step.py's ``observe`` makes them: XLA writes no mask out for the call."""
+
+    drop_zero: bool
+
+
+def _mask_operand(observed: jax.Array | FromGradient, ndim: int) -> tuple[jax.Array, bool]:
+    """The ``observed`` operand of a statistic's FFI call (an empty one: the mask is read from
+    the gradient) and its ``drop_zero`` attribute."""
+    if isinstance(observed, FromGradient):
+        return jnp.zeros((0,), bool), bool(observed.drop_zero)
+    mask = jnp.asarray(observed, bool)
+    return mask.reshape((1,) * (ndim - mask.ndim) + mask.shape), False
+
+
 def correlation_sums(
     g: jax.Array,
     m: jax.Array,
-    observed: jax.Array,
+    observed: jax.Array | FromGradient,
     c1: jax.Array | Entry,
     axes: Sequence[int],
     pair_axes: Sequence[int],
@@ -362,10 +379,11 @@ def correlation_sums(
 ) -> jax.Array:
     """The correlated-noise check's sums (csrc/stats.h), ``(3 len(pair_axes) + 2,)``, of
     ``z = clip(g, -limit, limit) - m / c1`` and ``y = m / c1`` where ``observed`` (bool,
-    broadcastable against ``g``), else 0, each computed where the sums read it: one FFI call,
-    sums in double; zeros without any work where ``run`` (a bool, may be traced) is False.
-    ``c1`` and ``run`` may be :class:`~optax_bilateral._src.numerics.Entry`. Not
-    differentiable (its callers stop the gradient)."""
+    broadcastable against ``g``, or :class:`FromGradient`), else 0, each computed where the
+    sums read it: one FFI call, sums in double; zeros without any work where ``run`` (a bool,
+    may be traced) is False. ``c1`` and ``run`` may be
+    :class:`~optax_bilateral._src.numerics.Entry`. Not differentiable (its callers stop the
+    gradient)."""
     _require("the native texel statistics")
     if not limit > 0:
         raise ValueError(f"limit must be > 0 (inf: no clip), got {limit!r}")
@@ -374,19 +392,20 @@ def correlation_sums(
         jax.ShapeDtypeStruct((3 * len(pair_axes) + 2,), g.dtype),
         vmap_method="sequential",
     )
-    mask = jnp.asarray(observed, bool)
+    mask, drop_zero = _mask_operand(observed, g.ndim)
     c1 = c1 if isinstance(c1, Entry) else Entry.of(jnp.asarray(c1, g.dtype))
     run = Entry.flag(run)
     return call(
         g,
         m,
-        mask.reshape((1,) * (g.ndim - mask.ndim) + mask.shape),
+        mask,
         c1.vector,
         run.vector,
         axes=np.asarray(axes, np.int64),
         pair_axes=np.asarray(pair_axes, np.int64),
         stride=np.int64(stride),
         limit=np.float64(limit),
+        drop_zero=drop_zero,
         c1_at=np.int64(c1.at),
         run_at=np.int64(run.at),
     )
@@ -407,7 +426,7 @@ class NoiseTest(NamedTuple):
 def correlated_noise(
     g: jax.Array,
     m: jax.Array,
-    observed: jax.Array,
+    observed: jax.Array | FromGradient,
     c1: Entry,
     axes: Sequence[int],
     pair_axes: Sequence[int],
@@ -430,11 +449,11 @@ def correlated_noise(
     call = jax.ffi.ffi_call(
         NOISE_TEST_TARGET, jax.ShapeDtypeStruct((), g.dtype), vmap_method="sequential"
     )
-    mask = jnp.asarray(observed, bool)
+    mask, drop_zero = _mask_operand(observed, g.ndim)
     return call(
         g,
         m,
-        mask.reshape((1,) * (g.ndim - mask.ndim) + mask.shape),
+        mask,
         c1.vector,
         run.vector,
         test.stored.vector,
@@ -442,6 +461,7 @@ def correlated_noise(
         pair_axes=np.asarray(pair_axes, np.int64),
         stride=np.int64(stride),
         limit=np.float64(limit),
+        drop_zero=drop_zero,
         c1_at=np.int64(c1.at),
         run_at=np.int64(run.at),
         lag_at=np.int64(test.lag.at),

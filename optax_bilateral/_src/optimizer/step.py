@@ -109,7 +109,7 @@ def postfilter_leaf(
     else:
         op = operators.operator(plan.filter, guide, cast(jax.Array, observed.texels))
         sigma, state = rule.sigma(guide, plan.filter, state, ctx)
-        fields = Moments(m, v, g_obs, observed.entries, g, plan.limit)
+        fields = Moments(m, v, g_obs, observed.entries, g, plan.limit, plan.mask_unobserved)
         index, ways = rule.combine(fields, op, sigma, state, ctx)
 
         def finish(way):

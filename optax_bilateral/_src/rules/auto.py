@@ -40,6 +40,7 @@ from jax import lax
 from optax_bilateral._src import numerics
 from optax_bilateral._src.filter.bilateral import Deeper, log_transform
 from optax_bilateral._src.filter.local import (
+    FromGradient,
     NoiseTest,
     StepCall,
     StepFlags,
@@ -388,9 +389,11 @@ class Auto(SigmaRule):
             test = NoiseTest(
                 self.correlated, self.noisy, ctx.decided.lag, numerics.Entry.of(stored)
             )
-            return correlated_noise(
-                g, m, moments.observed, ctx.decided.c1, axes, stride, due, limit, test
+            # The gradient as given: the call makes the mask where it reads (no mask kernel).
+            observed = (
+                moments.observed if moments.given is None else FromGradient(moments.drop_zero)
             )
+            return correlated_noise(g, m, observed, ctx.decided.c1, axes, stride, due, limit, test)
 
         def check():
             return self._correlated_noise(moments, axes, ctx, run=due).astype(m.dtype)

@@ -73,7 +73,8 @@ class Moments(NamedTuple):
     ``+-limit``), and the observed entries (broadcastable against the leaf). ``given`` is the
     gradient as the leaf received it (None: read ``g``), for a native statistic that reads a
     few entries: it applies the mask and the clip where it reads, so XLA need not write ``g``
-    out in full for it."""
+    out in full for it; ``drop_zero`` (``mask_unobserved``) says how ``observed`` follows from
+    it, for a statistic that makes the mask where it reads."""
 
     m: jax.Array
     v: jax.Array
@@ -81,6 +82,7 @@ class Moments(NamedTuple):
     observed: jax.Array
     given: jax.Array | None = None
     limit: float = math.inf
+    drop_zero: bool = False
 
 
 class Filtered(NamedTuple):
