@@ -394,7 +394,8 @@ def test_without_the_extension_the_pure_jax_kernels_run():
         text = jax.jit(opt.update).lower(p, state, p).as_text()
         assert native.SUBGRID_TARGET not in text and "count_nonfinite" not in text
         assert native.TEXEL_MEAN_TARGET not in text and native.CORRELATION_TARGET not in text
-        assert native.BLEND_TARGET not in text
+        assert native.BLEND_TARGET not in text and native.NOISE_TEST_TARGET not in text
+        assert "optax_bilateral_after" not in text  # the step's order: XLA's own
         u, state = opt.update(p.at[0, 0, 0].set(jnp.nan), state, p)  # counted by jnp.sum
         assert int(state[0].nonfinite_count) == 1, state[0].nonfinite_count
         print("ok")
