@@ -1448,8 +1448,11 @@ def test_after_passes_arrays_through_unchanged_after_its_tokens():
     compiled = program.lower(xs, tokens).compile().as_text()
     assert compiled.count(numerics.AFTER_TARGET) == 1
     assert "output_to_operand_aliasing" in compiled  # no copies: the outputs are the operands
-    # Nothing to wait for, or nothing to pass: no call.
+    # Nothing to wait for (no array among the tokens), or nothing to pass: no call.
     assert numerics.after(xs, None) is xs and numerics.after((), tokens) == ()
+    assert numerics.after(xs, (0.5, "a name", None)) is xs
+    lowered = jax.jit(lambda x, t: numerics.after((x,), (t, 2.0, "a name"))).lower(xs[0], 1.0)
+    assert lowered.as_text().count(numerics.AFTER_TARGET) == 1  # the traced token alone
 
 
 def test_after_is_the_identity_under_grad_and_vmap():

@@ -271,7 +271,8 @@ AFTER_TARGET = "optax_bilateral_after"
 
 
 def after(arrays: tuple[jax.Array, ...], tokens: Any) -> tuple[jax.Array, ...]:
-    """``arrays`` as they are, read after ``tokens`` (a pytree of arrays) are computed.
+    """``arrays`` as they are, read after ``tokens`` (a pytree; its leaves that are not JAX
+    arrays, such as Python numbers, have no producer to wait for) are computed.
 
     XLA orders kernels by data alone, and its CPU pipeline drops ``lax.optimization_barrier``
     before it schedules. On the CPU with the native extension loaded, one FFI call that does
@@ -280,7 +281,7 @@ def after(arrays: tuple[jax.Array, ...], tokens: Any) -> tuple[jax.Array, ...]:
     and may write over an array it reads last. Elsewhere, ``arrays``. Its derivative is the
     identity's.
     """
-    leaves = tuple(jax.tree.leaves(tokens))
+    leaves = tuple(x for x in jax.tree.leaves(tokens) if isinstance(x, jax.Array))
     if not arrays or not leaves or not all(map(_native_cpu, arrays + leaves)):
         return arrays
     return _after(arrays, leaves)
