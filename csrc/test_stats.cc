@@ -222,7 +222,8 @@ void check_correlation(const ob::Subgrid& g, std::mt19937& rng, bool from_grad) 
   const T limit = rng() % 2 ? static_cast<T>(1.5) : std::numeric_limits<T>::infinity();
   const bool drop_zero = from_grad && rng() % 2;
   std::vector<T> grad(n), m(n);
-  for (int64_t i = 0; i < n; ++i) grad[i] = static_cast<T>(normal(rng)), m[i] = static_cast<T>(normal(rng));
+  for (int64_t i = 0; i < n; ++i)
+    grad[i] = static_cast<T>(normal(rng)), m[i] = static_cast<T>(normal(rng));
   std::unique_ptr<bool[]> observed(new bool[static_cast<size_t>(n_mask)]);
   if (from_grad) {  // the texel mask, as the native call makes it
     const T inf = std::numeric_limits<T>::infinity(), nan = std::numeric_limits<T>::quiet_NaN();
