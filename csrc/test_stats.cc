@@ -33,6 +33,13 @@ int64_t ravel(const std::vector<int64_t>& idx, const std::vector<int64_t>& shape
   return p;
 }
 
+// The number of elements of an array of `shape`.
+int64_t elements(const std::vector<int64_t>& shape) {
+  int64_t n = 1;
+  for (int64_t d : shape) n *= d;
+  return n;
+}
+
 // The sub-grid's shape and its texels' (the channel dimensions cut to 1), and their sizes.
 struct Shapes {
   std::vector<bool> spatial;
@@ -84,8 +91,7 @@ double reference(const ob::Subgrid& g, const std::vector<double>& a, const std::
 template <typename T>
 void check(const ob::Subgrid& g, std::mt19937& rng) {
   std::normal_distribution<double> normal(0.0, 3.0);
-  int64_t size = 1;
-  for (int64_t d : g.shape) size *= d;
+  const int64_t size = elements(g.shape);
   const int64_t sub = ob::texel_subgrid_size(g);
   std::vector<T> a(size), b(sub);
   std::vector<double> a64(size), b64(sub);
@@ -134,8 +140,7 @@ std::vector<double> correlation_reference(const ob::Subgrid& g, const std::vecto
   std::vector<bool> spatial(g.shape.size(), false);
   for (int64_t ax : g.axes) spatial[ax] = true;
   const int64_t q = std::max<int64_t>(g.stride, 2);
-  int64_t n = 1;
-  for (int64_t d : g.shape) n *= d;
+  const int64_t n = elements(g.shape);
   std::vector<double> out;
   for (int64_t along : pairs) {
     double s00 = 0, s11 = 0, s01 = 0;
@@ -202,15 +207,13 @@ void check_noise_test(std::vector<double> sums, size_t pairs, T lag) {
 template <typename T>
 void check_correlation(const ob::Subgrid& g, std::mt19937& rng, bool from_grad) {
   std::normal_distribution<double> normal(0.0, 2.0);
-  int64_t n = 1;
-  for (int64_t d : g.shape) n *= d;
+  const int64_t n = elements(g.shape);
   std::vector<bool> spatial(g.shape.size(), false);
   for (int64_t ax : g.axes) spatial[static_cast<size_t>(ax)] = true;
   std::vector<int64_t> mask_shape;
   for (size_t d = 0; d < g.shape.size(); ++d)
     mask_shape.push_back((from_grad ? !spatial[d] : rng() % 3 == 0) ? 1 : g.shape[d]);
-  int64_t n_mask = 1;
-  for (int64_t d : mask_shape) n_mask *= d;
+  const int64_t n_mask = elements(mask_shape);
   const auto mask_at = [&](int64_t i) {
     auto idx = unravel(i, g.shape);
     for (size_t d = 0; d < idx.size(); ++d)
@@ -331,8 +334,7 @@ std::vector<double> blend_reference(const ob::Subgrid& g, const std::vector<doub
 template <typename T>
 void check_blend(const ob::Subgrid& g, std::mt19937& rng) {
   std::normal_distribution<double> normal(0.0, 1.0);
-  int64_t n = 1;
-  for (int64_t d : g.shape) n *= d;
+  const int64_t n = elements(g.shape);
   const int64_t sub = ob::texel_subgrid_size(g);
   std::vector<T> m(n), v(n), r(sub), out(sub);
   std::vector<double> m64(n), v64(n), r64(sub);
@@ -397,8 +399,7 @@ double step_reference(const ob::Subgrid& g, const std::vector<double>* p[6], boo
 template <typename T>
 void check_step(const ob::Subgrid& g, std::mt19937& rng) {
   std::normal_distribution<double> normal(0.0, 1.0);
-  int64_t n = 1;
-  for (int64_t d : g.shape) n *= d;
+  const int64_t n = elements(g.shape);
   const int64_t sub = ob::texel_subgrid_size(g);
   // m, v, B m, B v, the gradient (g.shape) and lam (the sub-grid's).
   std::vector<T> x[6] = {std::vector<T>(n), std::vector<T>(n), std::vector<T>(n),
