@@ -396,6 +396,9 @@ def test_without_the_extension_the_pure_jax_kernels_run():
         assert native.TEXEL_MEAN_TARGET not in text and native.CORRELATION_TARGET not in text
         assert native.BLEND_TARGET not in text and native.NOISE_TEST_TARGET not in text
         assert "optax_bilateral_after" not in text  # the step's order: XLA's own
+        pyramid = ob.pyramid_adam(0.01, 3)
+        text = jax.jit(pyramid.update).lower(p, pyramid.init(p), p).as_text()
+        assert "optax_bilateral_after" not in text  # the levels: XLA's fusion decides
         u, state = opt.update(p.at[0, 0, 0].set(jnp.nan), state, p)  # counted by jnp.sum
         assert int(state[0].nonfinite_count) == 1, state[0].nonfinite_count
         print("ok")
@@ -1479,6 +1482,54 @@ def test_the_after_target_copies_where_not_aliased_and_checks_sizes():
     several = jax.ffi.ffi_call(numerics.AFTER_TARGET, (jax.ShapeDtypeStruct(x.shape, x.dtype),) * 2)
     with pytest.raises(Exception, match="one operand per output, then the tokens"):
         jax.block_until_ready(jax.jit(several)(x))
+
+
+def test_materialize_passes_arrays_through_in_one_call_without_tokens():
+    xs = (jnp.asarray([np.nan, -0.0, np.inf, 1e-45], jnp.float32), jnp.arange(6, dtype=jnp.int32))
+    program = jax.jit(numerics.materialize)
+    for x, y in zip(xs, program(xs), strict=True):
+        assert y.dtype == x.dtype and y.shape == x.shape
+        np.testing.assert_array_equal(np.asarray(y).view(np.uint8), np.asarray(x).view(np.uint8))
+    compiled = program.lower(xs).compile().as_text()
+    assert compiled.count(numerics.AFTER_TARGET) == 1 and "output_to_operand_aliasing" in compiled
+    assert numerics.materialize(()) == ()
+    x = jnp.linspace(-1.0, 2.0, 12).reshape(3, 4)
+    twice = lambda x: numerics.materialize((x * x,))[0]
+    np.testing.assert_allclose(jax.grad(lambda x: jnp.sum(twice(x)))(x), 2 * x)
+    np.testing.assert_array_equal(jax.vmap(twice)(x), x * x)
+
+
+def _kernels_reading(compiled: str, name: str) -> list[str]:
+    """The result shapes of the compiled program's kernels (fusions) that read ``name``."""
+    entry = compiled[compiled.index("ENTRY") :].splitlines()
+    return [
+        line.split("=")[1].split("{")[0].strip()
+        for line in entry
+        if " fusion(" in line and f"%{name}" in line.split(" fusion(")[1].split(")")[0]
+    ]
+
+
+def test_a_pyramids_levels_are_computed_once_each():
+    # XLA's CPU fusion had recomputed every finer level inside each coarser one and inside
+    # each of Adam's reads (docs/research/camera_distance.md, cost): each level now reads
+    # the one before it (each axis's pass written once), and the grid is read by the first
+    # level's first pass alone.
+    import optax
+
+    from optax_bilateral._src.optimizer.pyramid import pyramid_reconstruct, pyramid_transpose
+
+    g = jnp.ones((64, 64, 3), jnp.float32)
+    adam = optax.scale_by_adam()
+    state = adam.init(pyramid_transpose(g, 4, (0, 1))[1:])
+    down = jax.jit(lambda g, s: adam.update(pyramid_transpose(g, 4, (0, 1))[1:], s)[0])
+    compiled = down.lower(g, state).compile().as_text()
+    assert compiled.count(numerics.AFTER_TARGET) == 6  # 3 levels, 2 axes
+    assert set(_kernels_reading(compiled, "g.1")) == {"f32[32,64,3]"}
+    coefficients = tuple(pyramid_transpose(g, 4, (0, 1)))
+    up = jax.jit(lambda c: pyramid_reconstruct(c, (0, 1)))
+    compiled = up.lower(coefficients).compile().as_text()
+    assert compiled.count(numerics.AFTER_TARGET) == 2
+    assert len(_kernels_reading(compiled, "c_3_.1")) == 1  # the coarsest level: one upsampling
 
 
 @pytest.mark.parametrize(

@@ -287,6 +287,20 @@ def after(arrays: tuple[jax.Array, ...], tokens: Any) -> tuple[jax.Array, ...]:
     return _after(arrays, leaves)
 
 
+def materialize(arrays: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
+    """``arrays`` as they are, each computed once into a buffer of its own.
+
+    XLA's CPU fusion copies a cheap producer into every consumer: a pyramid's level, built
+    from the finer level by slices and sums, is then recomputed inside each coarser level and
+    inside each of Adam's reads of it. On the CPU with the native extension loaded, the
+    pass-through call of :func:`after` (no tokens) is a boundary no fusion crosses. Elsewhere,
+    ``arrays``. Its derivative is the identity's.
+    """
+    if not arrays or not all(map(_native_cpu, arrays)):
+        return arrays
+    return _after(arrays, ())
+
+
 @jax.custom_jvp
 def _after(arrays: tuple[jax.Array, ...], tokens: tuple[jax.Array, ...]) -> tuple:
     call = jax.ffi.ffi_call(

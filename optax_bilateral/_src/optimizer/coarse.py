@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import optax
 from jax import lax
 
+from optax_bilateral._src import numerics
 from optax_bilateral._src.optimizer import leaf_rule, transforms
 from optax_bilateral._src.optimizer.pyramid import (
     _check_levels,
@@ -159,9 +160,10 @@ def coarse_levels(
                 pyramid_transpose(g, levels, a)[1:] if a else () for g, a in zip(finite, axes)
             ]
             coarse_steps, coarse_state = coarse.update(coeffs, state.coarse_state)
+            # Adam's steps once each, not inside every level of the reconstruction.
+            once = [numerics.materialize(tuple(s)) for s in cast(list, coarse_steps)]
             added = [
-                u + _field(u, c, a, w) if a else u
-                for u, c, a, w in zip(flat, cast(list, coarse_steps), axes, weights)
+                u + _field(u, c, a, w) if a else u for u, c, a, w in zip(flat, once, axes, weights)
             ]
             return added, coarse_state
 

@@ -41,6 +41,7 @@ import numpy as np
 import optax
 from jax import lax
 
+from optax_bilateral._src import numerics
 from optax_bilateral._src.optimizer import leaf_rule
 from optax_bilateral._src.optimizer import leaves as lv
 
@@ -126,8 +127,10 @@ def pyramid_reconstruct(coefficients: Sequence[Any], axes: Sequence[int]):
 @functools.partial(jax.jit, static_argnames=("axes",))
 def _reconstruct(coefficients, axes):
     out = coefficients[-1]
-    for c in reversed(coefficients[:-1]):
+    for k, c in enumerate(reversed(coefficients[:-1])):
         out = c + upsample(out, c.shape, axes)
+        if k < len(coefficients) - 2:  # read by the next finer level (the finest by its caller)
+            (out,) = numerics.materialize((out,))
     return out
 
 
@@ -145,8 +148,8 @@ def _transpose(grid, levels, axes):
     out = [grid]
     for coarse in shapes[1:]:
         g = out[-1]
-        for a in axes:
-            g = _downsample_axis(g, a, coarse[a])
+        for a in axes:  # each axis written once: XLA would recompute it in every reader
+            (g,) = numerics.materialize((_downsample_axis(g, a, coarse[a]),))
         out.append(g)
     return tuple(out)
 
