@@ -1536,6 +1536,17 @@ def test_a_pyramids_levels_are_computed_once_each():
     assert len(_kernels_reading(compiled, 3)) == 1  # the coarsest level: one upsampling
 
 
+def test_the_pyramids_vjp_passes_its_boundaries():
+    # jax.vjp of the reconstruction, through its pass-through calls, is its transpose.
+    from optax_bilateral._src.optimizer.pyramid import pyramid_reconstruct, pyramid_transpose
+
+    g = jax.random.normal(jax.random.PRNGKey(0), (17, 12, 2))
+    coefficients = pyramid_transpose(g, 3, (0, 1))
+    _, vjp = jax.vjp(lambda c: pyramid_reconstruct(c, (0, 1)), coefficients)
+    for got, want in zip(vjp(g)[0], coefficients, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize(
     "make, ordered",
     [

@@ -294,7 +294,8 @@ def materialize(arrays: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
     from the finer level by slices and sums, is then recomputed inside each coarser level and
     inside each of Adam's reads of it. On the CPU with the native extension loaded, the
     pass-through call of :func:`after` (no tokens) is a boundary no fusion crosses. Elsewhere,
-    ``arrays``. Its derivative is the identity's.
+    ``arrays``. Its derivative is the identity's (``jax.grad``, ``jax.vjp``, ``jax.jacfwd``);
+    ``jax.linear_transpose``, which reads no custom derivative, cannot pass the call.
     """
     if not arrays or not all(map(_native_cpu, arrays)):
         return arrays
