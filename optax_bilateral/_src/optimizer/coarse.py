@@ -147,15 +147,15 @@ def coarse_levels(
             updates, state.inner_state, params, **extra_args
         )
         grads, axes = jax.tree.leaves(updates), _leaf_axes(updates, spatial_axes)
-        finite = [jnp.where(jnp.isfinite(g), g, 0) for g in grads]
         covs = [
             _coverage(g, ax, cov, settings) if ax else None
-            for g, ax, cov in zip(finite, axes, state.coverage)
+            for g, ax, cov in zip(grads, axes, state.coverage)
         ]
         weights = [settings.share * jnp.clip(1 - c.mean, 0, 1) if c else 0.0 for c in covs]
         flat, treedef = jax.tree.flatten(steps)
 
         def with_coarse():
+            finite = [jnp.where(jnp.isfinite(g), g, 0) for g in grads]
             coeffs = [
                 pyramid_transpose(g, levels, a)[1:] if a else () for g, a in zip(finite, axes)
             ]
@@ -178,7 +178,7 @@ def coarse_levels(
 
 
 def _coverage(g, axes, state, settings: _Settings) -> coverage.Coverage:
-    touched = coverage.touched(g, jnp.ones((), bool), axes)
+    touched = coverage.touched(g, jnp.isfinite(g), axes)
     return coverage.update(state, touched, block=settings.block, decay=settings.decay)
 
 
