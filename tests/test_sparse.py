@@ -318,6 +318,26 @@ def test_sparse_adam_is_bilateral_adam_on_a_gradient_that_touches_every_texel():
         np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-9)
 
 
+def test_sparse_adam_runs_the_sparse_rule_without_its_extra_level():
+    # Its coarse path gives the far reach: the default rule adds no filter level on a
+    # sparse leaf, and sigma_d="sparse" (which does) is a different update there.
+    params = jax.random.uniform(jax.random.PRNGKey(4), (48, 48, 3))
+    grads = [_sparse_grad(params.shape, 6, key=k) for k in range(3)]
+    no_level = ob.sparse_sigma(sparse_levels=0)
+    written_out = ob.coarse_levels(ob.bilateral_adam(0.02, sigma_d=no_level), 0.02, share=0.3)
+    a, _ = _steps(ob.sparse_adam(0.02), params, grads)
+    b, _ = _steps(written_out, params, grads)
+    c, _ = _steps(ob.sparse_adam(0.02, sigma_d="sparse"), params, grads)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    assert float(jnp.max(jnp.abs(a[-1] - c[-1]))) > 1e-6 * float(jnp.max(jnp.abs(a[-1])))
+
+
+def test_sparse_adam_names_a_bad_sigma_d():
+    with pytest.raises((ValueError, TypeError), match="sigma_d"):
+        ob.sparse_adam(0.02, sigma_d="sharp")
+
+
 def test_sparse_adam_moves_texels_a_far_camera_never_touched():
     params = jnp.full((64, 64, 3), 0.5)
     grads = [_sparse_grad(params.shape, 32)]  # beyond F = 3's reach

@@ -204,8 +204,9 @@ def sparse_adam(
     eps: jax.typing.ArrayLike = 1e-8,
     *,
     levels: LevelsSetting = None,
+    sigma_d: SigmaSetting = SPARSE_SIGMA_D,
     coarse_levels: int = 5,
-    coarse_share: float = 0.25,
+    coarse_share: float = 0.3,
     spatial_axes: SpatialAxesSetting = None,
     log_guide: bool = False,
     others: optax.GradientTransformation | None = None,
@@ -213,14 +214,16 @@ def sparse_adam(
     """:func:`bilateral_adam` for gradients that touch few texels a step: a far camera (many
     texels a pixel), or several cameras in turn.
 
-    ``coarse_levels(bilateral_adam(learning_rate, b1, b2, eps, sigma_d="sparse", ...),
-    learning_rate, levels=coarse_levels, share=coarse_share)``: ``sigma_d="sparse"``
-    (:class:`Sparse`) undoes the filter's dilution of a sparse gradient by its untouched
-    texels and widens the filter on a sparse leaf; :func:`coarse_levels` adds Adam's steps on
-    the coarse levels of a Laplacian pyramid where the gradient is sparse. On a gradient
-    that touches every texel both reduce to :func:`bilateral_adam`'s defaults. Measured
-    against ``pyramid_adam`` and the defaults at three camera distances in
-    docs/hyperparameters.md ("How far is my camera").
+    ``coarse_levels(bilateral_adam(learning_rate, b1, b2, eps, sigma_d=sigma_d, ...),
+    learning_rate, levels=coarse_levels, share=coarse_share)``. The default ``sigma_d``,
+    ``sparse_sigma(sparse_levels=0)`` (:class:`Sparse`), undoes the filter's dilution of a
+    sparse gradient by its untouched texels; :func:`coarse_levels` adds Adam's steps on the
+    coarse levels of a Laplacian pyramid where the gradient is sparse, which give the far
+    reach (beside them, ``sigma_d="sparse"``'s extra filter level gained 2% on a far camera
+    and nothing elsewhere, for 1.2-1.3x the update). On a gradient that touches every texel
+    both reduce to
+    :func:`bilateral_adam`'s defaults. Measured against ``pyramid_adam`` and the defaults at
+    three camera distances in docs/hyperparameters.md ("How far is my camera").
 
     Args:
       learning_rate: a number >= 0 or an optax schedule (the same for the coarse levels,
@@ -228,7 +231,9 @@ def sparse_adam(
       b1: as in :func:`bilateral_adam` (the filtered leaves' first-moment decay).
       b2: as in :func:`bilateral_adam`.
       eps: as in :func:`bilateral_adam`.
-      levels: as in :func:`bilateral_adam` (F; ``"sparse"`` adds a level on a sparse leaf).
+      levels: as in :func:`bilateral_adam` (F).
+      sigma_d: the filtered leaves' rule, as in :func:`bilateral_adam`; the default corrects
+        for untouched texels and adds no level (``"sparse"`` adds one on a sparse leaf).
       spatial_axes: as in :func:`bilateral_adam`, and the pyramid's axes.
       log_guide: as in :func:`bilateral_adam`.
       others: as in :func:`bilateral_adam`.
@@ -255,7 +260,7 @@ def sparse_adam(
         b1,
         b2,
         eps,
-        sigma_d=SPARSE_SIGMA_D,
+        sigma_d=sigma_d,
         levels=levels,
         spatial_axes=spatial_axes,
         log_guide=log_guide,
