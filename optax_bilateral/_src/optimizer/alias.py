@@ -249,7 +249,7 @@ def sparse_adam(
 
         >>> import jax.numpy as jnp, optax, optax_bilateral as ob
         >>> params = jnp.full((64, 64, 3), 0.5)
-        >>> opt = ob.sparse_adam(learning_rate=0.02)
+        >>> opt = ob.sparse_adam(learning_rate=0.015)
         >>> state = opt.init(params)
         >>> grads = jnp.zeros_like(params).at[::12, ::12].set(0.1)   # a far camera's few texels
         >>> updates, state = opt.update(grads, state, params)
