@@ -4,9 +4,11 @@
     python -m experiments.benchmarks.sparse [--quick] [--out DIR] [--rounds N]
 
 Per grid and gradient (``dense``: every texel touched, as the benchmarks' other updates;
-``sparse``: one texel in 144 touched, a far camera's 12 texels per pixel, which adds a
-filter level and the coarse path's weight): the update's median time over interleaved
-rounds, cold compile seconds, and XLA's planned temporaries over the parameter's size.
+``sparse``: 4 texels in 144 touched, a far camera's 12 texels per pixel, which turns the
+coarse path on): the update's median time over interleaved rounds, cold compile seconds,
+and XLA's planned temporaries over the parameter's size, for Adam, the defaults,
+``sparse_adam`` and ``sparse_adam`` as it was before 2026-12-01 (``sigma_d="sparse"``, whose
+extra filter level runs on a sparse leaf, and a coarse share of 0.25).
 Writes bench_sparse.json and bench_sparse.md.
 """
 
@@ -40,6 +42,10 @@ def optimizers() -> dict[str, optax.GradientTransformation]:
         "adam": optax.adam(LEARNING_RATE),
         "defaults": ob.bilateral_adam(LEARNING_RATE),
         "sparse_adam": ob.sparse_adam(LEARNING_RATE),
+        # Its defaults before 2026-12-01: the sparse rule's extra level on a sparse leaf.
+        "sparse_adam, extra level": ob.sparse_adam(
+            LEARNING_RATE, sigma_d="sparse", coarse_share=0.25
+        ),
     }
 
 
