@@ -221,9 +221,9 @@ def sparse_adam(
     coarse levels of a Laplacian pyramid where the gradient is sparse, which give the far
     reach (beside them, ``sigma_d="sparse"``'s extra filter level gained 2% on a far camera
     and nothing elsewhere, for about 1.3x the update). On a gradient that touches every texel
-    both reduce to
-    :func:`bilateral_adam`'s defaults. Measured against ``pyramid_adam`` and the defaults at
-    three camera distances in docs/hyperparameters.md ("How far is my camera").
+    both reduce to :func:`bilateral_adam`'s defaults. Measured against ``pyramid_adam`` and
+    the defaults at three camera distances in docs/hyperparameters.md ("How far is my
+    camera").
 
     Args:
       learning_rate: a number >= 0 or an optax schedule (the same for the coarse levels,

@@ -40,7 +40,8 @@ guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes
 SPARSE_SIGMA_D = Sparse(sparse_levels=0)
 """The default ``sigma_d`` of :func:`optax_bilateral.sparse_adam`: ``"sparse"`` without its
 extra filter level (:class:`Sparse`), ``"auto"`` corrected for gradients that touch few
-texels a step; the coarse path beside it gives the far reach (docs/research/camera_distance.md)."""
+texels a step; the coarse path beside it gives the far reach
+(docs/research/camera_distance.md)."""
 SETTINGS = (
     "a number >= 0 (inf for a low-pass), 'auto', 'sure', 'sparse' or a sigma_d rule "
     "(ob.auto_sigma(), ob.sure_sigma(), ob.sparse_sigma())"
