@@ -16,23 +16,42 @@ constexpr int64_t kChunk = 32;
 // Rows (forward) or columns (backward) of a supernode's block taken together, so that each row
 // read from z serves this many of them.
 constexpr int64_t kGroup = 4;
+// A single column's backward sums split into this many running sums: one sum is a chain of
+// dependent multiply-adds, and most supernodes of a mesh's factor have one column.
+constexpr int64_t kWays = 4;
 
-// Forward, the rows below a supernode: y_i[c0 .. c0+C) -= sum_t l_i[t] x_t[c0 .. c0+C) for
-// rows i0 .. i0+G, with y_i = z + below[i] * width, l_i = block + (s + i) * s, x_t = zs + t *
-// width. C and G constants: the G x C sums stay in registers while x_t streams from cache.
+// One supernode's block (ldl.h) and the rows of z it reads and writes: block row rho < s is
+// the supernode's own row j0 + rho, a later one rows[rho - s].
+template <typename T>
+struct Supernode {
+  T* zs;               // z's rows j0 .. j0+s
+  T* z;                // all of z
+  const int32_t* below;
+  const T* block;
+  int64_t s, r, width;
+
+  T* row(int64_t rho) const {
+    return rho < s ? zs + rho * width : z + static_cast<int64_t>(below[rho - s]) * width;
+  }
+  const T* l(int64_t rho) const { return block + rho * s; }
+};
+
+// Forward, block rows rho0 .. rho0+G: y_rho[c0 .. c0+C) -= sum_{t0 <= t < t1} L[rho][t]
+// x_t[c0 .. c0+C), x_t row t of zs. C and G constants: the G x C sums stay in registers while
+// x_t streams from cache.
 template <typename T, int64_t C, int64_t G>
-inline void forward_rows(T* __restrict z, const int32_t* below, const T* block, const T* zs,
-                         int64_t s, int64_t width, int64_t i0, int64_t c0) {
+inline void forward_rows(const Supernode<T>& n, int64_t rho0, int64_t t0, int64_t t1,
+                         int64_t c0) {
   T acc[G][C];
   T* y[G];
   const T* l[G];
   for (int64_t g = 0; g < G; ++g) {
-    y[g] = z + static_cast<int64_t>(below[i0 + g]) * width + c0;
-    l[g] = block + (s + i0 + g) * s;
+    y[g] = n.row(rho0 + g) + c0;
+    l[g] = n.l(rho0 + g);
     for (int64_t c = 0; c < C; ++c) acc[g][c] = y[g][c];
   }
-  for (int64_t t = 0; t < s; ++t) {
-    const T* x = zs + t * width + c0;
+  for (int64_t t = t0; t < t1; ++t) {
+    const T* x = n.zs + t * n.width + c0;
     for (int64_t g = 0; g < G; ++g) {
       const T lt = l[g][t];
       for (int64_t c = 0; c < C; ++c) acc[g][c] -= lt * x[c];
@@ -42,95 +61,112 @@ inline void forward_rows(T* __restrict z, const int32_t* below, const T* block, 
     for (int64_t c = 0; c < C; ++c) y[g][c] = acc[g][c];
 }
 
-// Backward, the rows below a supernode into its columns t0 .. t0+G: x_t[c0 .. c0+C) -=
-// sum_i l_i[t] y_i[c0 .. c0+C).
+// Backward, into columns t0 .. t0+G of zs: x_t[c0 .. c0+C) -= sum_{rho0 <= rho < s + r}
+// L[rho][t] y_rho[c0 .. c0+C). With one column, kWays running sums over rho.
 template <typename T, int64_t C, int64_t G>
-inline void backward_rows(const T* __restrict z, const int32_t* below, const T* block, T* zs,
-                          int64_t s, int64_t r, int64_t width, int64_t t0, int64_t c0) {
-  T acc[G][C];
-  for (int64_t g = 0; g < G; ++g)
-    for (int64_t c = 0; c < C; ++c) acc[g][c] = zs[(t0 + g) * width + c0 + c];
-  for (int64_t i = 0; i < r; ++i) {
-    const T* y = z + static_cast<int64_t>(below[i]) * width + c0;
-    const T* l = block + (s + i) * s + t0;
+inline void backward_rows(const Supernode<T>& n, int64_t t0, int64_t rho0, int64_t c0) {
+  constexpr int64_t kW = G == 1 ? kWays : 1;
+  T acc[kW][G][C] = {};
+  T* x[G];
+  for (int64_t g = 0; g < G; ++g) x[g] = n.zs + (t0 + g) * n.width + c0;
+  const int64_t end = n.s + n.r;
+  int64_t rho = rho0;
+  for (; rho + kW <= end; rho += kW)
+    for (int64_t w = 0; w < kW; ++w) {
+      const T* y = n.row(rho + w) + c0;
+      const T* l = n.l(rho + w) + t0;
+      for (int64_t g = 0; g < G; ++g) {
+        const T lt = l[g];
+        for (int64_t c = 0; c < C; ++c) acc[w][g][c] += lt * y[c];
+      }
+    }
+  for (; rho < end; ++rho) {
+    const T* y = n.row(rho) + c0;
+    const T* l = n.l(rho) + t0;
     for (int64_t g = 0; g < G; ++g) {
       const T lt = l[g];
-      for (int64_t c = 0; c < C; ++c) acc[g][c] -= lt * y[c];
+      for (int64_t c = 0; c < C; ++c) acc[0][g][c] += lt * y[c];
     }
   }
   for (int64_t g = 0; g < G; ++g)
-    for (int64_t c = 0; c < C; ++c) zs[(t0 + g) * width + c0 + c] = acc[g][c];
+    for (int64_t c = 0; c < C; ++c) {
+      T sum = acc[0][g][c];
+      for (int64_t w = 1; w < kW; ++w) sum += acc[w][g][c];
+      x[g][c] -= sum;
+    }
 }
 
-// Both over every row group, for columns c0 .. width in chunks of C, then of C / 2, ... 1 for
-// what remains (so any width is done in registers but for its last few columns).
+// Supernode n's forward step on columns c0 .. c0+C: its triangle, row groups after the columns
+// before them, then the rows below; then D^-1 on its rows, final for the forward sweep and
+// still in cache.
 template <typename T, int64_t C>
-void rows_below(T* z, const int32_t* below, const T* block, T* zs, int64_t s, int64_t r,
-                int64_t width, bool forward, int64_t c0 = 0) {
-  for (; c0 + C <= width; c0 += C) {
-    if (forward) {
-      int64_t i = 0;
-      for (; i + kGroup <= r; i += kGroup)
-        forward_rows<T, C, kGroup>(z, below, block, zs, s, width, i, c0);
-      for (; i < r; ++i) forward_rows<T, C, 1>(z, below, block, zs, s, width, i, c0);
-    } else {
-      int64_t t = 0;
-      for (; t + kGroup <= s; t += kGroup)
-        backward_rows<T, C, kGroup>(z, below, block, zs, s, r, width, t, c0);
-      for (; t < s; ++t) backward_rows<T, C, 1>(z, below, block, zs, s, r, width, t, c0);
+void forward_chunk(const Supernode<T>& n, const T* dinv, int64_t c0) {
+  int64_t u = 0;
+  for (; u + kGroup <= n.s; u += kGroup) {
+    forward_rows<T, C, kGroup>(n, u, 0, u, c0);
+    for (int64_t g = 1; g < kGroup; ++g) forward_rows<T, C, 1>(n, u + g, u, u + g, c0);
+  }
+  for (; u < n.s; ++u) forward_rows<T, C, 1>(n, u, 0, u, c0);
+  int64_t i = n.s;
+  for (; i + kGroup <= n.s + n.r; i += kGroup) forward_rows<T, C, kGroup>(n, i, 0, n.s, c0);
+  for (; i < n.s + n.r; ++i) forward_rows<T, C, 1>(n, i, 0, n.s, c0);
+  for (int64_t t = 0; t < n.s; ++t) {
+    T* x = n.zs + t * n.width + c0;
+    for (int64_t c = 0; c < C; ++c) x[c] *= dinv[t];
+  }
+}
+
+// Supernode n's backward step on columns c0 .. c0+C: column groups from the last, each after
+// the rows past the group (its triangle's and those below), then inside the group.
+template <typename T, int64_t C>
+void backward_chunk(const Supernode<T>& n, int64_t c0) {
+  int64_t t = n.s;
+  for (; t - kGroup >= 0; t -= kGroup) {
+    backward_rows<T, C, kGroup>(n, t - kGroup, t, c0);
+    for (int64_t g = kGroup - 2; g >= 0; --g) {
+      const int64_t col = t - kGroup + g;
+      T* x = n.zs + col * n.width + c0;
+      for (int64_t u = col + 1; u < t; ++u) {
+        const T lu = n.l(u)[col];
+        const T* y = n.zs + u * n.width + c0;
+        for (int64_t c = 0; c < C; ++c) x[c] -= lu * y[c];
+      }
     }
   }
+  for (--t; t >= 0; --t) backward_rows<T, C, 1>(n, t, t + 1, c0);
+}
+
+// Both steps over columns c0 .. width in chunks of C, then of C / 2, ... 1 for what remains (so
+// any width is done in registers but for its last few columns).
+template <typename T, int64_t C>
+void supernode_step(const Supernode<T>& n, const T* dinv, bool forward, int64_t c0 = 0) {
+  for (; c0 + C <= n.width; c0 += C) {
+    if (forward)
+      forward_chunk<T, C>(n, dinv, c0);
+    else
+      backward_chunk<T, C>(n, c0);
+  }
   if constexpr (C > 1) {
-    if (c0 < width) rows_below<T, C / 2>(z, below, block, zs, s, r, width, forward, c0);
+    if (c0 < n.width) supernode_step<T, C / 2>(n, dinv, forward, c0);
   }
 }
 
 // The sweeps over z (n, W): W a constant for the narrow blocks (padded to 4), or 0 for any w.
+// Forward: (I + L) y = z, then D^-1, supernode by supernode; backward: (I + L)^T x = y, last
+// supernode first.
 template <typename T, int W>
 void ldl_sweeps(const LdlFactor<T>& f, T* __restrict z, int64_t w) {
   constexpr int64_t kC = W > 0 ? W : kChunk;
   const int64_t width = W > 0 ? W : w;
-  // (I + L) y = z, supernode by supernode: its triangle, then the rows below it.
-  for (int64_t k = 0; k < f.supernodes; ++k) {
-    const int64_t j0 = f.first[k], s = f.first[k + 1] - j0;
-    const int32_t* below = f.rows + f.row_ptr[k];
-    const int64_t r = f.row_ptr[k + 1] - f.row_ptr[k];
-    const T* block = f.values + f.block_ptr[k];
-    T* zs = z + j0 * width;
-    for (int64_t u = 1; u < s; ++u) {
-      T* zu = zs + u * width;
-      const T* lu = block + u * s;
-      for (int64_t t = 0; t < u; ++t) {
-        const T lt = lu[t];
-        const T* zt = zs + t * width;
-        for (int64_t c = 0; c < width; ++c) zu[c] -= lt * zt[c];
-      }
-    }
-    rows_below<T, kC>(z, below, block, zs, s, r, width, true);
-  }
-  // D^-1, then (I + L)^T x = y, last supernode first: the rows below (final already), then
-  // the triangle from its last column back.
-  for (int64_t k = f.supernodes - 1; k >= 0; --k) {
-    const int64_t j0 = f.first[k], s = f.first[k + 1] - j0;
-    const int32_t* below = f.rows + f.row_ptr[k];
-    const int64_t r = f.row_ptr[k + 1] - f.row_ptr[k];
-    const T* block = f.values + f.block_ptr[k];
-    T* zs = z + j0 * width;
-    for (int64_t t = 0; t < s; ++t) {
-      const T d = f.dinv[j0 + t];
-      for (int64_t c = 0; c < width; ++c) zs[t * width + c] *= d;
-    }
-    rows_below<T, kC>(z, below, block, zs, s, r, width, false);
-    for (int64_t u = s - 1; u >= 1; --u) {
-      const T* zu = zs + u * width;
-      const T* lu = block + u * s;
-      for (int64_t t = 0; t < u; ++t) {
-        const T lt = lu[t];
-        T* zt = zs + t * width;
-        for (int64_t c = 0; c < width; ++c) zt[c] -= lt * zu[c];
-      }
-    }
-  }
+  auto node = [&](int64_t k) {
+    const int64_t j0 = f.first[k];
+    return Supernode<T>{z + j0 * width, z, f.rows + f.row_ptr[k], f.values + f.block_ptr[k],
+                        f.first[k + 1] - j0, f.row_ptr[k + 1] - f.row_ptr[k], width};
+  };
+  for (int64_t k = 0; k < f.supernodes; ++k)
+    supernode_step<T, kC>(node(k), f.dinv + f.first[k], true);
+  for (int64_t k = f.supernodes - 1; k >= 0; --k)
+    supernode_step<T, kC>(node(k), f.dinv, false);
 }
 
 // Columns c0 .. c1-1 of b (n, k): gathered permuted into z (n, stride), swept, scattered back.

@@ -49,11 +49,12 @@ def test_factor_solves_the_laplacian_system(lam, columns):
 
 @pytest.mark.skipif(native is None, reason="the extension did not load: nothing to compare")
 @pytest.mark.parametrize("threads", ["1", "2", "3"])
-def test_native_sweeps_equal_scipy_on_any_thread_count(monkeypatch, threads):
+@pytest.mark.parametrize("columns", [3, 33, 128])  # narrow, register chunks and a tail, blocks
+def test_native_sweeps_equal_scipy_on_any_thread_count(monkeypatch, threads, columns):
     monkeypatch.setenv(extension.THREADS_ENV, threads)
     host, _ = system(8, 19.0)
     fac = host.factor(19.0)
-    b = np.random.default_rng(0).normal(size=(fac.dinv.size, 128))
+    b = np.random.default_rng(0).normal(size=(fac.dinv.size, columns))
     want = fac._solve_scipy(b)
     for _ in range(10):  # each solve's buffers are fresh: a read past them shows, eventually
         np.testing.assert_allclose(fac.solve(b), want, rtol=0, atol=1e-11)
