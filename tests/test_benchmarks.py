@@ -249,6 +249,23 @@ def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
         ab_update.main(["--quick", "--rev", "no-such-revision", "--out", str(tmp_path)])
 
 
+def test_ab_mesh_times_both_revisions_solves_and_updates(tmp_path):
+    pytest.importorskip("qdldl")
+    from tools import ab_mesh
+
+    summary = ab_mesh.main(["--quick", "--rev", "HEAD", "--out", str(tmp_path)])
+    parts = [r["part"] for r in summary["rows"]]
+    assert parts == ["sweeps 3", "sweeps 64", "bilateral_large_steps", "large_steps"]
+    for row in summary["rows"]:
+        for k in ("old ms", "new ms", "new / old", "new / old (paired)"):
+            assert np.isfinite(row[k]) and row[k] > 0
+        # The working tree against itself: the same sums, whatever their order.
+        assert row["largest difference"] < 1e-6
+    assert (tmp_path / "ab_mesh.json").exists() and (tmp_path / "ab_mesh.md").exists()
+    with pytest.raises(ValueError, match="--rounds"):
+        ab_mesh.main(["--rounds", "0", "--out", str(tmp_path)])
+
+
 def test_profile_update_attributes_kernel_time_to_the_filter(tmp_path):
     from tools import profile_update
 
