@@ -137,7 +137,8 @@ void backward_chunk(const Supernode<T>& n, int64_t c0) {
 }
 
 // Both steps over columns c0 .. width in chunks of C, then of C / 2, ... 1 for what remains (so
-// any width is done in registers but for its last few columns).
+// any width is done in registers but for its last few columns). dinv: the supernode's 1 / D,
+// read by the forward step only.
 template <typename T, int64_t C>
 void supernode_step(const Supernode<T>& n, const T* dinv, bool forward, int64_t c0 = 0) {
   for (; c0 + C <= n.width; c0 += C) {
@@ -166,7 +167,7 @@ void ldl_sweeps(const LdlFactor<T>& f, T* __restrict z, int64_t w) {
   for (int64_t k = 0; k < f.supernodes; ++k)
     supernode_step<T, kC>(node(k), f.dinv + f.first[k], true);
   for (int64_t k = f.supernodes - 1; k >= 0; --k)
-    supernode_step<T, kC>(node(k), f.dinv, false);
+    supernode_step<T, kC>(node(k), nullptr, false);
 }
 
 // Columns c0 .. c1-1 of b (n, k): gathered permuted into z (n, stride), swept, scattered back.
