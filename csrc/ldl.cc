@@ -40,6 +40,17 @@ void sweep(const LdlFactor<T>& f, T* b, int64_t k, int64_t c0, int64_t c1, T* z)
   }
 }
 
+// The working rows kept between solves, at most this many bytes in all: a buffer allocated
+// afresh on every call pays its page faults each time, and an optimisation's updates solve
+// the same sizes again.
+constexpr size_t kKeptBytes = size_t{64} << 20;
+
+template <typename T>
+SolveBuffers<T>& buffers() {
+  static auto* pool = new SolveBuffers<T>(kKeptBytes);  // never destroyed, as store() below
+  return *pool;
+}
+
 template <typename T>
 void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads) {
   if (f.n == 0 || k == 0) return;
@@ -47,9 +58,11 @@ void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads) {
       1, std::min<int64_t>(threads, k / kMinColumnsPerThread));
   const int64_t blocks = std::max(workers, (k + kMaxWidth - 1) / kMaxWidth);
   auto run = [&](int64_t first) {
-    std::vector<T> z(static_cast<size_t>(f.n * std::max<int64_t>(4, (k + blocks - 1) / blocks)));
+    auto z = buffers<T>().take(
+        static_cast<size_t>(f.n * std::max<int64_t>(4, (k + blocks - 1) / blocks)));
     for (int64_t i = first; i < blocks; i += workers)
-      sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z.data());
+      sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z.data.get());
+    buffers<T>().give_back(std::move(z));
   };
   std::vector<std::thread> others;
   for (int64_t i = 1; i < workers; ++i) others.emplace_back(run, i);

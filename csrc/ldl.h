@@ -9,8 +9,11 @@
 // supernode and block of columns, not once per entry of L.
 #pragma once
 
+#include <algorithm>
+#include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <mutex>
 #include <vector>
 
 namespace optax_bilateral {
@@ -35,8 +38,66 @@ struct LdlFactor {
 const char* check_factor(const LdlFactor<float>& f, int64_t num_rows, int64_t num_values);
 const char* check_factor(const LdlFactor<double>& f, int64_t num_rows, int64_t num_values);
 
+// Buffers handed out to the solves of any thread and taken back, kept for later solves while
+// they add up to at most `kept_bytes`.
+template <typename T>
+class SolveBuffers {
+ public:
+  struct Buffer {
+    std::unique_ptr<T[]> data;  // uninitialised: a block's gather writes every value it reads
+    size_t size = 0;
+  };
+
+  explicit SolveBuffers(size_t kept_bytes) : limit_(kept_bytes) {}
+
+  // A buffer of at least `size` values: the smallest kept one that holds it, or a new one.
+  Buffer take(size_t size) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      auto best = kept_.end();
+      for (auto it = kept_.begin(); it != kept_.end(); ++it)
+        if (it->size >= size && (best == kept_.end() || it->size < best->size)) best = it;
+      if (best != kept_.end()) {
+        Buffer out = std::move(*best);
+        kept_.erase(best);
+        bytes_ -= out.size * sizeof(T);
+        return out;
+      }
+    }
+    return Buffer{std::unique_ptr<T[]>(new T[size]), size};
+  }
+
+  // Keeps `b`, freeing the smallest kept buffers as needed to stay within the limit; frees
+  // `b` itself if it alone is over it.
+  void give_back(Buffer b) {
+    const size_t bytes = b.size * sizeof(T);
+    if (bytes > limit_) return;
+    std::lock_guard<std::mutex> lock(mutex_);
+    std::sort(kept_.begin(), kept_.end(),
+              [](const Buffer& x, const Buffer& y) { return x.size < y.size; });
+    while (bytes_ + bytes > limit_) {
+      bytes_ -= kept_.front().size * sizeof(T);
+      kept_.erase(kept_.begin());
+    }
+    bytes_ += bytes;
+    kept_.push_back(std::move(b));
+  }
+
+  size_t kept_bytes() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return bytes_;
+  }
+
+ private:
+  const size_t limit_;
+  std::mutex mutex_;
+  std::vector<Buffer> kept_;
+  size_t bytes_ = 0;
+};
+
 // b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (blocks of columns), each
-// with a buffer of n times its block's width. The factor must have passed check_factor.
+// with a buffer of n times its block's width (SolveBuffers, kept between calls). The factor
+// must have passed check_factor.
 void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads);
 void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads);
 

@@ -111,6 +111,10 @@ int check(const Factor& f, int64_t k, int threads, unsigned seed) {
   for (size_t i = 0; i < f.d.size(); ++i) dinv[i] = static_cast<T>(1.0 / f.d[i]);
   std::vector<T> got(b.begin(), b.end());
   const ob::LdlFactor<T> lf = view(f, values, dinv);
+  // The same solve of NaN first: the buffers it gives back, which this solve takes, hold NaN
+  // wherever they were written, so a read of a value this solve did not write shows.
+  std::vector<T> poison(got.size(), std::numeric_limits<T>::quiet_NaN());
+  ob::ldl_solve(lf, poison.data(), k, threads);
   if (*ob::check_factor(lf, static_cast<int64_t>(f.rows.size()),
                         static_cast<int64_t>(f.values.size())) != '\0') {
     std::printf("FAIL: a sound factor was refused (n %lld)\n", static_cast<long long>(f.n));
@@ -183,10 +187,43 @@ int check_refusals() {
   return failures;
 }
 
+// SolveBuffers: the smallest kept buffer that fits, the kept bytes within the limit.
+int check_buffers() {
+  int failures = 0;
+  auto expect = [&](bool ok, const char* what) {
+    if (!ok) {
+      std::printf("FAIL: SolveBuffers: %s\n", what);
+      ++failures;
+    }
+  };
+  ob::SolveBuffers<float> pool(1000);  // bytes: two buffers of 100 floats, not three
+  auto a = pool.take(100), b = pool.take(100), c = pool.take(60);
+  const float* c_data = c.data.get();
+  expect(a.size == 100 && c.size == 60 && pool.kept_bytes() == 0, "new buffers of the size asked");
+  pool.give_back(std::move(a));
+  pool.give_back(std::move(c));
+  expect(pool.kept_bytes() == 640, "two buffers kept");
+  auto d = pool.take(50);
+  expect(d.data.get() == c_data && pool.kept_bytes() == 400, "the smallest that fits is taken");
+  auto e = pool.take(101);
+  expect(e.size == 101 && pool.kept_bytes() == 400, "none fits: a new one, the kept one stays");
+  pool.give_back(std::move(b));
+  expect(pool.kept_bytes() == 800, "two of 100 kept");
+  pool.give_back(std::move(e));  // 404 more: the smallest kept (400) goes
+  expect(pool.kept_bytes() == 804, "the smallest kept buffer freed to stay within the limit");
+  pool.give_back(std::move(d));  // 240 more: 804 + 240 > 1000, so the 400 goes
+  expect(pool.kept_bytes() == 644, "within the limit");
+  pool.give_back(ob::SolveBuffers<float>::Buffer{std::unique_ptr<float[]>(new float[300]), 300});
+  expect(pool.kept_bytes() == 644, "a buffer over the limit alone is not kept");
+  auto f = pool.take(100);
+  expect(f.size == 101 && pool.kept_bytes() == 240, "the 101 taken, the 60 kept");
+  return failures;
+}
+
 }  // namespace
 
 int main() {
-  int failures = check_refusals(), cases = 14;
+  int failures = check_refusals() + check_buffers(), cases = 15;
   unsigned seed = 0;
   for (int64_t n : {0, 1, 2, 7, 50, 300})
     for (int64_t k : {0, 1, 3, 4, 5, 16, 33, 64, 70, 130})

@@ -56,7 +56,7 @@ def test_native_sweeps_equal_scipy_on_any_thread_count(monkeypatch, threads, col
     fac = host.factor(19.0)
     b = np.random.default_rng(0).normal(size=(fac.dinv.size, columns))
     want = fac._solve_scipy(b)
-    for _ in range(10):  # each solve's buffers are fresh: a read past them shows, eventually
+    for _ in range(10):  # each solve takes the last one's buffers: a stale or stray read shows
         np.testing.assert_allclose(fac.solve(b), want, rtol=0, atol=1e-11)
         np.testing.assert_allclose(fac.solve(b.astype(np.float32)), want, rtol=0, atol=1e-4)
 
