@@ -3,6 +3,8 @@
 #include "ldl.h"
 
 #include <algorithm>
+#include <atomic>
+#include <condition_variable>
 #include <mutex>
 #include <unordered_map>
 #include <thread>
@@ -51,23 +53,49 @@ SolveBuffers<T>& buffers() {
   return *pool;
 }
 
+// Blocks of columns claimed one at a time by the calling thread and its helpers, so that
+// the caller finishes them all when a helper starts late; a helper that finds none left
+// returns without reading the caller's frame.
+struct Claims {
+  std::atomic<int64_t> next{0}, done{0};
+  std::mutex mutex;
+  std::condition_variable finished;
+};
+
 template <typename T>
-void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads) {
+void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads, const Schedule& schedule) {
   if (f.n == 0 || k == 0) return;
   const int64_t workers = std::max<int64_t>(
       1, std::min<int64_t>(threads, k / kMinColumnsPerThread));
   const int64_t blocks = std::max(workers, (k + kMaxWidth - 1) / kMaxWidth);
-  auto run = [&](int64_t first) {
-    auto z = buffers<T>().take(
-        static_cast<size_t>(f.n * std::max<int64_t>(4, (k + blocks - 1) / blocks)));
-    for (int64_t i = first; i < blocks; i += workers)
-      sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z.data.get());
-    buffers<T>().give_back(std::move(z));
+  const auto size = static_cast<size_t>(f.n * std::max<int64_t>(4, (k + blocks - 1) / blocks));
+  auto block = [&](int64_t i, T* z) { sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z); };
+  auto claims = std::make_shared<Claims>();
+  auto work = [claims, blocks, size, &block] {
+    typename SolveBuffers<T>::Buffer z;
+    for (int64_t i; (i = claims->next.fetch_add(1)) < blocks;) {
+      if (!z.data) z = buffers<T>().take(size);
+      block(i, z.data.get());
+      if (claims->done.fetch_add(1) + 1 == blocks) {
+        std::lock_guard<std::mutex> lock(claims->mutex);
+        claims->finished.notify_all();
+      }
+    }
+    if (z.data) buffers<T>().give_back(std::move(z));
   };
-  std::vector<std::thread> others;
-  for (int64_t i = 1; i < workers; ++i) others.emplace_back(run, i);
-  run(0);
-  for (auto& t : others) t.join();
+  std::vector<std::thread> own;
+  for (int64_t i = 1; i < workers; ++i) {
+    if (schedule)
+      schedule(work);
+    else
+      own.emplace_back(work);
+  }
+  work();
+  {
+    std::unique_lock<std::mutex> lock(claims->mutex);
+    claims->finished.wait(lock, [&] { return claims->done.load() == blocks; });
+  }
+  for (auto& t : own) t.join();
 }
 
 }  // namespace
@@ -157,11 +185,13 @@ std::shared_ptr<const StoredFactor> stored_factor(int64_t id) {
   return it == store().end() ? nullptr : it->second;
 }
 
-void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads) {
-  solve(f, b, k, threads);
+void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads,
+               const Schedule& schedule) {
+  solve(f, b, k, threads, schedule);
 }
-void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads) {
-  solve(f, b, k, threads);
+void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads,
+               const Schedule& schedule) {
+  solve(f, b, k, threads, schedule);
 }
 
 }  // namespace optax_bilateral

@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <vector>
@@ -95,11 +96,18 @@ class SolveBuffers {
   size_t bytes_ = 0;
 };
 
-// b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (blocks of columns), each
-// with a buffer of n times its block's width (SolveBuffers, kept between calls). The factor
-// must have passed check_factor.
-void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads);
-void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads);
+// Runs a task on another thread: XLA's intra-op pool inside an FFI call, whose threads would
+// otherwise spin beside threads of the solve's own.
+using Schedule = std::function<void(std::function<void()>)>;
+
+// b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (blocks of columns; helpers
+// from `schedule`, or threads of its own where it is empty), each with a buffer of n times
+// its block's width (SolveBuffers, kept between calls). The factor must have passed
+// check_factor.
+void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads,
+               const Schedule& schedule = {});
+void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads,
+               const Schedule& schedule = {});
 
 // A factor held by the extension, in both precisions, for XLA's calls to find by its id.
 struct StoredFactor {

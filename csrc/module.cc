@@ -216,7 +216,8 @@ ffi::Error atrous_fields(ffi::ThreadPool pool, ffi::AnyBuffer guide, ffi::AnyBuf
 }
 
 // b (n, k) -> A^-1 b with the stored factor `factor` (register_factor).
-ffi::Error ldl(ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out, int64_t factor, int64_t threads) {
+ffi::Error ldl(ffi::ThreadPool pool, ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out,
+               int64_t factor, int64_t threads) {
   const auto stored = ob::stored_factor(factor);
   if (!stored) return invalid("no factor is stored under id " + std::to_string(factor));
   const auto dims = b.dimensions();
@@ -228,17 +229,20 @@ ffi::Error ldl(ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out, int64_t factor
   if (threads < 1) return invalid("threads must be >= 1");
   const int64_t k = dims[1];
   const auto bytes = b.size_bytes();
+  const ob::Schedule schedule = [&pool](std::function<void()> task) {
+    pool.Schedule(std::move(task));
+  };
   switch (b.element_type()) {
     case ffi::DataType::F32: {
       auto* x = static_cast<float*>(out->untyped_data());
       if (x != b.untyped_data()) std::memcpy(x, b.untyped_data(), bytes);
-      ob::ldl_solve(stored->view32(), x, k, static_cast<int>(threads));
+      ob::ldl_solve(stored->view32(), x, k, static_cast<int>(threads), schedule);
       return ffi::Error::Success();
     }
     case ffi::DataType::F64: {
       auto* x = static_cast<double*>(out->untyped_data());
       if (x != b.untyped_data()) std::memcpy(x, b.untyped_data(), bytes);
-      ob::ldl_solve(stored->view64(), x, k, static_cast<int>(threads));
+      ob::ldl_solve(stored->view64(), x, k, static_cast<int>(threads), schedule);
       return ffi::Error::Success();
     }
     default:
@@ -714,6 +718,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralAtrousFields, atrous_fields,
                                   .Attr<double>("deeper_factor"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLdl, ldl,
                               ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
                                   .Arg<ffi::AnyBuffer>()  // b (n, k)
                                   .Ret<ffi::AnyBuffer>()  // A^-1 b
                                   .Attr<int64_t>("factor")

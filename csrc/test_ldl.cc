@@ -7,9 +7,11 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <functional>
 #include <limits>
 #include <numeric>
 #include <random>
+#include <thread>
 #include <vector>
 
 #include "isa.h"
@@ -120,7 +122,28 @@ int check(const Factor& f, int64_t k, int threads, unsigned seed) {
     std::printf("FAIL: a sound factor was refused (n %lld)\n", static_cast<long long>(f.n));
     return 1;
   }
+  const std::vector<T> given = got;
   ob::ldl_solve(lf, got.data(), k, threads);
+  // Helpers from a schedule (as XLA's pool gives them): started at once on threads of the
+  // test's, or only after the solve returned (the caller then sweeps every block, and the late
+  // helpers must find none left); the same values either way.
+  std::vector<std::thread> started;
+  std::vector<std::function<void()>> late;
+  const ob::Schedule now = [&](std::function<void()> task) { started.emplace_back(std::move(task)); };
+  const ob::Schedule after = [&](std::function<void()> task) { late.push_back(std::move(task)); };
+  for (const ob::Schedule* schedule : {&now, &after}) {
+    std::vector<T> again = given;
+    ob::ldl_solve(lf, again.data(), k, threads, *schedule);
+    for (auto& t : started) t.join();
+    for (auto& task : late) task();
+    started.clear();
+    late.clear();
+    if (!got.empty() && std::memcmp(again.data(), got.data(), got.size() * sizeof(T)) != 0) {
+      std::printf("FAIL: n %lld k %lld threads %d: scheduled helpers changed the result\n",
+                  static_cast<long long>(f.n), static_cast<long long>(k), threads);
+      return 1;
+    }
+  }
   // The random factors are mildly conditioned: float32 keeps about 4 digits through the sweeps.
   const double tol = sizeof(T) == 4 ? 2e-3 : 1e-9;
   double worst = 0;
