@@ -227,9 +227,24 @@ def test_sparse_refuses_a_prefilter_naming_why():
         ob.prefilter(sigma_d="sparse")
 
 
+def test_a_coverage_at_or_above_full_coverage_is_not_boosted():
+    params = jnp.full((32, 32, 3), 0.5)
+    g = _sparse_grad(params.shape, 2)  # one texel in 4: a boost of 2 at full_coverage 1
+    (a,), _ = _steps(ob.postfilter(), params, [g])
+    moved = np.abs(np.asarray(a)) > 1e-6
+    for full, boost in ((1.0, 2.0), (0.64, 1.6), (0.25, 1.0), (0.1, 1.0)):
+        rule = ob.sparse_sigma(sparse_levels=0, full_coverage=full)
+        (b,), _ = _steps(ob.postfilter(sigma_d=rule), params, [g])
+        np.testing.assert_allclose(
+            np.asarray(b)[moved] / np.asarray(a)[moved], boost, rtol=1e-4, err_msg=f"{full}"
+        )
+
+
 @pytest.mark.parametrize(
     "field, value, error",
     [
+        ("full_coverage", 0.0, ValueError),
+        ("full_coverage", 1.5, ValueError),
         ("block", 0, ValueError),
         ("block", 2.0, TypeError),
         ("decay", 1.0, ValueError),
@@ -320,10 +335,11 @@ def test_sparse_adam_is_bilateral_adam_on_a_gradient_that_touches_every_texel():
 
 def test_sparse_adam_runs_the_sparse_rule_without_its_extra_level():
     # Its coarse path gives the far reach: the default rule adds no filter level on a
-    # sparse leaf, and sigma_d="sparse" (which does) is a different update there.
+    # sparse leaf and counts a coverage of 0.8 as full, and sigma_d="sparse" (which adds the
+    # level and boosts up to a coverage of 1) is a different update there.
     params = jax.random.uniform(jax.random.PRNGKey(4), (48, 48, 3))
     grads = [_sparse_grad(params.shape, 6, key=k) for k in range(3)]
-    no_level = ob.sparse_sigma(sparse_levels=0)
+    no_level = ob.sparse_sigma(sparse_levels=0, full_coverage=0.8)
     written_out = ob.coarse_levels(ob.bilateral_adam(0.02, sigma_d=no_level), 0.02, share=0.3)
     a, _ = _steps(ob.sparse_adam(0.02), params, grads)
     b, _ = _steps(written_out, params, grads)

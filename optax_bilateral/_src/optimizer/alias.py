@@ -216,12 +216,14 @@ def sparse_adam(
 
     ``coarse_levels(bilateral_adam(learning_rate, b1, b2, eps, sigma_d=sigma_d, ...),
     learning_rate, levels=coarse_levels, share=coarse_share)``. The default ``sigma_d``,
-    ``sparse_sigma(sparse_levels=0)`` (:class:`Sparse`), undoes the filter's dilution of a
-    sparse gradient by its untouched texels; :func:`coarse_levels` adds Adam's steps on the
-    coarse levels of a Laplacian pyramid where the gradient is sparse, which give the far
-    reach (beside them, ``sigma_d="sparse"``'s extra filter level gained 2% on a far camera
-    and nothing elsewhere, for about 1.3x the update). On a gradient that touches every texel
-    both reduce to :func:`bilateral_adam`'s defaults. Measured against ``pyramid_adam`` and
+    ``sparse_sigma(sparse_levels=0, full_coverage=0.8)`` (:class:`Sparse`), undoes the
+    filter's dilution of a sparse gradient by its untouched texels (a block touched at 80% of
+    its texels or more counts as full: a blurred or subsampled gradient is not a far
+    camera's); :func:`coarse_levels` adds Adam's steps on the coarse levels of a Laplacian
+    pyramid where the gradient is sparse, which give the far reach (beside them,
+    ``sigma_d="sparse"``'s extra filter level gained 2% on a far camera and nothing elsewhere,
+    for about 1.3x the update). On a gradient that touches every texel both reduce to
+    :func:`bilateral_adam`'s defaults. Measured against ``pyramid_adam`` and
     the defaults at three camera distances in docs/hyperparameters.md ("How far is my
     camera").
 

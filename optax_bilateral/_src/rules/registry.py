@@ -37,11 +37,11 @@ NAMED = {"auto": Auto(), "sure": Sure(), "sparse": Sparse()}
 DEFAULT_SIGMA_D = "auto"
 """The default ``sigma_d`` of every transform: ``"auto"``, chosen per leaf and step from the
 guide's change (docs/auto_sigma.md); a number (>= 0, in the guide's units) fixes it."""
-SPARSE_SIGMA_D = Sparse(sparse_levels=0)
+SPARSE_SIGMA_D = Sparse(sparse_levels=0, full_coverage=0.8)
 """The default ``sigma_d`` of :func:`optax_bilateral.sparse_adam`: ``"sparse"`` without its
-extra filter level (:class:`Sparse`), ``"auto"`` corrected for gradients that touch few
-texels a step; the coarse path beside it gives the far reach
-(docs/research/camera_distance.md)."""
+extra filter level and with a coverage of 0.8 counted as full (:class:`Sparse`), ``"auto"``
+corrected for gradients that touch few texels a step; the coarse path beside it gives the far
+reach (docs/research/camera_distance.md)."""
 SETTINGS = (
     "a number >= 0 (inf for a low-pass), 'auto', 'sure', 'sparse' or a sigma_d rule "
     "(ob.auto_sigma(), ob.sure_sigma(), ob.sparse_sigma())"
@@ -127,7 +127,8 @@ def sparse_sigma(**constants) -> Sparse:
     """``sigma_d="sparse"`` with other constants: ``sparse_sigma()`` is ``"sparse"``.
 
     Each keyword is a field of :class:`Sparse` (``block``, ``decay``, ``max_boost``,
-    ``sparse_below``, ``sparse_levels``, and ``auto``: the :func:`auto_sigma` rule it runs).
+    ``sparse_below``, ``sparse_levels``, ``full_coverage``, and ``auto``: the
+    :func:`auto_sigma` rule it runs).
 
     Args:
       **constants: the fields to change.

@@ -68,6 +68,8 @@ class Sparse(SigmaRule):
       sparse_below: a leaf whose touched blocks' mean coverage is below this runs
         ``sparse_levels`` more levels.
       sparse_levels: the levels added on a sparse leaf.
+      full_coverage: the coverage counted as full: ``B m`` is multiplied by
+        ``(full_coverage / coverage)^(1/2)`` where the coverage is below it, by 1 elsewhere.
       auto: ``"auto"``'s constants.
 
     Example::
@@ -88,6 +90,7 @@ class Sparse(SigmaRule):
     max_boost: float = 8.0
     sparse_below: float = 0.25
     sparse_levels: int = 1
+    full_coverage: float = 1.0
     auto: Auto = dataclasses.field(default_factory=Auto)
 
     def __post_init__(self):
@@ -96,6 +99,7 @@ class Sparse(SigmaRule):
         check_number(self, "max_boost", low=1)
         check_number(self, "sparse_below", low=0, high=1)
         check_integer(self, "sparse_levels", low=0)
+        check_number(self, "full_coverage", low=0, high=1, low_open=True)
         if not isinstance(self.auto, Auto):
             raise TypeError(f"auto must be an auto_sigma() rule, got {self.auto!r}")
 
@@ -127,7 +131,7 @@ class Sparse(SigmaRule):
         touched = coverage.touched(moments.g, moments.observed, axes)
         cov = coverage.update(state.coverage, touched, block=self.block, decay=self.decay)
         floor = 1.0 / (self.max_boost * self.max_boost)
-        boost = lax.rsqrt(jnp.clip(cov.field, floor, 1.0))
+        boost = lax.rsqrt(jnp.clip(cov.field / self.full_coverage, floor, 1.0))
         boost = coverage.expand(boost, moments.m.shape, axes, self.block)
         if self.sparse_levels:  # a wider filter on a sparse leaf: one more cond, no more ways
             op = _Widened(op, self.sparse_levels, cov.mean < self.sparse_below)
