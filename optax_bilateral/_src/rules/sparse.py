@@ -63,8 +63,8 @@ class Sparse(SigmaRule):
       block: the coverage's blocks, in texels along each spatial axis.
       decay: the coverage's moving average over steps (~10 steps: two cameras in turn
         average out).
-      max_boost: the most ``B m`` is multiplied by (a coverage of ``1 / max_boost^2``: one
-        touched texel in 64 at 8).
+      max_boost: the most ``B m`` is multiplied by (reached at a coverage of
+        ``full_coverage / max_boost^2``: one touched texel in 64 at 8 and 1).
       sparse_below: a leaf whose touched blocks' mean coverage is below this runs
         ``sparse_levels`` more levels.
       sparse_levels: the levels added on a sparse leaf.
