@@ -107,16 +107,6 @@ std::vector<Block> cut_blocks(const Pass& pass, int64_t channels) {
   return blocks;
 }
 
-// One step's units of work, claimed one at a time by the caller and its helpers. Shared,
-// so that a helper that starts after the step ended only reads that nothing is left.
-struct Claims {
-  explicit Claims(size_t n) : total(n) {}
-  const size_t total;
-  std::atomic<size_t> next{0}, done{0};
-  std::mutex mutex;
-  std::condition_variable finished;
-};
-
 // The largest finite |x[i]|, i in [lo, hi), 0 if none: as the integer maximum of the bits
 // (non-negative floats order as their bits), which vectorises where a float maximum does not.
 template <typename T>
@@ -179,32 +169,7 @@ std::vector<SlabLevel<T>> plan_levels(const Cascade<T>& c) {
 // up to threads - 1 helpers; returns when all are done.
 template <typename T, typename F>
 void parallel(const Cascade<T>& c, int threads, size_t units, const F& do_unit) {
-  auto claims = std::make_shared<Claims>(units);
-  auto work = [claims, &do_unit, units] {
-    Scratch<T> scratch;
-    for (size_t k; (k = claims->next.fetch_add(1)) < units;) {
-      do_unit(k, scratch);
-      if (claims->done.fetch_add(1) + 1 == units) {
-        std::lock_guard<std::mutex> lock(claims->mutex);
-        claims->finished.notify_all();
-      }
-    }
-  };
-  const int helpers = static_cast<int>(std::min<size_t>(static_cast<size_t>(threads), units)) - 1;
-  std::vector<std::thread> own;
-  for (int t = 0; t < helpers; ++t) {
-    if (c.schedule) {
-      c.schedule(work);
-    } else {
-      own.emplace_back(work);
-    }
-  }
-  work();
-  {
-    std::unique_lock<std::mutex> lock(claims->mutex);
-    claims->finished.wait(lock, [&] { return claims->done.load() == units; });
-  }
-  for (auto& th : own) th.join();
+  run_claimed<Scratch<T>>(units, threads, c.schedule, do_unit);
 }
 
 // The instruction set's build of kernel.h's split_planes: n points of a field of nc

@@ -16,6 +16,8 @@
 #include <utility>
 #include <vector>
 
+#include "claims.h"
+
 namespace optax_bilateral {
 
 // One cascade's inputs. Pointers are row-major planar arrays of the grid `shape`.
@@ -42,10 +44,8 @@ struct Cascade {
   // Below this many point-channels the call runs on the calling thread alone: starting
   // threads costs more than they save.
   int64_t min_parallel_work = int64_t{1} << 15;
-  // Starts a task on another thread (XLA's intra-op pool under the FFI), now or later; empty:
-  // a std::thread per task. The caller works too, so a task that starts late finds nothing
-  // left and a busy pool never stalls the call.
-  std::function<void(std::function<void()>)> schedule;
+  // Helpers' threads (claims.h): XLA's intra-op pool under the FFI; empty, threads of its own.
+  Schedule schedule;
 };
 
 // Whether a cascade needs `work`: a separable cascade on a grid of rank >= 2 runs every level

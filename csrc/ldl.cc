@@ -3,11 +3,8 @@
 #include "ldl.h"
 
 #include <algorithm>
-#include <atomic>
-#include <condition_variable>
 #include <mutex>
 #include <unordered_map>
-#include <thread>
 #include <type_traits>
 #include <vector>
 
@@ -53,13 +50,18 @@ SolveBuffers<T>& buffers() {
   return *pool;
 }
 
-// Blocks of columns claimed one at a time by the calling thread and its helpers, so that
-// the caller finishes them all when a helper starts late; a helper that finds none left
-// returns without reading the caller's frame.
-struct Claims {
-  std::atomic<int64_t> next{0}, done{0};
-  std::mutex mutex;
-  std::condition_variable finished;
+// A worker's buffer: taken at its first block, given back when it is done.
+template <typename T>
+struct Lease {
+  typename SolveBuffers<T>::Buffer buffer;
+
+  T* get(size_t size) {
+    if (!buffer.data) buffer = buffers<T>().take(size);
+    return buffer.data.get();
+  }
+  ~Lease() {
+    if (buffer.data) buffers<T>().give_back(std::move(buffer));
+  }
 };
 
 template <typename T>
@@ -69,33 +71,11 @@ void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads, const Schedule& 
       1, std::min<int64_t>(threads, k / kMinColumnsPerThread));
   const int64_t blocks = std::max(workers, (k + kMaxWidth - 1) / kMaxWidth);
   const auto size = static_cast<size_t>(f.n * std::max<int64_t>(4, (k + blocks - 1) / blocks));
-  auto block = [&](int64_t i, T* z) { sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z); };
-  auto claims = std::make_shared<Claims>();
-  auto work = [claims, blocks, size, &block] {
-    typename SolveBuffers<T>::Buffer z;
-    for (int64_t i; (i = claims->next.fetch_add(1)) < blocks;) {
-      if (!z.data) z = buffers<T>().take(size);
-      block(i, z.data.get());
-      if (claims->done.fetch_add(1) + 1 == blocks) {
-        std::lock_guard<std::mutex> lock(claims->mutex);
-        claims->finished.notify_all();
-      }
-    }
-    if (z.data) buffers<T>().give_back(std::move(z));
-  };
-  std::vector<std::thread> own;
-  for (int64_t i = 1; i < workers; ++i) {
-    if (schedule)
-      schedule(work);
-    else
-      own.emplace_back(work);
-  }
-  work();
-  {
-    std::unique_lock<std::mutex> lock(claims->mutex);
-    claims->finished.wait(lock, [&] { return claims->done.load() == blocks; });
-  }
-  for (auto& t : own) t.join();
+  run_claimed<Lease<T>>(static_cast<size_t>(blocks), static_cast<int>(workers), schedule,
+                        [&](size_t u, Lease<T>& z) {
+                          const auto i = static_cast<int64_t>(u);
+                          sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z.get(size));
+                        });
 }
 
 }  // namespace

@@ -17,6 +17,8 @@
 #include <mutex>
 #include <vector>
 
+#include "claims.h"
+
 namespace optax_bilateral {
 
 template <typename T>
@@ -95,10 +97,6 @@ class SolveBuffers {
   std::vector<Buffer> kept_;
   size_t bytes_ = 0;
 };
-
-// Runs a task on another thread: XLA's intra-op pool inside an FFI call, whose threads would
-// otherwise spin beside threads of the solve's own.
-using Schedule = std::function<void(std::function<void()>)>;
 
 // b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (blocks of columns; helpers
 // from `schedule`, or threads of its own where it is empty), each with a buffer of n times
