@@ -10,6 +10,7 @@
 #pragma GCC target("avx2,fma")
 #endif
 #define OB_ISA avx2
+#define OB_ISA_VECTOR_BYTES 32
 #include "kernel_isa.h"
 OB_DEFINE_ISA_ENTRIES
 #if defined(__clang__)

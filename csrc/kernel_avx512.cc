@@ -10,6 +10,7 @@
 #pragma GCC target("avx512f,avx512vl,avx512dq,avx512bw,avx2,fma,prefer-vector-width=512")
 #endif
 #define OB_ISA avx512
+#define OB_ISA_VECTOR_BYTES 64
 #include "kernel_isa.h"
 OB_DEFINE_ISA_ENTRIES
 #if defined(__clang__)

@@ -14,28 +14,28 @@
 namespace optax_bilateral {
 namespace {
 
-// A thread of its own only for at least this many columns: fewer cost more to start than
-// they save.
-constexpr int64_t kMinColumnsPerThread = 32;
+// Helpers only for at least this many multiply-adds a thread (the factor's values times the
+// block's width): a smaller solve costs more to hand out than it saves.
+constexpr int64_t kMinWorkPerThread = int64_t{1} << 18;
 // The widest block one sweep takes: wider blocks read the factor fewer times, and beyond this
 // the rows of a block no longer fit the cache (docs/triangle_mesh.md has the measurements).
 constexpr int64_t kMaxWidth = 64;
 
 template <typename T>
-void sweep(const LdlFactor<T>& f, T* b, int64_t k, int64_t c0, int64_t c1, T* z) {
+void step(const LdlFactor<T>& f, const LdlBlock<T>& blk, int which, int64_t p) {
   constexpr bool f32 = std::is_same_v<T, float>;
   switch (cpu_isa()) {
 #if defined(__x86_64__)
     case Isa::kAvx512:
-      if constexpr (f32) return avx512::ldl32(f, b, k, c0, c1, z);
-      else return avx512::ldl64(f, b, k, c0, c1, z);
+      if constexpr (f32) return avx512::ldl32(f, blk, which, p);
+      else return avx512::ldl64(f, blk, which, p);
     case Isa::kAvx2:
-      if constexpr (f32) return avx2::ldl32(f, b, k, c0, c1, z);
-      else return avx2::ldl64(f, b, k, c0, c1, z);
+      if constexpr (f32) return avx2::ldl32(f, blk, which, p);
+      else return avx2::ldl64(f, blk, which, p);
 #endif
     default:
-      if constexpr (f32) return baseline::ldl32(f, b, k, c0, c1, z);
-      else return baseline::ldl64(f, b, k, c0, c1, z);
+      if constexpr (f32) return baseline::ldl32(f, blk, which, p);
+      else return baseline::ldl64(f, blk, which, p);
   }
 }
 
@@ -50,32 +50,30 @@ SolveBuffers<T>& buffers() {
   return *pool;
 }
 
-// A worker's buffer: taken at its first block, given back when it is done.
-template <typename T>
-struct Lease {
-  typename SolveBuffers<T>::Buffer buffer;
-
-  T* get(size_t size) {
-    if (!buffer.data) buffer = buffers<T>().take(size);
-    return buffer.data.get();
-  }
-  ~Lease() {
-    if (buffer.data) buffers<T>().give_back(std::move(buffer));
-  }
-};
+struct NoState {};
 
 template <typename T>
 void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads, const Schedule& schedule) {
   if (f.n == 0 || k == 0) return;
-  const int64_t workers = std::max<int64_t>(
-      1, std::min<int64_t>(threads, k / kMinColumnsPerThread));
-  const int64_t blocks = std::max(workers, (k + kMaxWidth - 1) / kMaxWidth);
-  const auto size = static_cast<size_t>(f.n * std::max<int64_t>(4, (k + blocks - 1) / blocks));
-  run_claimed<Lease<T>>(static_cast<size_t>(blocks), static_cast<int>(workers), schedule,
-                        [&](size_t u, Lease<T>& z) {
-                          const auto i = static_cast<int64_t>(u);
-                          sweep(f, b, k, k * i / blocks, k * (i + 1) / blocks, z.get(size));
-                        });
+  const int64_t blocks = (k + kMaxWidth - 1) / kMaxWidth;
+  const int64_t stride = std::max<int64_t>(4, (k + blocks - 1) / blocks);
+  const int64_t rows = f.n + f.parts * (f.n - f.top());
+  const int64_t work = f.block_ptr[f.supernodes] * stride;
+  const int workers = static_cast<int>(
+      std::max<int64_t>(1, std::min<int64_t>(threads, work / kMinWorkPerThread)));
+  auto buffer = buffers<T>().take(static_cast<size_t>(rows * stride));
+  // A block's three steps before the next block's, while its rows are in the cache: each
+  // block's parts forward, its top, its parts backward.
+  for (int64_t i = 0; i < blocks; ++i) {
+    const LdlBlock<T> blk{b, k, k * i / blocks, k * (i + 1) / blocks, stride, buffer.data.get()};
+    for (int which : {0, 1, 2}) {
+      const size_t units = which == 1 ? 1 : static_cast<size_t>(f.parts);
+      run_claimed<NoState>(units, workers, schedule, [&](size_t p, NoState&) {
+        step(f, blk, which, static_cast<int64_t>(p));
+      });
+    }
+  }
+  buffers<T>().give_back(std::move(buffer));
 }
 
 }  // namespace
@@ -104,6 +102,20 @@ const char* check(const LdlFactor<T>& f, int64_t num_rows, int64_t num_values) {
         return "the rows below a supernode must increase, past its columns, within n";
       last = f.rows[i];
     }
+  }
+  if (f.parts < 1) return "there must be at least one part";
+  if (f.part_ptr[0] != 0 || f.part_ptr[f.parts] > ns)
+    return "part_ptr must run from 0 to at most the supernodes' count";
+  for (int64_t p = 0; p < f.parts; ++p)
+    if (f.part_ptr[p + 1] < f.part_ptr[p]) return "part_ptr must not decrease";
+  // A part's rows below stay within its own columns or fall in the top's: parts swept at once
+  // never write the same row.
+  const int64_t top = f.top();
+  for (int64_t p = 0; p < f.parts; ++p) {
+    const int64_t end = f.first[f.part_ptr[p + 1]];
+    for (int64_t i = f.row_ptr[f.part_ptr[p]]; i < f.row_ptr[f.part_ptr[p + 1]]; ++i)
+      if (f.rows[i] >= end && f.rows[i] < top)
+        return "a part's rows below must be its own or the top's";
   }
   std::vector<bool> seen(static_cast<size_t>(n), false);
   for (int64_t i = 0; i < n; ++i) {
@@ -138,6 +150,8 @@ LdlFactor<T> view_of(const StoredFactor& s, const std::vector<T>& values,
   f.values = values.data();
   f.dinv = dinv.data();
   f.perm = s.perm.data();
+  f.parts = static_cast<int64_t>(s.part_ptr.size()) - 1;
+  f.part_ptr = s.part_ptr.data();
   return f;
 }
 

@@ -7,6 +7,11 @@
 // their rows below the run, each a dense block. Every right-hand side of b (n, k), row-major,
 // goes through the same forward and backward sweeps; a row below a supernode is read once per
 // supernode and block of columns, not once per entry of L.
+//
+// The supernodes come in parts, then a top: the parts are disjoint subtrees of the elimination
+// tree (their rows below stay within their own columns or fall in the top's), so threads sweep
+// them at once, each part's updates to the top's rows summed in rows of its own; the top, the
+// tree's upper levels, is swept after them (forward) and before them (backward).
 #pragma once
 
 #include <algorithm>
@@ -34,10 +39,32 @@ struct LdlFactor {
   const T* values = nullptr;
   const T* dinv = nullptr;        // (n) 1 / D
   const int32_t* perm = nullptr;  // (n) a permutation of 0 .. n-1
+  // (parts + 1) part p is supernodes part_ptr[p] .. part_ptr[p+1]-1; the top is from
+  // part_ptr[parts] to the last.
+  int64_t parts = 0;
+  const int32_t* part_ptr = nullptr;
+
+  // The top's first column (n where the top is empty).
+  int64_t top() const { return supernodes == 0 ? n : first[part_ptr[parts]]; }
+};
+
+// The working rows of one block of columns c0 .. c1 of b (n, k): z holds the n rows in the
+// factor's order, then `parts` copies of the top's rows, `stride` values a row (the block's
+// width, narrow ones padded to 4).
+template <typename T>
+struct LdlBlock {
+  T* b;
+  int64_t k, c0, c1, stride;
+  T* z;
+
+  T* part_rows(const LdlFactor<T>& f, int64_t p) const {
+    return z + (f.n + p * (f.n - f.top())) * stride;
+  }
 };
 
 // The first problem found in a factor's index arrays (`rows` of `num_rows` entries, blocks
-// adding up to `num_values`), or "" when it is sound: every later read stays in bounds.
+// adding up to `num_values`), or "" when it is sound: every later read stays in bounds and no
+// two parts write the same row.
 const char* check_factor(const LdlFactor<float>& f, int64_t num_rows, int64_t num_values);
 const char* check_factor(const LdlFactor<double>& f, int64_t num_rows, int64_t num_values);
 
@@ -98,10 +125,11 @@ class SolveBuffers {
   size_t bytes_ = 0;
 };
 
-// b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (blocks of columns; helpers
-// from `schedule`, or threads of its own where it is empty), each with a buffer of n times
-// its block's width (SolveBuffers, kept between calls). The factor must have passed
-// check_factor.
+// b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (helpers from `schedule`, or
+// threads of its own where it is empty): blocks of columns, each swept part by part, then its
+// top, then part by part again, in a working copy of its rows and of the top's rows once per
+// part (SolveBuffers, kept between calls). The sums' order does not depend on the threads.
+// The factor must have passed check_factor.
 void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads,
                const Schedule& schedule = {});
 void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads,
@@ -109,7 +137,7 @@ void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads,
 
 // A factor held by the extension, in both precisions, for XLA's calls to find by its id.
 struct StoredFactor {
-  std::vector<int32_t> first, row_ptr, rows, perm;
+  std::vector<int32_t> first, row_ptr, rows, perm, part_ptr;
   std::vector<int64_t> block_ptr;
   std::vector<double> values, dinv;
   std::vector<float> values32, dinv32;

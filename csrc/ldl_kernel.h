@@ -3,6 +3,7 @@
 // contiguous row of the block, which the compiler vectorises.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 
 #include "ldl.h"
@@ -11,8 +12,11 @@
 namespace optax_bilateral {
 namespace OB_ISA {
 
-// The columns of a row handled at once: a few vectors, held in registers across a supernode.
-constexpr int64_t kChunk = 32;
+// The columns of a row handled at once, held in registers across a supernode: 32, or four
+// vectors where they are wider (AVX-512's 32 registers hold four rows' sums of four vectors).
+template <typename T>
+constexpr int64_t kChunk =
+    std::max<int64_t>(32, static_cast<int64_t>(4 * OB_ISA_VECTOR_BYTES / sizeof(T)));
 // Rows (forward) or columns (backward) of a supernode's block taken together, so that each row
 // read from z serves this many of them.
 constexpr int64_t kGroup = 4;
@@ -21,17 +25,21 @@ constexpr int64_t kGroup = 4;
 constexpr int64_t kWays = 4;
 
 // One supernode's block (ldl.h) and the rows of z it reads and writes: block row rho < s is
-// the supernode's own row j0 + rho, a later one rows[rho - s].
+// the supernode's own row j0 + rho, a later one rows[rho - s], in z below `top` and in `ztop`
+// from it (a part's own rows for the top's).
 template <typename T>
 struct Supernode {
   T* zs;               // z's rows j0 .. j0+s
   T* z;                // all of z
+  T* ztop;             // row top of z, or of a part's rows for the top's
   const int32_t* below;
   const T* block;
-  int64_t s, r, width;
+  int64_t s, r, width, top;
 
   T* row(int64_t rho) const {
-    return rho < s ? zs + rho * width : z + static_cast<int64_t>(below[rho - s]) * width;
+    if (rho < s) return zs + rho * width;
+    const int64_t j = below[rho - s];
+    return j < top ? z + j * width : ztop + (j - top) * width;
   }
   const T* l(int64_t rho) const { return block + rho * s; }
 };
@@ -152,45 +160,102 @@ void supernode_step(const Supernode<T>& n, const T* dinv, bool forward, int64_t 
   }
 }
 
-// The sweeps over z (n, W): W a constant for the narrow blocks (padded to 4), or 0 for any w.
-// Forward: (I + L) y = z, then D^-1, supernode by supernode; backward: (I + L)^T x = y, last
-// supernode first.
+// The sweeps of supernodes k0 .. k1-1, their rows of the top in `ztop`; W the block's width
+// where it is a constant (the narrow blocks, padded to 4), else 0. Forward: (I + L) y = z, then
+// D^-1, supernode by supernode; backward: (I + L)^T x = y, the last supernode first.
 template <typename T, int W>
-void ldl_sweeps(const LdlFactor<T>& f, T* __restrict z, int64_t w) {
-  constexpr int64_t kC = W > 0 ? W : kChunk;
-  const int64_t width = W > 0 ? W : w;
+void ldl_sweep(const LdlFactor<T>& f, const LdlBlock<T>& blk, T* ztop, int64_t top, int64_t k0,
+               int64_t k1, bool forward) {
+  constexpr int64_t kC = W > 0 ? W : kChunk<T>;
+  const int64_t width = blk.stride;
+  T* z = blk.z;
   auto node = [&](int64_t k) {
     const int64_t j0 = f.first[k];
-    return Supernode<T>{z + j0 * width, z, f.rows + f.row_ptr[k], f.values + f.block_ptr[k],
-                        f.first[k + 1] - j0, f.row_ptr[k + 1] - f.row_ptr[k], width};
+    return Supernode<T>{z + j0 * width, z, ztop, f.rows + f.row_ptr[k], f.values + f.block_ptr[k],
+                        f.first[k + 1] - j0, f.row_ptr[k + 1] - f.row_ptr[k], width, top};
   };
-  for (int64_t k = 0; k < f.supernodes; ++k)
-    supernode_step<T, kC>(node(k), f.dinv + f.first[k], true);
-  for (int64_t k = f.supernodes - 1; k >= 0; --k)
-    supernode_step<T, kC>(node(k), nullptr, false);
+  if (forward) {
+    for (int64_t k = k0; k < k1; ++k) supernode_step<T, kC>(node(k), f.dinv + f.first[k], true);
+  } else {
+    for (int64_t k = k1 - 1; k >= k0; --k) supernode_step<T, kC>(node(k), nullptr, false);
+  }
 }
 
-// Columns c0 .. c1-1 of b (n, k): gathered permuted into z (n, stride), swept, scattered back.
-// Narrow blocks are padded to a width of 4 (one vector of the row per entry of L); z must hold
-// n * max(4, c1 - c0) values.
 template <typename T>
-void ldl_block(const LdlFactor<T>& f, T* b, int64_t k, int64_t c0, int64_t c1, T* z) {
-  const int64_t n = f.n, w = c1 - c0, stride = w < 4 ? 4 : w;
-  for (int64_t i = 0; i < n; ++i) {
-    const T* from = b + static_cast<int64_t>(f.perm[i]) * k + c0;
-    T* to = z + i * stride;
-    for (int64_t c = 0; c < w; ++c) to[c] = from[c];
-    for (int64_t c = w; c < stride; ++c) to[c] = T(0);
-  }
-  if (stride == 4)
-    ldl_sweeps<T, 4>(f, z, stride);
+void sweep_range(const LdlFactor<T>& f, const LdlBlock<T>& blk, T* ztop, int64_t top,
+                 int64_t k0, int64_t k1, bool forward) {
+  if (blk.stride == 4)
+    ldl_sweep<T, 4>(f, blk, ztop, top, k0, k1, forward);
   else
-    ldl_sweeps<T, 0>(f, z, stride);
-  for (int64_t i = 0; i < n; ++i) {
-    const T* from = z + i * stride;
-    T* to = b + static_cast<int64_t>(f.perm[i]) * k + c0;
+    ldl_sweep<T, 0>(f, blk, ztop, top, k0, k1, forward);
+}
+
+// Rows j0 .. j1-1 of z from the block's columns of b (permuted; padding columns zero), or back.
+template <typename T>
+void gather_rows(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t j0, int64_t j1) {
+  const int64_t w = blk.c1 - blk.c0;
+  for (int64_t i = j0; i < j1; ++i) {
+    const T* from = blk.b + static_cast<int64_t>(f.perm[i]) * blk.k + blk.c0;
+    T* to = blk.z + i * blk.stride;
+    for (int64_t c = 0; c < w; ++c) to[c] = from[c];
+    for (int64_t c = w; c < blk.stride; ++c) to[c] = T(0);
+  }
+}
+
+template <typename T>
+void scatter_rows(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t j0, int64_t j1) {
+  const int64_t w = blk.c1 - blk.c0;
+  for (int64_t i = j0; i < j1; ++i) {
+    const T* from = blk.z + i * blk.stride;
+    T* to = blk.b + static_cast<int64_t>(f.perm[i]) * blk.k + blk.c0;
     for (int64_t c = 0; c < w; ++c) to[c] = from[c];
   }
+}
+
+// Part p's forward step: its rows gathered, its rows of the top zeroed, its supernodes swept.
+template <typename T>
+void ldl_part_forward(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t p) {
+  const int64_t top = f.top();
+  gather_rows(f, blk, f.first[f.part_ptr[p]], f.first[f.part_ptr[p + 1]]);
+  T* own = blk.part_rows(f, p);
+  std::fill(own, own + (f.n - top) * blk.stride, T(0));
+  sweep_range(f, blk, own, top, f.part_ptr[p], f.part_ptr[p + 1], true);
+}
+
+// The top's steps: its rows gathered and the parts' sums added (in the parts' order), swept
+// forward and backward, scattered, and copied to every part's rows for the parts' backward.
+template <typename T>
+void ldl_top(const LdlFactor<T>& f, const LdlBlock<T>& blk) {
+  const int64_t top = f.top(), count = (f.n - top) * blk.stride;
+  gather_rows(f, blk, top, f.n);
+  T* rows = blk.z + top * blk.stride;
+  for (int64_t p = 0; p < f.parts; ++p) {
+    const T* own = blk.part_rows(f, p);
+    for (int64_t i = 0; i < count; ++i) rows[i] += own[i];
+  }
+  sweep_range(f, blk, rows, top, f.part_ptr[f.parts], f.supernodes, true);
+  sweep_range(f, blk, rows, top, f.part_ptr[f.parts], f.supernodes, false);
+  scatter_rows(f, blk, top, f.n);
+  for (int64_t p = 0; p < f.parts; ++p) std::copy(rows, rows + count, blk.part_rows(f, p));
+}
+
+// Part p's backward step: its supernodes swept, reading the top's final rows from its copy;
+// its rows scattered.
+template <typename T>
+void ldl_part_backward(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t p) {
+  sweep_range(f, blk, blk.part_rows(f, p), f.top(), f.part_ptr[p], f.part_ptr[p + 1], false);
+  scatter_rows(f, blk, f.first[f.part_ptr[p]], f.first[f.part_ptr[p + 1]]);
+}
+
+// One of the three steps of a block: part p's forward (0), the top (1), part p's backward (2).
+template <typename T>
+void ldl_step(const LdlFactor<T>& f, const LdlBlock<T>& blk, int step, int64_t p) {
+  if (step == 0)
+    ldl_part_forward(f, blk, p);
+  else if (step == 1)
+    ldl_top(f, blk);
+  else
+    ldl_part_backward(f, blk, p);
 }
 
 }  // namespace OB_ISA

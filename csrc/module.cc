@@ -907,7 +907,7 @@ PyObject* value_error(const std::string& message) {
 }
 
 struct LdlArgs {
-  const Buffer &first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm, &b;
+  const Buffer &first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm, &part_ptr, &b;
 };
 
 template <typename T>
@@ -922,6 +922,8 @@ PyObject* ldl_typed(const LdlArgs& a, int threads) {
   f.values = static_cast<const T*>(a.values.data());
   f.dinv = static_cast<const T*>(a.dinv.data());
   f.perm = static_cast<const int32_t*>(a.perm.data());
+  f.parts = a.part_ptr.size() - 1;
+  f.part_ptr = static_cast<const int32_t*>(a.part_ptr.data());
   const std::string problem = ob::check_factor(f, a.rows.size(), a.values.size());
   if (!problem.empty()) return value_error(problem);
   const int64_t k = f.n == 0 ? 0 : a.b.size() / f.n;
@@ -930,22 +932,25 @@ PyObject* ldl_typed(const LdlArgs& a, int threads) {
   Py_END_ALLOW_THREADS Py_RETURN_NONE;
 }
 
-// ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, b, threads): b (n, k) <-
-// A^-1 b in place (ldl.h).
+// ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b, threads): b (n,
+// k) <- A^-1 b in place (ldl.h).
 PyObject* ldl_solve(PyObject*, PyObject* args) {
-  PyObject *o_first, *o_row_ptr, *o_rows, *o_block_ptr, *o_values, *o_dinv, *o_perm, *o_b;
+  PyObject *o_first, *o_row_ptr, *o_rows, *o_block_ptr, *o_values, *o_dinv, *o_perm, *o_parts,
+      *o_b;
   int threads = 1;
-  if (!PyArg_ParseTuple(args, "OOOOOOOOi", &o_first, &o_row_ptr, &o_rows, &o_block_ptr,
-                        &o_values, &o_dinv, &o_perm, &o_b, &threads))
+  if (!PyArg_ParseTuple(args, "OOOOOOOOOi", &o_first, &o_row_ptr, &o_rows, &o_block_ptr,
+                        &o_values, &o_dinv, &o_perm, &o_parts, &o_b, &threads))
     return nullptr;
   const Buffer first(o_first, false, "first"), row_ptr(o_row_ptr, false, "row_ptr"),
       rows(o_rows, false, "rows"), block_ptr(o_block_ptr, false, "block_ptr"),
       values(o_values, false, "values"), dinv(o_dinv, false, "dinv"), perm(o_perm, false, "perm"),
-      b(o_b, true, "b");
-  for (const Buffer* buf : {&first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm, &b})
+      part_ptr(o_parts, false, "part_ptr"), b(o_b, true, "b");
+  for (const Buffer* buf :
+       {&first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm, &part_ptr, &b})
     if (!buf->ok()) return nullptr;  // the buffer protocol's own error (e.g. b read-only)
-  for (const Buffer* buf : {&first, &row_ptr, &rows, &perm})
+  for (const Buffer* buf : {&first, &row_ptr, &rows, &perm, &part_ptr})
     if (buf->kind() != 'i') return value_error(std::string(buf->name()) + " must be int32");
+  if (part_ptr.size() < 2) return value_error("part_ptr must have one entry per part, plus one");
   if (block_ptr.kind() != 'q') return value_error("block_ptr must be int64");
   const char t = b.kind();
   if (t != 'f' && t != 'd') return value_error("b must be float32 or float64");
@@ -958,7 +963,7 @@ PyObject* ldl_solve(PyObject*, PyObject* args) {
   if (n == 0 ? b.size() != 0 : b.size() % n != 0)
     return value_error("b must be (n, k), n = len(dinv)");
   if (threads < 1) return value_error("threads must be >= 1");
-  const LdlArgs a{first, row_ptr, rows, block_ptr, values, dinv, perm, b};
+  const LdlArgs a{first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b};
   return t == 'f' ? ldl_typed<float>(a, threads) : ldl_typed<double>(a, threads);
 }
 
@@ -968,20 +973,23 @@ std::vector<T> copy_of(const Buffer& b) {
   return std::vector<T>(p, p + b.size());
 }
 
-// register_factor(first, row_ptr, rows, block_ptr, values, dinv, perm) -> id: a float64 factor
-// (ldl.h) checked and kept for the process's life, in float64 and float32, for XLA's calls.
+// register_factor(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr) -> id: a
+// float64 factor (ldl.h) checked and kept for the process's life, in float64 and float32, for
+// XLA's calls.
 PyObject* register_factor(PyObject*, PyObject* args) {
-  PyObject *o_first, *o_row_ptr, *o_rows, *o_block_ptr, *o_values, *o_dinv, *o_perm;
-  if (!PyArg_ParseTuple(args, "OOOOOOO", &o_first, &o_row_ptr, &o_rows, &o_block_ptr, &o_values,
-                        &o_dinv, &o_perm))
+  PyObject *o_first, *o_row_ptr, *o_rows, *o_block_ptr, *o_values, *o_dinv, *o_perm, *o_parts;
+  if (!PyArg_ParseTuple(args, "OOOOOOOO", &o_first, &o_row_ptr, &o_rows, &o_block_ptr,
+                        &o_values, &o_dinv, &o_perm, &o_parts))
     return nullptr;
   const Buffer first(o_first, false, "first"), row_ptr(o_row_ptr, false, "row_ptr"),
       rows(o_rows, false, "rows"), block_ptr(o_block_ptr, false, "block_ptr"),
-      values(o_values, false, "values"), dinv(o_dinv, false, "dinv"), perm(o_perm, false, "perm");
-  for (const Buffer* buf : {&first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm})
+      values(o_values, false, "values"), dinv(o_dinv, false, "dinv"), perm(o_perm, false, "perm"),
+      part_ptr(o_parts, false, "part_ptr");
+  for (const Buffer* buf : {&first, &row_ptr, &rows, &block_ptr, &values, &dinv, &perm, &part_ptr})
     if (!buf->ok()) return nullptr;
-  for (const Buffer* buf : {&first, &row_ptr, &rows, &perm})
+  for (const Buffer* buf : {&first, &row_ptr, &rows, &perm, &part_ptr})
     if (buf->kind() != 'i') return value_error(std::string(buf->name()) + " must be int32");
+  if (part_ptr.size() < 2) return value_error("part_ptr must have one entry per part, plus one");
   if (block_ptr.kind() != 'q') return value_error("block_ptr must be int64");
   if (values.kind() != 'd' || dinv.kind() != 'd')
     return value_error("values and dinv must be float64");
@@ -996,6 +1004,7 @@ PyObject* register_factor(PyObject*, PyObject* args) {
   f->values = copy_of<double>(values);
   f->dinv = copy_of<double>(dinv);
   f->perm = copy_of<int32_t>(perm);
+  f->part_ptr = copy_of<int32_t>(part_ptr);
   const std::string problem =
       ob::check_factor(f->view64(), static_cast<int64_t>(f->rows.size()),
                        static_cast<int64_t>(f->values.size()));
@@ -1015,12 +1024,12 @@ PyMethodDef methods[] = {
     {"instruction_set", instruction_set, METH_NOARGS,
      "The instruction set the kernel runs with on this CPU."},
     {"register_factor", register_factor, METH_VARARGS,
-     "register_factor(first, row_ptr, rows, block_ptr, values, dinv, perm) -> id: a float64 "
-     "factor (csrc/ldl.h), checked and kept for the process's life, for the XLA FFI target "
+     "register_factor(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr) -> id: a "
+     "float64 factor (csrc/ldl.h), checked and kept for the process's life, for the XLA FFI target "
      "optax_bilateral_ldl (attribute factor=id)."},
     {"ldl_solve", ldl_solve, METH_VARARGS,
-     "ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, b, threads): b (n, k) <- "
-     "A^-1 b in place, A = P (I + L) D (I + L)^T P^T, L by supernodes (csrc/ldl.h)."},
+     "ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b, threads): b "
+     "(n, k) <- A^-1 b in place, A = P (I + L) D (I + L)^T P^T, L by supernodes (csrc/ldl.h)."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native",

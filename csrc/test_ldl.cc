@@ -1,7 +1,8 @@
 // The LDL^T sweeps (ldl.h) against A x = b computed densely in float64, A = P (I + L) D
-// (I + L)^T P^T built from a random factor by supernodes (NaN in every unread slot of a block):
-// sizes from empty to a few hundred rows, block widths around the padded and the widest ones,
-// one to three threads, float and double; and check_factor's verdict on broken factors. Built and run by `make sanitize` under
+// (I + L)^T P^T built from a random factor by supernodes (NaN in every unread slot of a block),
+// in one to three parts and a top: sizes from empty to a few hundred rows, block widths around
+// the padded and the widest ones, one to three threads, float and double; and check_factor's
+// verdict on broken factors. Built and run by `make sanitize` under
 // AddressSanitizer and UndefinedBehaviorSanitizer; exits non-zero on a mismatch.
 #include <algorithm>
 #include <cmath>
@@ -25,23 +26,38 @@ struct Factor {
   int64_t n;
   std::vector<int32_t> first, row_ptr, rows, perm;
   std::vector<int64_t> block_ptr;
+  std::vector<int32_t> part_ptr;
   std::vector<double> values, d;
   std::vector<double> dense;  // L (n, n), strictly lower
 };
 
-// Supernodes of 1 to 12 columns, each with a random set of rows below it (about 16, as sparse
-// as a mesh's factor, so that the factor stays well conditioned).
-Factor random_factor(int64_t n, unsigned seed) {
+// `parts` parts of random sizes, then a top (possibly empty); supernodes of 1 to 12 columns,
+// each with a random set of rows below it (about 16, as sparse as a mesh's factor, so that the
+// factor stays well conditioned): a part's within its own columns or the top's.
+Factor random_factor(int64_t n, unsigned seed, int64_t parts) {
   std::mt19937 rng(seed);
   std::uniform_real_distribution<double> u(-0.5, 0.5);
-  Factor f{n, {0}, {0}, {}, std::vector<int32_t>(static_cast<size_t>(n)), {0}, {}, {}, {}};
+  Factor f{n, {0}, {0}, {}, std::vector<int32_t>(static_cast<size_t>(n)), {0}, {0}, {}, {}, {}};
   f.dense.assign(static_cast<size_t>(n * n), 0.0);
+  // Column bounds: parts' ends at random cuts, the top from the last.
+  std::vector<int64_t> ends;
+  for (int64_t p = 0; p < parts; ++p) ends.push_back(n == 0 ? 0 : static_cast<int64_t>(rng() % static_cast<unsigned>(n + 1)));
+  std::sort(ends.begin(), ends.end());
+  const int64_t top = parts > 0 ? ends.back() : 0;
+  ends.push_back(n);
+  size_t part = 0;
   while (f.first.back() < n) {
     const int64_t j0 = f.first.back();
-    const int64_t s = std::min<int64_t>(n - j0, 1 + static_cast<int64_t>(rng() % 12));
+    while (part < ends.size() && ends[part] <= j0) {
+      if (part < static_cast<size_t>(parts)) f.part_ptr.push_back(static_cast<int32_t>(f.first.size() - 1));
+      ++part;
+    }
+    const int64_t end = ends[part];
+    const int64_t s = std::min<int64_t>(end - j0, 1 + static_cast<int64_t>(rng() % 12));
     std::vector<int32_t> below;
     for (int64_t i = j0 + s; i < n; ++i)
-      if (rng() % static_cast<unsigned>(std::max<int64_t>(4, n / 16)) == 0)
+      if ((i < end || i >= top) &&
+          rng() % static_cast<unsigned>(std::max<int64_t>(4, n / 16)) == 0)
         below.push_back(static_cast<int32_t>(i));
     for (int64_t r = 0; r < s + static_cast<int64_t>(below.size()); ++r)
       for (int64_t t = 0; t < s; ++t) {
@@ -56,6 +72,8 @@ Factor random_factor(int64_t n, unsigned seed) {
     f.row_ptr.push_back(static_cast<int32_t>(f.rows.size()));
     f.block_ptr.push_back(static_cast<int64_t>(f.values.size()));
   }
+  while (f.part_ptr.size() < static_cast<size_t>(parts) + 1)
+    f.part_ptr.push_back(static_cast<int32_t>(f.first.size() - 1));
   for (int64_t j = 0; j < n; ++j) f.d.push_back(1.0 + u(rng));
   std::iota(f.perm.begin(), f.perm.end(), 0);
   std::shuffle(f.perm.begin(), f.perm.end(), rng);
@@ -97,6 +115,8 @@ ob::LdlFactor<T> view(const Factor& f, const std::vector<T>& values, const std::
   lf.values = values.data();
   lf.dinv = dinv.data();
   lf.perm = f.perm.data();
+  lf.parts = static_cast<int64_t>(f.part_ptr.size()) - 1;
+  lf.part_ptr = f.part_ptr.data();
   return lf;
 }
 
@@ -159,8 +179,8 @@ int check(const Factor& f, int64_t k, int threads, unsigned seed) {
 int check_refusals() {
   int failures = 0;
   // A sound 4-point factor: supernodes {0, 1} with row 3 below, and {2, 3}.
-  const Factor good{4, {0, 2, 4}, {0, 1, 1}, {3}, {3, 1, 0, 2}, {0, 6, 10}, std::vector<double>(10, 0.1),
-                    {1, 1, 1, 1}, {}};
+  const Factor good{4, {0, 2, 4}, {0, 1, 1}, {3}, {3, 1, 0, 2}, {0, 6, 10}, {0, 2},
+                    std::vector<double>(10, 0.1), {1, 1, 1, 1}, {}};
   const std::vector<double> dinv(4, 1.0);
   auto expect = [&](const char* what, Factor f) {
     const char* problem = ob::check_factor(view(f, f.values, dinv),
@@ -200,6 +220,22 @@ int check_refusals() {
   expect("a block of the wrong size", f);
   f.block_ptr = {0, 6, 11};
   expect("block_ptr past the values", f);
+  f = good;
+  f.part_ptr = {0, 1};  // the first supernode a part, the second the top: sound
+  if (*ob::check_factor(view(f, f.values, dinv), 1, 10) != '\0') {
+    std::printf("FAIL: a sound part and top were refused\n");
+    ++failures;
+  }
+  f.part_ptr = {0, 1, 2};
+  expect("a part's row below in another part", f);
+  f.part_ptr = {0, 3};
+  expect("part_ptr past the supernodes", f);
+  f.part_ptr = {0, 2, 1};
+  expect("a decreasing part_ptr", f);
+  f.part_ptr = {1, 2};
+  expect("part_ptr not from 0", f);
+  f.part_ptr = {0};
+  expect("no part", f);
   f = good;
   f.perm = {0, 1, 1, 2};
   expect("a repeated index in perm", f);
@@ -246,12 +282,12 @@ int check_buffers() {
 }  // namespace
 
 int main() {
-  int failures = check_refusals() + check_buffers(), cases = 15;
+  int failures = check_refusals() + check_buffers(), cases = 21;
   unsigned seed = 0;
   for (int64_t n : {0, 1, 2, 7, 50, 300})
     for (int64_t k : {0, 1, 3, 4, 5, 16, 33, 64, 70, 130})
       for (int threads : {1, 2, 3}) {
-        const Factor f = random_factor(n, seed);
+        const Factor f = random_factor(n, seed, 1 + (seed / 3) % 3);
         failures += check<float>(f, k, threads, seed) + check<double>(f, k, threads, seed);
         cases += 2;
         ++seed;

@@ -250,7 +250,7 @@ def test_ab_update_compares_with_a_git_revision_in_one_process(tmp_path):
 
 
 def test_ab_mesh_times_both_revisions_solves_and_updates(tmp_path):
-    pytest.importorskip("qdldl")
+    pytest.importorskip("pymetis")
     from tools import ab_mesh
 
     summary = ab_mesh.main(["--quick", "--rev", "HEAD", "--out", str(tmp_path)])

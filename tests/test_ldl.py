@@ -1,6 +1,7 @@
-"""The mesh solves' sparse LDL^T factor (qdldl) and its sweeps (the extension's ``ldl_solve``,
-SciPy's triangular solves where it does not load): against dense float64 solves, on the
-Laplacian systems the mesh transforms build and on the extremes."""
+"""The mesh solves' sparse LDL^T factor (SciPy's SuperLU in METIS' nested-dissection order,
+regrouped into parts and a top) and its sweeps (the extension's ``ldl_solve``, SciPy's
+triangular solves where it does not load): against dense float64 solves, on the Laplacian
+systems the mesh transforms build and on the extremes."""
 
 import jax
 import jax.numpy as jnp
@@ -12,7 +13,7 @@ from optax_bilateral._src import extension
 from optax_bilateral._src.mesh import laplacian
 from optax_bilateral.toy import triangle_mesh as toy
 
-pytest.importorskip("qdldl")
+pytest.importorskip("pymetis")
 native, _ = extension.loaded()
 
 
@@ -94,6 +95,7 @@ def _arrays():
         values=np.full(6, 0.5),
         dinv=np.ones(3),
         perm=np.array([2, 0, 1], np.int32),
+        part_ptr=np.array([0, 2], np.int32),
         b=np.ones((3, 2)),
     )
 
@@ -131,6 +133,12 @@ def test_native_sweeps_take_the_sound_factor():
         (dict(b=np.ones((3, 2), np.int32)), "float32 or float64"),
         (dict(b=np.ones(7)), "\\(n, k\\)"),
         (dict(perm=np.array([0, 1], np.int32)), "perm must have n entries"),
+        # {0}'s row 2 is {1, 2}'s: the two cannot be parts swept at once.
+        (dict(part_ptr=np.array([0, 1, 2], np.int32)), "its own or the top's"),
+        (dict(part_ptr=np.array([0, 3], np.int32)), "at most the supernodes"),
+        (dict(part_ptr=np.array([0, 2, 1], np.int32)), "must not decrease"),
+        (dict(part_ptr=np.array([0], np.int32)), "one entry per part"),
+        (dict(part_ptr=np.array([0, 2], np.int64)), "part_ptr must be int32"),
     ],
 )
 def test_native_sweeps_refuse_a_broken_factor(change, message):
@@ -165,6 +173,7 @@ def test_native_sweeps_take_empty_systems():
         values=np.zeros(0),
         dinv=np.zeros(0),
         perm=np.zeros(0, np.int32),
+        part_ptr=np.zeros(2, np.int32),
         b=np.zeros((0, 3)),
     )
     native.ldl_solve(*empty.values(), 2)
@@ -282,6 +291,8 @@ def test_supernodes_join_only_columns_with_the_same_rows_below():
     np.testing.assert_array_equal(sn.rows, [1, 3])  # below {0}: 1, 3; below {1, 2}: none
     np.testing.assert_array_equal(sn.block_ptr, [0, 3, 7, 8])
     assert laplacian._supernode_starts(np.zeros(1, np.int32), np.zeros(0, np.int32)).tolist() == [0]
+    # A part's bound starts a supernode, whatever the rows say.
+    np.testing.assert_array_equal(laplacian._supernode_starts(colptr, rows, [2]), [0, 1, 2, 3, 4])
 
 
 @pytest.mark.skipif(native is None, reason="the extension did not load")
@@ -293,3 +304,51 @@ def test_native_sweeps_keep_the_first_bad_buffer_error():
     del args["b"]
     with pytest.raises(TypeError):
         native.register_factor(*args.values())
+
+
+def test_split_gives_the_parts_whole_subtrees_and_the_top_the_rest():
+    # Two chains of 4 columns (0-3, 4-7) under a root 8, and a lone column 9 under it.
+    parent = np.array([1, 2, 3, 8, 5, 6, 7, 8, -1, 8])
+    weight = np.ones(10)
+    np.testing.assert_array_equal(laplacian._split(parent, weight, 1), np.zeros(10))
+    label = laplacian._split(parent, weight, 2)
+    assert label[8] == 2  # the root is the top
+    assert len(set(label[:4])) == 1 and len(set(label[4:8])) == 1 and label[0] != label[4]
+    # a heavier second chain: the lone column goes with the first
+    label = laplacian._split(parent, np.array([1, 1, 1, 1, 2, 2, 2, 2, 1, 1.0]), 2)
+    assert label[9] == label[0] != label[4]
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3])
+def test_the_ordering_splits_the_factor_into_independent_balanced_parts(monkeypatch, parts):
+    """A part's rows below are its own or the top's; the parts carry most of the sweep."""
+    monkeypatch.setenv(extension.THREADS_ENV, str(parts))
+    _, f = toy.icosphere(12)
+    mesh = M.mesh_laplacian(f)
+    fac = laplacian._Cholesky(np.asarray(mesh.neighbors), np.asarray(mesh.degree)).factor(19.0)
+    sn = fac.supernodes
+    assert len(fac.part_ptr) == parts + 1
+    starts = sn.first[fac.part_ptr]
+    top = starts[-1]
+    work = []
+    for p in range(parts):
+        cols = slice(fac.colptr[starts[p]], fac.colptr[starts[p + 1]])
+        rows = fac.rows[cols]
+        assert np.all((rows < starts[p + 1]) | (rows >= top))
+        work.append(cols.stop - cols.start)
+    top_work = len(fac.rows) - sum(work)
+    assert top_work + max(work) < (0.6 if parts > 1 else 1.0001) * len(fac.rows)
+
+
+@pytest.mark.skipif(native is None, reason="the extension did not load")
+def test_the_solve_does_not_depend_on_the_threads(monkeypatch):
+    monkeypatch.setenv(extension.THREADS_ENV, "3")
+    _, f = toy.icosphere(8)
+    mesh = M.mesh_laplacian(f)
+    fac = laplacian._Cholesky(np.asarray(mesh.neighbors), np.asarray(mesh.degree)).factor(19.0)
+    b = np.random.default_rng(5).normal(size=(fac.dinv.size, 70)).astype(np.float32)
+    want = fac.solve(b)
+    for threads in (1, 2, 4):
+        x = b.copy()
+        native.ldl_solve(*fac.arrays(single=True), x, threads)
+        np.testing.assert_array_equal(x, want)

@@ -9,10 +9,10 @@ whole jitted update of ``bilateral_large_steps`` (the defaults: the 32 direction
 terms, the prefilter ``M^-1 g``, ``postfilter_v="uniform"``) and of ``large_steps``; and of
 their parts, ``smoothing_solve`` (``M^-1`` on 3 columns) and ``bilateral_normal_filter`` (``B``
 on one 3-channel field: a solve of 16 x 4 columns). Then the solves alone, on the host,
-float32, with 3, 64 and 128 columns (``kernel_tol=0``'s 32 x 4): ``solver="cholesky"``'s factor
-(qdldl) swept by the extension, and CHOLMOD through cholespy (Mitsuba's Large Steps' solver,
-float64), with the seconds each takes to factorise. Writes ``mesh_update_parts.json`` and
-``.md``.
+float32, with 3, 64 and 128 columns (``kernel_tol=0``'s 32 x 4): ``solver="cholesky"``'s
+factor (SuperLU in METIS' order) swept by the extension, and CHOLMOD through cholespy
+(Mitsuba's Large Steps' solver, float64), with the seconds each takes to factorise. Writes
+``mesh_update_parts.json`` and ``.md``.
 
 ``--after-render`` (needs Mitsuba 3) adds the whole jitted update at a few delays after a
 render and ``dr.backward`` of the Mitsuba mesh experiment's scene, as its loop runs it, with

@@ -67,7 +67,8 @@ def large_steps(
       b2: ``AdamUniform``'s second-moment decay rate.
       eps: ``AdamUniform``'s epsilon.
       solver: ``"cg"`` or a :class:`CG` (its ``tol``, ``maxiter``, ``warm_start``), or
-        ``"cholesky"`` / :class:`Cholesky` (needs ``qdldl``); see :func:`smoothing_solve`.
+        ``"cholesky"`` / :class:`Cholesky` (needs ``pymetis`` and SciPy); see
+        :func:`smoothing_solve`.
       **deprecated: ``tol``, ``maxiter``, ``warm_start``, the fields of :class:`CG` now:
         still applied for one release, with a ``DeprecationWarning``.
 
@@ -157,7 +158,8 @@ def bilateral_large_steps(
       postfilter_v: ``"uniform"`` (default), ``"bilateral"`` or ``"smooth"``, as above
         (see :func:`mesh_postfilter`).
       solver: ``"cg"`` or a :class:`CG` (its ``tol``, ``maxiter``, ``warm_start``), or
-        ``"cholesky"`` / :class:`Cholesky` (needs ``qdldl``); see :func:`smoothing_solve`.
+        ``"cholesky"`` / :class:`Cholesky` (needs ``pymetis`` and SciPy); see
+        :func:`smoothing_solve`.
       **deprecated: ``sigma_phi``, ``directions``, ``normals`` (fields of
         :class:`NormalFilter`), ``tol``, ``maxiter``, ``warm_start`` (of :class:`CG`):
         still applied for one release, with a ``DeprecationWarning`` that names the field.

@@ -201,12 +201,14 @@ class CG:
 
 @dataclasses.dataclass(frozen=True)
 class Cholesky:
-    """A sparse Cholesky (LDL^T) factor of ``I + lambda L`` (``qdldl``, the ``cholesky``
-    extra), computed on the host once per (mesh, lambda), the last four lambdas kept, swept by
-    the C++ extension for every right-hand side in one pass (SciPy's triangular solves where
-    it does not load), in the field's precision (float32 or float64; half precisions in
-    float32), and called through ``jax.pure_callback`` inside ``lax.custom_linear_solve``:
-    ``jit``, ``grad`` (right-hand side, vertices, lambda) and ``vmap`` keep working.
+    """A sparse Cholesky (LDL^T) factor of ``I + lambda L`` (METIS' nested dissection by
+    ``pymetis`` and SciPy's SuperLU, the ``cholesky`` extra), computed on the host once per
+    (mesh, lambda), the last four lambdas kept, swept by the C++ extension for every
+    right-hand side in one pass, independent subtrees of the factor on threads at once
+    (SciPy's triangular solves where it does not load), in the field's precision (float32
+    or float64; half precisions in float32), and called through ``jax.pure_callback``
+    inside ``lax.custom_linear_solve``: ``jit``, ``grad`` (right-hand side, vertices,
+    lambda) and ``vmap`` keep working.
 
     Example::
 

@@ -8,9 +8,10 @@ M-matrix with ``M 1 = 1``, so ``M^-1`` is non-negative and row-stochastic.
 Solvers (``solver=``, :mod:`.config`): :class:`CG` (default), Jacobi-preconditioned
 conjugate gradients on all right-hand sides at once (columns scaled to unit norm share one
 Krylov iteration), jit-able on any backend with a traced ``lambda``; :class:`Cholesky`, a
-sparse LDL^T factor of ``M`` computed once per (mesh, lambda) on the host by ``qdldl`` (the
-``cholesky`` extra), swept by the C++ extension for all right-hand sides at once (SciPy's
-triangular solves where it does not load), and called through ``jax.pure_callback``
+sparse LDL^T factor of ``M`` computed once per (mesh, lambda) on the host (METIS' nested
+dissection, SciPy's SuperLU: the ``cholesky`` extra), swept by the C++ extension for all
+right-hand sides at once, its independent parts on threads (SciPy's triangular solves where
+it does not load), and called through ``jax.pure_callback``
 inside ``lax.custom_linear_solve``, so ``jit``, ``grad`` (w.r.t. the right-hand side, the
 vertices and lambda) and ``vmap`` keep working. docs/triangle_mesh.md has the measured
 costs of each.
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import collections
 import hashlib
+import heapq
 import numbers
 import threading
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -257,10 +259,10 @@ class _Supernodes(NamedTuple):
     single: np.ndarray  # the same in float32
 
     @classmethod
-    def of(cls, colptr: np.ndarray, rows: np.ndarray, values: np.ndarray) -> _Supernodes:
+    def of(cls, colptr: np.ndarray, rows: np.ndarray, values: np.ndarray, breaks=()) -> _Supernodes:
         n = len(colptr) - 1
         counts = np.diff(colptr)
-        first = _supernode_starts(colptr, rows)
+        first = _supernode_starts(colptr, rows, breaks)
         widths = np.diff(first).astype(np.int64)
         last = first[1:] - 1
         below = counts[last].astype(np.int64)  # the last column's rows are all below the run
@@ -279,9 +281,10 @@ class _Supernodes(NamedTuple):
         return cls(first, row_ptr, rows_below, block_ptr, blocks, blocks.astype(np.float32))
 
 
-def _supernode_starts(colptr: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def _supernode_starts(colptr: np.ndarray, rows: np.ndarray, breaks=()) -> np.ndarray:
     """The first column of each fundamental supernode, then ``n``: column ``j + 1`` continues
-    ``j``'s when it is ``j``'s first row below and ``j``'s other rows are exactly its rows."""
+    ``j``'s when it is ``j``'s first row below and ``j``'s other rows are exactly its rows, and
+    is not one of ``breaks`` (columns that start a supernode: the parts' bounds)."""
     n = len(colptr) - 1
     counts = np.diff(colptr)
     j = np.arange(max(n - 1, 0))
@@ -296,13 +299,16 @@ def _supernode_starts(colptr: np.ndarray, rows: np.ndarray) -> np.ndarray:
     )
     mismatch = np.bincount(np.repeat(np.arange(len(cand)), lengths)[~same], minlength=len(cand))
     joins[cand[mismatch > 0]] = False
+    cuts = np.asarray(breaks, np.int64)
+    joins[cuts[(cuts > 0) & (cuts < n)] - 1] = False
     first = np.flatnonzero(np.concatenate([[True], ~joins])) if n else np.zeros(0, int)
     return np.append(first, n).astype(np.int32)
 
 
 class _Factor(NamedTuple):
-    """``M = P (I + L) D (I + L)^T P^T`` (qdldl's LDL^T with its AMD ordering): ``L`` strictly
-    lower in compressed columns (SciPy's sweeps) and by supernodes (the extension's)."""
+    """``M = P (I + L) D (I + L)^T P^T`` (:func:`_ldl`, in :func:`_ordering`'s order): ``L``
+    strictly lower in compressed columns (SciPy's sweeps) and by supernodes in parts and a
+    top (the extension's)."""
 
     colptr: np.ndarray  # (U + 1,) int32
     rows: np.ndarray  # (nnz,) int32
@@ -310,36 +316,31 @@ class _Factor(NamedTuple):
     dinv: np.ndarray  # (U,) float64
     perm: np.ndarray  # (U,) int32
     supernodes: _Supernodes
+    part_ptr: np.ndarray  # (parts + 1,) int32: the supernode each part, then the top, starts at
     dinv_single: np.ndarray  # float32, for float32 fields
 
     @classmethod
-    def of(cls, colptr, rows, values, d, perm) -> _Factor:
+    def of(cls, colptr, rows, values, d, order: _Ordering) -> _Factor:
         colptr, rows = np.asarray(colptr, np.int32), np.asarray(rows, np.int32)
         values, dinv = np.asarray(values, np.float64), 1.0 / np.asarray(d, np.float64)
-        supernodes = _Supernodes.of(colptr, rows, values)
-        perm = np.asarray(perm, np.int32)
-        return cls(colptr, rows, values, dinv, perm, supernodes, dinv.astype(np.float32))
+        supernodes = _Supernodes.of(colptr, rows, values, order.bounds)
+        part_ptr = np.searchsorted(supernodes.first, order.bounds).astype(np.int32)
+        single = dinv.astype(np.float32)
+        return cls(colptr, rows, values, dinv, order.perm, supernodes, part_ptr, single)
+
+    def arrays(self, single: bool) -> tuple[np.ndarray, ...]:
+        """The extension's arguments (``csrc/ldl.h``), float32 or float64 values."""
+        sn = self.supernodes
+        values, dinv = (sn.single, self.dinv_single) if single else (sn.values, self.dinv)
+        return sn.first, sn.row_ptr, sn.rows, sn.block_ptr, values, dinv, self.perm, self.part_ptr
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``M^-1 b`` for ``b`` ``(U, C)`` float32 or float64, in that dtype."""
         module, _ = extension.loaded()
         if module is None:
             return self._solve_scipy(b)
-        sn = self.supernodes
-        single = b.dtype == np.float32
-        values, dinv = (sn.single, self.dinv_single) if single else (sn.values, self.dinv)
         x = np.array(b, order="C", copy=True)
-        module.ldl_solve(
-            sn.first,
-            sn.row_ptr,
-            sn.rows,
-            sn.block_ptr,
-            values,
-            dinv,
-            self.perm,
-            x,
-            extension.threads(),
-        )
+        module.ldl_solve(*self.arrays(b.dtype == np.float32), x, extension.threads())
         return x
 
     def _solve_scipy(self, b: np.ndarray) -> np.ndarray:
@@ -357,26 +358,119 @@ class _Factor(NamedTuple):
         return x.astype(b.dtype)
 
 
+class _Ordering(NamedTuple):
+    """Where each vertex goes in the factor, and the factor's parts (``csrc/ldl.h``)."""
+
+    perm: np.ndarray  # (U,) int32: the factor's row i is vertex perm[i]
+    bounds: np.ndarray  # (parts + 1,) int64: the first column of each part, then the top's
+
+
+def _ldl(m, sparse: Any) -> tuple[Any, np.ndarray]:
+    """``m = (I + L) D (I + L)^T`` in ``m``'s own order (SciPy's SuperLU, no pivoting: ``m``
+    is symmetric positive definite): ``L`` strictly lower, compressed columns, sorted."""
+    from scipy.sparse.linalg import splu
+
+    n = m.shape[0]
+    lu = splu(m, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    if not (np.array_equal(lu.perm_r, np.arange(n)) and np.array_equal(lu.perm_c, np.arange(n))):
+        raise RuntimeError("SuperLU reordered a symmetric positive definite matrix")
+    lower = sparse.tril(lu.L, -1).tocsc()
+    lower.sort_indices()
+    return lower, lu.U.diagonal()
+
+
+def _ordering(pattern, parts: int, metis: Any, sparse: Any) -> _Ordering:
+    """METIS' nested dissection of ``pattern`` (``M``'s, symmetric), its columns then regrouped
+    into ``parts`` groups of whole subtrees of the factor's elimination tree and the rest (the
+    top): any order that keeps each column after its descendants has the same factor, up to the
+    order of its sums."""
+    adjacency = sparse.csr_matrix(pattern - sparse.diags(pattern.diagonal()))
+    adjacency.eliminate_zeros()
+    graph = metis.CSRAdjacency(adj_starts=adjacency.indptr, adjacent=adjacency.indices)
+    nd = np.asarray(metis.nested_dissection(adjacency=graph)[0], np.int64)
+    lower, _ = _ldl(sparse.csc_matrix(pattern[nd][:, nd]), sparse)
+    counts = np.diff(lower.indptr)
+    parent = np.full(len(nd), -1, np.int64)
+    parent[counts > 0] = lower.indices[lower.indptr[:-1][counts > 0]]
+    # A column's sweep cost: its entries, and a few for visiting it.
+    label = _split(parent, counts + 8.0, parts)
+    order = np.concatenate([np.flatnonzero(label == b) for b in range(parts + 1)])
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(label, minlength=parts + 1))[:-1]])
+    return _Ordering(nd[order].astype(np.int32), bounds.astype(np.int64))
+
+
+def _split(parent: np.ndarray, weight: np.ndarray, parts: int) -> np.ndarray:
+    """Each column's part (``0 .. parts-1``) or ``parts`` (the top): the top grows from the roots
+    down, the largest subtree below it first, and the subtrees under it go to the parts, largest
+    first to the lightest; the split whose top plus heaviest part is least wins."""
+    n = len(parent)
+    total = weight.astype(np.float64).copy()
+    for j in range(n):  # a parent comes after its children
+        if parent[j] >= 0:
+            total[parent[j]] += total[j]
+    by_parent = np.argsort(parent, kind="stable")
+    starts = np.searchsorted(parent[by_parent], np.arange(-1, n + 1))
+    children = lambda j: by_parent[starts[j + 1] : starts[j + 2]]  # j = -1: the roots
+    frontier = [(-total[r], int(r)) for r in children(-1)]
+    heapq.heapify(frontier)
+    top: list[int] = []
+    best, best_at, top_weight = np.inf, ([], 0), 0.0
+    limit = total[children(-1)].sum() / (8 * parts)
+    while frontier:
+        loads = np.zeros(parts)
+        assigned = []
+        for w, r in sorted(frontier):
+            b = int(np.argmin(loads))
+            loads[b] -= w
+            assigned.append((r, b))
+        if top_weight + loads.max() < best:
+            best, best_at = top_weight + loads.max(), (assigned, len(top))
+        if -frontier[0][0] <= limit or len(frontier) > 32 * parts:
+            break
+        # Down to the next branching: a chain's columns join the top one at a time.
+        while True:
+            _, j = heapq.heappop(frontier)
+            top.append(j)
+            top_weight += weight[j]
+            below = children(j)
+            if len(below) != 1:
+                break
+            heapq.heappush(frontier, (-total[below[0]], int(below[0])))
+        for c in below:
+            heapq.heappush(frontier, (-total[c], int(c)))
+    assigned, tops = best_at
+    label = np.full(n, -1, np.int64)
+    label[top[:tops]] = parts
+    for r, b in assigned:
+        label[r] = b
+    for j in range(n - 1, -1, -1):  # descendants take their subtree root's part
+        if label[j] < 0:
+            label[j] = label[parent[j]]
+    return label
+
+
 class _Cholesky:
-    """Host-side sparse LDL^T factors of ``I + lambda L`` (qdldl), solved by the extension's
-    sweeps (``csrc/ldl.h``: every column of the right-hand side in one pass over the factor).
+    """Host-side sparse LDL^T factors of ``I + lambda L`` (SciPy's SuperLU in METIS' nested
+    dissection order, :func:`_ordering`), solved by the extension's sweeps (``csrc/ldl.h``:
+    every column of the right-hand side in one pass over the factor, its parts on threads).
 
     One per mesh (see :func:`_host_cholesky`), with the factors of the last few lambda
     values, so a schedule over a few values does not refactorise every step.
     """
 
     MAX_FACTORS = 4
+    MAX_PARTS = 8  # beyond this the top's share of the sweep outgrows what more threads save
 
     def __init__(self, neighbors: np.ndarray, degree: np.ndarray):
         try:
-            import qdldl
+            import pymetis
             import scipy.sparse
         except ImportError as e:
             raise ImportError(
-                "solver='cholesky' needs qdldl and SciPy: pip install "
+                "solver='cholesky' needs pymetis and SciPy: pip install "
                 "'optax_bilateral[cholesky]' (or use solver='cg')"
             ) from e
-        self._qdldl: Any = qdldl  # a compiled extension without type information
+        self._metis: Any = pymetis  # a compiled extension without type information
         self._sparse: Any = scipy.sparse
         u = len(degree)
         rows = np.repeat(np.arange(u), neighbors.shape[1])
@@ -386,6 +480,7 @@ class _Cholesky:
         self._jj = np.concatenate([diag, neighbors.ravel()[keep]]).astype(np.int32)
         self._degree = np.asarray(degree, np.float64)
         self._off = int(keep.sum())
+        self._order: _Ordering | None = None  # one per mesh: every lambda > 0 has M's pattern
         self._factors: collections.OrderedDict[float, _Factor] = collections.OrderedDict()
         self._stored: dict[float, int] = {}  # lambda -> the extension's id of its factor
         self._lock = threading.Lock()
@@ -395,17 +490,23 @@ class _Cholesky:
             if lam in self._factors:
                 self._factors.move_to_end(lam)
                 return self._factors[lam]
-            u = len(self._degree)
-            values = np.concatenate([1.0 + lam * self._degree, np.full(self._off, -lam)])
-            m = self._sparse.csc_matrix((values, (self._ii, self._jj)), shape=(u, u))
-            lower, d, perm = self._qdldl.Solver(m).factors()
-            lower = lower.tocsc()
-            lower.sort_indices()
-            fac = _Factor.of(lower.indptr, lower.indices, lower.data, d, perm)
+            if self._order is None:
+                # Parts for the threads a solve will have (the sums' order follows them).
+                parts = min(extension.threads(), self.MAX_PARTS)
+                self._order = _ordering(self._matrix(1.0), parts, self._metis, self._sparse)
+            perm = self._order.perm
+            lower, d = _ldl(self._matrix(lam)[perm][:, perm].tocsc(), self._sparse)
+            fac = _Factor.of(lower.indptr, lower.indices, lower.data, d, self._order)
             self._factors[lam] = fac
             while len(self._factors) > self.MAX_FACTORS:
                 self._factors.popitem(last=False)
             return fac
+
+    def _matrix(self, lam: float):
+        """``M = I + lam L``, compressed columns."""
+        u = len(self._degree)
+        values = np.concatenate([1.0 + lam * self._degree, np.full(self._off, -lam)])
+        return self._sparse.csc_matrix((values, (self._ii, self._jj)), shape=(u, u))
 
     def pinned(self, lam: float) -> _Pinned | None:
         """The factor of ``lam`` handed to the extension, for XLA to call without a host round
@@ -414,13 +515,9 @@ class _Cholesky:
         if not extension.registered()[0]:
             return None
         if lam not in self._stored:
-            fac = self.factor(lam)
-            sn = fac.supernodes
             module, _ = extension.loaded()
             assert module is not None  # registered
-            self._stored[lam] = module.register_factor(
-                sn.first, sn.row_ptr, sn.rows, sn.block_ptr, sn.values, fac.dinv, fac.perm
-            )
+            self._stored[lam] = module.register_factor(*self.factor(lam).arrays(single=False))
         return _Pinned(self, self._stored[lam])
 
     def solve(self, b: np.ndarray, lam: np.ndarray) -> np.ndarray:
@@ -589,7 +686,7 @@ def smoothing_solve(
         value is factorised on the host, the last four are kept).
       solver: ``"cg"`` or a :class:`CG` (Jacobi-preconditioned CG, columns scaled to unit
         norm share one Krylov iteration; its ``warm_start`` is for the transforms), or
-        ``"cholesky"`` / :class:`Cholesky` (needs ``qdldl``).
+        ``"cholesky"`` / :class:`Cholesky` (needs ``pymetis`` and SciPy).
       x0: optional CG starting point with the shape of ``b`` (e.g. the last solution).
       **deprecated: ``tol`` and ``maxiter``, the fields of :class:`CG` now: still applied
         for one release, with a ``DeprecationWarning``.

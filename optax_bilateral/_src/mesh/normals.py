@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from optax_bilateral._src import numerics
 from optax_bilateral._src.mesh.config import (
     DEFAULT_DIRECTIONS,
     DEFAULT_LAMBDA,
@@ -297,8 +298,10 @@ def _bilateral(host, graph, x, n, terms, widths, solve, x0):
     if bases is not None:
         w, phi = w @ bases[0], phi @ bases[1]  # (U, r)
     num_v, num_dirs, channels = x.shape[0], w.shape[1], x.shape[1]
-    splat = jnp.concatenate([w[:, :, None] * x[:, None, :], w[:, :, None]], axis=2)
-    rhs = splat.reshape(num_v, num_dirs * (channels + 1))
+    # The weights' column as x's channel of ones, computed once: the (U, r, C + 1) block is
+    # then one product a value, not a concatenation XLA's loop selects into value by value.
+    (ones,) = numerics.materialize((jnp.concatenate([x, jnp.ones((num_v, 1), x.dtype)], 1),))
+    rhs = (w[:, :, None] * ones[:, None, :]).reshape(num_v, num_dirs * (channels + 1))
     (neighbors, degree), (lambda_, tol, maxiter) = graph, solve
     flat = solve_columns(host, neighbors, degree, rhs, lambda_, tol, maxiter, x0)
     cols = flat.reshape(num_v, num_dirs, channels + 1)

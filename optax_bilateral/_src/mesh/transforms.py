@@ -176,7 +176,7 @@ def laplacian_smoothing(
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian` (built once).
       lambda_: smoothing weight ``>= 0``; may be traced / injected.
       solver: ``"cg"`` or a :class:`CG` (``CG(tol=1e-4, maxiter=2000, warm_start=False)``
-        by default), or ``"cholesky"`` / :class:`Cholesky` (needs ``qdldl``); see
+        by default), or ``"cholesky"`` / :class:`Cholesky` (needs ``pymetis`` and SciPy); see
         :func:`smoothing_solve`.
       **deprecated: ``tol``, ``maxiter``, ``warm_start``, the fields of :class:`CG` now:
         still applied for one release, with a ``DeprecationWarning``.
