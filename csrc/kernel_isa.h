@@ -22,8 +22,8 @@ namespace optax_bilateral {
   void full32(const PassArgs<float>&, const SlabPass&, const Chunk<float>&, Scratch<float>&); \
   void full64(const PassArgs<double>&, const SlabPass&, const Chunk<double>&,               \
               Scratch<double>&);                                                            \
-  void ldl32(const LdlFactor<float>&, const LdlBlock<float>&, int, int64_t);               \
-  void ldl64(const LdlFactor<double>&, const LdlBlock<double>&, int, int64_t);              \
+  void ldl32(const LdlFactor<float>&, const LdlBlock<float>&, LdlStep, int64_t);            \
+  void ldl64(const LdlFactor<double>&, const LdlBlock<double>&, LdlStep, int64_t);          \
   void split32(const float*, float* const*, int64_t, int64_t);                              \
   void split64(const double*, double* const*, int64_t, int64_t);                            \
   }
@@ -65,10 +65,12 @@ OB_DECLARE_ISA(avx512)
               Scratch<double>& s) {                                                         \
     run_slab_chunk(a, p, ch, s);                                                            \
   }                                                                                         \
-  void ldl32(const LdlFactor<float>& f, const LdlBlock<float>& blk, int step, int64_t p) {  \
+  void ldl32(const LdlFactor<float>& f, const LdlBlock<float>& blk, LdlStep step,           \
+             int64_t p) {                                                                   \
     ldl_step(f, blk, step, p);                                                              \
   }                                                                                         \
-  void ldl64(const LdlFactor<double>& f, const LdlBlock<double>& blk, int step, int64_t p) { \
+  void ldl64(const LdlFactor<double>& f, const LdlBlock<double>& blk, LdlStep step,         \
+             int64_t p) {                                                                   \
     ldl_step(f, blk, step, p);                                                              \
   }                                                                                         \
   void split32(const float* src, float* const* dst, int64_t nc, int64_t n) {                \

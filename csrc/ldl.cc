@@ -22,7 +22,7 @@ constexpr int64_t kMinWorkPerThread = int64_t{1} << 18;
 constexpr int64_t kMaxWidth = 64;
 
 template <typename T>
-void step(const LdlFactor<T>& f, const LdlBlock<T>& blk, int which, int64_t p) {
+void step(const LdlFactor<T>& f, const LdlBlock<T>& blk, LdlStep which, int64_t p) {
   constexpr bool f32 = std::is_same_v<T, float>;
   switch (cpu_isa()) {
 #if defined(__x86_64__)
@@ -62,12 +62,11 @@ void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads, const Schedule& 
   const int workers = static_cast<int>(
       std::max<int64_t>(1, std::min<int64_t>(threads, work / kMinWorkPerThread)));
   auto buffer = buffers<T>().take(static_cast<size_t>(rows * stride));
-  // A block's three steps before the next block's, while its rows are in the cache: each
-  // block's parts forward, its top, its parts backward.
+  // A block's steps before the next block's, while its rows are in the cache.
   for (int64_t i = 0; i < blocks; ++i) {
     const LdlBlock<T> blk{b, k, k * i / blocks, k * (i + 1) / blocks, stride, buffer.data.get()};
-    for (int which : {0, 1, 2}) {
-      const size_t units = which == 1 ? 1 : static_cast<size_t>(f.parts);
+    for (LdlStep which : {LdlStep::kPartForward, LdlStep::kTop, LdlStep::kPartBackward}) {
+      const size_t units = which == LdlStep::kTop ? 1 : static_cast<size_t>(f.parts);
       run_claimed<NoState>(units, workers, schedule, [&](size_t p, NoState&) {
         step(f, blk, which, static_cast<int64_t>(p));
       });

@@ -62,6 +62,10 @@ struct LdlBlock {
   }
 };
 
+// A block's steps, in this order: every part's forward step (at once), the top's steps, every
+// part's backward step (at once).
+enum class LdlStep { kPartForward, kTop, kPartBackward };
+
 // The first problem found in a factor's index arrays (`rows` of `num_rows` entries, blocks
 // adding up to `num_values`), or "" when it is sound: every later read stays in bounds and no
 // two parts write the same row.

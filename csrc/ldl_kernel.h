@@ -247,15 +247,17 @@ void ldl_part_backward(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t p)
   scatter_rows(f, blk, f.first[f.part_ptr[p]], f.first[f.part_ptr[p + 1]]);
 }
 
-// One of the three steps of a block: part p's forward (0), the top (1), part p's backward (2).
+// Part p's step of a block, or the top's (p unread).
 template <typename T>
-void ldl_step(const LdlFactor<T>& f, const LdlBlock<T>& blk, int step, int64_t p) {
-  if (step == 0)
-    ldl_part_forward(f, blk, p);
-  else if (step == 1)
-    ldl_top(f, blk);
-  else
-    ldl_part_backward(f, blk, p);
+void ldl_step(const LdlFactor<T>& f, const LdlBlock<T>& blk, LdlStep step, int64_t p) {
+  switch (step) {
+    case LdlStep::kPartForward:
+      return ldl_part_forward(f, blk, p);
+    case LdlStep::kTop:
+      return ldl_top(f, blk);
+    case LdlStep::kPartBackward:
+      return ldl_part_backward(f, blk, p);
+  }
 }
 
 }  // namespace OB_ISA

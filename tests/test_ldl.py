@@ -352,3 +352,17 @@ def test_the_solve_does_not_depend_on_the_threads(monkeypatch):
         x = b.copy()
         native.ldl_solve(*fac.arrays(single=True), x, threads)
         np.testing.assert_array_equal(x, want)
+
+
+@pytest.mark.parametrize("parts", ["2", "5"])
+def test_a_mesh_in_pieces_splits_and_solves(monkeypatch, parts):
+    """Two spheres and a patch: the elimination tree has three roots."""
+    monkeypatch.setenv(extension.THREADS_ENV, parts)
+    _, f = toy.icosphere(3)
+    n = int(f.max()) + 1
+    mesh = M.mesh_laplacian(np.concatenate([f, f + n, f[:4] + 2 * n]))
+    host = laplacian._Cholesky(np.asarray(mesh.neighbors), np.asarray(mesh.degree))
+    fac = host.factor(19.0)
+    assert len(fac.part_ptr) == int(parts) + 1
+    b = np.random.default_rng(6).normal(size=(fac.dinv.size, 5))
+    np.testing.assert_allclose(host._matrix(19.0) @ fac.solve(b), b, atol=1e-12)
