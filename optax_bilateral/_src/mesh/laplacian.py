@@ -459,7 +459,7 @@ class _Cholesky:
     """
 
     MAX_FACTORS = 4
-    MAX_PARTS = 8  # beyond this the top's share of the sweep outgrows what more threads save
+    MAX_PARTS = 8  # each part keeps its own copy of the top's rows in every solve's buffer
 
     def __init__(self, neighbors: np.ndarray, degree: np.ndarray):
         try:
