@@ -1,5 +1,5 @@
 // Units of work shared by the calling thread and its helpers, claimed one at a time: the
-// à-trous cascade's steps and the LDL solve's blocks of columns.
+// à-trous cascade's steps and the LDL solve's parts.
 #pragma once
 
 #include <algorithm>

@@ -1,4 +1,4 @@
-// The LDL^T solve's driver: the factor's checks, blocks of columns on threads, and the
+// The LDL^T solve's driver: the factor's checks, each block's parts on threads, and the
 // instruction set's build of the sweeps.
 #include "ldl.h"
 
