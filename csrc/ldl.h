@@ -1,5 +1,6 @@
 // Solves with a sparse LDL^T factor for many right-hand sides at once: the mesh smoothing's
-// M^-1 = (I + lambda L)^-1, factorised once per (mesh, lambda) by qdldl on the Python side.
+// M^-1 = (I + lambda L)^-1, factorised once per (mesh, lambda) by SciPy's SuperLU in METIS' order
+// on the Python side.
 //
 //   A = P (I + L) D (I + L)^T P^T,   P[perm[i], i] = 1,
 //

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <cstring>
 
 #include "ldl.h"
 
@@ -44,64 +45,134 @@ struct Supernode {
   const T* l(int64_t rho) const { return block + rho * s; }
 };
 
+// Four columns of a row as one vector: a narrow block's row (padded to 4). Written out, since
+// the compiler, left to vectorise G rows of 4 columns, packs them into one wide register with
+// shuffles between every multiply-add.
+template <typename T>
+struct Quad {
+  typedef T V __attribute__((vector_size(4 * sizeof(T))));
+  // By reference, not by value: a 32-byte vector passed by value changes the ABI without AVX.
+  static void load(V& v, const T* p) { std::memcpy(&v, p, sizeof(V)); }
+  static void store(T* p, const V& v) { std::memcpy(p, &v, sizeof(V)); }
+};
+
+// forward_rows on a narrow block's row of four columns.
+template <typename T, int64_t G>
+inline void forward_quad(const Supernode<T>& n, int64_t rho0, int64_t t0, int64_t t1, int64_t c0) {
+  using Q = Quad<T>;
+  typename Q::V acc[G];
+  T* y[G];
+  const T* l[G];
+  for (int64_t g = 0; g < G; ++g) {
+    y[g] = n.row(rho0 + g) + c0;
+    l[g] = n.l(rho0 + g);
+    Q::load(acc[g], y[g]);
+  }
+  for (int64_t t = t0; t < t1; ++t) {
+    typename Q::V x;
+    Q::load(x, n.zs + t * n.width + c0);
+    for (int64_t g = 0; g < G; ++g) acc[g] -= l[g][t] * x;
+  }
+  for (int64_t g = 0; g < G; ++g) Q::store(y[g], acc[g]);
+}
+
 // Forward, block rows rho0 .. rho0+G: y_rho[c0 .. c0+C) -= sum_{t0 <= t < t1} L[rho][t]
 // x_t[c0 .. c0+C), x_t row t of zs. C and G constants: the G x C sums stay in registers while
 // x_t streams from cache.
 template <typename T, int64_t C, int64_t G>
 inline void forward_rows(const Supernode<T>& n, int64_t rho0, int64_t t0, int64_t t1,
                          int64_t c0) {
-  T acc[G][C];
-  T* y[G];
-  const T* l[G];
-  for (int64_t g = 0; g < G; ++g) {
-    y[g] = n.row(rho0 + g) + c0;
-    l[g] = n.l(rho0 + g);
-    for (int64_t c = 0; c < C; ++c) acc[g][c] = y[g][c];
-  }
-  for (int64_t t = t0; t < t1; ++t) {
-    const T* x = n.zs + t * n.width + c0;
+  if constexpr (C == 4) {
+    forward_quad<T, G>(n, rho0, t0, t1, c0);
+  } else {
+    T acc[G][C];
+    T* y[G];
+    const T* l[G];
     for (int64_t g = 0; g < G; ++g) {
-      const T lt = l[g][t];
-      for (int64_t c = 0; c < C; ++c) acc[g][c] -= lt * x[c];
+      y[g] = n.row(rho0 + g) + c0;
+      l[g] = n.l(rho0 + g);
+      for (int64_t c = 0; c < C; ++c) acc[g][c] = y[g][c];
     }
+    for (int64_t t = t0; t < t1; ++t) {
+      const T* x = n.zs + t * n.width + c0;
+      for (int64_t g = 0; g < G; ++g) {
+        const T lt = l[g][t];
+        for (int64_t c = 0; c < C; ++c) acc[g][c] -= lt * x[c];
+      }
+    }
+    for (int64_t g = 0; g < G; ++g)
+      for (int64_t c = 0; c < C; ++c) y[g][c] = acc[g][c];
   }
-  for (int64_t g = 0; g < G; ++g)
-    for (int64_t c = 0; c < C; ++c) y[g][c] = acc[g][c];
+}
+
+// backward_rows on a narrow block's row of four columns.
+template <typename T, int64_t G>
+inline void backward_quad(const Supernode<T>& n, int64_t t0, int64_t rho0, int64_t c0) {
+  constexpr int64_t kW = G == 1 ? kWays : 1;
+  using Q = Quad<T>;
+  typename Q::V acc[kW][G] = {};
+  const int64_t end = n.s + n.r;
+  int64_t rho = rho0;
+  for (; rho + kW <= end; rho += kW)
+    for (int64_t w = 0; w < kW; ++w) {
+      typename Q::V y;
+      Q::load(y, n.row(rho + w) + c0);
+      const T* l = n.l(rho + w) + t0;
+      for (int64_t g = 0; g < G; ++g) acc[w][g] += l[g] * y;
+    }
+  for (; rho < end; ++rho) {
+    typename Q::V y;
+    Q::load(y, n.row(rho) + c0);
+    const T* l = n.l(rho) + t0;
+    for (int64_t g = 0; g < G; ++g) acc[0][g] += l[g] * y;
+  }
+  for (int64_t g = 0; g < G; ++g) {
+    typename Q::V sum = acc[0][g];
+    for (int64_t w = 1; w < kW; ++w) sum += acc[w][g];
+    T* x = n.zs + (t0 + g) * n.width + c0;
+    typename Q::V old;
+    Q::load(old, x);
+    Q::store(x, old - sum);
+  }
 }
 
 // Backward, into columns t0 .. t0+G of zs: x_t[c0 .. c0+C) -= sum_{rho0 <= rho < s + r}
 // L[rho][t] y_rho[c0 .. c0+C). With one column, kWays running sums over rho.
 template <typename T, int64_t C, int64_t G>
 inline void backward_rows(const Supernode<T>& n, int64_t t0, int64_t rho0, int64_t c0) {
-  constexpr int64_t kW = G == 1 ? kWays : 1;
-  T acc[kW][G][C] = {};
-  T* x[G];
-  for (int64_t g = 0; g < G; ++g) x[g] = n.zs + (t0 + g) * n.width + c0;
-  const int64_t end = n.s + n.r;
-  int64_t rho = rho0;
-  for (; rho + kW <= end; rho += kW)
-    for (int64_t w = 0; w < kW; ++w) {
-      const T* y = n.row(rho + w) + c0;
-      const T* l = n.l(rho + w) + t0;
+  if constexpr (C == 4) {
+    backward_quad<T, G>(n, t0, rho0, c0);
+  } else {
+    constexpr int64_t kW = G == 1 ? kWays : 1;
+    T acc[kW][G][C] = {};
+    T* x[G];
+    for (int64_t g = 0; g < G; ++g) x[g] = n.zs + (t0 + g) * n.width + c0;
+    const int64_t end = n.s + n.r;
+    int64_t rho = rho0;
+    for (; rho + kW <= end; rho += kW)
+      for (int64_t w = 0; w < kW; ++w) {
+        const T* y = n.row(rho + w) + c0;
+        const T* l = n.l(rho + w) + t0;
+        for (int64_t g = 0; g < G; ++g) {
+          const T lt = l[g];
+          for (int64_t c = 0; c < C; ++c) acc[w][g][c] += lt * y[c];
+        }
+      }
+    for (; rho < end; ++rho) {
+      const T* y = n.row(rho) + c0;
+      const T* l = n.l(rho) + t0;
       for (int64_t g = 0; g < G; ++g) {
         const T lt = l[g];
-        for (int64_t c = 0; c < C; ++c) acc[w][g][c] += lt * y[c];
+        for (int64_t c = 0; c < C; ++c) acc[0][g][c] += lt * y[c];
       }
     }
-  for (; rho < end; ++rho) {
-    const T* y = n.row(rho) + c0;
-    const T* l = n.l(rho) + t0;
-    for (int64_t g = 0; g < G; ++g) {
-      const T lt = l[g];
-      for (int64_t c = 0; c < C; ++c) acc[0][g][c] += lt * y[c];
-    }
+    for (int64_t g = 0; g < G; ++g)
+      for (int64_t c = 0; c < C; ++c) {
+        T sum = acc[0][g][c];
+        for (int64_t w = 1; w < kW; ++w) sum += acc[w][g][c];
+        x[g][c] -= sum;
+      }
   }
-  for (int64_t g = 0; g < G; ++g)
-    for (int64_t c = 0; c < C; ++c) {
-      T sum = acc[0][g][c];
-      for (int64_t w = 1; w < kW; ++w) sum += acc[w][g][c];
-      x[g][c] -= sum;
-    }
 }
 
 // Supernode n's forward step on columns c0 .. c0+C: its triangle, row groups after the columns
