@@ -191,9 +191,17 @@ def directions_of(normal_filter: NormalFilter) -> np.ndarray | None:
     return check_directions(directions)
 
 
-def _vmf(n, s, sigma, xp=jnp):
-    """``exp((max(n . s, -1) - 1) / sigma)``: the authors' clamp, shifted into (0, 1]."""
-    return xp.exp((xp.maximum(n @ s.T, -1.0) - 1.0) / sigma)
+def _cosines(n, s):
+    """``(U, K)`` dot products ``n_i . s_k``, the three products written out: XLA fuses them
+    into the exponentials that read them, where a dot of depth three is a library call of its
+    own."""
+    return n[:, 0, None] * s[:, 0] + n[:, 1, None] * s[:, 1] + n[:, 2, None] * s[:, 2]
+
+
+def _vmf(cosines, sigma, xp=jnp):
+    """``exp((max(n . s, -1) - 1) / sigma)`` from :func:`_cosines`: the authors' clamp,
+    shifted into (0, 1]."""
+    return xp.exp((xp.maximum(cosines, -1.0) - 1.0) / sigma)
 
 
 def _fibonacci_sphere(num: int) -> np.ndarray:
@@ -262,7 +270,8 @@ def _kernel_bases(directions, sigma_d, sigma_phi, tol, samples):
     if tol <= 0:
         return None
     normals = np.concatenate([_fibonacci_sphere(samples), np.zeros((1, 3))])
-    phi, w = _vmf(normals, s, sigma_phi, np), _vmf(normals, s, sigma_d, np)
+    cosines = _cosines(normals, s)
+    phi, w = _vmf(cosines, sigma_phi, np), _vmf(cosines, sigma_d, np)
     exact = phi @ w.T
     q_phi, r_phi = np.linalg.qr(phi)
     q_w, r_w = np.linalg.qr(w)
@@ -293,8 +302,8 @@ def _bilateral(host, graph, x, n, terms, widths, solve, x0):
     Returns the filtered ``(U, C)`` field and the diffused ``(U, r (C + 1))`` columns.
     """
     (s, bases), (sigma_d, sigma_phi) = terms, widths
-    w = _vmf(n, s, sigma_d)  # (U, K)
-    phi = _vmf(n, s, sigma_phi)
+    cosines = _cosines(n, s)  # (U, K)
+    w, phi = _vmf(cosines, sigma_d), _vmf(cosines, sigma_phi)
     if bases is not None:
         w, phi = w @ bases[0], phi @ bases[1]  # (U, r)
     num_v, num_dirs, channels = x.shape[0], w.shape[1], x.shape[1]
