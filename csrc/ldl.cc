@@ -53,22 +53,28 @@ SolveBuffers<T>& buffers() {
 struct NoState {};
 
 template <typename T>
-void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads, const Schedule& schedule) {
+void solve(const LdlFactor<T>& f, T* b, int64_t k, int threads, const Schedule& schedule,
+           LdlRows rows) {
   if (f.n == 0 || k == 0) return;
   const int64_t blocks = (k + kMaxWidth - 1) / kMaxWidth;
   const int64_t stride = std::max<int64_t>(4, (k + blocks - 1) / blocks);
-  const int64_t rows = f.n + f.parts * (f.n - f.top());
+  const bool in_place = rows == LdlRows::kFactor && blocks == 1 && stride == k;
+  const int64_t own = f.parts * (f.n - f.top()) * stride;
   const int64_t work = f.block_ptr[f.supernodes] * stride;
   const int workers = static_cast<int>(
       std::max<int64_t>(1, std::min<int64_t>(threads, work / kMinWorkPerThread)));
-  auto buffer = buffers<T>().take(static_cast<size_t>(rows * stride));
+  LdlFactor<T> g = f;
+  if (rows == LdlRows::kFactor) g.perm = nullptr;
+  auto buffer = buffers<T>().take(static_cast<size_t>(own + (in_place ? 0 : f.n * stride)));
+  T* base = buffer.data.get();
   // A block's steps before the next block's, while its rows are in the cache.
   for (int64_t i = 0; i < blocks; ++i) {
-    const LdlBlock<T> blk{b, k, k * i / blocks, k * (i + 1) / blocks, stride, buffer.data.get()};
+    const LdlBlock<T> blk{b,      k, k * i / blocks, k * (i + 1) / blocks, stride,
+                          in_place ? b : base + own, base};
     for (LdlStep which : {LdlStep::kPartForward, LdlStep::kTop, LdlStep::kPartBackward}) {
       const size_t units = which == LdlStep::kTop ? 1 : static_cast<size_t>(f.parts);
       run_claimed<NoState>(units, workers, schedule, [&](size_t p, NoState&) {
-        step(f, blk, which, static_cast<int64_t>(p));
+        step(g, blk, which, static_cast<int64_t>(p));
       });
     }
   }
@@ -179,12 +185,12 @@ std::shared_ptr<const StoredFactor> stored_factor(int64_t id) {
 }
 
 void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads,
-               const Schedule& schedule) {
-  solve(f, b, k, threads, schedule);
+               const Schedule& schedule, LdlRows rows) {
+  solve(f, b, k, threads, schedule, rows);
 }
 void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads,
-               const Schedule& schedule) {
-  solve(f, b, k, threads, schedule);
+               const Schedule& schedule, LdlRows rows) {
+  solve(f, b, k, threads, schedule, rows);
 }
 
 }  // namespace optax_bilateral

@@ -39,7 +39,8 @@ struct LdlFactor {
   // L[j0 + u, j0 + t] for t < u (the diagonal and above unread), then L[rows[i], j0 + t].
   const T* values = nullptr;
   const T* dinv = nullptr;        // (n) 1 / D
-  const int32_t* perm = nullptr;  // (n) a permutation of 0 .. n-1
+  const int32_t* perm = nullptr;  // (n) a permutation of 0 .. n-1; in a sweep, null: b's rows
+                                  // are in the factor's order
   // (parts + 1) part p is supernodes part_ptr[p] .. part_ptr[p+1]-1; the top is from
   // part_ptr[parts] to the last.
   int64_t parts = 0;
@@ -49,17 +50,24 @@ struct LdlFactor {
   int64_t top() const { return supernodes == 0 ? n : first[part_ptr[parts]]; }
 };
 
+// Where b's rows are: row i of b is row perm[i] of the caller's order (kCaller: the factor's
+// perm reads them), or b is already in the factor's order (kFactor: a block that is all of b's
+// columns is swept in b itself, with no working copy of its rows).
+enum class LdlRows { kCaller, kFactor };
+
 // The working rows of one block of columns c0 .. c1 of b (n, k): z holds the n rows in the
-// factor's order, then `parts` copies of the top's rows, `stride` values a row (the block's
-// width, narrow ones padded to 4).
+// factor's order (b itself where the block is swept in place), `stride` values a row (the
+// block's width, narrow ones padded to 4); `own` holds `parts` copies of the top's rows.
 template <typename T>
 struct LdlBlock {
   T* b;
   int64_t k, c0, c1, stride;
   T* z;
+  T* own;
 
+  bool in_place() const { return z == b; }
   T* part_rows(const LdlFactor<T>& f, int64_t p) const {
-    return z + (f.n + p * (f.n - f.top())) * stride;
+    return own + p * (f.n - f.top()) * stride;
   }
 };
 
@@ -132,13 +140,14 @@ class SolveBuffers {
 
 // b <- A^-1 b for b (n, k) row-major, on up to `threads` threads (helpers from `schedule`, or
 // threads of its own where it is empty): blocks of columns, each swept part by part, then its
-// top, then part by part again, in a working copy of its rows and of the top's rows once per
-// part (SolveBuffers, kept between calls). The sums' order does not depend on the threads.
-// The factor must have passed check_factor.
+// top, then part by part again, in a working copy of its rows (or in b: LdlRows::kFactor with
+// 4 to 64 columns) and of the top's rows once per part (SolveBuffers, kept between calls). The
+// sums' order depends neither on the threads nor on `rows`. The factor must have passed
+// check_factor.
 void ldl_solve(const LdlFactor<float>& f, float* b, int64_t k, int threads,
-               const Schedule& schedule = {});
+               const Schedule& schedule = {}, LdlRows rows = LdlRows::kCaller);
 void ldl_solve(const LdlFactor<double>& f, double* b, int64_t k, int threads,
-               const Schedule& schedule = {});
+               const Schedule& schedule = {}, LdlRows rows = LdlRows::kCaller);
 
 // A factor held by the extension, in both precisions, for XLA's calls to find by its id.
 struct StoredFactor {

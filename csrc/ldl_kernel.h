@@ -261,12 +261,20 @@ void sweep_range(const LdlFactor<T>& f, const LdlBlock<T>& blk, T* ztop, int64_t
     ldl_sweep<T, 0>(f, blk, ztop, top, k0, k1, forward);
 }
 
-// Rows j0 .. j1-1 of z from the block's columns of b (permuted; padding columns zero), or back.
+// Row i of b: perm[i], or i where b is in the factor's order (perm null).
+template <typename T>
+int64_t caller_row(const LdlFactor<T>& f, int64_t i) {
+  return f.perm == nullptr ? i : static_cast<int64_t>(f.perm[i]);
+}
+
+// Rows j0 .. j1-1 of z from the block's columns of b (permuted; padding columns zero), or back;
+// nothing where the block is swept in b itself.
 template <typename T>
 void gather_rows(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t j0, int64_t j1) {
+  if (blk.in_place()) return;
   const int64_t w = blk.c1 - blk.c0;
   for (int64_t i = j0; i < j1; ++i) {
-    const T* from = blk.b + static_cast<int64_t>(f.perm[i]) * blk.k + blk.c0;
+    const T* from = blk.b + caller_row(f, i) * blk.k + blk.c0;
     T* to = blk.z + i * blk.stride;
     for (int64_t c = 0; c < w; ++c) to[c] = from[c];
     for (int64_t c = w; c < blk.stride; ++c) to[c] = T(0);
@@ -275,10 +283,11 @@ void gather_rows(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t j0, int6
 
 template <typename T>
 void scatter_rows(const LdlFactor<T>& f, const LdlBlock<T>& blk, int64_t j0, int64_t j1) {
+  if (blk.in_place()) return;
   const int64_t w = blk.c1 - blk.c0;
   for (int64_t i = j0; i < j1; ++i) {
     const T* from = blk.z + i * blk.stride;
-    T* to = blk.b + static_cast<int64_t>(f.perm[i]) * blk.k + blk.c0;
+    T* to = blk.b + caller_row(f, i) * blk.k + blk.c0;
     for (int64_t c = 0; c < w; ++c) to[c] = from[c];
   }
 }

@@ -215,9 +215,10 @@ ffi::Error atrous_fields(ffi::ThreadPool pool, ffi::AnyBuffer guide, ffi::AnyBuf
   }
 }
 
-// b (n, k) -> A^-1 b with the stored factor `factor` (register_factor).
+// b (n, k) -> A^-1 b with the stored factor `factor` (register_factor); `ordered`: b's rows
+// are already in the factor's order (LdlRows::kFactor).
 ffi::Error ldl(ffi::ThreadPool pool, ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> out,
-               int64_t factor, int64_t threads) {
+               int64_t factor, int64_t threads, bool ordered) {
   const auto stored = ob::stored_factor(factor);
   if (!stored) return invalid("no factor is stored under id " + std::to_string(factor));
   const auto dims = b.dimensions();
@@ -232,17 +233,18 @@ ffi::Error ldl(ffi::ThreadPool pool, ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffe
   const ob::Schedule schedule = [&pool](std::function<void()> task) {
     pool.Schedule(std::move(task));
   };
+  const auto rows = ordered ? ob::LdlRows::kFactor : ob::LdlRows::kCaller;
   switch (b.element_type()) {
     case ffi::DataType::F32: {
       auto* x = static_cast<float*>(out->untyped_data());
       if (x != b.untyped_data()) std::memcpy(x, b.untyped_data(), bytes);
-      ob::ldl_solve(stored->view32(), x, k, static_cast<int>(threads), schedule);
+      ob::ldl_solve(stored->view32(), x, k, static_cast<int>(threads), schedule, rows);
       return ffi::Error::Success();
     }
     case ffi::DataType::F64: {
       auto* x = static_cast<double*>(out->untyped_data());
       if (x != b.untyped_data()) std::memcpy(x, b.untyped_data(), bytes);
-      ob::ldl_solve(stored->view64(), x, k, static_cast<int>(threads), schedule);
+      ob::ldl_solve(stored->view64(), x, k, static_cast<int>(threads), schedule, rows);
       return ffi::Error::Success();
     }
     default:
@@ -722,7 +724,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLdl, ldl,
                                   .Arg<ffi::AnyBuffer>()  // b (n, k)
                                   .Ret<ffi::AnyBuffer>()  // A^-1 b
                                   .Attr<int64_t>("factor")
-                                  .Attr<int64_t>("threads"));
+                                  .Attr<int64_t>("threads")
+                                  .Attr<bool>("ordered"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(OptaxBilateralLocalAverage, local_average,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::AnyBuffer>()  // x (*shape)
@@ -911,7 +914,7 @@ struct LdlArgs {
 };
 
 template <typename T>
-PyObject* ldl_typed(const LdlArgs& a, int threads) {
+PyObject* ldl_typed(const LdlArgs& a, int threads, ob::LdlRows order) {
   ob::LdlFactor<T> f;
   f.n = a.dinv.size();
   f.supernodes = a.first.size() - 1;
@@ -928,18 +931,18 @@ PyObject* ldl_typed(const LdlArgs& a, int threads) {
   if (!problem.empty()) return value_error(problem);
   const int64_t k = f.n == 0 ? 0 : a.b.size() / f.n;
   T* x = static_cast<T*>(a.b.data());
-  Py_BEGIN_ALLOW_THREADS ob::ldl_solve(f, x, k, threads);
+  Py_BEGIN_ALLOW_THREADS ob::ldl_solve(f, x, k, threads, {}, order);
   Py_END_ALLOW_THREADS Py_RETURN_NONE;
 }
 
-// ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b, threads): b (n,
-// k) <- A^-1 b in place (ldl.h).
+// ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b, threads,
+// ordered=False): b (n, k) <- A^-1 b in place (ldl.h); `ordered`: b's rows in the factor's order.
 PyObject* ldl_solve(PyObject*, PyObject* args) {
   PyObject *o_first, *o_row_ptr, *o_rows, *o_block_ptr, *o_values, *o_dinv, *o_perm, *o_parts,
       *o_b;
-  int threads = 1;
-  if (!PyArg_ParseTuple(args, "OOOOOOOOOi", &o_first, &o_row_ptr, &o_rows, &o_block_ptr,
-                        &o_values, &o_dinv, &o_perm, &o_parts, &o_b, &threads))
+  int threads = 1, ordered = 0;
+  if (!PyArg_ParseTuple(args, "OOOOOOOOOi|p", &o_first, &o_row_ptr, &o_rows, &o_block_ptr,
+                        &o_values, &o_dinv, &o_perm, &o_parts, &o_b, &threads, &ordered))
     return nullptr;
   const Buffer first(o_first, false, "first"), row_ptr(o_row_ptr, false, "row_ptr"),
       rows(o_rows, false, "rows"), block_ptr(o_block_ptr, false, "block_ptr"),
@@ -964,7 +967,8 @@ PyObject* ldl_solve(PyObject*, PyObject* args) {
     return value_error("b must be (n, k), n = len(dinv)");
   if (threads < 1) return value_error("threads must be >= 1");
   const LdlArgs a{first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b};
-  return t == 'f' ? ldl_typed<float>(a, threads) : ldl_typed<double>(a, threads);
+  const auto order = ordered ? ob::LdlRows::kFactor : ob::LdlRows::kCaller;
+  return t == 'f' ? ldl_typed<float>(a, threads, order) : ldl_typed<double>(a, threads, order);
 }
 
 template <typename T>
@@ -1028,8 +1032,9 @@ PyMethodDef methods[] = {
      "float64 factor (csrc/ldl.h), checked and kept for the process's life, for the XLA FFI target "
      "optax_bilateral_ldl (attribute factor=id)."},
     {"ldl_solve", ldl_solve, METH_VARARGS,
-     "ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b, threads): b "
-     "(n, k) <- A^-1 b in place, A = P (I + L) D (I + L)^T P^T, L by supernodes (csrc/ldl.h)."},
+     "ldl_solve(first, row_ptr, rows, block_ptr, values, dinv, perm, part_ptr, b, threads, "
+     "ordered=False): b (n, k) <- A^-1 b in place, A = P (I + L) D (I + L)^T P^T, L by "
+     "supernodes (csrc/ldl.h); ordered: b's rows are already in the factor's order."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native",

@@ -164,6 +164,20 @@ int check(const Factor& f, int64_t k, int threads, unsigned seed) {
       return 1;
     }
   }
+  // b already in the factor's order (swept in b itself where the columns are one block of 4 to
+  // 64): the same sums, so the same bits, row for row.
+  const size_t K = static_cast<size_t>(k);
+  std::vector<T> ordered(got.size());
+  for (size_t i = 0; i < static_cast<size_t>(f.n); ++i)
+    for (size_t c = 0; c < K; ++c) ordered[i * K + c] = given[static_cast<size_t>(f.perm[i]) * K + c];
+  ob::ldl_solve(lf, ordered.data(), k, threads, {}, ob::LdlRows::kFactor);
+  for (size_t i = 0; i < static_cast<size_t>(f.n); ++i)
+    if (K != 0 && std::memcmp(&ordered[i * K], &got[static_cast<size_t>(f.perm[i]) * K],
+                              K * sizeof(T)) != 0) {
+      std::printf("FAIL: n %lld k %lld threads %d: b in the factor's order changed row %zu\n",
+                  static_cast<long long>(f.n), static_cast<long long>(k), threads, i);
+      return 1;
+    }
   // The random factors are mildly conditioned: float32 keeps about 4 digits through the sweeps.
   const double tol = sizeof(T) == 4 ? 2e-3 : 1e-9;
   double worst = 0;

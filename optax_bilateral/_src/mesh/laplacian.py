@@ -363,6 +363,7 @@ class _Ordering(NamedTuple):
 
     perm: np.ndarray  # (U,) int32: the factor's row i is vertex perm[i]
     bounds: np.ndarray  # (parts + 1,) int64: the first column of each part, then the top's
+    inverse: np.ndarray  # (U,) int32: vertex v is the factor's row inverse[v]
 
 
 def _ldl(m, sparse: Any) -> tuple[Any, np.ndarray]:
@@ -396,7 +397,8 @@ def _ordering(pattern, parts: int, metis: Any, sparse: Any) -> _Ordering:
     label = _split(parent, counts + 8.0, parts)
     order = np.concatenate([np.flatnonzero(label == b) for b in range(parts + 1)])
     bounds = np.concatenate([[0], np.cumsum(np.bincount(label, minlength=parts + 1))[:-1]])
-    return _Ordering(nd[order].astype(np.int32), bounds.astype(np.int64))
+    perm = nd[order].astype(np.int32)
+    return _Ordering(perm, bounds.astype(np.int64), np.argsort(perm).astype(np.int32))
 
 
 def _split(parent: np.ndarray, weight: np.ndarray, parts: int) -> np.ndarray:
@@ -572,9 +574,23 @@ class _Pinned(NamedTuple):
     host: _Cholesky
     factor: int  # the extension's id
 
+    @property
+    def order(self) -> _Ordering:
+        order = self.host._order
+        assert order is not None  # set by the factor the extension holds
+        return order
 
-def _ffi_solve(factor: int, rhs):
-    """``M^-1 rhs`` by the extension's FFI target, in float32 for narrower floats."""
+
+def factor_order(host) -> _Ordering | None:
+    """The factor's order of the vertices where ``host`` (a :class:`System`'s) solves inside
+    XLA, whose solve then takes right-hand sides in that order (``solve_columns(...,
+    ordered=True)``) without a working copy of their rows; else None."""
+    return host.order if isinstance(host, _Pinned) else None
+
+
+def _ffi_solve(factor: int, rhs, ordered: bool = False):
+    """``M^-1 rhs`` by the extension's FFI target, in float32 for narrower floats; ``ordered``:
+    ``rhs``' rows are in the factor's order."""
     dtype = rhs.dtype
     work = rhs if dtype in (jnp.float32, jnp.float64) else rhs.astype(jnp.float32)
     call = jax.ffi.ffi_call(
@@ -583,16 +599,26 @@ def _ffi_solve(factor: int, rhs):
         vmap_method="sequential",
         input_output_aliases={0: 0},
     )
-    out = call(work, factor=np.int64(factor), threads=np.int64(extension.threads()))
+    out = call(
+        work, factor=np.int64(factor), threads=np.int64(extension.threads()), ordered=ordered
+    )
     return out.astype(dtype)
 
 
-def solve_columns(host, neighbors, degree, b, lambda_, tol, maxiter, x0):
+def solve_columns(host, neighbors, degree, b, lambda_, tol, maxiter, x0, ordered=False):
     """``(I + lambda L)^-1 b`` for ``b`` of shape ``(U, C)``; ``host`` None means CG, a
-    ``_Pinned`` factor the extension's FFI call, a ``_Cholesky`` a host callback."""
+    ``_Pinned`` factor the extension's FFI call, a ``_Cholesky`` a host callback.
+    ``ordered``: ``b``'s rows (and the solution's) are in the pinned factor's order
+    (:func:`factor_order`), so the extension sweeps them where they are."""
     matvec = lambda v: _matvec(neighbors, degree, lambda_, v)
+    if ordered and not isinstance(host, _Pinned):
+        raise ValueError("ordered right-hand sides need a factor the extension holds")
     if isinstance(host, _Pinned):
-        solve = lambda _, rhs: _ffi_solve(host.factor, rhs)
+        if ordered:
+            order = host.order
+            unordered = matvec
+            matvec = lambda v: unordered(v[order.inverse])[order.perm]
+        solve = lambda _, rhs: _ffi_solve(host.factor, rhs, ordered)
         return lax.custom_linear_solve(matvec, b, solve, symmetric=True)
     if host is not None:
 

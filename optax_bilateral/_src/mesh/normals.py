@@ -53,6 +53,7 @@ from optax_bilateral._src.mesh.laplacian import (
     MeshLaplacian,
     Positions,
     System,
+    factor_order,
     merge,
     solve_columns,
     spread,
@@ -302,6 +303,10 @@ def _bilateral(host, graph, x, n, terms, widths, solve, x0):
     Returns the filtered ``(U, C)`` field and the diffused ``(U, r (C + 1))`` columns.
     """
     (s, bases), (sigma_d, sigma_phi) = terms, widths
+    order = factor_order(host)
+    if order is not None:
+        # In the factor's order the extension sweeps the columns where XLA writes them.
+        x, n = x[order.perm], n[order.perm]
     cosines = _cosines(n, s)  # (U, K)
     w, phi = _vmf(cosines, sigma_d), _vmf(cosines, sigma_phi)
     if bases is not None:
@@ -312,13 +317,18 @@ def _bilateral(host, graph, x, n, terms, widths, solve, x0):
     (ones,) = numerics.materialize((jnp.concatenate([x, jnp.ones((num_v, 1), x.dtype)], 1),))
     rhs = (w[:, :, None] * ones[:, None, :]).reshape(num_v, num_dirs * (channels + 1))
     (neighbors, degree), (lambda_, tol, maxiter) = graph, solve
-    flat = solve_columns(host, neighbors, degree, rhs, lambda_, tol, maxiter, x0)
+    flat = solve_columns(
+        host, neighbors, degree, rhs, lambda_, tol, maxiter, x0, ordered=order is not None
+    )
     cols = flat.reshape(num_v, num_dirs, channels + 1)
     # The terms' sum written out, which XLA fuses into one loop (as a batched dot it did not).
     sliced = functools.reduce(operator.add, (phi[:, k, None] * cols[:, k] for k in range(num_dirs)))
     num, den = sliced[:, :channels], sliced[:, channels:]
     ok = den > jnp.finfo(x.dtype).tiny
-    return jnp.where(ok, num / jnp.where(ok, den, 1.0), x), flat
+    out = jnp.where(ok, num / jnp.where(ok, den, 1.0), x)
+    if order is not None:
+        return out[order.inverse], flat[order.inverse]
+    return out, flat
 
 
 _bilateral_jit = jax.jit(_bilateral, static_argnums=0)
