@@ -1,6 +1,7 @@
 """Triangle-mesh transforms (Large Steps, bilateral normal filter) and the toy mesh scene."""
 
 import dataclasses
+import functools
 import warnings
 
 import jax
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 
 import optax_bilateral as ob
 from optax_bilateral import triangle_mesh as M
+from optax_bilateral._src.mesh import laplacian
 from optax_bilateral.toy import triangle_mesh as toy
 
 LAM = 7.0
@@ -432,6 +434,29 @@ def test_cholesky_keeps_jit_grad_and_vmap(small):
     np.testing.assert_allclose(
         batched, [loss(a, verts, b) for a, b in zip(fields, lams)], rtol=1e-5
     )
+
+
+def test_a_known_lambda_filters_in_the_factors_order_with_grad_and_vmap(small):
+    """A concrete lambda pins the factor: the filter's columns are built and solved in its
+    order (``solve_columns(..., ordered=True)``). Grads w.r.t. the field and the vertices equal
+    the CG path's; vmap over fields equals a loop."""
+    mesh = small["mesh"]
+    assert laplacian.factor_order(laplacian.System.of(mesh, M.Cholesky(), LAM).host) is not None
+    field = jnp.asarray(_grads(small["v"], 1, seed=4)[0] * 10)
+    verts = jnp.asarray(cubified(small["v"]))
+    at_lam = {s: functools.partial(_filter_loss(small, s), lam=LAM) for s in ("cg", "cholesky")}
+    grads = {s: jax.jit(jax.value_and_grad(f, (0, 1)))(field, verts) for s, f in at_lam.items()}
+    program = jax.jit(jax.grad(at_lam["cholesky"])).lower(field, verts).as_text()
+    assert "optax_bilateral_ldl" in program and "ordered = true" in program
+    (v_cg, g_cg), (v_ch, g_ch) = grads["cg"], grads["cholesky"]
+    np.testing.assert_allclose(v_ch, v_cg, rtol=1e-4)
+    for a, b in zip(g_ch, g_cg):
+        assert np.all(np.isfinite(a)) and np.abs(b).max() > 0
+        np.testing.assert_allclose(a, b, atol=1e-4 * float(np.abs(b).max()))
+    loss = _filter_loss(small, "cholesky")
+    fields = jnp.stack([field, 2 * field + 1, -field])
+    batched = jax.jit(jax.vmap(lambda f: loss(f, verts, LAM)))(fields)
+    np.testing.assert_allclose(batched, [loss(f, verts, LAM) for f in fields], rtol=1e-5)
 
 
 def test_cholesky_lambda_gradient_matches_finite_difference(small):
