@@ -576,6 +576,7 @@ class _Pinned(NamedTuple):
 
     @property
     def order(self) -> _Ordering:
+        """The factor's order of the vertices (the mesh's, shared by every lambda's factor)."""
         order = self.host._order
         assert order is not None  # set by the factor the extension holds
         return order
