@@ -412,6 +412,16 @@ def _filter_loss(small, solver):
     return loss
 
 
+def _assert_matches_cg(grads):
+    """``{"cg": (value, grads), "cholesky": (value, grads)}`` agree: float32 CG at tol 1e-7
+    against a float64 factor, 1e-4 of each gradient's scale."""
+    (v_cg, g_cg), (v_ch, g_ch) = grads["cg"], grads["cholesky"]
+    np.testing.assert_allclose(v_ch, v_cg, rtol=1e-4)
+    for a, b in zip(g_ch, g_cg):
+        assert np.all(np.isfinite(a)) and np.abs(b).max() > 0
+        np.testing.assert_allclose(a, b, atol=1e-4 * float(np.abs(b).max()))
+
+
 def test_cholesky_keeps_jit_grad_and_vmap(small):
     """Grads w.r.t. the field, the vertices (through the normals) and lambda, under jit,
     equal the CG path's; vmap over fields and over lambdas equals a loop."""
@@ -421,12 +431,7 @@ def test_cholesky_keeps_jit_grad_and_vmap(small):
     for solver in ("cg", "cholesky"):
         f = jax.jit(jax.value_and_grad(_filter_loss(small, solver), argnums=(0, 1, 2)))
         grads[solver] = f(field, verts, jnp.float32(LAM))
-    (v_cg, g_cg), (v_ch, g_ch) = grads["cg"], grads["cholesky"]
-    # float32 CG at tol 1e-7 against a float64 factor: 1e-4 of each gradient's scale.
-    np.testing.assert_allclose(v_ch, v_cg, rtol=1e-4)
-    for a, b in zip(g_ch, g_cg):
-        assert np.all(np.isfinite(a)) and np.abs(b).max() > 0
-        np.testing.assert_allclose(a, b, atol=1e-4 * float(np.abs(b).max()))
+    _assert_matches_cg(grads)
     loss = _filter_loss(small, "cholesky")
     fields = jnp.stack([field, 2 * field + 1, -field])
     lams = jnp.asarray([1.0, LAM, 30.0], jnp.float32)
@@ -448,11 +453,7 @@ def test_a_known_lambda_filters_in_the_factors_order_with_grad_and_vmap(small):
     grads = {s: jax.jit(jax.value_and_grad(f, (0, 1)))(field, verts) for s, f in at_lam.items()}
     program = jax.jit(jax.grad(at_lam["cholesky"])).lower(field, verts).as_text()
     assert "optax_bilateral_ldl" in program and "ordered = true" in program
-    (v_cg, g_cg), (v_ch, g_ch) = grads["cg"], grads["cholesky"]
-    np.testing.assert_allclose(v_ch, v_cg, rtol=1e-4)
-    for a, b in zip(g_ch, g_cg):
-        assert np.all(np.isfinite(a)) and np.abs(b).max() > 0
-        np.testing.assert_allclose(a, b, atol=1e-4 * float(np.abs(b).max()))
+    _assert_matches_cg(grads)
     loss = _filter_loss(small, "cholesky")
     fields = jnp.stack([field, 2 * field + 1, -field])
     batched = jax.jit(jax.vmap(lambda f: loss(f, verts, LAM)))(fields)
