@@ -162,6 +162,19 @@ def test_hausdorff_distance_to_the_rounded_cube(mi):
     target = E.rounded_cube(16, cfg.half, cfg.radius)
     assert np.abs(E.rounded_cube_sdf(target[0], cfg.half, cfg.radius)).max() < 1e-6
     assert E.hausdorff(*target, target, cfg) < 0.05
+    # Target -> mesh is the distance to the mesh's triangles, not to its samples: a finer mesh
+    # on the same surface is within its triangles' sag (sampled, ~0.023 at 10242 vertices).
+    fine, finer = E.rounded_cube(32, cfg.half, cfg.radius), E.rounded_cube(48, cfg.half, cfg.radius)
+    assert E.hausdorff(*fine, finer, cfg) < 0.006
+    # A square shifted off the target square by 0.01 along its normal is 0.01 away, both ways.
+    square = (
+        np.array([[-1.0, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]),
+        np.array([[0, 1, 2], [0, 2, 3]]),
+    )
+    lifted = square[0] + [0, 0, 0.01], square[1]
+    assert E.hausdorff(*lifted, square, cfg, sdf=lambda p: p[:, 2]) == pytest.approx(
+        0.01, abs=1e-12
+    )
     sphere, faces = toy.icosphere(8, radius=2.0)
     corner = np.sqrt(3) * (cfg.half - cfg.radius) + cfg.radius
     assert E.hausdorff(sphere, faces, target, cfg) == pytest.approx(2.0 - cfg.half, abs=0.01)

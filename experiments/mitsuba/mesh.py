@@ -210,16 +210,24 @@ def rounded_cube(frequency: int, half: float, radius: float) -> tuple[np.ndarray
 
 def hausdorff(vertices, faces, target, cfg: Config, seed: int = 0, sdf=None) -> float:
     """Symmetric Hausdorff distance between a mesh and a target (``target`` its mesh, ``sdf``
-    its signed distance; default the rounded cube's)."""
-    from scipy.spatial import KDTree
+    its signed distance; default the rounded cube's).
+
+    Mesh -> target: ``|sdf|`` at the mesh's vertices and ``cfg.samples`` points on its
+    triangles. Target -> mesh: the exact distance (libigl's point-to-triangle query) from
+    the target mesh's vertices and as many points on its triangles to the mesh's surface,
+    not to the mesh's samples, whose gaps alone would read as ~0.023 for a mesh of 10242
+    vertices lying on the rounded cube.
+    """
+    import igl
 
     sdf = sdf or target_sdf("rounded_cube", cfg)
     rng = np.random.default_rng(seed)
+    vertices = np.asarray(vertices, np.float64)
     a = np.concatenate([toy.sample_surface(vertices, faces, cfg.samples, rng), vertices])
     mesh_to_target = np.abs(sdf(a)).max()
-    b = toy.sample_surface(*target, cfg.samples, rng)
-    target_to_mesh = KDTree(a).query(b)[0].max()
-    return float(max(mesh_to_target, target_to_mesh))
+    b = np.concatenate([toy.sample_surface(*target, cfg.samples, rng), target[0]])
+    squared, _, _ = igl.point_mesh_squared_distance(b, vertices, np.asarray(faces, np.int64))
+    return float(max(mesh_to_target, np.sqrt(squared.max())))
 
 
 # ----------------------------------------------------------------------------- scene
