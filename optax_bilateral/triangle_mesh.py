@@ -28,6 +28,7 @@ from optax_bilateral._src.mesh.config import (
     PREFILTERS,
     SOLVERS,
     Cholesky,
+    DensityWidth,
     NormalFilter,
 )
 from optax_bilateral._src.mesh.laplacian import MeshLaplacian, mesh_laplacian, smoothing_solve
@@ -60,6 +61,7 @@ __all__ = (
     "PREFILTERS",
     "SOLVERS",
     "Cholesky",
+    "DensityWidth",
     "MeshLaplacian",
     "MeshPostfilterState",
     "NormalFilter",

@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import math
 import warnings
 
 import jax
@@ -547,6 +548,59 @@ def test_welded_seam_does_not_open_and_equals_the_closed_mesh(small):
         np.testing.assert_allclose(np.asarray(xb)[: len(v)], xa, atol=1e-6)
         # Not welded: the two halves are separate meshes and the seam opens.
         assert np.abs(np.asarray(xc)[len(v) :] - np.asarray(xc)[loop]).max() > 1e-4
+
+
+def test_density_width_grows_with_the_vertex_count_between_its_bounds():
+    rule = M.DensityWidth()
+    assert M.NormalFilter().sigma_d == rule and hash(M.NormalFilter()) == hash(M.NormalFilter())
+    assert rule.width(1) == rule.width(2562) == 0.5
+    assert rule.width(4 * 2562) == pytest.approx(1.0, rel=1e-15)
+    assert rule.width(16 * 2562) == rule.width(10**9) == 2.0
+    counts = np.unique(np.geomspace(1, 10**7, 300).astype(int))
+    assert np.all(np.diff([rule.width(int(n)) for n in counts]) >= 0)
+    fixed = M.DensityWidth(sigma_d=0.25, vertices=100, largest=0.25)
+    assert {fixed.width(n) for n in (1, 100, 10**6)} == {0.25}
+    for kw, error in (
+        (dict(sigma_d=0.0), ValueError),
+        (dict(sigma_d=math.inf), ValueError),
+        (dict(sigma_d=math.nan), TypeError),
+        (dict(vertices=0), ValueError),
+        (dict(vertices=2562.0), TypeError),
+        (dict(largest=0.4), ValueError),
+        (dict(largest=math.inf), ValueError),
+    ):
+        with pytest.raises(error, match=next(iter(kw))):
+            M.DensityWidth(**kw)
+
+
+def test_the_default_width_is_the_rules_on_the_meshs_distinct_vertices():
+    # A welded seam adds rows (V) but no vertices (U): the width follows U.
+    v, f = toy.icosphere(20)
+    v2, f2, _ = seam_mesh(cubified(v), f)
+    welded = M.mesh_laplacian(f2, weld_positions=v2)
+    assert welded.num_merged == len(v) == 4002 and welded.num_vertices > 4002
+    normals = M.vertex_normals(jnp.asarray(v2), f2)
+    x = jnp.asarray(np.random.default_rng(0).standard_normal((len(v2), 3)), jnp.float32)
+
+    def filtered(sigma_d):
+        data_term = M.NormalFilter(sigma_d, directions=8)
+        (out,) = M.bilateral_normal_filter([x], normals, welded, lambda_=LAM, sigma_d=data_term)
+        return np.asarray(out)
+
+    rule = M.DensityWidth()
+    by_rule = filtered(rule)
+    assert rule.width(len(v)) == pytest.approx(0.625, rel=1e-3)
+    np.testing.assert_array_equal(by_rule, filtered(rule.width(len(v))))
+    assert np.abs(by_rule - filtered(rule.width(welded.num_vertices))).max() > 1e-6
+    assert np.abs(by_rule - filtered(M.DEFAULT_NORMAL_SIGMA_D)).max() > 1e-4
+    # The transforms' default is the rule.
+    default = M.bilateral_large_steps(0.02, welded, LAM, solver=M.CG(tol=1e-7))
+    explicit = M.bilateral_large_steps(
+        0.02, welded, LAM, M.NormalFilter(rule.width(len(v))), solver=M.CG(tol=1e-7)
+    )
+    x0 = jnp.asarray(v2)
+    updates = [tx.update(x, tx.init(x0), x0)[0] for tx in (default, explicit)]
+    np.testing.assert_array_equal(*updates)
 
 
 def test_update_accepts_extra_args_and_pytrees(small):

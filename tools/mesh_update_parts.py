@@ -5,10 +5,11 @@ their parts, jitted, on the mesh experiment's vertex counts (issue #55, "profile
 
 For icosphere meshes pushed onto the mesh experiment's rounded cube (10 f^2 + 2 vertices, f =
 16, 32 and 64: 2562, 10242 and 40962 vertices) and each solver, the median milliseconds of: the
-whole jitted update of ``bilateral_large_steps`` (the defaults: the 32 directions' kernel in 16
-terms, the prefilter ``M^-1 g``, ``postfilter_v="uniform"``) and of ``large_steps``; and of
-their parts, ``smoothing_solve`` (``M^-1`` on 3 columns) and ``bilateral_normal_filter`` (``B``
-on one 3-channel field: a solve of 16 x 4 columns). Then the solves alone, on the host,
+whole jitted update of ``bilateral_large_steps`` (the defaults: ``DensityWidth``'s splat
+width, 0.5 / ~1 / 2 at the three counts, and the 32 directions' kernel in 16 / 9 / 8 terms;
+the prefilter ``M^-1 g``, ``postfilter_v="uniform"``) and of ``large_steps``; and of their
+parts, ``smoothing_solve`` (``M^-1`` on 3 columns) and ``bilateral_normal_filter`` (``B`` on
+one 3-channel field: a solve of 4 columns a term). Then the solves alone, on the host,
 float32, with 3, 64 and 128 columns (``kernel_tol=0``'s 32 x 4): ``solver="cholesky"``'s
 factor (SuperLU in METIS' order) swept by the extension, and CHOLMOD through cholespy
 (Mitsuba's Large Steps' solver, float64), with the seconds each takes to factorise. Writes

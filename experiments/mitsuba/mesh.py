@@ -24,8 +24,9 @@ Methods, at the same lambda and learning rate:
   and every iteration ``params[key] = ls.from_differential(opt["u"])`` before the render
   (CHOLMOD through cholespy).
 * ``bilateral``: the paper's mesh variant, ``optax_bilateral.triangle_mesh.
-  bilateral_large_steps(lr, mesh, lambda_, NormalFilter(sigma_d, sigma_phi),
-  solver="cholesky")`` driving
+  bilateral_large_steps(lr, mesh, lambda_, NormalFilter(sigma_phi=sigma_phi),
+  solver="cholesky")`` (the splat width the library's default, ``DensityWidth``: 0.5 at 2562
+  vertices, ~1 at 10242, 2 at 40962) driving
   the mesh's ``vertex_positions`` through ``OptaxOptimizer(..., shapes={key: (-1, 3)})``:
   ``opt[key] = params[key]``, ``params.update(opt)`` (one key, the scene's own).
 * ``bilateral, K directions`` (``--directions K``): the same with ``NormalFilter(...,
@@ -34,12 +35,12 @@ Methods, at the same lambda and learning rate:
   kernel_tol=T)``; ``0`` is the authors' form, every direction its own term (the solve takes
   ``4 K`` columns; the default tolerance 0.02 holds the 32 directions' kernel in 16 terms,
   64 columns).
-* ``bilateral, sigma_d S`` (``--sigma-d S``): the same with the splat width ``S`` (not 0.5;
-  ``inf`` is Large Steps' ``B = M^-1``): the search for the best-tuned filter.
+* ``bilateral, sigma_d S`` (``--sigma-d S``): the same with the fixed splat width ``S``
+  (``inf`` is Large Steps' ``B = M^-1``): the search for the best-tuned filter.
 
 Geometry error: the symmetric Hausdorff distance to the target (the distance of the mesh's
 surface samples to the target's signed distance function, exact for the rounded cube and to
-first order for the bumpy box; the target's surface samples to the nearest mesh sample).
+first order for the bumpy box; the target's surface samples to the mesh's triangles).
 All runs at one vertex count advance together, one iteration of each in turn, each timed
 (:func:`experiments.mitsuba.runner.run_interleaved`). Outputs in ``--out`` (default
 ``results/mitsuba_mesh``): per target and vertex count a folder with ``summary.json``,
@@ -99,7 +100,7 @@ class Config:
     eval_spp: int
     lambda_: float
     learning_rates: tuple
-    sigma_d: float = 0.5
+    sigma_d: float | None = None  # ours' splat width; None: the library's DensityWidth
     sigma_phi: float = 0.4
     targets: tuple = TARGETS
     half: float = 0.6  # the cubes' half side
@@ -111,7 +112,7 @@ class Config:
     samples: int = 20000  # Hausdorff surface samples on each side
     directions: tuple = ()  # ours again with these many normal-filter directions (not 32)
     kernel_tols: tuple = ()  # ours again with these NormalFilter kernel_tol (not 0.02)
-    sigma_ds: tuple = ()  # ours again with these splat widths sigma_d (not 0.5)
+    sigma_ds: tuple = ()  # ours again with these fixed splat widths sigma_d
     seeds: tuple = (0,)  # every vertex count once per seed of the renders' noise
     record_every: int = 10
 
@@ -429,6 +430,19 @@ class LargeStepsRun(MeshRun):
         return {KEY: np.array(self.ls.from_differential(self.opt["u"]))}
 
 
+def filter_fields(cfg: Config, vertices: int | None = None) -> dict:
+    """Ours' ``NormalFilter`` fields from ``cfg`` (``sigma_d`` only where fixed), or with
+    ``vertices`` the widths as recorded: the default's width on that mesh."""
+    import optax_bilateral.triangle_mesh as obm
+
+    fields = {"sigma_phi": cfg.sigma_phi}
+    if cfg.sigma_d is not None:
+        return fields | {"sigma_d": cfg.sigma_d}
+    if vertices is None:
+        return fields
+    return fields | {"sigma_d": obm.NormalFilter().on_mesh(vertices).sigma_d}
+
+
 class BilateralRun(MeshRun):
     """The drop-in loop: ``OptaxOptimizer`` on the scene's own ``vertex_positions``; the normal
     filter's ``fields`` (``directions``, ``kernel_tol``) as given, the defaults otherwise."""
@@ -444,7 +458,7 @@ class BilateralRun(MeshRun):
             lr,
             obm.mesh_laplacian(problem.faces),
             lambda_,
-            obm.NormalFilter(**({"sigma_d": cfg.sigma_d, "sigma_phi": cfg.sigma_phi} | fields)),
+            obm.NormalFilter(**(filter_fields(cfg) | fields)),
             solver="cholesky",
         )
         self.opt = OptaxOptimizer(transform, shapes={KEY: (-1, 3)})
@@ -484,7 +498,7 @@ def run_vertex_count(
         return runner.Entry(
             f"{method}[lr={lr:g}]",
             {"learning_rate": lr, "lambda": cfg.lambda_}
-            | ({"sigma_d": cfg.sigma_d, "sigma_phi": cfg.sigma_phi} | fields if ours else {}),
+            | (filter_fields(cfg, len(problem.init)) | fields if ours else {}),
             functools.partial(make, problem, lr, cfg.lambda_),
         )
 
@@ -673,7 +687,8 @@ def _options(parser) -> None:
         dest="sigma_ds",
         type=float,
         nargs="+",
-        help="also run ours with these splat widths sigma_d (the default is 0.5; inf: B = M^-1)",
+        help="also run ours with these fixed splat widths sigma_d (the default picks it from the "
+        "vertex count, DensityWidth; inf: B = M^-1)",
     )
 
 

@@ -10,7 +10,7 @@ import optax
 
 from optax_bilateral._src.mesh.config import (
     DEFAULT_LAMBDA,
-    DEFAULT_NORMAL_SIGMA_D,
+    DEFAULT_WIDTH,
     FILTER_FIELDS,
     PREFILTERS,
     SOLVER_FIELDS,
@@ -109,7 +109,7 @@ def bilateral_large_steps(
     learning_rate: optax.ScalarOrSchedule,
     faces: Faces,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_WIDTH,
     b1: jax.typing.ArrayLike = 0.9,
     b2: jax.typing.ArrayLike = 0.999,
     eps: jax.typing.ArrayLike = 1e-8,
@@ -145,8 +145,10 @@ def bilateral_large_steps(
         :func:`mesh_laplacian`).
       lambda_: smoothing weight ``>= 0`` of ``M = I + lambda L`` (default 19, the
         authors'; may be traced).
-      sigma_d: splat width on normals (``> 0``, default 0.5, the paper's; ``inf`` gives
-        :func:`large_steps`; may be traced), or a :class:`NormalFilter` that also sets the
+      sigma_d: splat width on normals (``> 0``; ``inf`` gives :func:`large_steps`; may be
+        traced), a :class:`DensityWidth` that picks it from the mesh's vertex count (the
+        default: the paper's 0.5 up to 2562 vertices, ``0.5 sqrt(V / 2562)`` above, at most
+        2), or a :class:`NormalFilter` that also sets the
         slice width ``sigma_phi`` (0.4, the authors'), the ``directions`` (32 Lloyd-relaxed
         Sobol directions; needs SciPy) and the ``normals`` (``"area"``; ``"uniform"`` is
         the authors').

@@ -13,6 +13,7 @@ work for one release, with a ``DeprecationWarning`` naming the field
 from __future__ import annotations
 
 import dataclasses
+import math
 import numbers
 import warnings
 from collections.abc import Callable
@@ -36,6 +37,12 @@ DEFAULT_LAMBDA = 19.0
 # code splats with sigma_d and slices with sigma_phi = 0.4.
 DEFAULT_NORMAL_SIGMA_D = 0.5
 """The default splat width ``sigma_d`` on normals of the mesh filter (supplement §3)."""
+# The splat width grows with the mesh from here: the paper's 0.5 at the coarsest mesh
+# measured, 2 (the widest measured) at 40962 vertices (docs/triangle_mesh.md).
+DENSITY_VERTICES = 2562
+"""Where :class:`DensityWidth` starts widening the splat: an icosphere of frequency 16."""
+DENSITY_LARGEST = 2.0
+"""The widest splat :class:`DensityWidth` picks (reached at 16x ``DENSITY_VERTICES``)."""
 DEFAULT_SIGMA_PHI = 0.4
 """The default slice width ``sigma_phi`` on normals (the authors' code)."""
 # "A few dozen" directions (the authors' n_filter_samples); a power of two keeps Sobol's balance.
@@ -51,6 +58,46 @@ DEFAULT_TOL = 1e-4
 """The default CG tolerance: relative residual per right-hand side."""
 DEFAULT_MAXITER = 2000
 """The default cap on CG iterations per solve."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DensityWidth:
+    """The splat width ``sigma_d`` chosen from the mesh (the default of :class:`NormalFilter`).
+
+    ``clip(sigma_d * sqrt(U / vertices), sigma_d, largest)``, ``U`` the mesh's distinct
+    vertices: ``sigma_d`` up to ``vertices``, then growing as the edges shrink. The same noise
+    in the positions tilts a finer mesh's normals more (about the noise over the edge
+    length), so a fixed width stops the smoothing at more vertices that are not on an edge;
+    a sharp edge still turns the normals by its full angle. Measured on a round-edged and a
+    sharp-edged target at 2562, 10242 and 40962 vertices (docs/triangle_mesh.md). Hashable.
+
+    Attributes:
+      sigma_d: the width up to ``vertices`` (``> 0``, finite; default 0.5, the paper's).
+      vertices: the count where the width starts growing (an int ``>= 1``; default 2562).
+      largest: the widest it gets (``>= sigma_d``, finite; default 2, the widest measured).
+
+    Example::
+
+        >>> from optax_bilateral import triangle_mesh as obm
+        >>> rule = obm.DensityWidth()
+        >>> [rule.width(v) for v in (642, 2562, 10242, 40962, 163842)]
+        [0.5, 0.5, 0.99..., 1.99..., 2.0]
+    """
+
+    sigma_d: float = DEFAULT_NORMAL_SIGMA_D
+    vertices: int = DENSITY_VERTICES
+    largest: float = DENSITY_LARGEST
+
+    def __post_init__(self):
+        check_number(self, "sigma_d", low=0, high=math.inf, low_open=True, high_open=True)
+        check_integer(self, "vertices", low=1)
+        check_number(self, "largest", low=self.sigma_d, high=math.inf, high_open=True)
+
+    def width(self, num_vertices: int) -> float:
+        """The splat width on a mesh of ``num_vertices`` distinct vertices."""
+        grown = self.sigma_d * math.sqrt(num_vertices / self.vertices)
+        return min(max(grown, self.sigma_d), self.largest)
+
 
 SolverName = Literal["cg", "cholesky"]
 NormalWeighting = Literal["area", "uniform", "angle"]
@@ -90,7 +137,8 @@ class NormalFilter:
 
     Attributes:
       sigma_d: splat width on normals (``> 0``; ``inf``: every weight 1, Large Steps'
-        ``B = M^-1``). Default 0.5, the paper's.
+        ``B = M^-1``), or a :class:`DensityWidth` that picks it from the mesh (the default:
+        the paper's 0.5 up to 2562 vertices, wider on finer meshes, 2 from 40962).
       sigma_phi: slice width (``> 0``). Default 0.4, the authors'.
       directions: an int (that many Lloyd-relaxed Sobol directions,
         :func:`sphere_directions`, which needs SciPy) or a ``(K, 3)`` array of unit vectors
@@ -118,14 +166,15 @@ class NormalFilter:
         >>> opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=data_term)
     """
 
-    sigma_d: jax.typing.ArrayLike = DEFAULT_NORMAL_SIGMA_D
+    sigma_d: jax.typing.ArrayLike | DensityWidth = DensityWidth()
     sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI
     directions: Directions = DEFAULT_DIRECTIONS
     normals: Normals = "area"
     kernel_tol: float = DEFAULT_KERNEL_TOL
 
     def __post_init__(self):
-        check_positive(self.sigma_d, "sigma_d", "inf turns its weights off")
+        if not isinstance(self.sigma_d, DensityWidth):
+            check_positive(self.sigma_d, "sigma_d", "inf turns its weights off")
         check_positive(self.sigma_phi, "sigma_phi", "inf turns its weights off")
         # Below 1 the compressed kernel stays positive (B non-negative); past 1/2 it would
         # be another filter, not the directions' one.
@@ -144,9 +193,16 @@ class NormalFilter:
     @property
     def is_large_steps(self) -> bool:
         """``sigma_d`` is a concrete ``inf``: ``B = M^-1``, the directions unused."""
-        if not is_concrete(self.sigma_d):
+        if isinstance(self.sigma_d, DensityWidth) or not is_concrete(self.sigma_d):
             return False
         return bool(np.isinf(np.asarray(self.sigma_d)))
+
+    def on_mesh(self, num_vertices: int) -> NormalFilter:
+        """This filter on a mesh of ``num_vertices`` distinct vertices: a
+        :class:`DensityWidth` replaced by its width there."""
+        if not isinstance(self.sigma_d, DensityWidth):
+            return self
+        return dataclasses.replace(self, sigma_d=self.sigma_d.width(num_vertices))
 
 
 def check_directions(directions) -> np.ndarray:
@@ -223,8 +279,11 @@ class Cholesky:
 LinearSolver: TypeAlias = CG | Cholesky
 SolverSetting: TypeAlias = "SolverName | LinearSolver"
 """A transform's ``solver``: ``"cg"``, ``"cholesky"``, or a :class:`CG` or :class:`Cholesky`."""
-FilterSetting: TypeAlias = "float | Array | NormalFilter"
-"""A transform's ``sigma_d``: the splat width on normals, or a whole :class:`NormalFilter`."""
+FilterSetting: TypeAlias = "float | Array | DensityWidth | NormalFilter"
+"""A transform's ``sigma_d``: the splat width on normals, a rule that picks it from the mesh
+(:class:`DensityWidth`), or a whole :class:`NormalFilter`."""
+DEFAULT_WIDTH = DensityWidth()
+"""The transforms' default ``sigma_d``: the splat width from the mesh's vertex count."""
 
 
 def as_solver(solver: SolverSetting) -> LinearSolver:

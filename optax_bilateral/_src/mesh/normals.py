@@ -35,7 +35,7 @@ from optax_bilateral._src import numerics
 from optax_bilateral._src.mesh.config import (
     DEFAULT_DIRECTIONS,
     DEFAULT_LAMBDA,
-    DEFAULT_NORMAL_SIGMA_D,
+    DEFAULT_WIDTH,
     NORMALS,
     FilterSetting,
     NormalFilter,
@@ -345,6 +345,7 @@ class Operator(NamedTuple):
 
     @classmethod
     def of(cls, system: System, normal_filter: NormalFilter) -> Operator:
+        normal_filter = normal_filter.on_mesh(system.mesh.num_merged)
         s = directions_of(normal_filter)
         sigma_d, sigma_phi = normal_filter.sigma_d, normal_filter.sigma_phi
         bases = None
@@ -407,7 +408,7 @@ def bilateral_normal_filter(
     mesh: MeshLaplacian,
     *,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_WIDTH,
     solver: SolverSetting = "cg",
     **deprecated: Any,
 ) -> list[jax.Array]:
@@ -431,9 +432,10 @@ def bilateral_normal_filter(
       normals: ``(V, 3)`` unit vertex normals (the guide).
       mesh: a :class:`MeshLaplacian`.
       lambda_: smoothing weight ``>= 0`` (may be traced).
-      sigma_d: splat width ``> 0``, ``inf`` for Large Steps (may be traced), or a
-        :class:`NormalFilter` (``sigma_d``, ``sigma_phi``, ``directions``; its ``normals``
-        is not read, the normals are given). Default 0.5, with ``sigma_phi`` 0.4 and 32
+      sigma_d: splat width ``> 0``, ``inf`` for Large Steps (may be traced), a
+        :class:`DensityWidth` (the default: 0.5 up to 2562 vertices, wider on finer meshes),
+        or a :class:`NormalFilter` (``sigma_d``, ``sigma_phi``, ``directions``; its
+        ``normals`` is not read, the normals are given). By default ``sigma_phi`` 0.4 and 32
         directions.
       solver: ``"cg"``, ``"cholesky"``, a :class:`CG` or a :class:`Cholesky`; see
         :func:`smoothing_solve`.

@@ -30,7 +30,7 @@ from optax_bilateral._src import numerics
 from optax_bilateral._src.mesh.config import (
     CG,
     DEFAULT_LAMBDA,
-    DEFAULT_NORMAL_SIGMA_D,
+    DEFAULT_WIDTH,
     FILTER_FIELDS,
     POSTFILTERS_V,
     SOLVER_FIELDS,
@@ -236,7 +236,7 @@ def _needs_params(name: str) -> ValueError:
 def bilateral_smoothing(
     faces: Faces,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_WIDTH,
     *,
     solver: SolverSetting = "cg",
     **deprecated: Any,
@@ -253,9 +253,11 @@ def bilateral_smoothing(
       faces: ``(F, 3)`` int triangles or a :class:`MeshLaplacian`.
       lambda_: smoothing weight ``>= 0`` of ``M = I + lambda L`` (default 19; may be
         traced).
-      sigma_d: splat width on normals (``> 0``, default 0.5; ``inf`` = no data term; may
-        be traced), or a :class:`NormalFilter` (with ``sigma_phi``, ``directions`` and
-        ``normals``; by default 0.4, 32 Sobol directions, area-weighted normals).
+      sigma_d: splat width on normals (``> 0``; ``inf`` = no data term; may be traced), a
+        :class:`DensityWidth` that picks it from the mesh (the default: 0.5 up to 2562
+        vertices, wider on finer meshes), or a :class:`NormalFilter` (with ``sigma_phi``,
+        ``directions`` and ``normals``; by default 0.4, 32 Sobol directions, area-weighted
+        normals).
       solver: ``"cg"``, ``"cholesky"``, a :class:`CG` or a :class:`Cholesky`; see
         :func:`smoothing_solve`.
       **deprecated: ``sigma_phi``, ``directions``, ``normals`` (fields of
@@ -344,7 +346,7 @@ class MeshPostfilterState(NamedTuple):
 def mesh_postfilter(
     faces: Faces,
     lambda_: jax.typing.ArrayLike = DEFAULT_LAMBDA,
-    sigma_d: FilterSetting = DEFAULT_NORMAL_SIGMA_D,
+    sigma_d: FilterSetting = DEFAULT_WIDTH,
     b1: jax.typing.ArrayLike = 0.9,
     b2: jax.typing.ArrayLike = 0.999,
     eps: jax.typing.ArrayLike = 1e-8,
@@ -371,8 +373,9 @@ def mesh_postfilter(
       lambda_: smoothing weight of ``M = I + lambda L`` (may be traced). The authors'
         ``compute_matrix(alpha=lambda/(1+lambda))`` is ``M / (1 + lambda)``
         (docs/triangle_mesh.md maps the two).
-      sigma_d: splat width on normals (``> 0``, ``inf`` = Large Steps; may be traced), or
-        a :class:`NormalFilter` (with ``sigma_phi``, the authors' 0.4 by default,
+      sigma_d: splat width on normals (``> 0``, ``inf`` = Large Steps; may be traced), a
+        :class:`DensityWidth` (the default: from the mesh's vertex count), or a
+        :class:`NormalFilter` (with ``sigma_phi``, the authors' 0.4 by default,
         ``directions`` and ``normals``).
       b1: Adam's first-moment decay rate (Large Steps uses 0.9).
       b2: Adam's second-moment decay rate (Large Steps uses 0.999).
