@@ -147,8 +147,8 @@ def bilateral_large_steps(
         authors'; may be traced).
       sigma_d: splat width on normals (``> 0``; ``inf`` gives :func:`large_steps`; may be
         traced), a :class:`DensityWidth` that picks it from the mesh's vertex count (the
-        default: the paper's 0.5 up to 2562 vertices, ``0.5 sqrt(V / 2562)`` above, at most
-        2), or a :class:`NormalFilter` that also sets the
+        default: the paper's 0.5 up to 2562 vertices, ``0.5 sqrt(U / 2562)`` above for ``U``
+        distinct vertices, at most 2), or a :class:`NormalFilter` that also sets the
         slice width ``sigma_phi`` (0.4, the authors'), the ``directions`` (32 Lloyd-relaxed
         Sobol directions; needs SciPy) and the ``normals`` (``"area"``; ``"uniform"`` is
         the authors').

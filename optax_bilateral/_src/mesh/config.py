@@ -36,7 +36,8 @@ DEFAULT_LAMBDA = 19.0
 # The paper's default data term (supplement §3: "sigma_d around 0.5"); the authors'
 # code splats with sigma_d and slices with sigma_phi = 0.4.
 DEFAULT_NORMAL_SIGMA_D = 0.5
-"""The default splat width ``sigma_d`` on normals of the mesh filter (supplement §3)."""
+"""The paper's splat width ``sigma_d`` on normals (supplement §3): the default
+:class:`DensityWidth`'s up to 2562 vertices."""
 # The splat width grows with the mesh from here: the paper's 0.5 at the coarsest mesh
 # measured, 2 (the widest measured) at 40962 vertices (docs/triangle_mesh.md).
 DENSITY_VERTICES = 2562

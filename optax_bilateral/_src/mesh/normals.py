@@ -345,6 +345,7 @@ class Operator(NamedTuple):
 
     @classmethod
     def of(cls, system: System, normal_filter: NormalFilter) -> Operator:
+        # A welded seam's copies are rows, not a finer mesh: the distinct vertices set the width.
         normal_filter = normal_filter.on_mesh(system.mesh.num_merged)
         s = directions_of(normal_filter)
         sigma_d, sigma_phi = normal_filter.sigma_d, normal_filter.sigma_phi
