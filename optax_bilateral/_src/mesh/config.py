@@ -100,6 +100,10 @@ class DensityWidth:
         return min(max(grown, self.sigma_d), self.largest)
 
 
+DEFAULT_WIDTH = DensityWidth()
+"""The default ``sigma_d`` (of :class:`NormalFilter` and the transforms): the splat width
+from the mesh's vertex count."""
+
 SolverName = Literal["cg", "cholesky"]
 NormalWeighting = Literal["area", "uniform", "angle"]
 Prefilter = Literal["smooth", "bilateral", "off"]
@@ -167,7 +171,7 @@ class NormalFilter:
         >>> opt = obm.bilateral_large_steps(1e-2, faces, lambda_=19.0, sigma_d=data_term)
     """
 
-    sigma_d: jax.typing.ArrayLike | DensityWidth = DensityWidth()
+    sigma_d: jax.typing.ArrayLike | DensityWidth = DEFAULT_WIDTH
     sigma_phi: jax.typing.ArrayLike = DEFAULT_SIGMA_PHI
     directions: Directions = DEFAULT_DIRECTIONS
     normals: Normals = "area"
@@ -283,8 +287,6 @@ SolverSetting: TypeAlias = "SolverName | LinearSolver"
 FilterSetting: TypeAlias = "float | Array | DensityWidth | NormalFilter"
 """A transform's ``sigma_d``: the splat width on normals, a rule that picks it from the mesh
 (:class:`DensityWidth`), or a whole :class:`NormalFilter`."""
-DEFAULT_WIDTH = DensityWidth()
-"""The transforms' default ``sigma_d``: the splat width from the mesh's vertex count."""
 
 
 def as_solver(solver: SolverSetting) -> LinearSolver:
